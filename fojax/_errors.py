@@ -1,0 +1,166 @@
+"""Typed errors raised by fojax.
+
+Every error carries the numbers that made the check fail, so that a caller can
+inspect them programmatically, and a message that names the offending matrix
+(or condition) and says what to change.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class FojaxError(Exception):
+    """Base class of every error raised on purpose by fojax."""
+
+
+# --------------------------------------------------------------------------- input
+
+
+class InputError(FojaxError, ValueError):
+    """Bad user input (shape, dtype, value). Subclass of `ValueError`."""
+
+
+class ShapeError(InputError):
+    """A matrix or vector has the wrong shape.
+
+    Attributes `name`, `expected` and `actual` hold what was checked.
+    """
+
+    def __init__(self, name: str, expected: Any, actual: Any, hint: str = ""):
+        self.name = name
+        self.expected = expected
+        self.actual = actual
+        msg = f"{name} has shape {actual}, expected {expected}."
+        if hint:
+            msg += " " + hint
+        super().__init__(msg)
+
+
+class NonFiniteError(InputError):
+    """A matrix contains NaN or infinite entries."""
+
+    def __init__(self, name: str, count: int, first_index: tuple[int, ...] | None = None):
+        self.name = name
+        self.count = count
+        self.first_index = first_index
+        where = f" (first at index {first_index})" if first_index is not None else ""
+        super().__init__(
+            f"{name} contains {count} non-finite (NaN or inf) entries{where}; "
+            "every matrix entry must be a finite number."
+        )
+
+
+class Float64RequiredError(InputError):
+    """fojax computes in float64 and refuses to silently return float32 results."""
+
+
+class IrregularSystemError(InputError):
+    """The pencil sE - A is singular for every s (no unique solution exists)."""
+
+
+class ImpulsiveSystemError(InputError):
+    """The system is regular but not impulse-free (index > 1)."""
+
+
+class InconsistentInitialConditionError(InputError):
+    """x0 violates the algebraic constraints and strict consistency was requested."""
+
+    def __init__(self, residual: float, tol: float):
+        self.residual = residual
+        self.tol = tol
+        super().__init__(
+            f"x0 violates the algebraic constraints by {residual:.3e} (tolerance {tol:.1e}). "
+            "Pass a consistent x0, or call with strict=False to project x0 onto the "
+            "constraint set (the projection distance is reported in Solution.stats)."
+        )
+
+
+class RegionError(InputError):
+    """An LMI region was specified with invalid parameters."""
+
+
+# --------------------------------------------------------------------------- design
+
+
+class ExistenceConditionError(FojaxError, ValueError):
+    """A necessary condition for the existence of the requested observer fails.
+
+    Attributes:
+        condition: short name of the failing condition (e.g. ``"functional observability"``).
+        lhs, rhs: the two numbers compared (usually ranks), when applicable.
+        suggestion: what the user can change.
+    """
+
+    def __init__(
+        self,
+        condition: str,
+        detail: str,
+        suggestion: str,
+        lhs: Any = None,
+        rhs: Any = None,
+    ):
+        self.condition = condition
+        self.detail = detail
+        self.suggestion = suggestion
+        self.lhs = lhs
+        self.rhs = rhs
+        super().__init__(f"{condition} fails: {detail} {suggestion}")
+
+
+class FunctionalObservabilityError(ExistenceConditionError):
+    """Assumption 1: rank [L; E; E⊥A; C] != rank [E; E⊥A; C]."""
+
+
+class RankConditionError(ExistenceConditionError):
+    """A rank condition of the parameterization fails (rank [Σ; TA] or rank [Σ; L])."""
+
+
+class DetectabilityError(ExistenceConditionError):
+    """The pair (𝔸2, 𝔸1) is not detectable (Lemma 8 / Remark 3)."""
+
+
+class ImpulseObservabilityError(ExistenceConditionError):
+    """Assumption 2 (Takagi–Sugeno): rank [E; E⊥A_i; C] != n for some rule."""
+
+
+class LMIInfeasibleError(FojaxError, RuntimeError):
+    """The LMI solver did not return status ``optimal``.
+
+    Attributes:
+        status: the solver status string (e.g. ``"infeasible"``, ``"optimal_inaccurate"``).
+        problem: a short name of the LMI that was solved.
+        info: extra numbers (solver name, iterations, residuals) when available.
+    """
+
+    def __init__(self, problem: str, status: str, info: dict | None = None, hint: str = ""):
+        self.problem = problem
+        self.status = status
+        self.info = dict(info or {})
+        msg = f"LMI '{problem}' was not solved: solver status '{status}'."
+        if status == "optimal_inaccurate":
+            msg += " fojax never accepts 'optimal_inaccurate' results."
+        if hint:
+            msg += " " + hint
+        super().__init__(msg)
+
+
+class DesignVerificationError(FojaxError, RuntimeError):
+    """A design failed its float64 verification (residuals, eigenvalues or LMI margin).
+
+    Attribute `report` holds the full verification report.
+    """
+
+    def __init__(self, message: str, report: Any = None):
+        self.report = report
+        super().__init__(message)
+
+
+class ConfigError(InputError):
+    """A configuration file is malformed. The message names the file and the key."""
+
+    def __init__(self, file: str | None, key: str, message: str):
+        self.file = file
+        self.key = key
+        where = f"{file}: " if file else ""
+        super().__init__(f"{where}[{key}] {message}")

@@ -1,0 +1,124 @@
+"""Rank-revealing linear algebra with one documented tolerance.
+
+Host (NumPy) versions are used by analysis and design code outside jit; JAX
+versions (prefix ``j``) are traceable and differentiable where the rank is fixed.
+
+**Rank tolerance.** A singular value ``s`` counts as non-zero when
+``s > max(rtol * s_max, atol)`` with ``rtol = RANK_RTOL = 1e-10`` and
+``atol = RANK_ATOL = 1e-12``. The relative part makes decisions independent of the
+overall scale of a matrix; the absolute floor makes a matrix of round-off
+(e.g. ``1e-17``) count as zero. Both can be overridden per call with ``tol=``
+(an absolute threshold).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+
+RANK_RTOL = 1e-10
+RANK_ATOL = 1e-12
+
+
+def _threshold(s: np.ndarray, tol: float | None) -> float:
+    if tol is not None:
+        return float(tol)
+    smax = float(s[0]) if s.size else 0.0
+    return max(RANK_RTOL * smax, RANK_ATOL)
+
+
+def rank(M, tol: float | None = None) -> int:
+    """Numerical rank of `M` (0 for empty matrices)."""
+    M = np.asarray(M, dtype=float)
+    if M.size == 0:
+        return 0
+    s = np.linalg.svd(M, compute_uv=False)
+    return int(np.sum(s > _threshold(s, tol)))
+
+
+def left_null_space(M, tol: float | None = None) -> np.ndarray:
+    """Orthonormal rows `N` with ``N @ M = 0`` spanning the left null space of `M`.
+
+    For an ``(r, c)`` matrix of rank ``k`` the result is ``(r - k, r)``; an empty
+    ``(0, r)`` array when `M` has full row rank.
+    """
+    M = np.asarray(M, dtype=float)
+    r = M.shape[0]
+    if M.size == 0:
+        return np.eye(r)
+    U, s, _ = np.linalg.svd(M, full_matrices=True)
+    k = int(np.sum(s > _threshold(s, tol)))
+    return U[:, k:].T.copy()
+
+
+def null_space(M, tol: float | None = None) -> np.ndarray:
+    """Orthonormal columns `V` with ``M @ V = 0`` (``(c, c - k)``)."""
+    M = np.asarray(M, dtype=float)
+    c = M.shape[1]
+    if M.size == 0:
+        return np.eye(c)
+    _, s, Vt = np.linalg.svd(M, full_matrices=True)
+    k = int(np.sum(s > _threshold(s, tol)))
+    return Vt[k:].T.copy()
+
+
+def row_space(M, tol: float | None = None) -> np.ndarray:
+    """Orthonormal rows spanning the row space of `M` (``(k, c)``)."""
+    M = np.asarray(M, dtype=float)
+    c = M.shape[1]
+    if M.size == 0:
+        return np.zeros((0, c))
+    _, s, Vt = np.linalg.svd(M, full_matrices=False)
+    k = int(np.sum(s > _threshold(s, tol)))
+    return Vt[:k].copy()
+
+
+def pinv(M, tol: float | None = None) -> np.ndarray:
+    """Moore–Penrose pseudo-inverse with the fojax rank tolerance."""
+    M = np.asarray(M, dtype=float)
+    if M.size == 0:
+        return np.zeros(M.shape[::-1])
+    U, s, Vt = np.linalg.svd(M, full_matrices=False)
+    keep = s > _threshold(s, tol)
+    sinv = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+    return (Vt.T * sinv) @ U.T
+
+
+def in_row_space(X, M, tol: float = 1e-9) -> tuple[bool, float]:
+    """Whether the rows of `X` lie in the row space of `M`.
+
+    Returns ``(ok, residual)`` with ``residual = ‖X (I - M⁺M)‖ / max(1, ‖X‖)``.
+    """
+    X = np.asarray(X, dtype=float)
+    M = np.asarray(M, dtype=float)
+    if X.size == 0:
+        return True, 0.0
+    res = X - X @ pinv(M) @ M
+    r = float(np.linalg.norm(res, 2)) / max(1.0, float(np.linalg.norm(X, 2)))
+    return r <= tol, r
+
+
+def perp(M, tol: float | None = None) -> np.ndarray:
+    """The thesis's ``M⊥``: a maximal-row-rank matrix with ``M⊥ M = 0`` (orthonormal rows)."""
+    return left_null_space(M, tol)
+
+
+# ------------------------------------------------------------------ JAX (traceable)
+
+
+def jpinv(M, rtol: float = RANK_RTOL):
+    """Traceable pseudo-inverse (``jnp.linalg.pinv`` with fojax's relative tolerance).
+
+    Differentiable wherever the numerical rank of `M` does not change.
+    """
+    if M.size == 0:
+        return jnp.zeros(M.shape[::-1], dtype=M.dtype)
+    return jnp.linalg.pinv(M, rtol=rtol)
+
+
+def jsqrtm_psd(S):
+    """Symmetric square root of a symmetric positive (semi)definite matrix, traceable."""
+    S = 0.5 * (S + S.T)
+    w, V = jnp.linalg.eigh(S)
+    return (V * jnp.sqrt(jnp.clip(w, 0.0))) @ V.T

@@ -1,0 +1,6 @@
+"""Observer modules: the thesis's matrices under the thesis's names."""
+
+from ._base import (
+    AbstractObserver as AbstractObserver,
+    LinearObserverMatrices as LinearObserverMatrices,
+)

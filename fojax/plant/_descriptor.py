@@ -1,0 +1,185 @@
+"""Linear time-invariant descriptor systems."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._dtype import as_matrix
+from .._errors import ShapeError
+from ._base import AbstractPlant
+
+
+class DescriptorSystem(AbstractPlant):
+    r"""A linear descriptor system
+
+    $$E\dot x(t) = A x(t) + B u(t), \qquad y(t) = C x(t),$$
+
+    with $x \in \mathbb{R}^n$, $u \in \mathbb{R}^m$, $y \in \mathbb{R}^p$ and $E$ possibly
+    singular. The matrices are the module's leaves (so a batch of systems is one
+    `DescriptorSystem` whose leaves carry a leading batch axis under `jax.vmap`);
+    the dimensions are derived from their shapes.
+
+    **Arguments:**
+
+    - `E`, `A`: ``(n, n)`` matrices.
+    - `B`: ``(n, m)``; omit (or ``None``) for an autonomous system (``m = 0``).
+    - `C`: ``(p, n)``; omit for full-state output ``C = I``.
+
+    Validation happens at construction: shapes must agree (each mismatch raises
+    `fojax.ShapeError` naming the matrix, the expected and the actual shape),
+    entries must be finite (`fojax.NonFiniteError`) and float64 must be available
+    (`fojax.Float64RequiredError`, see the README on enabling 64-bit JAX).
+
+    There is no feedthrough term: the thesis's outputs are ``y = Cx``; sensor faults
+    enter through the fault augmentation (`fojax.augment_faults`).
+
+    !!! example
+
+        ```python
+        sys = fojax.DescriptorSystem(E, A, B, C)
+        sys.n, sys.m, sys.p
+        fojax.finite_poles(sys)
+        ```
+    """
+
+    E: Float[Array, "n n"]
+    A: Float[Array, "n n"]
+    B: Float[Array, "n m"]
+    C: Float[Array, "p n"]
+
+    linear_in_state: ClassVar[bool] = True
+
+    def __init__(self, E, A, B=None, C=None):
+        E = as_matrix("E", E)
+        n = E.shape[0]
+        if E.shape[1] != n:
+            raise ShapeError("E", (n, n), tuple(E.shape), "E must be square (n, n).")
+        A = as_matrix("A", A)
+        if A.shape != (n, n):
+            raise ShapeError(
+                "A", (n, n), tuple(A.shape), f"A must be square and match E, which is ({n}, {n})."
+            )
+        if B is None:
+            B = jnp.zeros((n, 0))
+        B = as_matrix("B", B, rows=n, hint=f"B needs one row per state (n = {n}).")
+        if C is None:
+            C = jnp.eye(n)
+        C = as_matrix("C", C, cols=n, hint=f"C needs one column per state (n = {n}).")
+        self.E, self.A, self.B, self.C = E, A, B, C
+
+    @property
+    def m(self) -> int:
+        return self.B.shape[-1]
+
+    @property
+    def p(self) -> int:
+        return self.C.shape[-2]
+
+    def rhs(self, t, x, u):
+        return self.A @ x + self.B @ u
+
+    def output(self, t, x, u):
+        return self.C @ x
+
+    @classmethod
+    def from_state_space(cls, A, B=None, C=None) -> DescriptorSystem:
+        r"""The standard system $\dot x = Ax + Bu$, $y = Cx$ as a descriptor system with $E = I$."""
+        A = as_matrix("A", A)
+        return cls(jnp.eye(A.shape[0]), A, B, C)
+
+    def replace(self, **matrices) -> DescriptorSystem:
+        """A copy with some matrices replaced (validated again)."""
+        kw = dict(E=self.E, A=self.A, B=self.B, C=self.C)
+        unknown = set(matrices) - set(kw)
+        if unknown:
+            raise TypeError(f"unknown matrices {sorted(unknown)}; expected some of E, A, B, C")
+        kw.update(matrices)
+        return DescriptorSystem(**kw)
+
+    def __repr__(self) -> str:  # short: the matrices are printed by `print(sys.A)`.
+        return f"DescriptorSystem(n={self.n}, m={self.m}, p={self.p}, rank E={_rank_or_q(self.E)})"
+
+
+def _rank_or_q(E) -> str:
+    try:
+        from .._linalg import rank
+
+        return str(rank(E))
+    except Exception:  # traced values
+        return "?"
+
+
+
+def augment_faults(sys: DescriptorSystem, Fa=None, Fs=None, *, ramp: bool = False) -> DescriptorSystem:
+    r"""Augment a descriptor system with its faults as extra states (thesis eq. 3.196).
+
+    For
+
+    $$E\dot x = Ax + Bu + F_a f, \qquad y = Cx + F_s f,$$
+
+    with constant faults ($\dot f = 0$) the augmented state is $\chi = [x; f]$ and
+
+    $$\mathbf E = \begin{bmatrix}E&0\\0&I\end{bmatrix},\;
+      \mathbf A = \begin{bmatrix}A&F_a\\0&0\end{bmatrix},\;
+      \mathbf B = \begin{bmatrix}B\\0\end{bmatrix},\;
+      \mathbf C = [C\;\;F_s].$$
+
+    With `ramp=True` (Remark 9: $\ddot f = 0$) the state is $[x; f; \dot f]$ and
+    $\tfrac{d}{dt}f = \dot f$, $\tfrac{d}{dt}\dot f = 0$.
+
+    **Arguments:**
+
+    - `sys`: the fault-free system.
+    - `Fa`: ``(n, n_f)`` actuator/process fault directions (``None``: zeros).
+    - `Fs`: ``(p, n_f)`` sensor fault directions (``None``: zeros).
+      At least one of `Fa`, `Fs` must be given; both must have the same ``n_f``.
+
+    **Returns:** the augmented `DescriptorSystem` with ``n + n_f`` (or ``n + 2 n_f``) states.
+    """
+    n, m, p = sys.n, sys.m, sys.p
+    if Fa is None and Fs is None:
+        raise ShapeError("Fa/Fs", "at least one fault matrix", "none", "Pass Fa=, Fs= or both.")
+    if Fa is not None:
+        Fa = as_matrix("Fa", Fa, rows=n, hint=f"Fa needs one row per state (n = {n}).")
+    if Fs is not None:
+        Fs = as_matrix("Fs", Fs, rows=p, hint=f"Fs needs one row per output (p = {p}).")
+    nf = (Fa if Fa is not None else Fs).shape[1]
+    if Fa is None:
+        Fa = jnp.zeros((n, nf))
+    if Fs is None:
+        Fs = jnp.zeros((p, nf))
+    if Fa.shape[1] != Fs.shape[1]:
+        raise ShapeError(
+            "Fs", (p, Fa.shape[1]), tuple(Fs.shape), "Fa and Fs must have the same number of faults."
+        )
+    Z = jnp.zeros
+    if not ramp:
+        E = jnp.block([[sys.E, Z((n, nf))], [Z((nf, n)), jnp.eye(nf)]])
+        A = jnp.block([[sys.A, Fa], [Z((nf, n)), Z((nf, nf))]])
+        B = jnp.concatenate([sys.B, Z((nf, m))], axis=0)
+        C = jnp.concatenate([sys.C, Fs], axis=1)
+    else:
+        E = jnp.block(
+            [
+                [sys.E, Z((n, 2 * nf))],
+                [Z((2 * nf, n)), jnp.eye(2 * nf)],
+            ]
+        )
+        A = jnp.block(
+            [
+                [sys.A, Fa, Z((n, nf))],
+                [Z((nf, n)), Z((nf, nf)), jnp.eye(nf)],
+                [Z((nf, n)), Z((nf, nf)), Z((nf, nf))],
+            ]
+        )
+        B = jnp.concatenate([sys.B, Z((2 * nf, m))], axis=0)
+        C = jnp.concatenate([sys.C, Fs, Z((p, nf))], axis=1)
+    return DescriptorSystem(E, A, B, C)
+
+
+def check_functional(sys: AbstractPlant, L, name: str = "L"):
+    """Validate a functional matrix ``L`` of shape ``(q, n)``; returns it as float64."""
+    return as_matrix(name, L, cols=sys.n, hint=f"{name} needs one column per state (n = {sys.n}).")
