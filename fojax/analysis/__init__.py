@@ -1,0 +1,65 @@
+r"""Structural analysis of descriptor systems $E\dot x = Ax + Bu$, $y = Cx$ (thesis §2.1.2).
+
+**Host-only functions** (NumPy/SciPy: SVD rank decisions, QZ; cvxpy/SCS for the LMI
+certificate) must be called outside `jax.jit`/`jax.vmap`: `e_perp`, `is_regular`,
+`finite_poles`, `nilpotency_index`, `is_impulse_free`, `is_stable`, `is_admissible`,
+`weierstrass_form`, `admissibility_certificate`, the observability/controllability
+predicates, `is_functionally_observable` and `structure_report`.
+
+**JAX-traceable screens** (raw matrices, continuous margins, for vmapping over many
+uncertain samples): `impulse_free_margin`, `slow_matrix_index1`,
+`stability_margin_index1`, `functional_observability_gap`, `regularity_margin_at`,
+`regular_at`.
+
+**Rank tolerance.** Every rank decision uses the fojax rule of `fojax._linalg`: a
+singular value counts when it exceeds ``max(RANK_RTOL * s_max, RANK_ATOL)`` with
+``RANK_RTOL = 1e-10``, ``RANK_ATOL = 1e-12`` — applied to matrices whose blocks
+``E``, ``A``, ``B``, ``C`` (and ``L``) have first been divided by their spectral norms.
+Each host function accepts ``tol=`` (an absolute threshold on those normalised
+matrices) to override it. Stability uses a separate imaginary-axis tolerance
+``AXIS_TOL = 1e-9`` (see `is_stable`).
+
+**Singular pencils.** `is_regular`, `is_admissible` (answers ``False``),
+`is_functionally_observable`, `e_perp` and `structure_report` accept them; every
+other host function raises `fojax.IrregularSystemError` with an explanation.
+"""
+
+from ._certificate import (
+    admissibility_certificate as admissibility_certificate,
+    AdmissibilityCertificate as AdmissibilityCertificate,
+)
+from ._observability import (
+    is_c_controllable as is_c_controllable,
+    is_c_observable as is_c_observable,
+    is_detectable as is_detectable,
+    is_functionally_observable as is_functionally_observable,
+    is_i_controllable as is_i_controllable,
+    is_i_observable as is_i_observable,
+    is_impulse_controllable as is_impulse_controllable,
+    is_impulse_observable as is_impulse_observable,
+    is_r_controllable as is_r_controllable,
+    is_r_observable as is_r_observable,
+    is_s_controllable as is_s_controllable,
+    is_s_observable as is_s_observable,
+    is_stabilizable as is_stabilizable,
+)
+from ._pencil import (
+    AXIS_TOL as AXIS_TOL,
+    e_perp as e_perp,
+    finite_poles as finite_poles,
+    is_admissible as is_admissible,
+    is_impulse_free as is_impulse_free,
+    is_regular as is_regular,
+    is_stable as is_stable,
+    nilpotency_index as nilpotency_index,
+)
+from ._report import structure_report as structure_report, StructureReport as StructureReport
+from ._traced import (
+    functional_observability_gap as functional_observability_gap,
+    impulse_free_margin as impulse_free_margin,
+    regular_at as regular_at,
+    regularity_margin_at as regularity_margin_at,
+    slow_matrix_index1 as slow_matrix_index1,
+    stability_margin_index1 as stability_margin_index1,
+)
+from ._weierstrass import weierstrass_form as weierstrass_form, WeierstrassForm as WeierstrassForm

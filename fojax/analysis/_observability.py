@@ -1,0 +1,302 @@
+r"""Observability and controllability notions of regular descriptor systems (Dai 1989).
+
+All functions are **host-only** (rank tests with SVD, poles with QZ) and need a
+`fojax.DescriptorSystem` (they use ``C`` and/or ``B``). They are defined for regular
+systems only and raise `fojax.IrregularSystemError` for a singular pencil, except
+`is_functionally_observable`, which is a pure rank condition.
+
+Rank tests (each on the normalised matrices ``E/‖E‖``, ``A/‖A‖``, ``B/‖B‖``,
+``C/‖C‖``, with the fojax rank tolerance ``max(RANK_RTOL * s_max, RANK_ATOL)`` or the
+absolute `tol`):
+
+| notion | observability | controllability (dual) |
+|---|---|---|
+| R | $\mathrm{rank}\begin{bmatrix}sE-A\\C\end{bmatrix}=n$ at every finite pole | $\mathrm{rank}[sE-A,\;B]=n$ at every finite pole |
+| I | $\mathrm{rank}\begin{bmatrix}E&A\\0&E\\0&C\end{bmatrix}=n+\mathrm{rank}E$ | $\mathrm{rank}\begin{bmatrix}E&0&0\\A&E&B\end{bmatrix}=n+\mathrm{rank}E$ |
+| C | R and $\mathrm{rank}\begin{bmatrix}E\\C\end{bmatrix}=n$ | R and $\mathrm{rank}[E,\;B]=n$ |
+| S | R and I | R and I |
+
+C ⇒ S ⇒ R. The "at every finite pole" tests are evaluated at the computed poles *and*
+at the mean of every cluster of nearby poles (defective poles are computed only to
+$O(\epsilon^{1/k})$, their cluster mean to $O(\epsilon)$); a rank drop at any of these
+points counts.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._linalg import left_null_space, rank
+from ..plant import check_functional, DescriptorSystem
+from ._common import as_system, crank, Pencil, require_regular
+from ._pencil import _poles_normalized, AXIS_TOL
+
+
+#: Poles closer than ``CLUSTER_RTOL * max(1, |λ|)`` (normalised pencil) form a cluster
+#: whose mean is tested as well.
+CLUSTER_RTOL = 1e-4
+
+
+def _test_points(poles: np.ndarray) -> list[complex]:
+    pts = [complex(z) for z in poles]
+    k = len(pts)
+    if k < 2:
+        return pts
+    parent = list(range(k))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(k):
+        for j in range(i + 1, k):
+            if abs(pts[i] - pts[j]) <= CLUSTER_RTOL * max(1.0, abs(pts[i])):
+                parent[find(i)] = find(j)
+    groups: dict[int, list[complex]] = {}
+    for i in range(k):
+        groups.setdefault(find(i), []).append(pts[i])
+    for g in groups.values():
+        if len(g) > 1:
+            pts.append(complex(np.mean(g)))
+    return pts
+
+
+def _poles_for(p: Pencil, tol, fname, unstable_only=False, axis_tol=AXIS_TOL):
+    z = _poles_normalized(p, tol, fname)
+    if unstable_only and z.size:
+        zo = z * p.pole_scale
+        z = z[zo.real >= -axis_tol * np.maximum(1.0, np.abs(zo))]
+    return z
+
+
+def _r_obs(p: Pencil, tol, fname, **kw) -> bool:
+    n = p.n
+    for s in _test_points(_poles_for(p, tol, fname, **kw)):
+        if crank(np.vstack([s * p.En - p.An, p.Cn]), tol) < n:
+            return False
+    return True
+
+
+def _r_ctrl(p: Pencil, tol, fname, **kw) -> bool:
+    n = p.n
+    for s in _test_points(_poles_for(p, tol, fname, **kw)):
+        if crank(np.hstack([s * p.En - p.An, p.Bn]), tol) < n:
+            return False
+    return True
+
+
+def _i_obs(p: Pencil, tol) -> bool:
+    n, q = p.n, p.Cn.shape[0]
+    if n == 0:
+        return True
+    M = np.block(
+        [
+            [p.En, p.An],
+            [np.zeros((n, n)), p.En],
+            [np.zeros((q, n)), p.Cn],
+        ]
+    )
+    return crank(M, tol) == n + rank(p.En, tol)
+
+
+def _i_ctrl(p: Pencil, tol) -> bool:
+    n, m = p.n, p.Bn.shape[1]
+    if n == 0:
+        return True
+    M = np.block(
+        [
+            [p.En, np.zeros((n, n)), np.zeros((n, m))],
+            [p.An, p.En, p.Bn],
+        ]
+    )
+    return crank(M, tol) == n + rank(p.En, tol)
+
+
+def _prep(sys, fname, tol) -> Pencil:
+    p = as_system(sys, fname)
+    require_regular(p, fname, tol)
+    return p
+
+
+_ARGS = """
+    **Arguments:**
+
+    - `sys`: a `fojax.DescriptorSystem`.
+    - `tol`: absolute rank threshold overriding the fojax tolerance (applied to the
+      normalised matrices).
+
+    **Raises:** `fojax.IrregularSystemError` for a singular pencil.
+"""
+
+
+def is_r_observable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+    r"""R-observability (observable within the reachable set; Dai 1989).
+
+    $\mathrm{rank}\begin{bmatrix}sE-A\\C\end{bmatrix} = n$ for every finite $s$,
+    equivalently at every finite pole; equivalently the slow subsystem $(A_1, C_1)$ of
+    the Weierstrass form is observable. True when there are no finite poles. Host-only.
+    """
+    p = _prep(sys, "is_r_observable", tol)
+    return _r_obs(p, tol, "is_r_observable")
+
+
+def is_i_observable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+    r"""I-observability (impulse observability; Dai 1989).
+
+    $\mathrm{rank}\begin{bmatrix}E&A\\0&E\\0&C\end{bmatrix} = n + \mathrm{rank}\,E$,
+    equivalently $\mathrm{rank}[E; E^\perp A; C] = n$ (thesis Remark 1 — the thesis
+    orders the block rows as $[E, A; 0, C; 0, E]$, which has the same rank). Every
+    impulse-free system is I-observable. Host-only.
+    """
+    p = _prep(sys, "is_i_observable", tol)
+    return _i_obs(p, tol)
+
+
+def is_c_observable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+    r"""C-observability (complete observability; Dai 1989, thesis Def. 2.1.7).
+
+    R-observable and $\mathrm{rank}\begin{bmatrix}E\\C\end{bmatrix} = n$ (the latter is
+    observability of the fast subsystem $(N, C_2)$). Implies S-observability. Host-only.
+    """
+    p = _prep(sys, "is_c_observable", tol)
+    return crank(np.vstack([p.En, p.Cn]), tol) == p.n and _r_obs(p, tol, "is_c_observable")
+
+
+def is_s_observable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+    r"""S-observability (strong observability): R-observable and I-observable. Host-only."""
+    p = _prep(sys, "is_s_observable", tol)
+    return _i_obs(p, tol) and _r_obs(p, tol, "is_s_observable")
+
+
+def is_r_controllable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+    r"""R-controllability (controllable within the reachable set; Dai 1989, thesis Def. 2.1.5).
+
+    $\mathrm{rank}[sE-A,\;B] = n$ at every finite pole; equivalently $(A_1, B_1)$ is
+    controllable. True when there are no finite poles. Host-only.
+    """
+    p = _prep(sys, "is_r_controllable", tol)
+    return _r_ctrl(p, tol, "is_r_controllable")
+
+
+def is_i_controllable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+    r"""I-controllability (impulse controllability; Dai 1989, thesis Def. 2.1.6).
+
+    $\mathrm{rank}\begin{bmatrix}E&0&0\\A&E&B\end{bmatrix} = n + \mathrm{rank}\,E$.
+    Holds iff some state feedback $u = Kx$ makes $(E, A+BK)$ impulse-free. Every
+    impulse-free system is I-controllable. Host-only.
+    """
+    p = _prep(sys, "is_i_controllable", tol)
+    return _i_ctrl(p, tol)
+
+
+def is_c_controllable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+    r"""C-controllability (complete controllability; Dai 1989, thesis Def. 2.1.4).
+
+    R-controllable and $\mathrm{rank}[E,\;B] = n$. Host-only.
+    """
+    p = _prep(sys, "is_c_controllable", tol)
+    return crank(np.hstack([p.En, p.Bn]), tol) == p.n and _r_ctrl(p, tol, "is_c_controllable")
+
+
+def is_s_controllable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+    r"""S-controllability (strong controllability): R- and I-controllable. Host-only."""
+    p = _prep(sys, "is_s_controllable", tol)
+    return _i_ctrl(p, tol) and _r_ctrl(p, tol, "is_s_controllable")
+
+
+def is_detectable(
+    sys: DescriptorSystem,
+    *,
+    impulse: bool = True,
+    axis_tol: float = AXIS_TOL,
+    tol: float | None = None,
+) -> bool:
+    r"""Detectability of a regular descriptor system.
+
+    Definition used (Dai 1989, §3): the finite-mode condition
+    $\mathrm{rank}\begin{bmatrix}sE-A\\C\end{bmatrix} = n$ at every finite pole with
+    $\mathrm{Re}\,s \ge 0$ (poles within `axis_tol` of the axis count as unstable, as in
+    `is_stable`), **and**, when `impulse=True` (default), I-observability. With both,
+    an output injection $K$ exists such that $(E, A - KC)$ is admissible, which is what a
+    state (or full-order) observer with admissible error dynamics needs. With
+    ``impulse=False`` only the finite-mode condition (Dai's plain "detectable") is tested.
+    Host-only.
+    """
+    p = _prep(sys, "is_detectable", tol)
+    if impulse and not _i_obs(p, tol):
+        return False
+    return _r_obs(p, tol, "is_detectable", unstable_only=True, axis_tol=axis_tol)
+
+
+def is_stabilizable(
+    sys: DescriptorSystem,
+    *,
+    impulse: bool = True,
+    axis_tol: float = AXIS_TOL,
+    tol: float | None = None,
+) -> bool:
+    r"""Stabilizability of a regular descriptor system (dual of `is_detectable`).
+
+    Finite-mode condition $\mathrm{rank}[sE-A,\;B] = n$ at every finite pole with
+    $\mathrm{Re}\,s \ge 0$, and (default `impulse=True`) I-controllability; together they
+    are equivalent to the existence of $K$ with $(E, A + BK)$ admissible. Host-only.
+    """
+    p = _prep(sys, "is_stabilizable", tol)
+    if impulse and not _i_ctrl(p, tol):
+        return False
+    return _r_ctrl(p, tol, "is_stabilizable", unstable_only=True, axis_tol=axis_tol)
+
+
+for _f in (
+    is_r_observable,
+    is_i_observable,
+    is_c_observable,
+    is_s_observable,
+    is_r_controllable,
+    is_i_controllable,
+    is_c_controllable,
+    is_s_controllable,
+    is_detectable,
+    is_stabilizable,
+):
+    _f.__doc__ = (_f.__doc__ or "") + _ARGS
+del _f
+
+#: Alias of `is_i_observable`.
+is_impulse_observable = is_i_observable
+#: Alias of `is_i_controllable`.
+is_impulse_controllable = is_i_controllable
+
+
+def functional_ranks(sys: DescriptorSystem, L, *, tol: float | None = None) -> tuple[int, int]:
+    r"""``(rank [L; E; E⊥A; C], rank [E; E⊥A; C])`` on normalised blocks (host-only)."""
+    p = as_system(sys, "is_functionally_observable")
+    L = np.asarray(check_functional(sys, L), dtype=float)
+    Ln = L / (np.linalg.norm(L, 2) or 1.0) if L.size else L
+    Ep = left_null_space(p.En, tol)
+    Gamma = np.vstack([p.En, Ep @ p.An, p.Cn])
+    return rank(np.vstack([Ln, Gamma]), tol), rank(Gamma, tol)
+
+
+def is_functionally_observable(sys: DescriptorSystem, L, *, tol: float | None = None) -> bool:
+    r"""Assumption 1 (Darouach 2012): the functional $z = Lx$ is observable.
+
+    $$\mathrm{rank}\begin{bmatrix}L\\E\\E^\perp A\\C\end{bmatrix}
+      = \mathrm{rank}\begin{bmatrix}E\\E^\perp A\\C\end{bmatrix}.$$
+
+    Pure rank condition: no regularity is required and no error is raised for singular
+    pencils. Note that $\mathrm{rank}[E; E^\perp A] = n$ for every regular impulse-free
+    pencil, so the condition holds for *every* $L$ when $(E, A)$ is impulse-free; it can
+    only fail for impulsive (or singular) pencils. Host-only.
+
+    **Arguments:**
+
+    - `sys`: a `fojax.DescriptorSystem`.
+    - `L`: the ``(q, n)`` functional matrix (``q = 0`` gives ``True``).
+    - `tol`: absolute rank threshold overriding the fojax tolerance (applied to the
+      normalised blocks ``L/‖L‖``, ``E/‖E‖``, ``E⊥A/‖A‖``, ``C/‖C‖``).
+    """
+    a, b = functional_ranks(sys, L, tol=tol)
+    return a == b
