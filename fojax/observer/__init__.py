@@ -4,3 +4,4 @@ from ._base import (
     AbstractObserver as AbstractObserver,
     LinearObserverMatrices as LinearObserverMatrices,
 )
+from ._generalized import GeneralizedFunctionalObserver as GeneralizedFunctionalObserver

@@ -1,0 +1,34 @@
+"""Design layer: parameterization (pure JAX), LMI regions, LMI design (cvxpy, host), verification."""
+
+from ._conditions import (
+    check_detectability as check_detectability,
+    check_functional_observability as check_functional_observability,
+    check_structure as check_structure,
+    default_R as default_R,
+    fixed_modes as fixed_modes,
+)
+from ._functional import (
+    design_functional_observer as design_functional_observer,
+    FunctionalObserverDesign as FunctionalObserverDesign,
+)
+from ._lmi import DEFAULT_SOLVER as DEFAULT_SOLVER, SOLVERS as SOLVERS
+from ._parameterization import (
+    design_residuals as design_residuals,
+    error_dynamics as error_dynamics,
+    FunctionalObserverStructure as FunctionalObserverStructure,
+    observer_matrices as observer_matrices,
+    observer_structure as observer_structure,
+    ObserverMatrices as ObserverMatrices,
+    pieces as pieces,
+    zero_params as zero_params,
+)
+from ._regions import (
+    AbstractRegion as AbstractRegion,
+    as_region as as_region,
+    Disk as Disk,
+    HalfPlane as HalfPlane,
+    Intersection as Intersection,
+    region_from_dict as region_from_dict,
+    Sector as Sector,
+)
+from ._verify import VerificationReport as VerificationReport, verify as verify

@@ -1,0 +1,231 @@
+"""Existence conditions of functional observers, checked before any LMI, and the default R."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._errors import (
+    DetectabilityError,
+    FunctionalObservabilityError,
+    RankConditionError,
+)
+from .._linalg import rank, row_space
+from ._parameterization import FunctionalObserverStructure, observer_structure, pieces
+from ._regions import AbstractRegion
+
+
+#: Tolerance on the relative residual of the solvability condition U(I - V⁺V) = 0.
+SOLVABILITY_RTOL = 1e-9
+
+
+def gamma_matrix(E, A, C, Eperp) -> np.ndarray:
+    """Γ = [E; E⊥A; C] (host)."""
+    E, A, C, Ep = (np.asarray(x, dtype=float) for x in (E, A, C, Eperp))
+    return np.vstack([E, Ep @ A, C])
+
+
+def check_functional_observability(E, A, C, L, Eperp, *, what: str = "L") -> None:
+    """Assumption 1: rank [L; E; E⊥A; C] = rank [E; E⊥A; C]; raises with a suggestion."""
+    Gam = gamma_matrix(E, A, C, Eperp)
+    r0, r1 = rank(Gam), rank(np.vstack([np.asarray(L, float), Gam]))
+    if r1 != r0:
+        raise FunctionalObservabilityError(
+            "functional observability (Assumption 1)",
+            f"rank [{what}; E; E⊥A; C] = {r1} but rank [E; E⊥A; C] = {r0}: the functional "
+            f"z = {what} x is not determined by the measured signals and the constraints.",
+            "Estimate another functional (rows of L in the row space of [E; E⊥A; C]), or add "
+            "outputs (rows of C) that measure the missing directions.",
+            lhs=r1,
+            rhs=r0,
+        )
+
+
+def check_structure(s: FunctionalObserverStructure) -> None:
+    """Rank conditions of the parameterization for a given R (host)."""
+    n = s.n
+    As = np.asarray(s.rules_A())
+    Ep, C, E, R, L = (np.asarray(x) for x in (s.Eperp, s.C, s.E, s.R, s.L))
+    Psi = np.vstack([Ep @ As[0], C])
+    Gam = np.vstack([E, Psi])
+    if rank(R) != R.shape[0]:
+        raise RankConditionError(
+            "full row rank of R",
+            f"R is {R.shape[0]} x {n} but has rank {rank(R)}.",
+            "Remove dependent rows of R (the observer order q0 is the number of rows of R).",
+            lhs=rank(R),
+            rhs=R.shape[0],
+        )
+    rG, rRG = rank(Gam), rank(np.vstack([R, Gam]))
+    if rRG != rG:
+        raise RankConditionError(
+            "rank [R; Γ] = rank Γ",
+            f"rank [R; E; Ψ] = {rRG} but rank [E; Ψ] = {rG}: some rows of R are not in the row "
+            "space of Γ = [E; Ψ], so T E + K Ψ = R has no solution.",
+            "Choose R with rows in the row space of [E; E⊥A; C] (or let fojax choose R).",
+            lhs=rRG,
+            rhs=rG,
+        )
+    Sig = np.vstack([R, Psi])
+    rS, rSL = rank(Sig), rank(np.vstack([Sig, L]))
+    if rSL != rS:
+        raise RankConditionError(
+            "rank [Σ; L] = rank Σ",
+            f"rank [R; Ψ; L] = {rSL} but rank Σ = rank [R; Ψ] = {rS}: conditions c.–d. have no "
+            "solution (L is not a combination of R and the measured signals).",
+            "Add the missing directions of L to R (a larger observer order q0), or let fojax "
+            "choose R.",
+            lhs=rSL,
+            rhs=rS,
+        )
+    rel = s.solvability_residual
+    if rel > SOLVABILITY_RTOL:
+        raise RankConditionError(
+            "rank [Σ; TA] = rank Σ",
+            f"no choice of Z makes TA a combination of Σ = [R; Ψ] (relative residual {rel:.2e}); "
+            "condition a. cannot hold with this R.",
+            "Choose another R or a larger observer order q0 (more rows in R), or let fojax choose R.",
+            lhs=rel,
+            rhs=SOLVABILITY_RTOL,
+        )
+
+
+def unobservable_modes(A: np.ndarray, Cm: np.ndarray, tol: float = 1e-8) -> np.ndarray:
+    """Eigenvalues λ of `A` with rank [λI - A; Cm] < dim A (PBH test, relative tolerance)."""
+    A = np.asarray(A, float)
+    n = A.shape[0]
+    if n == 0:
+        return np.zeros(0, complex)
+    eigs = np.linalg.eigvals(A)
+    out = []
+    scale = max(1.0, np.linalg.norm(A, 2), np.linalg.norm(Cm, 2) if Cm.size else 0.0)
+    for lam in eigs:
+        Mx = np.vstack([lam * np.eye(n) - A, Cm]) if Cm.size else lam * np.eye(n) - A
+        s = np.linalg.svd(Mx, compute_uv=False)
+        if s.size < n or s[n - 1] <= tol * scale:
+            out.append(lam)
+    return np.asarray(out, complex)
+
+
+def fixed_modes(s: FunctionalObserverStructure) -> list[np.ndarray]:
+    """Per rule, the eigenvalues of N1' that no (Z, Y1) can move (Lemma 8 / Remark 3)."""
+    pc = pieces(s, xp=np)
+    N1, N2, N3 = (np.asarray(x) for x in (pc.N1, pc.N2, pc.N3))
+    return [unobservable_modes(N1[i], np.vstack([N2[i], N3])) for i in range(N1.shape[0])]
+
+
+def check_detectability(s: FunctionalObserverStructure, region: AbstractRegion) -> None:
+    """Raise `DetectabilityError` if some fixed mode lies outside the region."""
+    for i, modes in enumerate(fixed_modes(s)):
+        bad = [lam for lam in modes if not region.contains([lam])]
+        if bad:
+            rule = f" of rule {i + 1}" if s.num_rules > 1 else ""
+            raise DetectabilityError(
+                "detectability of (𝔸2, 𝔸1) (Lemma 8 / Remark 3)",
+                f"the mode(s) {', '.join(f'{b:.4g}' for b in bad)}{rule} of the observer cannot be "
+                f"moved by any gain (rank [λI - N1; N2; N3] < q0 = {s.q0}) and are not in the "
+                f"requested region ({region.describe()}).",
+                "Choose another R (or a larger observer order q0), add outputs, or enlarge the region.",
+                lhs=bad,
+                rhs=region.describe(),
+            )
+
+
+def _order_candidates(Gam, Psi, L, q0):
+    base = L if rank(L) == L.shape[0] else row_space(L)
+    G_rows = row_space(Gam)
+    S0 = np.vstack([base, Psi])
+    proj = G_rows - G_rows @ np.linalg.pinv(S0) @ S0 if S0.size else G_rows
+    extra = row_space(proj)
+    if q0 is None:
+        return [np.vstack([base, extra[:j]]) for j in range(extra.shape[0] + 1)], G_rows
+    if q0 < 1:
+        raise RankConditionError("observer order", f"q0 = {q0}", "q0 must be at least 1.", lhs=q0, rhs=1)
+    if q0 <= base.shape[0]:
+        return [base[:q0]], G_rows
+    k = q0 - base.shape[0]
+    if k > extra.shape[0]:
+        raise RankConditionError(
+            "observer order",
+            f"q0 = {q0} exceeds the largest useful order {base.shape[0] + extra.shape[0]} "
+            "(rank of [L; Γ] with Γ = [E; E⊥A; C]).",
+            "Choose a smaller q0.",
+            lhs=q0,
+            rhs=base.shape[0] + extra.shape[0],
+        )
+    return [np.vstack([base, extra[:k]])], G_rows
+
+
+def _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R):
+    s = observer_structure(E, A, B, C, L, R, q1=q1, psi=psi, Eperp=Ep)
+    modes = np.concatenate(fixed_modes(s)) if s.q0 else np.zeros(0)
+    if modes.size == 0:
+        return 0.0, modes
+    scale = max(1.0, abs(target))
+    return float(np.sum(np.abs(modes - target) ** 2)) / scale**2, modes
+
+
+def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int | None = None,
+              q1: int = 0, max_iter: int = 3000) -> np.ndarray:
+    """fojax's default choice of R (documented; the thesis leaves R to the user).
+
+    1. Orders: start from a row basis of ``L`` (``q0 = rank L``, the smallest order)
+       and add rows of an orthonormal basis of the row space of Γ = [E; Ψ] not yet in
+       the row space of Σ = [R; Ψ], one at a time (only order `q0` when given).
+    2. For each order, R must satisfy the rank conditions; the modes that no gain can
+       move (`fixed_modes`, Lemma 8) must lie in the region. When they do not, R is
+       moved inside the row space of Γ, starting from the candidate, by a
+       Nelder–Mead search that drives the fixed modes to ``region.target()``
+       (with a small penalty on the distance to the candidate). The first R that
+       passes is returned.
+
+    Raises the last existence error when no order works.
+    """
+    import scipy.optimize
+
+    E, A, C, L = (np.asarray(x, float) for x in (E, A, C, L))
+    B = np.asarray(B, float)
+    As = A if A.ndim == 3 else A[None]
+    Ep = np.asarray(Eperp, float)
+    Psi = np.vstack([Ep @ As[0], C])
+    Gam = np.vstack([E, Psi])
+    candidates, G_rows = _order_candidates(Gam, Psi, L, q0)
+    inner = region.tightened(0.05)
+    target = region.target()
+    last_err = None
+    for R0 in candidates:
+        s = observer_structure(E, A, B, C, L, R0, q1=q1, psi=psi, Eperp=Ep)
+        try:
+            check_structure(s)
+        except RankConditionError as err:
+            last_err = err
+            continue
+        _, modes = _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R0)
+        if all(inner.contains([m]) for m in modes):
+            return R0
+        # Search R = R0 + D @ G_rows (rows stay in the row space of Γ).
+        nR = np.linalg.norm(R0)
+
+        def f(d, R0=R0):
+            R = R0 + d.reshape(R0.shape[0], G_rows.shape[0]) @ G_rows
+            try:
+                val, _ = _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R)
+            except Exception:
+                return 1e12
+            return val + 1e-4 * float(np.sum(d**2)) / max(nR, 1.0) ** 2
+
+        d0 = np.zeros(R0.shape[0] * G_rows.shape[0])
+        res = scipy.optimize.minimize(
+            f, d0, method="Nelder-Mead",
+            options=dict(maxiter=max_iter, xatol=1e-8, fatol=1e-12, initial_simplex=None),
+        )
+        R = R0 + res.x.reshape(R0.shape[0], G_rows.shape[0]) @ G_rows
+        s = observer_structure(E, A, B, C, L, R, q1=q1, psi=psi, Eperp=Ep)
+        try:
+            check_structure(s)
+            check_detectability(s, inner)
+            return R
+        except (RankConditionError, DetectabilityError) as err:
+            last_err = err
+    if last_err is None:  # every candidate passed the rank checks but none the modes
+        raise RankConditionError("default R", "no candidate R was found", "Pass R explicitly.")
+    raise last_err

@@ -1,0 +1,383 @@
+r"""LMI design of generalized, PI and proportional functional observers (thesis §3.1).
+
+**Method (documented choice: linearizing change of variables, in two steps).**
+The error dynamics are $\mathbb A = \mathbb A_1(Z) - \mathbb Y\mathbb A_2$ (see
+`fojax.design.observer_matrices`); they are bilinear in $(Z, \mathbb Y)$.
+
+1. *Choose Z.* If every mode of $N_1'$ is observable through $N_3$ or already
+   inside the region, $Z = 0$. Otherwise solve the proportional region LMI for the
+   $\varepsilon$-block with the variables $X_1 \succ 0$, $W = X_1Z$,
+   $\mathcal W_1 = X_1 Y_1$ (the thesis's $W_i = X_{i1}Z_i$ substitution, Theorem 1),
+   which is linear, and recover $Z = X_1^{-1}W$.
+2. *Choose 𝕐 with Z fixed.* With $\Phi = X\mathbb A_1 - \mathcal W\mathbb A_2$ and
+   $\mathcal W = X\mathbb Y$ the Chilali–Gahinet region condition
+   $L_R\otimes X + M_R\otimes\Phi^\top + M_R^\top\otimes\Phi \prec 0$ is an LMI in
+   $(X, \mathcal W)$ with a *full* Lyapunov matrix $X$ (no block structure is imposed,
+   unlike the thesis's $X = [X_1\;X_1;\,X_1\;X_2]$, which silently assumes
+   $q_0 = q_1$). $\mathbb Y = X^{-1}\mathcal W$. For PI observers ($S = 0$, i.e.
+   $Y_2 = 0$) $X$ is block-diagonal and the $Y_2$ block of $\mathcal W$ is zero.
+
+The LMIs are normalised by $X \succeq I$, require a strict margin
+($\preceq -\epsilon I$) and minimise $\|\mathcal W\|_F$ (small gains). Compared with the
+elimination lemma (Theorem 1, eq. 3.36) this yields the same feasible set of
+error dynamics for fixed $Z$, and gives the certificate $X$ directly. The explicit
+parameterization of all admissible 𝕐 (Lemma 7/10) is in `fojax.design.region_gain`
+and `fojax.design.lemma10_gain`.
+
+Every result is verified in float64 (`fojax.design.verify`) before it is returned.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import cvxpy as cp
+import numpy as np
+
+from .._dtype import require_x64
+from .._errors import RankConditionError, ShapeError
+from .._linalg import left_null_space
+from ..observer._generalized import GeneralizedFunctionalObserver
+from ..plant._descriptor import check_functional, DescriptorSystem
+from . import _lmi
+from ._conditions import (
+    check_detectability,
+    check_functional_observability,
+    check_structure,
+    default_R,
+    unobservable_modes,
+)
+from ._parameterization import (
+    design_residuals,
+    error_dynamics,
+    FunctionalObserverStructure,
+    observer_matrices,
+    observer_structure,
+    pieces,
+)
+from ._regions import AbstractRegion, as_region, Disk
+from ._verify import VerificationReport, verify
+
+
+KINDS = ("generalized", "PI", "proportional")
+#: LMIs target the region shrunk by this fraction (`AbstractRegion.tightened`), so that the
+#: returned eigenvalues keep a margin inside the requested region.
+TIGHTEN = 0.05
+
+
+@dataclasses.dataclass(frozen=True)
+class FunctionalObserverDesign:
+    """A verified functional-observer design.
+
+    Attributes:
+        observer: the `GeneralizedFunctionalObserver` (proportional/PI are special cases).
+        kind: ``"generalized"``, ``"PI"`` or ``"proportional"``.
+        region: the pole region the error dynamics were placed in.
+        structure: the `FunctionalObserverStructure` (plant, L, R, E⊥).
+        params: the free parameters ``Z, Y1, Y2, Y3, J, G`` (numpy arrays).
+        T, K, Z_eff: the matrices of ``T E + K Ψ = R``; ``Z_eff`` is the Z of eq. 3.17.
+        X: the LMI certificate (Lyapunov matrix) of the error dynamics.
+        report: the float64 `VerificationReport`.
+        solver: solver information (status, iterations, LMI steps).
+    """
+
+    observer: GeneralizedFunctionalObserver
+    kind: str
+    region: AbstractRegion
+    structure: FunctionalObserverStructure
+    params: dict
+    T: np.ndarray
+    K: np.ndarray
+    Z_eff: np.ndarray
+    X: np.ndarray
+    report: VerificationReport
+    solver: dict
+
+    @property
+    def R(self) -> np.ndarray:
+        return np.asarray(self.structure.R)
+
+    @property
+    def L(self) -> np.ndarray:
+        return np.asarray(self.structure.L)
+
+    @property
+    def error_matrix(self) -> np.ndarray:
+        return np.asarray(self.observer.error_matrix)
+
+    def __str__(self) -> str:
+        o = self.observer
+        return (
+            f"{self.kind} functional observer: q0 = {o.q0}, q1 = {o.q1}, estimates q = "
+            f"{o.output_size} functions; error poles in {self.region.describe()}\n{self.report}"
+        )
+
+
+# ---------------------------------------------------------------------------- helpers
+
+
+def _as_system(sys) -> DescriptorSystem:
+    if not isinstance(sys, DescriptorSystem):
+        raise TypeError(
+            f"expected a fojax.DescriptorSystem, got {type(sys).__name__}; build one with "
+            "fojax.DescriptorSystem(E, A, B, C)."
+        )
+    require_x64("observer design")
+    return sys
+
+
+def _eps(region: AbstractRegion, margin: float) -> float:
+    return float(margin)
+
+
+def choose_Z(
+    s: FunctionalObserverStructure,
+    region: AbstractRegion,
+    *,
+    margin: float = 1e-3,
+    force_lmi: bool = False,
+    solver: str = _lmi.DEFAULT_SOLVER,
+) -> tuple[np.ndarray, dict]:
+    """Step 1: the free Z (see module docstring). Returns ``(Z, info)``."""
+    pc = pieces(s)
+    N1, N2, N3 = (np.asarray(x) for x in (pc.N1, pc.N2, pc.N3))
+    k, q0 = N1.shape[0], s.q0
+    nZ = N2.shape[1]
+    need = force_lmi
+    for i in range(k):
+        modes = unobservable_modes(N1[i], N3)
+        if any(not region.contains([lam]) for lam in modes):
+            need = True
+    if not need:
+        return np.zeros((q0, nZ)), {"step1": "Z = 0 (every mode is assignable through N3 or inside the region)"}
+    X1 = cp.Variable((q0, q0), symmetric=True)
+    W = cp.Variable((q0, nZ))
+    Ws = [cp.Variable((q0, N3.shape[0])) for _ in range(k)]
+    cons = [X1 >> np.eye(q0)]
+    eps = _eps(region, margin)
+    for i in range(k):
+        Phi = X1 @ N1[i] - W @ N2[i] - Ws[i] @ N3
+        Mx = _lmi.region_lmi(region, X1, Phi)
+        cons.append(Mx << -eps * np.eye(Mx.shape[0]))
+    obj = cp.Minimize(cp.norm(W, "fro") + sum(cp.norm(w, "fro") for w in Ws))
+    info = _lmi.solve(
+        cp.Problem(obj, cons),
+        "choose Z (proportional region LMI, W = X1 Z)",
+        hint="The fixed modes are outside the region for every Z: choose another R, a larger "
+        "observer order q0, more outputs, or a larger region.",
+        solver=solver,
+    )
+    Z = np.linalg.solve(_lmi.value(X1), _lmi.value(W))
+    return Z, {"step1": info}
+
+
+def solve_gains(
+    s: FunctionalObserverStructure,
+    region: AbstractRegion,
+    *,
+    kind: str,
+    margin: float = 1e-3,
+    solver: str = _lmi.DEFAULT_SOLVER,
+    Z: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], dict]:
+    """The joint region LMI in ``(X1, X2, W = X1 Z, 𝒲_i = X 𝕐_i)`` (Theorem 1, linearized).
+
+    The certificate is ``X = [[X1, X1 Π], [Πᵀ X1, X2]]`` with ``Π = I`` (padded to
+    ``q0 × q1``) for generalized observers — the thesis's structure, which makes
+    ``X 𝔸1(Z)`` linear in ``(X1, W)`` and couples ε and v — and ``Π = 0`` for PI
+    observers, whose constraint ``S = -Y2 N3 = 0`` is then the linear constraint
+    ``𝒲[v-rows, :c] N3 = 0``. When `Z` is given it is kept fixed.
+
+    Returns ``(X, Z, [𝕐_i], info)`` with ``𝕐_i = [[Y1, J], [Y2, G]]``.
+    """
+    pc = pieces(s, xp=np)
+    N1, N2, N3 = (np.asarray(x) for x in (pc.N1, pc.N2, pc.N3))
+    k, q0, q1 = N1.shape[0], s.q0, s.q1
+    c, nZ = N3.shape[0], N2.shape[1]
+    d = q0 + q1
+    A2 = np.block([[N3, np.zeros((c, q1))], [np.zeros((q1, q0)), -np.eye(q1)]])
+    Pi = np.eye(q0, q1) if kind == "generalized" else np.zeros((q0, q1))
+    X1 = cp.Variable((q0, q0), symmetric=True)
+    if q1:
+        X2 = cp.Variable((q1, q1), symmetric=True)
+        X = cp.bmat([[X1, X1 @ Pi], [Pi.T @ X1, X2]])
+    else:
+        X = X1
+    W = cp.Variable((q0, nZ)) if Z is None else None
+    Ws = [cp.Variable((d, c + q1)) for _ in range(k)]
+    cons = [X >> np.eye(d)]
+    eps = float(margin)
+    for i in range(k):
+        top = X1 @ N1[i] - (W @ N2[i] if Z is None else X1 @ (Z @ N2[i]))
+        XA1 = cp.bmat([[top, np.zeros((q0, q1))], [Pi.T @ top, np.zeros((q1, q1))]]) if q1 else top
+        Phi = XA1 - Ws[i] @ A2
+        Mx = _lmi.region_lmi(region, X, Phi)
+        cons.append(Mx << -eps * np.eye(Mx.shape[0]))
+        if kind == "PI" and q1:
+            cons.append(Ws[i][q0:, :c] @ N3 == 0)
+    obj = sum(cp.norm(w, "fro") for w in Ws) + (cp.norm(W, "fro") if W is not None else 0)
+    info = _lmi.solve(
+        cp.Problem(cp.Minimize(obj), cons),
+        f"{kind} observer (region LMI in X, W = X1 Z, 𝒲 = X 𝕐)",
+        hint="No observer gain places the error dynamics in the region: enlarge the region, "
+        "or choose another R / observer order.",
+        solver=solver,
+    )
+    Xv = np.asarray(X.value, dtype=float)
+    Xv = 0.5 * (Xv + Xv.T)
+    Zv = np.linalg.solve(Xv[:q0, :q0], _lmi.value(W)) if Z is None else np.asarray(Z)
+    # Components of 𝕐 outside the range of 𝔸2 do not change 𝔸 but enlarge F and M:
+    # project them away (projector onto the column space of 𝔸2).
+    Pr = A2 @ np.linalg.pinv(A2)
+    Ys = [np.linalg.solve(Xv, _lmi.value(w)) @ Pr for w in Ws]
+    if kind == "PI" and q1:
+        for Y in Ys:  # S = -Y2 N3 = 0 exactly (it is zero to solver precision)
+            Y[q0:, :c] -= Y[q0:, :c] @ N3 @ np.linalg.pinv(N3)
+    return Xv, Zv, Ys, {"lmi": info}
+
+
+def split_Y(Y: np.ndarray, q0: int, c: int) -> dict:
+    """Split 𝕐 = [[Y1, J], [Y2, G]] into its blocks."""
+    return {"Y1": Y[:q0, :c], "J": Y[:q0, c:], "Y2": Y[q0:, :c], "G": Y[q0:, c:]}
+
+
+def build_observer(s: FunctionalObserverStructure, mats, rule: int = 0, kind: str = "generalized"):
+    """A `GeneralizedFunctionalObserver` from parameterized matrices (rule `rule`)."""
+    Wu, Wy = s.w_matrices(s.rules_B()[min(rule, s.rules_B().shape[0] - 1)])
+    return GeneralizedFunctionalObserver(
+        mats.N[rule], mats.J[rule], mats.F[rule], mats.H[rule], mats.S[rule], mats.G[rule],
+        mats.M[rule], mats.P[rule], mats.Q[rule], Wu, Wy, kind=kind,
+    )
+
+
+def verify_structure_design(s, params, region, X, *, rtol=None, extra=None) -> tuple[Any, VerificationReport]:
+    """Compute the matrices for `params` and verify them (residuals, eigenvalues, LMI)."""
+    mats = observer_matrices(s, **{k: np.asarray(v) for k, v in params.items()}, xp=np)
+    res = design_residuals(s, mats, xp=np)
+    scale = float(res.pop("scale"))
+    kw = {} if rtol is None else {"rtol": rtol}
+    report = verify(
+        {k: float(v) for k, v in res.items()},
+        scale,
+        np.asarray(error_dynamics(mats, xp=np)),
+        region,
+        X,
+        extra=extra,
+        **kw,
+    )
+    return mats, report
+
+
+def prepare_structure(sys: DescriptorSystem, L, *, R=None, q0=None, q1=0, region, psi="descriptor",
+                      Eperp=None, A_rules=None, B_rules=None) -> FunctionalObserverStructure:
+    """Existence checks (Assumption 1, rank conditions, detectability) and the structure."""
+    E, A, B, C = (np.asarray(x) for x in (sys.E, sys.A, sys.B, sys.C))
+    if A_rules is not None:
+        A, B = np.asarray(A_rules), np.asarray(B_rules)
+    L = np.asarray(check_functional(sys, L))
+    if Eperp is None:
+        Eperp = left_null_space(E) if psi == "descriptor" else np.zeros((0, E.shape[0]))
+    As = A if A.ndim == 3 else A[None]
+    for Ai in As:
+        check_functional_observability(E, Ai, C, L, Eperp)
+    if R is None:
+        R = default_R(E, A, B, C, L, psi=psi, Eperp=Eperp, region=region, q0=q0, q1=q1)
+    else:
+        R = np.asarray(R, dtype=float)
+        if R.ndim != 2 or R.shape[1] != E.shape[0]:
+            raise ShapeError("R", ("q0", E.shape[0]), tuple(R.shape), "R needs one column per state.")
+        if q0 is not None and q0 != R.shape[0]:
+            raise RankConditionError("observer order", f"q0 = {q0} but R has {R.shape[0]} rows.",
+                                     "Give either R or q0.", lhs=q0, rhs=R.shape[0])
+    s = observer_structure(E, A, B, C, L, R, q1=q1, psi=psi, Eperp=Eperp)
+    check_structure(s)
+    check_detectability(s, region)
+    return s
+
+
+# ---------------------------------------------------------------------------- public
+
+
+def design_functional_observer(
+    sys: DescriptorSystem,
+    L,
+    *,
+    kind: str = "generalized",
+    region: Any = None,
+    R=None,
+    q0: int | None = None,
+    q1: int | None = None,
+    margin: float = 1e-3,
+    solver: str = _lmi.DEFAULT_SOLVER,
+) -> FunctionalObserverDesign:
+    r"""Design a verified functional observer for $z = Lx$ (thesis §3.1, Theorems 1–2).
+
+    **Arguments:**
+
+    - `sys`: the plant, a `fojax.DescriptorSystem` (regular; $E$ may be singular).
+    - `L`: ``(q, n)`` functional to estimate.
+    - `kind`: ``"generalized"`` (eq. 3.5), ``"PI"`` ($S = 0$) or ``"proportional"``
+      ($q_1 = 0$).
+    - `region`: where the error-dynamics eigenvalues must lie: a `fojax.Disk`,
+      `fojax.HalfPlane`, `fojax.Sector`, an intersection (``&``) or a
+      ``(center, radius)`` tuple. Default: ``Disk(-2, 1)``.
+    - `R`: ``(q0, n)``; default chosen by `fojax.design.default_R` (documented there).
+    - `q0`: observer order when `R` is not given.
+    - `q1`: size of the auxiliary state ``v`` (default ``q0`` for generalized/PI, 0
+      for proportional).
+    - `margin`: strictness of the LMIs (``⪯ -margin·I`` with ``X ⪰ I``).
+    - `solver`: ``"CLARABEL"`` (default) or ``"SCS"`` (see `fojax.design` notes on solvers).
+
+    **Returns:** a `FunctionalObserverDesign` whose `report` shows residuals of
+    conditions a.–d. (≤ 1e-8 relative), the error eigenvalues inside `region` and the
+    region LMI re-checked in float64 at the certificate ``X``.
+
+    **Raises:** `FunctionalObservabilityError`, `RankConditionError`,
+    `DetectabilityError` (existence conditions, checked before any LMI, with what to
+    change), `LMIInfeasibleError` (solver status other than ``optimal``),
+    `DesignVerificationError` (a float64 check failed).
+    """
+    sys = _as_system(sys)
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    region = as_region(region if region is not None else Disk(-2.0, 1.0))
+    if kind == "proportional":
+        if q1 not in (None, 0):
+            raise ValueError("a proportional observer has q1 = 0")
+        q1 = 0
+    s = prepare_structure(sys, L, R=R, q0=q0, q1=0, region=region)
+    if q1 is None:
+        q1 = s.q0
+    s = observer_structure(s.E, s.A, s.B, s.C, s.L, s.R, q1=q1, psi=s.psi, Eperp=s.Eperp)
+    return _design_from_structure(s, region, kind=kind, margin=margin, solver=solver)
+
+
+def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN):
+    lmi_region = region.tightened(tighten)
+    X, Z, Ys, info = solve_gains(s, lmi_region, kind=kind, margin=margin, solver=solver)
+    c = s.q0 + s.nw
+    blocks = split_Y(Ys[0], s.q0, c)
+    params = {
+        "Z": Z,
+        "Y1": blocks["Y1"],
+        "Y2": blocks["Y2"],
+        "Y3": np.zeros((s.q, c)),
+        "J": blocks["J"],
+        "G": blocks["G"],
+    }
+    mats, report = verify_structure_design(s, params, region, X)
+    obs = build_observer(s, mats, kind=kind)
+    return FunctionalObserverDesign(
+        observer=obs,
+        kind=kind,
+        region=region,
+        structure=s,
+        params={k: np.asarray(v) for k, v in params.items()},
+        T=np.asarray(mats.T),
+        K=np.asarray(mats.K),
+        Z_eff=np.asarray(mats.Z_eff),
+        X=X,
+        report=report,
+        solver=info,
+    )

@@ -1,0 +1,155 @@
+"""Float64 verification of designs, independent of the LMI solver's output."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .._errors import DesignVerificationError
+from ._regions import AbstractRegion
+
+
+#: Residuals of the design conditions must be below this, relative to the data's scale.
+RESIDUAL_RTOL = 1e-8
+#: Eigenvalues must be inside the region by at least this (absolute) margin.
+EIG_MARGIN = 1e-9
+#: The region LMI re-evaluated in float64 must have max eigenvalue below -LMI_MARGIN·‖X‖.
+LMI_MARGIN = 1e-10
+
+
+@dataclasses.dataclass(frozen=True)
+class VerificationReport:
+    """What was checked, with the numbers.
+
+    Attributes:
+        residuals: absolute residuals of the design conditions (``a``..``f``).
+        scale: the data scale the residuals are compared against.
+        relative_residual: ``max(residuals) / scale``.
+        eigenvalues: eigenvalues of the error dynamics (all rules concatenated).
+        region: description of the region checked.
+        region_margin: min over eigenvalues of the region margin (``> 0`` inside).
+        lmi_max_eig: largest eigenvalue of the region LMI at the certificate (``< 0``), or None.
+        certificate_min_eig: smallest eigenvalue of the certificate ``X`` (``> 0``), or None.
+        passed: whether every check passed.
+        failures: human-readable list of failed checks.
+    """
+
+    residuals: dict
+    scale: float
+    relative_residual: float
+    eigenvalues: np.ndarray
+    region: str
+    region_margin: float
+    lmi_max_eig: float | None
+    certificate_min_eig: float | None
+    passed: bool
+    failures: tuple[str, ...]
+    extra: dict = dataclasses.field(default_factory=dict)
+
+    def __str__(self) -> str:
+        lines = [
+            f"verification {'PASSED' if self.passed else 'FAILED'}",
+            "  condition residuals: "
+            + ", ".join(f"{k}={v:.2e}" for k, v in self.residuals.items())
+            + f" (relative {self.relative_residual:.2e}, tolerance {RESIDUAL_RTOL:.0e})",
+            f"  eigenvalues in {self.region}: margin {self.region_margin:.3e}",
+        ]
+        if self.lmi_max_eig is not None:
+            lines.append(
+                f"  LMI re-check: max eig {self.lmi_max_eig:.3e}, certificate min eig "
+                f"{self.certificate_min_eig:.3e}"
+            )
+        for k, v in self.extra.items():
+            lines.append(f"  {k}: {v}")
+        for f in self.failures:
+            lines.append(f"  FAILED: {f}")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        return {
+            "residuals": {k: float(v) for k, v in self.residuals.items()},
+            "scale": float(self.scale),
+            "relative_residual": float(self.relative_residual),
+            "eigenvalues_real": np.real(self.eigenvalues).tolist(),
+            "eigenvalues_imag": np.imag(self.eigenvalues).tolist(),
+            "region": self.region,
+            "region_margin": float(self.region_margin),
+            "lmi_max_eig": None if self.lmi_max_eig is None else float(self.lmi_max_eig),
+            "certificate_min_eig": None
+            if self.certificate_min_eig is None
+            else float(self.certificate_min_eig),
+            "passed": bool(self.passed),
+            "failures": list(self.failures),
+            "extra": {k: (v if isinstance(v, str | int | float | bool) else str(v)) for k, v in self.extra.items()},
+        }
+
+
+def verify(
+    residuals: dict,
+    scale: float,
+    error_matrices: np.ndarray,
+    region: AbstractRegion,
+    X: np.ndarray | None = None,
+    *,
+    rtol: float = RESIDUAL_RTOL,
+    raise_on_failure: bool = True,
+    extra: dict | None = None,
+) -> VerificationReport:
+    """Check residuals, eigenvalue locations and (if `X` is given) the region LMI.
+
+    `error_matrices` is ``(k, d, d)``: the LMI is re-checked for every rule with the
+    common certificate `X`.
+    """
+    error_matrices = np.asarray(error_matrices, dtype=float)
+    if error_matrices.ndim == 2:
+        error_matrices = error_matrices[None]
+    res = {k: float(v) for k, v in residuals.items()}
+    rel = max(res.values()) / max(float(scale), 1.0) if res else 0.0
+    eigs = (
+        np.concatenate([np.linalg.eigvals(Ai) for Ai in error_matrices])
+        if error_matrices.shape[-1]
+        else np.zeros(0, complex)
+    )
+    margin = float(np.min(region.margin(eigs))) if eigs.size else np.inf
+    failures = []
+    if not np.isfinite(rel) or rel > rtol:
+        failures.append(f"design-condition residual {rel:.2e} exceeds {rtol:.0e} (relative)")
+    if not margin > EIG_MARGIN:
+        worst = eigs[np.argmin(region.margin(eigs))] if eigs.size else None
+        failures.append(
+            f"eigenvalue {worst:.6g} is outside the region ({region.describe()}), margin {margin:.3e}"
+        )
+    lmi_max = xmin = None
+    if X is not None:
+        X = 0.5 * (X + X.T)
+        xmin = float(np.linalg.eigvalsh(X).min())
+        xnorm = float(np.linalg.norm(X, 2))
+        lmi_max = max(
+            float(np.linalg.eigvalsh(region.lmi_matrix(X, X @ Ai)).max()) for Ai in error_matrices
+        )
+        if not xmin > 0:
+            failures.append(f"certificate X is not positive definite (min eigenvalue {xmin:.3e})")
+        if not lmi_max < -LMI_MARGIN * xnorm:
+            failures.append(
+                f"region LMI re-checked in float64 has max eigenvalue {lmi_max:.3e} "
+                f"(must be < {-LMI_MARGIN * xnorm:.1e})"
+            )
+    report = VerificationReport(
+        residuals=res,
+        scale=float(scale),
+        relative_residual=float(rel),
+        eigenvalues=eigs,
+        region=region.describe(),
+        region_margin=margin,
+        lmi_max_eig=lmi_max,
+        certificate_min_eig=xmin,
+        passed=not failures,
+        failures=tuple(failures),
+        extra=dict(extra or {}),
+    )
+    if failures and raise_on_failure:
+        raise DesignVerificationError(
+            "design failed its float64 verification: " + "; ".join(failures), report
+        )
+    return report

@@ -1,0 +1,118 @@
+r"""The generalized functional observer (thesis eq. 3.5) and its special cases."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._dtype import as_matrix
+from .._errors import ShapeError
+from ._base import AbstractObserver, LinearObserverMatrices
+
+
+class GeneralizedFunctionalObserver(AbstractObserver):
+    r"""Generalized functional observer (thesis eq. 3.5)
+
+    $$\begin{aligned}
+    \dot\zeta &= N\zeta + Jv + F w + Hu,\\
+    \dot v &= S\zeta + Gv + M w,\\
+    \hat z &= P\zeta + Q w,
+    \end{aligned}\qquad w = W_u u + W_y y,$$
+
+    where for a descriptor plant $w = [-E^\perp B u;\; y]$ ($W_u = [-E^\perp B; 0]$,
+    $W_y = [0; I]$) and for an output-injection design $w = y$.
+    The state is $\xi = [\zeta; v]$ with $\zeta \in \mathbb R^{q_0}$, $v \in \mathbb R^{q_1}$.
+
+    Special cases (Remark 2): the **proportional** observer has $q_1 = 0$
+    ($J = S = M = G = 0$); the **proportional-integral** observer has $S = 0$.
+    `kind` (static) records which one a design produced.
+
+    The estimation error obeys $\hat z - z = P\varepsilon$ with
+    $\dot{[\varepsilon; v]} = \mathbb A [\varepsilon; v]$, $\mathbb A = [N\;J;\;S\;G]$,
+    whenever the design conditions a.–d. hold (see `fojax.design`).
+    """
+
+    N: Float[Array, "q0 q0"]
+    J: Float[Array, "q0 q1"]
+    F: Float[Array, "q0 nw"]
+    H: Float[Array, "q0 m"]
+    S: Float[Array, "q1 q0"]
+    G: Float[Array, "q1 q1"]
+    M: Float[Array, "q1 nw"]
+    P: Float[Array, "q q0"]
+    Q: Float[Array, "q nw"]
+    Wu: Float[Array, "nw m"]
+    Wy: Float[Array, "nw p"]
+    kind: str = eqx.field(static=True)
+
+    def __init__(self, N, J, F, H, S, G, M, P, Q, Wu, Wy, kind: str = "generalized"):
+        N = as_matrix("N", N)
+        q0 = N.shape[0]
+        if N.shape[1] != q0:
+            raise ShapeError("N", (q0, q0), tuple(N.shape))
+        Wy = as_matrix("Wy", Wy)
+        nw, p = Wy.shape
+        Wu = as_matrix("Wu", Wu, rows=nw)
+        m = Wu.shape[1]
+        G = as_matrix("G", G)
+        q1 = G.shape[0]
+        self.N = N
+        self.J = as_matrix("J", J, rows=q0, cols=q1)
+        self.F = as_matrix("F", F, rows=q0, cols=nw)
+        self.H = as_matrix("H", H, rows=q0, cols=m)
+        self.S = as_matrix("S", S, rows=q1, cols=q0)
+        self.G = as_matrix("G", G, rows=q1, cols=q1)
+        self.M = as_matrix("M", M, rows=q1, cols=nw)
+        P = as_matrix("P", P, cols=q0)
+        self.P = P
+        self.Q = as_matrix("Q", Q, rows=P.shape[0], cols=nw)
+        self.Wu, self.Wy = Wu, Wy
+        if kind not in ("generalized", "PI", "proportional"):
+            raise ValueError(f"kind must be 'generalized', 'PI' or 'proportional', got {kind!r}")
+        self.kind = kind
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def q0(self) -> int:
+        return self.N.shape[-1]
+
+    @property
+    def q1(self) -> int:
+        return self.G.shape[-1]
+
+    @property
+    def state_size(self) -> int:
+        return self.q0 + self.q1
+
+    @property
+    def output_size(self) -> int:
+        return self.P.shape[-2]
+
+    @property
+    def error_matrix(self) -> Float[Array, "s s"]:
+        r"""$\mathbb A = [N\;J;\;S\;G]$."""
+        return jnp.block([[self.N, self.J], [self.S, self.G]])
+
+    # --------------------------------------------------------------- dynamics
+    def measured(self, u, y):
+        return self.Wu @ u + self.Wy @ y
+
+    def vector_field(self, t, xi, u, y):
+        zeta, v = xi[: self.q0], xi[self.q0 :]
+        w = self.measured(u, y)
+        dzeta = self.N @ zeta + self.J @ v + self.F @ w + self.H @ u
+        dv = self.S @ zeta + self.G @ v + self.M @ w
+        return jnp.concatenate([dzeta, dv])
+
+    def output(self, t, xi, u, y):
+        zeta = xi[: self.q0]
+        return self.P @ zeta + self.Q @ self.measured(u, y)
+
+    def linear_matrices(self) -> LinearObserverMatrices:
+        A = self.error_matrix
+        Bw = jnp.concatenate([self.F, self.M], axis=0)
+        Bu = Bw @ self.Wu + jnp.concatenate([self.H, jnp.zeros((self.q1, self.H.shape[1]))], axis=0)
+        By = Bw @ self.Wy
+        Cm = jnp.concatenate([self.P, jnp.zeros((self.P.shape[0], self.q1))], axis=1)
+        return LinearObserverMatrices(A, Bu, By, Cm, self.Q @ self.Wu, self.Q @ self.Wy)
