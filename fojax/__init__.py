@@ -8,7 +8,7 @@ Layers (data flows one way): ``plant`` (models) → ``analysis`` (structure) →
 
 import importlib.metadata
 
-from . import plant as plant
+from . import models as models, plant as plant
 from ._errors import (
     ConfigError as ConfigError,
     DesignVerificationError as DesignVerificationError,

@@ -1,0 +1,16 @@
+"""The thesis's numerical examples, with every printed quantity and documented typo fixes."""
+
+from ._base import ThesisExample as ThesisExample
+from ._chapter3 import (
+    example_3_1_2 as example_3_1_2,
+    example_3_1_3 as example_3_1_3,
+    example_3_3_7 as example_3_3_7,
+)
+from ._chapter4 import (
+    example_4_1_3 as example_4_1_3,
+    example_4_2_2 as example_4_2_2,
+    example_4_3_2 as example_4_3_2,
+    example_4_4_2 as example_4_4_2,
+)
+from ._motor import electrical_motor as electrical_motor
+from ._robot_arm import robot_arm as robot_arm, robot_arm_ts as robot_arm_ts
