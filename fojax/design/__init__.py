@@ -7,6 +7,11 @@ from ._conditions import (
     default_R as default_R,
     fixed_modes as fixed_modes,
 )
+from ._finite_time import (
+    design_finite_time_observer as design_finite_time_observer,
+    FiniteTimeObserverDesign as FiniteTimeObserverDesign,
+    reconstruction_matrices as reconstruction_matrices,
+)
 from ._functional import (
     design_functional_observer as design_functional_observer,
     FunctionalObserverDesign as FunctionalObserverDesign,

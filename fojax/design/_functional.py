@@ -174,14 +174,14 @@ def choose_Z(
 
 def solve_gains(
     s: FunctionalObserverStructure,
-    region: AbstractRegion,
+    region: AbstractRegion | tuple[AbstractRegion, ...],
     *,
     kind: str,
     margin: float = 1e-3,
     solver: str = _lmi.DEFAULT_SOLVER,
     Z: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], dict]:
-    """The joint region LMI in ``(X1, X2, W = X1 Z, 𝒲_i = X 𝕐_i)`` (Theorem 1, linearized).
+):
+    """The joint region LMI in ``(X1, X2, W = X1 Z, 𝒲 = X 𝕐)`` (Theorem 1, linearized).
 
     The certificate is ``X = [[X1, X1 Π], [Πᵀ X1, X2]]`` with ``Π = I`` (padded to
     ``q0 × q1``) for generalized observers — the thesis's structure, which makes
@@ -189,34 +189,60 @@ def solve_gains(
     observers, whose constraint ``S = -Y2 N3 = 0`` is then the linear constraint
     ``𝒲[v-rows, :c] N3 = 0``. When `Z` is given it is kept fixed.
 
-    Returns ``(X, Z, [𝕐_i], info)`` with ``𝕐_i = [[Y1, J], [Y2, G]]``.
+    `region` may be a tuple of regions: then one observer per region is designed
+    with a *common* ``Z`` (hence a common ``T``) and a common block ``X1`` — what the
+    finite-time observer needs. Every rule of a Takagi–Sugeno structure gets its own
+    𝕐 with the common certificate.
+
+    Returns ``(X, Z, [𝕐_i], info)`` for one region, or ``([X_r], Z, [[𝕐_ri]], info)``
+    for a tuple of regions; ``𝕐 = [[Y1, J], [Y2, G]]``.
     """
+    multi = isinstance(region, tuple | list)
+    regions = tuple(region) if multi else (region,)
     pc = pieces(s, xp=np)
     N1, N2, N3 = (np.asarray(x) for x in (pc.N1, pc.N2, pc.N3))
     k, q0, q1 = N1.shape[0], s.q0, s.q1
     c, nZ = N3.shape[0], N2.shape[1]
     d = q0 + q1
     A2 = np.block([[N3, np.zeros((c, q1))], [np.zeros((q1, q0)), -np.eye(q1)]])
+    # Π couples ε and v in the certificate (thesis); it is only needed to linearize
+    # W = X1 Z, so with Z given the generalized certificate is a full matrix.
     Pi = np.eye(q0, q1) if kind == "generalized" else np.zeros((q0, q1))
+    full_X = Z is not None and kind == "generalized"
+    # With Z free, the regions share X1 (so that W = X1 Z is one variable); with Z
+    # given, every region has its own certificate.
     X1 = cp.Variable((q0, q0), symmetric=True)
-    if q1:
-        X2 = cp.Variable((q1, q1), symmetric=True)
-        X = cp.bmat([[X1, X1 @ Pi], [Pi.T @ X1, X2]])
-    else:
-        X = X1
     W = cp.Variable((q0, nZ)) if Z is None else None
-    Ws = [cp.Variable((d, c + q1)) for _ in range(k)]
-    cons = [X >> np.eye(d)]
+    Xs, Wss = [], []
+    cons = []
     eps = float(margin)
-    for i in range(k):
-        top = X1 @ N1[i] - (W @ N2[i] if Z is None else X1 @ (Z @ N2[i]))
-        XA1 = cp.bmat([[top, np.zeros((q0, q1))], [Pi.T @ top, np.zeros((q1, q1))]]) if q1 else top
-        Phi = XA1 - Ws[i] @ A2
-        Mx = _lmi.region_lmi(region, X, Phi)
-        cons.append(Mx << -eps * np.eye(Mx.shape[0]))
-        if kind == "PI" and q1:
-            cons.append(Ws[i][q0:, :c] @ N3 == 0)
-    obj = sum(cp.norm(w, "fro") for w in Ws) + (cp.norm(W, "fro") if W is not None else 0)
+    for r, reg in enumerate(regions):
+        if Z is not None and r > 0:
+            X1 = cp.Variable((q0, q0), symmetric=True)
+        if full_X:
+            X = cp.Variable((d, d), symmetric=True)
+        elif q1:
+            X2 = cp.Variable((q1, q1), symmetric=True)
+            X = cp.bmat([[X1, X1 @ Pi], [Pi.T @ X1, X2]])
+        else:
+            X = X1
+        cons.append(X >> np.eye(d))
+        Ws = [cp.Variable((d, c + q1)) for _ in range(k)]
+        for i in range(k):
+            if full_X:
+                A1i = np.block([[N1[i] - Z @ N2[i], np.zeros((q0, q1))], [np.zeros((q1, d))]])
+                XA1 = X @ A1i
+            else:
+                top = X1 @ N1[i] - (W @ N2[i] if Z is None else X1 @ (Z @ N2[i]))
+                XA1 = cp.bmat([[top, np.zeros((q0, q1))], [Pi.T @ top, np.zeros((q1, q1))]]) if q1 else top
+            Phi = XA1 - Ws[i] @ A2
+            Mx = _lmi.region_lmi(reg, X, Phi)
+            cons.append(Mx << -eps * np.eye(Mx.shape[0]))
+            if kind == "PI" and q1:
+                cons.append(Ws[i][q0:, :c] @ N3 == 0)
+        Xs.append(X)
+        Wss.append(Ws)
+    obj = sum(cp.norm(w, "fro") for Ws in Wss for w in Ws) + (cp.norm(W, "fro") if W is not None else 0)
     info = _lmi.solve(
         cp.Problem(cp.Minimize(obj), cons),
         f"{kind} observer (region LMI in X, W = X1 Z, 𝒲 = X 𝕐)",
@@ -224,17 +250,27 @@ def solve_gains(
         "or choose another R / observer order.",
         solver=solver,
     )
-    Xv = np.asarray(X.value, dtype=float)
-    Xv = 0.5 * (Xv + Xv.T)
-    Zv = np.linalg.solve(Xv[:q0, :q0], _lmi.value(W)) if Z is None else np.asarray(Z)
+    if Z is None:
+        X1v = _lmi.value(X1)
+        Zv = np.linalg.solve(0.5 * (X1v + X1v.T), _lmi.value(W))
+    else:
+        Zv = np.asarray(Z)
     # Components of 𝕐 outside the range of 𝔸2 do not change 𝔸 but enlarge F and M:
     # project them away (projector onto the column space of 𝔸2).
     Pr = A2 @ np.linalg.pinv(A2)
-    Ys = [np.linalg.solve(Xv, _lmi.value(w)) @ Pr for w in Ws]
-    if kind == "PI" and q1:
-        for Y in Ys:  # S = -Y2 N3 = 0 exactly (it is zero to solver precision)
-            Y[q0:, :c] -= Y[q0:, :c] @ N3 @ np.linalg.pinv(N3)
-    return Xv, Zv, Ys, {"lmi": info}
+    Xvs, Yss = [], []
+    for X, Ws in zip(Xs, Wss):
+        Xv = np.asarray(X.value, dtype=float)
+        Xv = 0.5 * (Xv + Xv.T)
+        Ys = [np.linalg.solve(Xv, _lmi.value(w)) @ Pr for w in Ws]
+        if kind == "PI" and q1:
+            for Y in Ys:  # S = -Y2 N3 = 0 exactly (it is zero to solver precision)
+                Y[q0:, :c] -= Y[q0:, :c] @ N3 @ np.linalg.pinv(N3)
+        Xvs.append(Xv)
+        Yss.append(Ys)
+    if multi:
+        return Xvs, Zv, Yss, {"lmi": info}
+    return Xvs[0], Zv, Yss[0], {"lmi": info}
 
 
 def split_Y(Y: np.ndarray, q0: int, c: int) -> dict:

@@ -4,4 +4,5 @@ from ._base import (
     AbstractObserver as AbstractObserver,
     LinearObserverMatrices as LinearObserverMatrices,
 )
+from ._finite_time import FiniteTimeObserver as FiniteTimeObserver
 from ._generalized import GeneralizedFunctionalObserver as GeneralizedFunctionalObserver
