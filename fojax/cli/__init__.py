@@ -1,0 +1,3 @@
+"""The ``fojax`` command line."""
+
+from ._main import main as main
