@@ -1,0 +1,137 @@
+"""Model layer: validation messages, float64 policy, fault augmentation, signals."""
+
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fojax
+
+
+E2 = [[1.0, 0.0], [0.0, 0.0]]
+A2 = [[-1.0, 1.0], [1.0, -2.0]]
+
+
+def test_dimensions_are_derived_and_matrices_are_leaves():
+    s = fojax.DescriptorSystem(E2, A2, [[1.0], [0.0]], [[1.0, 0.0]])
+    assert (s.n, s.m, s.p) == (2, 1, 1)
+    leaves = jax.tree_util.tree_leaves(s)
+    assert len(leaves) == 4 and all(leaf.dtype == jnp.float64 for leaf in leaves)
+    # defaults: autonomous (m = 0) and full-state output
+    s0 = fojax.DescriptorSystem(E2, A2)
+    assert s0.m == 0 and s0.p == 2 and np.array_equal(np.asarray(s0.C), np.eye(2))
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(E=[[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], A=A2), r"E has shape \(2, 3\), expected \(2, 2\)"),
+        (dict(E=E2, A=[[1.0, 2.0, 3.0], [0.0, 1.0, 2.0]]), r"A has shape \(2, 3\), expected \(2, 2\)"),
+        (dict(E=E2, A=A2, B=[[1.0], [0.0], [0.0]]), r"B has shape \(3, 1\), expected \(2, 1\)"),
+        (dict(E=E2, A=A2, C=[[1.0, 0.0, 0.0]]), r"C has shape \(1, 3\), expected \(1, 2\)"),
+        (dict(E=E2, A=[1.0, 2.0]), r"A has shape \(2,\), expected a 2-d matrix"),
+    ],
+)
+def test_shape_errors_name_the_matrix(kwargs, match):
+    with pytest.raises(fojax.ShapeError, match=match) as info:
+        fojax.DescriptorSystem(**kwargs)
+    assert isinstance(info.value, ValueError)
+
+
+def test_non_finite_entries_are_refused():
+    with pytest.raises(fojax.NonFiniteError, match=r"A contains 1 non-finite .* index \(1, 0\)"):
+        fojax.DescriptorSystem(E2, [[-1.0, 1.0], [np.nan, -2.0]])
+    with pytest.raises(fojax.NonFiniteError, match="B contains 2 non-finite"):
+        fojax.DescriptorSystem(E2, A2, [[np.inf], [-np.inf]])
+
+
+def test_float32_inputs_are_refused_with_how_to_fix():
+    with pytest.raises(fojax.Float64RequiredError, match="A has dtype float32.*jax_enable_x64"):
+        fojax.DescriptorSystem(E2, np.asarray(A2, dtype=np.float32))
+
+
+def test_32_bit_jax_is_refused_without_changing_global_config():
+    code = (
+        "import jax, fojax\n"
+        "try:\n"
+        "    fojax.DescriptorSystem([[1.0]], [[-1.0]])\n"
+        "except fojax.Float64RequiredError as e:\n"
+        "    print('REFUSED', 'jax_enable_x64' in str(e), jax.config.jax_enable_x64)\n"
+    )
+    env = {k: v for k, v in __import__("os").environ.items() if k != "JAX_ENABLE_X64"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert r.stdout.strip() == "REFUSED True False", r.stdout + r.stderr
+
+
+def test_fault_augmentation_matches_eq_3_196():
+    E = np.diag([1.0, 1.0, 0.0])
+    A = np.arange(9.0).reshape(3, 3)
+    B = np.array([[1.0], [0.0], [2.0]])
+    C = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]])
+    Fa = np.array([[1.0, 0.0], [0.0, 0.0], [0.0, 3.0]])
+    Fs = np.array([[0.0, 0.0], [0.0, 1.0]])
+    aug = fojax.augment_faults(fojax.DescriptorSystem(E, A, B, C), Fa=Fa, Fs=Fs)
+    # hand-written blocks
+    assert np.array_equal(np.asarray(aug.E), np.diag([1.0, 1.0, 0.0, 1.0, 1.0]))
+    assert np.array_equal(np.asarray(aug.A)[:3, :3], A)
+    assert np.array_equal(np.asarray(aug.A)[:3, 3:], Fa)
+    assert not np.asarray(aug.A)[3:].any()
+    assert np.array_equal(np.asarray(aug.C), np.hstack([C, Fs]))
+    assert np.array_equal(np.asarray(aug.B), np.vstack([B, np.zeros((2, 1))]))
+    # ramp faults: [x; f; f'] with d/dt f = f', d/dt f' = 0
+    r = fojax.augment_faults(fojax.DescriptorSystem(E, A, B, C), Fa=Fa, ramp=True)
+    assert r.n == 7
+    assert np.array_equal(np.asarray(r.A)[3:5, 5:7], np.eye(2))
+    assert not np.asarray(r.A)[5:].any()
+    with pytest.raises(fojax.ShapeError, match="Fa has shape"):
+        fojax.augment_faults(fojax.DescriptorSystem(E, A, B, C), Fa=np.ones((2, 1)))
+
+
+def test_from_state_space_has_identity_E():
+    s = fojax.DescriptorSystem.from_state_space([[0.0, 1.0], [-2.0, -3.0]], [[0.0], [1.0]])
+    assert np.array_equal(np.asarray(s.E), np.eye(2))
+
+
+def test_signals_closed_forms_and_vmap():
+    t = jnp.asarray(1.3)
+    assert float(fojax.Step([2.0], 1.0)(t)[0]) == 2.0
+    assert float(fojax.Step([2.0], 1.5)(t)[0]) == 0.0
+    assert np.isclose(float(fojax.Ramp([0.5], 1.0)(t)[0]), 0.15)
+    assert np.isclose(float(fojax.Ramp([0.5], 1.0, 1.2)(t)[0]), 0.1)
+    assert np.isclose(float(fojax.Sine([2.0], 3.0, 0.5, 1.0)(t)[0]), 1.0 + 2.0 * np.sin(3.9 + 0.5))
+    pc = fojax.PiecewiseConstant([1.0, 2.0], [[0.0], [5.0], [-1.0]])
+    assert [float(pc(jnp.asarray(x))[0]) for x in (0.5, 1.0, 1.9, 2.0, 9.0)] == [0, 5, 5, -1, -1]
+    f = fojax.intermittent([1.0], [(1.0, 2.0), (3.0, 4.0)])
+    assert [float(f(jnp.asarray(x))[0]) for x in (0.5, 1.5, 2.5, 3.5, 4.5)] == [0, 1, 0, 1, 0]
+    total = fojax.Step([1.0], 0.0) + fojax.Sine([1.0], 1.0)
+    assert np.isclose(float(total(t)[0]), 1.0 + np.sin(1.3))
+    # a family of step faults with random magnitudes and onsets vmaps (scenarios)
+    mags = jnp.array([[1.0], [2.0], [3.0]])
+    onsets = jnp.array([0.5, 1.5, 1.0])
+    fam = jax.vmap(lambda a, t0: fojax.Step(a, t0))(mags, onsets)
+    vals = jax.vmap(lambda s: s(t))(fam)
+    assert np.array_equal(np.asarray(vals)[:, 0], [1.0, 0.0, 3.0])
+
+
+def test_sector_membership_is_a_convex_combination_and_exact():
+    # rho = sin(y)/y in [rho_min, 1]: w1 = (1 - rho)/(1 - rho_min) is the weight of the rho_min rule
+    m = fojax.SectorMembership(fojax.SincPremise(0), -0.2173, 1.0)
+    for y in (0.0, 0.7, 2.0, 4.49):
+        w = np.asarray(m(jnp.array([y]), jnp.zeros(0)))
+        rho = np.sinc(y / np.pi)
+        assert np.isclose(w.sum(), 1.0) and (w >= 0).all()
+        assert np.isclose(w[0] * -0.2173 + w[1] * 1.0, rho)
+
+
+def test_uncertain_system_matrices():
+    nom = fojax.DescriptorSystem(E2, A2, [[1.0], [0.0]])
+    dA = np.zeros((1, 2, 2))
+    dA[0, 0, 1] = 1.0
+    unc = fojax.UncertainDescriptorSystem(nom, dA=dA, delta=fojax.Sine([0.3], 2.0))
+    A_t, _, _ = unc.matrices(jnp.asarray(0.25))
+    assert np.isclose(float(A_t[0, 1]), 1.0 + 0.3 * np.sin(0.5))
+    with pytest.raises(fojax.ShapeError, match="delta"):
+        fojax.UncertainDescriptorSystem(nom, dA=dA, delta=fojax.Sine([0.3, 0.1], 2.0))
