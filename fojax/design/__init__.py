@@ -16,6 +16,11 @@ from ._functional import (
     design_functional_observer as design_functional_observer,
     FunctionalObserverDesign as FunctionalObserverDesign,
 )
+from ._gain_parameterization import (
+    contraction as contraction,
+    disk_gain as disk_gain,
+    lemma10_gain as lemma10_gain,
+)
 from ._lmi import DEFAULT_SOLVER as DEFAULT_SOLVER, SOLVERS as SOLVERS
 from ._parameterization import (
     design_residuals as design_residuals,
