@@ -1,0 +1,207 @@
+"""Saved designs (bit-exact round trip), atomic no-clobber writes, results folders,
+the Markdown report and the PNG figures (read back and compared)."""
+
+import json
+import os
+
+import jax.numpy as jnp
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+
+import fojax
+from fojax.design import design_functional_observer, Disk, HalfPlane, Sector
+from fojax.results import (
+    atomic_write_text,
+    load_design,
+    new_results_folder,
+    plot_error_distributions,
+    plot_estimates,
+    plot_poles,
+    plot_tuning_curve,
+    read_design_metadata,
+    save_design,
+    write_report,
+)
+
+
+@pytest.fixture(scope="module")
+def design():
+    ex = fojax.models.example_4_1_3()
+    s = ex.system
+    closed = fojax.DescriptorSystem(s.E, s.A + s.B @ jnp.asarray(ex.L), s.B, s.C)
+    return design_functional_observer(closed, ex.L, kind="generalized", region=Disk(-2.0, 1.0))
+
+
+def _all_arrays(d):
+    out = {f"observer.{k}": getattr(d.observer, k) for k in "N J F H S G M P Q Wu Wy".split()}
+    out |= {f"structure.{k}": getattr(d.structure, k) for k in "E A B C L R Eperp Z0 PiZ".split()}
+    out |= {f"params.{k}": v for k, v in d.params.items()}
+    out |= {k: getattr(d, k) for k in ("T", "K", "Z_eff", "X")}
+    out["report.eigenvalues"] = d.report.eigenvalues
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def test_save_load_bit_identical(design, tmp_path):
+    path = save_design(design, tmp_path / "obs.npz", metadata={"config": "x.toml"})
+    loaded = load_design(path)
+    a, b = _all_arrays(design), _all_arrays(loaded)
+    assert a.keys() == b.keys() and len(a) == 31
+    for k in a:
+        assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, k
+        assert np.array_equal(a[k], b[k]), k  # bit-identical (no tolerance)
+    assert set(loaded.params) == set(design.params)
+    assert loaded.kind == design.kind and loaded.observer.kind == design.observer.kind
+    assert loaded.region == design.region
+    assert loaded.structure.q1 == design.structure.q1 and loaded.structure.psi == design.structure.psi
+    assert loaded.report.passed and loaded.report.to_dict() == design.report.to_dict()
+    assert str(loaded.report) == str(design.report)
+    meta = read_design_metadata(path)
+    assert meta["fojax_version"] == fojax.__version__ and meta["user"] == {"config": "x.toml"}
+    assert meta["kind"] == "generalized" and meta["region"] == {"type": "disk", "center": -2.0, "radius": 1.0}
+    assert "T" in meta["created"] and meta["report"]["passed"] is True
+    # the loaded observer produces identical outputs on the same data
+    rng = np.random.default_rng(0)
+    o1, o2 = design.observer, loaded.observer
+    xi = jnp.asarray(rng.normal(size=o1.state_size))
+    u = jnp.asarray(rng.normal(size=2))
+    y = jnp.asarray(rng.normal(size=3))
+    assert np.array_equal(o1.vector_field(0.0, xi, u, y), o2.vector_field(0.0, xi, u, y))
+    assert np.array_equal(o1.output(0.0, xi, u, y), o2.output(0.0, xi, u, y))
+
+
+def test_loaded_observer_simulates_identically(design, tmp_path):
+    loaded = load_design(save_design(design, tmp_path / "d.npz"))
+    ex = fojax.models.example_4_1_3()
+    plant = design.structure
+    sys_ = fojax.DescriptorSystem(plant.E, plant.A, plant.B, plant.C)
+    ts = jnp.linspace(0.0, 2.0, 21)
+    s1 = fojax.simulate(sys_, jnp.asarray(ex.x0), ts, fojax.Step(jnp.array([1.0, 0.0])), observers=(design.observer,))
+    s2 = fojax.simulate(sys_, jnp.asarray(ex.x0), ts, fojax.Step(jnp.array([1.0, 0.0])), observers=(loaded.observer,))
+    assert np.array_equal(np.asarray(s1.estimates[0]), np.asarray(s2.estimates[0]))
+
+
+def test_save_never_overwrites_silently(design, tmp_path):
+    path = save_design(design, tmp_path / "obs.npz")
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match=r"obs\.npz already exists.*overwrite=True"):
+        save_design(design, path)
+    assert path.read_bytes() == before
+    save_design(design, path, overwrite=True)
+    assert load_design(path).report.passed
+    # no temporary files are left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["obs.npz"]
+
+
+def test_save_rejects_non_design_and_load_rejects_foreign_npz(tmp_path):
+    with pytest.raises(TypeError, match="FunctionalObserverDesign"):
+        save_design(object(), tmp_path / "x.npz")
+    np.savez(tmp_path / "foreign.npz", a=np.zeros(2))
+    with pytest.raises(fojax.InputError, match="not a fojax design file"):
+        load_design(tmp_path / "foreign.npz")
+
+
+def test_atomic_write_text(tmp_path):
+    p = atomic_write_text(tmp_path / "a.txt", "one")
+    with pytest.raises(FileExistsError):
+        atomic_write_text(p, "two")
+    assert p.read_text() == "one"
+    atomic_write_text(p, "two", overwrite=True)
+    assert p.read_text() == "two"
+    assert [q.name for q in tmp_path.iterdir()] == ["a.txt"]
+
+
+def test_results_folders_are_never_reused(tmp_path):
+    a = new_results_folder(tmp_path, prefix="run")
+    (a / "keep.txt").write_text("first run")
+    b = new_results_folder(tmp_path, prefix="run")
+    assert a != b and a.is_dir() and b.is_dir() and a.name.startswith("run-")
+    assert (a / "keep.txt").read_text() == "first run"
+    c = new_results_folder(tmp_path, name="mine")
+    (c / "x").write_text("1")
+    with pytest.raises(FileExistsError, match="mine already exists and is not empty.*--overwrite"):
+        new_results_folder(tmp_path, name="mine")
+    assert new_results_folder(tmp_path, name="mine", overwrite=True) == c
+    assert (c / "x").read_text() == "1"
+
+
+def test_write_report_links_figures_and_numbers(tmp_path):
+    png = plot_tuning_curve(tmp_path / "tune.png", [0, 1, 2], [3.0, 2.0, 1.0])
+    rep = write_report(
+        tmp_path,
+        title="Study",
+        summary="Two observers.",
+        numbers={"samples": 8, "IAE (generalized)": 1.234567},
+        tables={"Comparison": (["observer", "IAE"], [["PO", 2.5], ["FGDO", 1.25]])},
+        figures={"Tuning curve": png},
+        files={"design": tmp_path / "d.npz"},
+    )
+    text = rep.read_text()
+    assert text.startswith("# Study") and "![Tuning curve](tune.png)" in text
+    assert "| IAE (generalized) | 1.235 |" in text and "| FGDO | 1.25 |" in text
+    assert "[d.npz](d.npz)" in text and fojax.__version__ in text
+    with pytest.raises(FileExistsError):
+        write_report(tmp_path, title="again")
+
+
+def _img(path):
+    assert path.stat().st_size > 1000
+    with open(path, "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+    img = mpimg.imread(path)
+    assert img.shape[:2] == (600, 800)  # default size 800x600 pixels
+    assert img[..., :3].std() > 0.01  # not a blank image
+    return img
+
+
+def test_plot_poles_all_region_types(design, tmp_path):
+    eigs = design.report.eigenvalues
+    regions = [Disk(-2.0, 1.0), HalfPlane(1.0), Sector(0.6), Disk(-3.0, 2.0) & HalfPlane(1.5) & Sector(0.7)]
+    imgs = [_img(plot_poles(tmp_path / f"p{i}.png", eigs, r, plant_poles=[1.79, -4.4 + 1.72j, -4.4 - 1.72j]))
+            for i, r in enumerate(regions)]
+    for i in range(len(imgs)):
+        for j in range(i):
+            assert not np.array_equal(imgs[i], imgs[j])
+    assert imgs[0].shape[2] in (3, 4)
+    _img(plot_poles(tmp_path / "noregion.png", eigs))
+    p = plot_poles(tmp_path / "sz.png", eigs, regions[0], size=(400, 300))
+    assert mpimg.imread(p).shape[:2] == (300, 400)
+
+
+def test_plot_estimates_bands(tmp_path):
+    ts = np.linspace(0, 5, 200)
+    truth = np.stack([np.sin(ts), np.cos(ts)], axis=1)
+    est = {"PO": (truth - 0.3, truth + 0.05, truth + 0.4), "FGDO": (truth - 0.1, truth, truth + 0.1)}
+    a = _img(plot_estimates(tmp_path / "a.png", ts, truth, est))
+    b = _img(plot_estimates(tmp_path / "b.png", ts, truth, {"PO": (truth - 1, truth, truth + 1)}))
+    assert not np.array_equal(a, b)
+    with pytest.raises(ValueError, match="truth must have shape"):
+        plot_estimates(tmp_path / "c.png", ts, truth[:10], est)
+
+
+def test_plot_error_distributions_box_and_violin(tmp_path):
+    rng = np.random.default_rng(1)
+    errs = {"PO": rng.gamma(2.0, 2.0, 50), "FGDO": rng.gamma(2.0, 0.5, 50)}
+    a = _img(plot_error_distributions(tmp_path / "box.png", errs))
+    b = _img(plot_error_distributions(tmp_path / "violin.png", errs, kind="violin"))
+    c = _img(plot_error_distributions(tmp_path / "box2.png", {"PO": errs["PO"] * 3, "FGDO": errs["FGDO"]}))
+    assert not np.array_equal(a, b) and not np.array_equal(a, c)
+    with pytest.raises(ValueError, match="kind must be"):
+        plot_error_distributions(tmp_path / "x.png", errs, kind="pie")
+
+
+def test_plot_tuning_curve(tmp_path):
+    steps = np.arange(20)
+    a = _img(plot_tuning_curve(tmp_path / "a.png", steps, np.exp(-steps / 5.0), np.exp(-steps / 6.0) + 0.01))
+    b = _img(plot_tuning_curve(tmp_path / "b.png", steps, np.exp(-steps / 2.0)))
+    assert not np.array_equal(a, b)
+    with pytest.raises(FileExistsError):
+        plot_tuning_curve(tmp_path / "a.png", steps, steps + 1.0)
+    assert os.path.getsize(tmp_path / "a.png") > 1000
+
+
+def test_json_safe_metadata_is_valid_json(design, tmp_path):
+    path = save_design(design, tmp_path / "m.npz")
+    with np.load(path, allow_pickle=False) as data:
+        meta = json.loads(str(data["__metadata__"][()]))
+    assert meta["sizes"] == {"n": 4, "m": 2, "p": 3, "q": 2, "q0": design.structure.q0}
