@@ -351,8 +351,9 @@ def observer_matrices(
     F = TA @ Sp @ KI - Y1 @ F3
     S = -Y2 @ N3
     M = -Y2 @ F3
-    P = L @ Sp @ Iq - Y3 @ N3
-    Q = L @ Sp @ KI - Y3 @ F3
+    # explicit leading rule axis: no implicit rank promotion (jax_numpy_rank_promotion="raise")
+    P = (L @ Sp @ Iq)[None] - Y3 @ N3
+    Q = (L @ Sp @ KI)[None] - Y3 @ F3
     H = xp.einsum("ij,kjl->kil", T, Bs)
     return ObserverMatrices(N, J, F, H, S, G, M, P, Q, T, K, Z_eff, F3)
 
