@@ -36,7 +36,7 @@ import cvxpy as cp
 import numpy as np
 
 from .._dtype import require_x64
-from .._errors import RankConditionError, ShapeError
+from .._errors import LMIInfeasibleError, RankConditionError, ShapeError
 from .._linalg import left_null_space
 from ..observer._generalized import GeneralizedFunctionalObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
@@ -243,13 +243,10 @@ def solve_gains(
         Xs.append(X)
         Wss.append(Ws)
     obj = sum(cp.norm(w, "fro") for Ws in Wss for w in Ws) + (cp.norm(W, "fro") if W is not None else 0)
-    info = _lmi.solve(
-        cp.Problem(cp.Minimize(obj), cons),
-        f"{kind} observer (region LMI in X, W = X1 Z, 𝒲 = X 𝕐)",
-        hint="No observer gain places the error dynamics in the region: enlarge the region, "
-        "or choose another R / observer order.",
-        solver=solver,
-    )
+    name = f"{kind} observer (region LMI in X, W = X1 Z, 𝒲 = X 𝕐)"
+    hint = ("No observer gain places the error dynamics in the region: enlarge the region, "
+            "or choose another R / observer order.")
+    info = solve_with_fallbacks(obj, cons, name, hint, solver)
     if Z is None:
         X1v = _lmi.value(X1)
         Zv = np.linalg.solve(0.5 * (X1v + X1v.T), _lmi.value(W))
@@ -271,6 +268,32 @@ def solve_gains(
     if multi:
         return Xvs, Zv, Yss, {"lmi": info}
     return Xvs[0], Zv, Yss[0], {"lmi": info}
+
+
+def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
+    """Solve ``min obj s.t. cons``, falling back to the feasibility problem.
+
+    Minimum-gain solutions sit on the boundary of the feasible set, where the solvers
+    sometimes stop at "optimal_inaccurate". The pure feasibility problem (interior
+    point) is better conditioned; it is a fallback because its gains are larger.
+    With ``solver="auto"`` the order is: Clarabel (min-gain), Clarabel (feasibility),
+    SCS (min-gain), SCS (feasibility). Only status ``optimal`` is ever accepted.
+    """
+    solvers = ("CLARABEL", "SCS") if _lmi.check_solver(solver) == "AUTO" else (solver,)
+    attempts = [(sv, o) for sv in solvers for o in ("min-gain", "feasibility")]
+    statuses = []
+    for sv, o in attempts:
+        prob = cp.Problem(cp.Minimize(obj if o == "min-gain" else 0), cons)
+        try:
+            info = _lmi.solve(prob, name, hint=hint, solver=sv)
+        except LMIInfeasibleError as err:
+            statuses.append(f"{err.status} ({sv}, {o})")
+            continue
+        info["objective"] = o
+        if statuses:
+            info["failed_attempts"] = list(statuses)
+        return info
+    raise LMIInfeasibleError(name, "; ".join(statuses), {}, hint)
 
 
 def split_Y(Y: np.ndarray, q0: int, c: int) -> dict:
