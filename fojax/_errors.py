@@ -124,6 +124,12 @@ class ImpulseObservabilityError(ExistenceConditionError):
     """Assumption 2 (Takagi–Sugeno): rank [E; E⊥A_i; C] != n for some rule."""
 
 
+class StabilizabilityError(ExistenceConditionError):
+    """No state feedback ``u = Lx`` makes ``(E, A + BL)`` admissible (with the requested
+    pole region): the system is not impulse controllable, or a finite mode that no
+    feedback can move lies outside the region (uncontrollable modes in `lhs`)."""
+
+
 class LMIInfeasibleError(FojaxError, RuntimeError):
     """The LMI solver did not return status ``optimal``.
 
@@ -154,6 +160,11 @@ class DesignVerificationError(FojaxError, RuntimeError):
     def __init__(self, message: str, report: Any = None):
         self.report = report
         super().__init__(message)
+
+
+class AlgebraicLoopError(InputError):
+    """A feedback ``u = ẑ + u_r`` with a direct feedthrough ``ẑ = ... + D u`` cannot be
+    solved for ``u`` because ``I - D`` is singular (ill-posed algebraic loop)."""
 
 
 class ConfigError(InputError):
