@@ -1,4 +1,4 @@
-"""``fojax`` command: ``fojax demo`` runs the built-in demonstration.
+"""``fojax`` command: ``demo``, ``check``, ``design``, ``study`` and ``examples``.
 
 The CLI enables 64-bit JAX for its own process (it is an application, not a library
 import), and says so in ``--help``.
@@ -14,7 +14,25 @@ import time
 DESCRIPTION = """\
 fojax: functional observers for descriptor systems E x' = A x + B u, y = C x, z = L x.
 
+Describe your model in a TOML file (format: docs/config.md; start from a shipped
+example, `fojax examples` lists them), then check its structure and design observers.
 The command enables 64-bit JAX for its own process (fojax computes in float64).
+"""
+
+EPILOG = """\
+examples:
+  fojax demo                            analyse, design and simulate thesis example 4.1.3
+  fojax examples                        list the shipped example configs and their paths
+  fojax check example_3_3_7             structure report of a shipped example
+  fojax check my_model.toml             ... or of your own model file
+  fojax design my_model.toml            design + verify the [[observer]]s, save them in a
+                                        new folder under ./fojax-results
+  fojax design my_model.toml --out runs --name first   choose the folder
+  fojax --quiet design my_model.toml    only errors (exit code tells success)
+
+exit codes: 0 success; 1 a design failed verification; 2 error (one-line reason on
+stderr); 3 command not available in this installation.
+Python: fojax.config.load_config, fojax.results.save_design / load_design.
 """
 
 
@@ -77,27 +95,105 @@ def demo(quiet: bool = False) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    raw = argparse.RawDescriptionHelpFormatter
     parser = argparse.ArgumentParser(
-        prog="fojax", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="fojax", description=DESCRIPTION, epilog=EPILOG, formatter_class=raw
     )
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    # `--quiet` is accepted after the command too (default SUPPRESS keeps the global value)
+    quiet = argparse.ArgumentParser(add_help=False)
+    quiet.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS,
+                       help="print nothing but errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.add_parser(
         "demo",
+        parents=[quiet],
         help="analyse, design an observer for and simulate thesis example 4.1.3",
         description="Structural analysis, verified LMI observer design and simulation of "
         "thesis example 4.1.3, with a printed summary.",
     )
+    sub.add_parser(
+        "examples", parents=[quiet], help="list the example configs shipped with fojax",
+        description="List the shipped example configs (thesis examples) and their paths; "
+        "copy one to start your own model file.",
+    )
+    p = sub.add_parser(
+        "check",
+        parents=[quiet],
+        help="structural analysis report of the model in CONFIG",
+        description="Regularity, index, poles, impulse-freeness, admissibility, observability "
+        "and controllability notions and functional observability of L (Assumption 1), with a "
+        "plain-language verdict. Exit code 0 when the report could be produced.",
+        epilog="example: fojax check example_3_3_7   (a shipped example; see `fojax examples`)",
+        formatter_class=raw,
+    )
+    p.add_argument("config", metavar="CONFIG", nargs="+",
+                   help="TOML model file(s), or shipped example names")
+    p = sub.add_parser(
+        "design",
+        parents=[quiet],
+        help="design, verify and save the observers requested in CONFIG",
+        description="Design every [[observer]] of CONFIG by LMI, verify it in float64, and "
+        "save it (fojax.results.load_design reads it back bit-exactly) with a pole plot and a "
+        "Markdown report into a NEW results folder: an earlier folder is never reused.",
+        epilog="example: fojax design example_4_1_3 --out runs\n"
+        "         python -c \"import fojax.results as r; print(r.load_design('runs/<folder>/generalized.npz'))\"",
+        formatter_class=raw,
+    )
+    p.add_argument("config", metavar="CONFIG", nargs="+",
+                   help="TOML model file(s), or shipped example names (one results folder each)")
+    p.add_argument("--out", metavar="DIR", default=None,
+                   help="parent directory of the results folder (default: ./fojax-results)")
+    p.add_argument("--name", metavar="NAME", default=None,
+                   help="results folder name (default: design-<model name>-<UTC timestamp>)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="allow writing into an existing --name folder (files are replaced)")
+    p = sub.add_parser(
+        "study",
+        parents=[quiet],
+        help="Monte Carlo robustness study (default: the built-in §3.3.7 benchmark)",
+        description="Design, Monte Carlo study, tuning and comparison of the observers of "
+        "CONFIG (default: the §3.3.7 benchmark).",
+    )
+    p.add_argument("config", metavar="CONFIG", nargs="?", default=None,
+                   help="TOML model/study file (default: the built-in §3.3.7 benchmark)")
+    p.add_argument("--out", metavar="DIR", default=None, help="parent directory of the results folder")
     args = parser.parse_args(argv)
     command = args.command or "demo"
+    from . import _commands
+
     try:
         if command == "demo":
             return demo(quiet=args.quiet)
+        if command == "examples":
+            return _commands.examples(quiet=args.quiet)
+        if command == "study":
+            return _commands.study(args.config, args.out, quiet=args.quiet)
+        _enable_x64()
+        configs = [_commands.resolve_config(c) for c in args.config]
+        if command == "design" and args.name is not None and len(configs) > 1:
+            parser.error("--name needs a single CONFIG (each config gets its own folder)")
+        status = 0
+        for config in configs:
+            if command == "check":
+                status = max(status, _commands.check(config, quiet=args.quiet))
+            else:
+                status = max(status, _commands.design(
+                    config, args.out, name=args.name, overwrite=args.overwrite, quiet=args.quiet
+                ))
+        return status
+    except _commands._Unavailable as err:
+        print(f"fojax: {err}", file=sys.stderr)
+        return 3
     except Exception as err:  # one-line reason, non-zero exit
         from fojax import FojaxError
 
-        kind = "error" if isinstance(err, FojaxError) else f"unexpected {type(err).__name__}"
-        print(f"fojax: {kind}: {str(err).splitlines()[0] if str(err) else ''}", file=sys.stderr)
+        if isinstance(err, FojaxError | FileExistsError):
+            kind = "error"
+        else:
+            kind = f"unexpected {type(err).__name__}"
+        msg = " ".join(str(err).split("\n")[0].split()) if str(err) else ""
+        print(f"fojax: {kind}: {msg}", file=sys.stderr)
         return 2
     parser.print_help()
     return 2

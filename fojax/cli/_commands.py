@@ -1,0 +1,224 @@
+"""``fojax check``, ``fojax design`` and ``fojax study`` (config-file commands)."""
+
+from __future__ import annotations
+
+import pathlib
+import time
+
+import numpy as np
+
+
+class _Progress:
+    """Step messages with elapsed times (nothing when quiet)."""
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+
+    def say(self, *args):
+        if not self.quiet:
+            print(*args, flush=True)
+
+    def step(self, message: str):
+        progress = self
+
+        class _Step:
+            def __enter__(self):
+                self.t0 = time.perf_counter()
+                progress.say(f"{message} ...")
+                return self
+
+            def __exit__(self, *exc):
+                if exc[0] is None:
+                    progress.say(f"  done in {time.perf_counter() - self.t0:.1f} s")
+                return False
+
+        return _Step()
+
+
+def resolve_config(path: str) -> str:
+    """A config path, or the shipped example of that name (``fojax check example_3_3_7``)."""
+    from ..config import example_names, example_path
+
+    p = pathlib.Path(path)
+    if not p.exists() and p.suffix in ("", ".toml") and p.parent == pathlib.Path(".") and (
+        p.stem in example_names()
+    ):
+        return str(example_path(p.stem))
+    return path
+
+
+def _load(path):
+    from ..config import load_config
+
+    return load_config(path)
+
+
+def examples(quiet: bool = False) -> int:
+    """List the shipped example configs."""
+    from ..config import example_names, example_path
+
+    for n in example_names():
+        print(f"{n:<16} {example_path(n)}")
+    return 0
+
+
+def check(config_path: str, quiet: bool = False) -> int:
+    """Print the structural analysis report(s) of the model in `config_path`."""
+    from ..analysis import structure_report
+
+    out = _Progress(quiet)
+    cfg = _load(config_path)
+    out.say(f"fojax check: {cfg.name} ({config_path})")
+    if cfg.description:
+        out.say(f"  {cfg.description}")
+    if cfg.feedback is not None:
+        out.say("  model.feedback is given: the plant analysed is (E, A + B K, B, C).")
+    out.say("")
+    systems = cfg.rule_systems()
+    for i, sys_ in enumerate(systems):
+        if cfg.is_takagi_sugeno:
+            out.say(f"Takagi-Sugeno rule {i + 1} of {len(systems)} (E, A_{i + 1}, B_{i + 1}, C):")
+        out.say(structure_report(sys_, cfg.L))
+        out.say("")
+    if cfg.has_faults:
+        aug = cfg.design_system()
+        out.say(
+            f"Fault-augmented system (eq. 3.196, {aug.n} states) with the functional of the "
+            "observers (z and the faults):" if cfg.estimate_faults else
+            f"Fault-augmented system (eq. 3.196, {aug.n} states) with the functional [L 0]:"
+        )
+        out.say(structure_report(aug, cfg.design_L()))
+        out.say(
+            "  (the augmented system always has poles at 0, the constant fault states: 'NOT "
+            "admissible' is expected here; what matters for the observers is observability "
+            "and Assumption 1)"
+        )
+        out.say("")
+    if cfg.dA is not None:
+        out.say(
+            f"Uncertainty: {cfg.dA.shape[0]} direction(s) dA; the reports above are for the "
+            "nominal model (delta = 0)."
+        )
+    return 0
+
+
+def design(
+    config_path: str,
+    out_dir: str | None = None,
+    *,
+    name: str | None = None,
+    overwrite: bool = False,
+    quiet: bool = False,
+) -> int:
+    """Design, verify and save every ``[[observer]]`` of `config_path` in a new results folder."""
+    from .._errors import ConfigError
+    from ..design import design_functional_observer
+    from ..results import (
+        atomic_write_json,
+        new_results_folder,
+        plot_poles,
+        save_design,
+        write_report,
+    )
+    from ..results._io import atomic_write_bytes
+
+    out = _Progress(quiet)
+    cfg = _load(config_path)
+    if cfg.is_takagi_sugeno:
+        raise ConfigError(
+            config_path,
+            "takagi_sugeno",
+            "observer design for Takagi-Sugeno models is not available from config files yet; "
+            "`fojax check` analyses each rule.",
+        )
+    from ..config import ObserverSpec
+
+    observers = cfg.observers or (ObserverSpec("generalized", "generalized", _default_region()),)
+    sys_ = cfg.design_system()
+    L = cfg.design_L()
+    folder = new_results_folder(
+        out_dir if out_dir is not None else "fojax-results",
+        prefix=f"design-{cfg.name}",
+        name=name,
+        overwrite=overwrite,
+    )
+    out.say(f"fojax design: {cfg.name} -> results folder {folder}")
+    atomic_write_bytes(folder / "config.toml", pathlib.Path(config_path).read_bytes(), overwrite=overwrite)
+    if cfg.has_faults:
+        out.say(f"  designing for the fault-augmented system ({sys_.n} states), functional {L.shape[0]} x {L.shape[1]}")
+    rows, figures, files, summary = [], {}, {}, []
+    all_passed = True
+    for spec in observers:
+        with out.step(
+            f"designing observer '{spec.name}' ({spec.kind}, error poles in "
+            f"{spec.region.describe()}): structure checks, LMI solve, float64 verification"
+        ):
+            d = design_functional_observer(
+                sys_, L, kind=spec.kind, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1
+            )
+        out.say(f"  {d}")
+        path = save_design(
+            d,
+            folder / f"{spec.name}.npz",
+            overwrite=overwrite,
+            metadata={"config": str(config_path), "config_name": cfg.name, "observer": spec.name},
+        )
+        png = plot_poles(
+            folder / f"poles-{spec.name}.png",
+            d.report.eigenvalues,
+            d.region,
+            title=f"{cfg.name}: error poles of '{spec.name}' ({spec.kind})",
+            overwrite=overwrite,
+        )
+        all_passed &= bool(d.report.passed)
+        eig = np.asarray(d.report.eigenvalues)
+        rows.append(
+            [spec.name, spec.kind, d.observer.q0, d.observer.q1, d.region.describe(),
+             float(np.max(eig.real)) if eig.size else float("nan"),
+             float(d.report.relative_residual), d.report.passed]
+        )
+        figures[f"Error poles of '{spec.name}'"] = png
+        files[f"design of '{spec.name}' (fojax.load_design)"] = path
+        summary.append({"name": spec.name, "file": path.name, **d.report.to_dict(),
+                        "kind": spec.kind, "q0": d.observer.q0, "q1": d.observer.q1})
+        out.say(f"  saved {path}")
+    atomic_write_json(folder / "designs.json", {"config": str(config_path), "designs": summary}, overwrite=overwrite)
+    files["verification summary"] = folder / "designs.json"
+    files["the config file used"] = folder / "config.toml"
+    headers = ["observer", "kind", "q0", "q1", "region", "max Re(eig)", "relative residual", "verified"]
+    report = write_report(
+        folder,
+        title=f"fojax design: {cfg.name}",
+        summary=(cfg.description or "") + f"\n\nConfig: `{config_path}`. Every design below was "
+        "verified in float64 (design-condition residuals, eigenvalues in the region, LMI "
+        "re-check at the certificate).",
+        tables={"Designs": (headers, rows)},
+        figures=figures,
+        files=files,
+        overwrite=overwrite,
+    )
+    width = max([len("observer")] + [len(r[0]) for r in rows])
+    out.say("")
+    out.say(f"{'observer':<{width}}  kind          q0  q1  max Re(eig)  verified")
+    for r in rows:
+        out.say(f"{r[0]:<{width}}  {r[1]:<12}  {r[2]:>2}  {r[3]:>2}  {r[5]:>11.4g}  {'yes' if r[7] else 'NO'}")
+    out.say(f"\nresults: {folder} (report: {report.name})")
+    return 0 if all_passed else 1
+
+
+def _default_region():
+    from ..design import Disk
+
+    return Disk(-2.0, 1.0)
+
+
+def study(config_path: str | None = None, out_dir: str | None = None, *, quiet: bool = False) -> int:
+    """``fojax study``: not available in this version (exit code 3 with the reason)."""
+    raise _Unavailable(
+        "fojax study is not available yet: the Monte Carlo study runner and the tuning are not "
+        "part of this fojax version. Use `fojax check` and `fojax design` meanwhile."
+    )
+
+
+class _Unavailable(Exception):
+    """A command that is not available in this installation (exit code 3)."""

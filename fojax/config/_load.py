@@ -1,0 +1,626 @@
+r"""TOML model and study files: format, validation and the objects they describe.
+
+A config file describes one descriptor model, the observers to design for it and
+(optionally) a Monte Carlo study and a tuning run. Matrices are nested lists of
+numbers (rows). The full reference with examples is ``docs/config.md``; the thesis
+examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
+
+    name = "example_4_1_3"               # optional: a short name for result folders
+    description = "..."                  # optional
+
+    [model]                              # required
+    E = [[1, 0], [0, 0]]                 # (n, n)            required
+    A = [[-1, 1], [1, -2]]               # (n, n); (k, n, n) for a T-S model   required
+    B = [[1], [0]]                       # (n, m); (k, n, m) allowed for T-S   required
+    C = [[1, 0]]                         # (p, n)            required
+    L = [[0, 1]]                         # (q, n) functional z = L x           required
+    feedback = [[...]]                   # optional (m, n) K: the plant is (E, A + B K, B, C)
+    x0 = [1, 0]                          # optional initial state (n,)
+
+    [faults]                             # optional: E x' = A x + B u + Fa f, y = C x + Fs f
+    Fa = [[...]]                         # (n, nf)   at least one of Fa, Fs
+    Fs = [[...]]                         # (p, nf)
+    ramp = false                         # Remark 9: ramp faults (f'' = 0)
+    estimate_faults = true               # design for [L 0; 0 I] (estimate z and f)
+
+    [uncertainty]                        # optional: A + sum_j delta_j(t) dA_j
+    dA = [[[...]]]                       # list of (n, n) directions (or one matrix)
+    profile = { kind = "uniform", bound = 0.3 }
+        # kind = "constant" (value = [..]), "uniform" (bound: delta_j ~ U[-bound, bound]
+        # per sample), or "sine" (amplitude, omega [, phase])
+
+    [takagi_sugeno]                      # optional: [model] A (and B) hold one matrix per rule
+    premise = "sinc"                     # rho = sin(y_i)/y_i ("sinc") or rho = y_i ("output")
+    index = 1                            # output index i (0-based)
+    lower = -0.217                       # rho range [lower, upper] of the sector membership
+    upper = 1.0
+
+    [[observer]]                         # zero or more (default: one generalized observer)
+    name = "FGDO"                        # optional
+    kind = "generalized"                 # "generalized", "PI" or "proportional"
+    region = { disk = { center = -2.0, radius = 1.0 }, decay = 0.5, damping = 0.7 }
+        # any non-empty subset; several parts are intersected. Default: disk(-2, 1).
+    q0 = 2                               # optional observer order, or
+    R = [[...]]                          # optional (q0, n) (of the designed, augmented system)
+    q1 = 2                               # optional size of v
+
+    [study]                              # optional Monte Carlo settings
+    samples = 64
+    horizon = 10.0
+    dt = 0.01
+    seed = 0
+
+    [tuning]                             # optional gradient tuning settings
+    steps = 100
+    learning_rate = 0.01
+
+Every problem raises `fojax.ConfigError` naming the file, the key (dotted path, e.g.
+``observer[1].region.disk.radius``) and what was expected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import pathlib
+import tomllib
+from typing import Any
+
+import numpy as np
+
+from .._errors import ConfigError, RegionError
+
+
+KINDS = ("generalized", "PI", "proportional")
+PROFILE_KINDS = ("constant", "uniform", "sine")
+PREMISES = ("sinc", "output")
+
+_TOP = {"name", "description", "model", "faults", "uncertainty", "takagi_sugeno", "observer", "study", "tuning"}
+_MODEL = {"E", "A", "B", "C", "L", "feedback", "x0"}
+_MODEL_REQUIRED = ("E", "A", "B", "C", "L")
+_FAULTS = {"Fa", "Fs", "ramp", "estimate_faults"}
+_UNCERTAINTY = {"dA", "profile"}
+_PROFILE = {
+    "constant": {"kind", "value"},
+    "uniform": {"kind", "bound"},
+    "sine": {"kind", "amplitude", "omega", "phase"},
+}
+_TS = {"premise", "index", "lower", "upper"}
+_OBSERVER = {"name", "kind", "region", "R", "q0", "q1"}
+_REGION = {"disk", "decay", "damping"}
+_DISK = {"center", "radius"}
+_STUDY = {"samples", "horizon", "dt", "seed"}
+_TUNING = {"steps", "learning_rate"}
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclasses.dataclass(frozen=True)
+class ObserverSpec:
+    """One ``[[observer]]`` entry: `kind`, `region` (an `AbstractRegion`), `R` or `q0`, `q1`."""
+
+    name: str
+    kind: str
+    region: Any
+    R: np.ndarray | None = None
+    q0: int | None = None
+    q1: int | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class StudySpec:
+    """``[study]``: Monte Carlo `samples`, `horizon` [s], time step `dt` [s], `seed`."""
+
+    samples: int = 64
+    horizon: float = 10.0
+    dt: float = 0.01
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class TuningSpec:
+    """``[tuning]``: optimisation `steps` and optax `learning_rate`."""
+
+    steps: int = 100
+    learning_rate: float = 0.01
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """A validated config file (all matrices float64 `numpy.ndarray`).
+
+    **Fields:** `path`, `name`, `description`, `E`, `A` (``(n, n)`` or ``(k, n, n)``),
+    `B`, `C`, `L`, `feedback` (or None), `x0` (or None), `Fa`, `Fs` (or None),
+    `ramp`, `estimate_faults`, `dA` (``(k, n, n)`` or None), `profile` (dict or None),
+    `takagi_sugeno` (dict or None), `observers` (tuple of `ObserverSpec`), `study`
+    (`StudySpec` or None), `tuning` (`TuningSpec` or None), `raw` (the parsed TOML).
+    """
+
+    path: str
+    name: str
+    description: str
+    E: np.ndarray
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    L: np.ndarray
+    feedback: np.ndarray | None
+    x0: np.ndarray | None
+    Fa: np.ndarray | None
+    Fs: np.ndarray | None
+    ramp: bool
+    estimate_faults: bool
+    dA: np.ndarray | None
+    profile: dict | None
+    takagi_sugeno: dict | None
+    observers: tuple[ObserverSpec, ...]
+    study: StudySpec | None
+    tuning: TuningSpec | None
+    raw: dict
+
+    @property
+    def n(self) -> int:
+        return self.E.shape[0]
+
+    @property
+    def is_takagi_sugeno(self) -> bool:
+        return self.takagi_sugeno is not None
+
+    @property
+    def has_faults(self) -> bool:
+        return self.Fa is not None or self.Fs is not None
+
+    def closed_loop_A(self) -> np.ndarray:
+        """``A + B K`` with the `feedback` K (or `A`), per rule for T-S models."""
+        if self.feedback is None:
+            return self.A
+        return self.A + self.B @ self.feedback
+
+    def system(self):
+        """The nominal (fault-free) `fojax.DescriptorSystem` ``(E, A + BK, B, C)``.
+
+        For a Takagi–Sugeno model, the `fojax.TakagiSugenoSystem`.
+        """
+        from ..plant import DescriptorSystem, TakagiSugenoSystem
+        from ..plant._takagi_sugeno import OutputPremise, SectorMembership, SincPremise
+
+        if self.is_takagi_sugeno:
+            ts = self.takagi_sugeno
+            premise = (SincPremise if ts["premise"] == "sinc" else OutputPremise)(int(ts["index"]))
+            membership = SectorMembership(premise, ts["lower"], ts["upper"])
+            return TakagiSugenoSystem(self.E, self.closed_loop_A(), self.B, self.C, membership)
+        return DescriptorSystem(self.E, self.closed_loop_A(), self.B, self.C)
+
+    def rule_systems(self) -> list:
+        """One `DescriptorSystem` per T-S rule (the nominal system alone otherwise)."""
+        from ..plant import DescriptorSystem
+
+        if not self.is_takagi_sugeno:
+            return [self.system()]
+        A = self.closed_loop_A()
+        B = self.B if self.B.ndim == 3 else np.broadcast_to(self.B, (A.shape[0],) + self.B.shape)
+        return [DescriptorSystem(self.E, A[i], B[i], self.C) for i in range(A.shape[0])]
+
+    def design_system(self):
+        """The system observers are designed for: fault-augmented (eq. 3.196) if
+        ``[faults]`` is given, else `system`."""
+        from ..plant import augment_faults
+
+        sys_ = self.system()
+        if self.has_faults:
+            return augment_faults(sys_, self.Fa, self.Fs, ramp=self.ramp)
+        return sys_
+
+    def design_L(self) -> np.ndarray:
+        """The functional of the designed system: `L`, or ``[L 0; 0 I]`` (``[L 0]`` when
+        ``estimate_faults = false``) with faults (``[L 0 0; 0 I 0]`` for ramp faults)."""
+        if not self.has_faults:
+            return self.L
+        nf = (self.Fa if self.Fa is not None else self.Fs).shape[1]
+        extra = 2 * nf if self.ramp else nf
+        q, n = self.L.shape
+        top = np.hstack([self.L, np.zeros((q, extra))])
+        if not self.estimate_faults:
+            return top
+        bottom = np.hstack([np.zeros((nf, n)), np.eye(nf), np.zeros((nf, extra - nf))])
+        return np.vstack([top, bottom])
+
+    def plant(self):
+        """The simulated plant: `system`, wrapped in a `fojax.UncertainDescriptorSystem`
+        when ``[uncertainty]`` is given (constant profiles use ``value``, sine profiles
+        the `fojax.Sine` signal, uniform profiles the nominal ``δ = 0``)."""
+        sys_ = self.system()
+        if self.dA is None:
+            return sys_
+        import jax.numpy as jnp
+
+        from ..plant import Sine, UncertainDescriptorSystem
+
+        k = self.dA.shape[0]
+        prof = self.profile or {"kind": "constant", "value": [0.0] * k}
+        if prof["kind"] == "sine":
+            amp = np.broadcast_to(np.asarray(prof["amplitude"], float), (k,))
+            delta = Sine(jnp.asarray(amp), float(prof["omega"]), float(prof.get("phase", 0.0)))
+        elif prof["kind"] == "constant":
+            delta = jnp.asarray(np.broadcast_to(np.asarray(prof["value"], float), (k,)))
+        else:
+            delta = jnp.zeros((k,))
+        return UncertainDescriptorSystem(sys_, dA=jnp.asarray(self.dA), delta=delta)
+
+
+# --------------------------------------------------------------------------- validation
+
+
+class _V:
+    """Validation helpers bound to one file name."""
+
+    def __init__(self, file: str):
+        self.file = file
+
+    def err(self, key: str, message: str) -> ConfigError:
+        return ConfigError(self.file, key, message)
+
+    def table(self, key: str, value, allowed: set, required=()) -> dict:
+        if not isinstance(value, dict):
+            raise self.err(key, f"expected a table ([{key}] or {{...}}), got {_typename(value)}.")
+        for k in value:
+            if k not in allowed:
+                close = difflib.get_close_matches(k, sorted(allowed), n=1, cutoff=0.5)
+                hint = f" Did you mean '{close[0]}'?" if close else ""
+                raise self.err(
+                    _join(key, k),
+                    f"unknown key '{k}'.{hint} Allowed keys in [{key or 'top level'}]: "
+                    f"{', '.join(sorted(allowed))}.",
+                )
+        for k in required:
+            if k not in value:
+                raise self.err(_join(key, k), f"missing required key '{k}' in [{key}].")
+        return value
+
+    def number(self, key, value, *, positive=False, nonneg=False, integer=False) -> float | int:
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        if integer and not (isinstance(value, int) and not isinstance(value, bool)):
+            raise self.err(key, f"expected an integer, got {value!r} ({_typename(value)}).")
+        if not ok:
+            raise self.err(key, f"expected a number, got {value!r} ({_typename(value)}).")
+        if not math.isfinite(value):
+            raise self.err(key, f"expected a finite number, got {value!r}.")
+        if positive and value <= 0:
+            raise self.err(key, f"expected a positive number, got {value!r}.")
+        if nonneg and value < 0:
+            raise self.err(key, f"expected a number >= 0, got {value!r}.")
+        return value
+
+    def string(self, key, value, choices=None) -> str:
+        if not isinstance(value, str):
+            raise self.err(key, f"expected a string, got {value!r} ({_typename(value)}).")
+        if choices is not None and value not in choices:
+            close = difflib.get_close_matches(value, choices, n=1, cutoff=0.5)
+            hint = f" Did you mean '{close[0]}'?" if close else ""
+            raise self.err(key, f"expected one of {', '.join(map(repr, choices))}, got {value!r}.{hint}")
+        return value
+
+    def boolean(self, key, value) -> bool:
+        if not isinstance(value, bool):
+            raise self.err(key, f"expected true or false, got {value!r} ({_typename(value)}).")
+        return value
+
+    def array(self, key, value, ndim: int | tuple[int, ...], what: str) -> np.ndarray:
+        """A rectangular float64 array of `ndim` dimensions from nested lists of numbers."""
+        ndims = (ndim,) if isinstance(ndim, int) else ndim
+
+        def walk(v, path, depth):
+            if isinstance(v, list):
+                return [walk(x, path + [i], depth + 1) for i, x in enumerate(v)]
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                where = "".join(f"[{i}]" for i in path)
+                raise self.err(
+                    key,
+                    f"expected {what} of numbers; entry {key}{where} is {v!r} ({_typename(v)}).",
+                )
+            if not math.isfinite(v):
+                where = "".join(f"[{i}]" for i in path)
+                raise self.err(key, f"entry {key}{where} is {v!r}; every entry must be finite.")
+            return float(v)
+
+        if not isinstance(value, list):
+            raise self.err(key, f"expected {what} (nested lists of numbers), got {_typename(value)}.")
+        walk(value, [], 0)
+        try:
+            arr = np.array(value, dtype=np.float64)
+        except ValueError:
+            raise self.err(
+                key, f"expected {what}, but the rows have different lengths (ragged nested lists)."
+            ) from None
+        if arr.ndim not in ndims or 0 in arr.shape:
+            raise self.err(
+                key,
+                f"expected {what} ({' or '.join(f'{d}-D' for d in ndims)} nested lists), got an "
+                f"array of shape {arr.shape}.",
+            )
+        return arr
+
+    def shape(self, key, arr, expected: tuple, meaning: str):
+        if tuple(arr.shape) != tuple(expected):
+            raise self.err(key, f"has shape {tuple(arr.shape)}, expected {tuple(expected)} ({meaning}).")
+
+
+def _typename(v) -> str:
+    return {dict: "table", list: "list", str: "string", bool: "boolean"}.get(type(v), type(v).__name__)
+
+
+def _join(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else key
+
+
+def _region(v: _V, key: str, value):
+    from ..design import Disk, HalfPlane, Intersection, Sector
+
+    value = v.table(key, value, _REGION)
+    if not value:
+        raise v.err(key, "is empty; give at least one of disk = {center, radius}, decay, damping.")
+    parts = []
+    if "disk" in value:
+        dkey = _join(key, "disk")
+        d = v.table(dkey, value["disk"], _DISK, required=("center", "radius"))
+        c = v.number(_join(dkey, "center"), d["center"])
+        r = v.number(_join(dkey, "radius"), d["radius"], positive=True)
+        if c + r >= 0:
+            raise v.err(
+                dkey,
+                f"disk(center={c}, radius={r}) reaches into the closed right half-plane "
+                f"(rightmost point {c + r}); expected center + radius < 0.",
+            )
+        parts.append(Disk(c, r))
+    if "decay" in value:
+        parts.append(HalfPlane(v.number(_join(key, "decay"), value["decay"], nonneg=True)))
+    if "damping" in value:
+        zeta = v.number(_join(key, "damping"), value["damping"])
+        if not 0.0 < zeta < 1.0:
+            raise v.err(_join(key, "damping"), f"expected a damping ratio in (0, 1), got {zeta!r}.")
+        parts.append(Sector(zeta))
+    try:
+        return parts[0] if len(parts) == 1 else Intersection(tuple(parts))
+    except RegionError as e:  # pragma: no cover - every parameter is checked above
+        raise v.err(key, str(e)) from None
+
+
+def parse_config(data: dict, file: str = "<config>") -> Config:
+    """Validate an already parsed TOML document (see the module docstring for the format).
+
+    **Arguments:**
+
+    - `data`: the dict `tomllib` returns.
+    - `file`: the name used in error messages.
+
+    **Returns:** a `Config`. **Raises:** `fojax.ConfigError`.
+    """
+    v = _V(file)
+    v.table("", data, _TOP, required=("model",))
+    name = v.string("name", data["name"]) if "name" in data else pathlib.Path(file).stem
+    description = v.string("description", data["description"]) if "description" in data else ""
+    ts_raw = data.get("takagi_sugeno")
+    model = v.table("model", data["model"], _MODEL, required=_MODEL_REQUIRED)
+
+    E = v.array("model.E", model["E"], 2, "a square matrix")
+    n = E.shape[0]
+    v.shape("model.E", E, (n, n), "E must be square, n x n")
+    if ts_raw is None:
+        A = v.array("model.A", model["A"], 2, "an n x n matrix")
+        v.shape("model.A", A, (n, n), f"n = {n} from E")
+        B = v.array("model.B", model["B"], 2, "an n x m matrix")
+    else:
+        A = v.array("model.A", model["A"], 3, "a list of n x n rule matrices (Takagi-Sugeno)")
+        if A.shape[1:] != (n, n):
+            raise v.err("model.A", f"has shape {A.shape}, expected (k, {n}, {n}) (one n x n matrix per rule, n = {n} from E).")
+        B = v.array("model.B", model["B"], (2, 3), "an n x m matrix or one per rule")
+        if B.ndim == 3 and B.shape[0] != A.shape[0]:
+            raise v.err("model.B", f"has {B.shape[0]} rule matrices but model.A has {A.shape[0]}.")
+    if B.shape[-2] != n:
+        raise v.err("model.B", f"has shape {B.shape}, expected ({n}, m) (one row per state, n = {n} from E).")
+    m = B.shape[-1]
+    C = v.array("model.C", model["C"], 2, "a p x n matrix")
+    if C.shape[1] != n:
+        raise v.err("model.C", f"has shape {C.shape}, expected (p, {n}) (one column per state, n = {n} from E).")
+    p = C.shape[0]
+    L = v.array("model.L", model["L"], 2, "a q x n matrix")
+    if L.shape[1] != n:
+        raise v.err("model.L", f"has shape {L.shape}, expected (q, {n}) (one column per state, n = {n} from E).")
+    feedback = None
+    if "feedback" in model:
+        feedback = v.array("model.feedback", model["feedback"], 2, "an m x n matrix")
+        v.shape("model.feedback", feedback, (m, n), f"u = K x with m = {m} from B, n = {n} from E")
+    x0 = None
+    if "x0" in model:
+        x0 = v.array("model.x0", model["x0"], 1, "a vector")
+        v.shape("model.x0", x0, (n,), f"one entry per state, n = {n}")
+
+    Fa = Fs = None
+    ramp, estimate_faults = False, True
+    if "faults" in data:
+        f = v.table("faults", data["faults"], _FAULTS)
+        if "Fa" not in f and "Fs" not in f:
+            raise v.err("faults.Fa", "missing: [faults] needs Fa (n x nf), Fs (p x nf) or both.")
+        if "Fa" in f:
+            Fa = v.array("faults.Fa", f["Fa"], 2, "an n x nf matrix")
+            if Fa.shape[0] != n:
+                raise v.err("faults.Fa", f"has shape {Fa.shape}, expected ({n}, nf) (one row per state).")
+        if "Fs" in f:
+            Fs = v.array("faults.Fs", f["Fs"], 2, "a p x nf matrix")
+            if Fs.shape[0] != p:
+                raise v.err("faults.Fs", f"has shape {Fs.shape}, expected ({p}, nf) (one row per output, p = {p} from C).")
+        if Fa is not None and Fs is not None and Fa.shape[1] != Fs.shape[1]:
+            raise v.err("faults.Fs", f"has {Fs.shape[1]} columns but faults.Fa has {Fa.shape[1]}; both act on the same fault vector f.")
+        ramp = v.boolean("faults.ramp", f["ramp"]) if "ramp" in f else False
+        if "estimate_faults" in f:
+            estimate_faults = v.boolean("faults.estimate_faults", f["estimate_faults"])
+
+    dA = profile = None
+    if "uncertainty" in data:
+        u = v.table("uncertainty", data["uncertainty"], _UNCERTAINTY, required=("dA",))
+        dA = v.array("uncertainty.dA", u["dA"], (2, 3), "a list of n x n matrices")
+        if dA.ndim == 2:
+            dA = dA[None]
+        if dA.shape[1:] != (n, n):
+            raise v.err("uncertainty.dA", f"has shape {dA.shape}, expected (k, {n}, {n}) (n x n directions, n = {n} from E).")
+        k = dA.shape[0]
+        if "profile" in u:
+            pk = "uncertainty.profile"
+            pr = u["profile"]
+            if not isinstance(pr, dict):
+                raise v.err(pk, f"expected a table {{ kind = ... }}, got {_typename(pr)}.")
+            kind = v.string(_join(pk, "kind"), pr.get("kind", None) if "kind" in pr else _missing(v, _join(pk, "kind")), PROFILE_KINDS)
+            v.table(pk, pr, _PROFILE[kind], required=[r for r in {"constant": ("value",), "uniform": ("bound",), "sine": ("amplitude", "omega")}[kind]])
+            profile = {"kind": kind}
+            for key in sorted(set(pr) - {"kind"}):
+                val = pr[key]
+                if isinstance(val, list):
+                    arr = v.array(_join(pk, key), val, 1, f"a list of {k} numbers")
+                    v.shape(_join(pk, key), arr, (k,), f"one per uncertainty direction, k = {k}")
+                    profile[key] = arr.tolist()
+                else:
+                    profile[key] = v.number(_join(pk, key), val, nonneg=key in ("bound", "omega"))
+
+    ts = None
+    if ts_raw is not None:
+        t = v.table("takagi_sugeno", ts_raw, _TS, required=("premise", "index", "lower", "upper"))
+        premise = v.string("takagi_sugeno.premise", t["premise"], PREMISES)
+        index = v.number("takagi_sugeno.index", t["index"], integer=True, nonneg=True)
+        if index >= p:
+            raise v.err("takagi_sugeno.index", f"is {index}; expected an output index in 0..{p - 1} (p = {p} from C).")
+        lo = v.number("takagi_sugeno.lower", t["lower"])
+        hi = v.number("takagi_sugeno.upper", t["upper"])
+        if not lo < hi:
+            raise v.err("takagi_sugeno.upper", f"is {hi}; expected upper > lower = {lo}.")
+        if A.shape[0] != 2:
+            raise v.err("model.A", f"has {A.shape[0]} rule matrices; the sector membership of [takagi_sugeno] has 2 rules.")
+        ts = {"premise": premise, "index": int(index), "lower": float(lo), "upper": float(hi)}
+    if dA is not None and ts is not None:
+        raise v.err("uncertainty", "is not supported together with [takagi_sugeno].")
+
+    n_design = n
+    if Fa is not None or Fs is not None:
+        nf = (Fa if Fa is not None else Fs).shape[1]
+        n_design = n + (2 * nf if ramp else nf)
+    observers = []
+    raw_obs = data.get("observer", [])
+    if isinstance(raw_obs, dict):
+        raw_obs = [raw_obs]
+    if not isinstance(raw_obs, list):
+        raise v.err("observer", f"expected [[observer]] tables, got {_typename(raw_obs)}.")
+    for i, o in enumerate(raw_obs):
+        key = f"observer[{i}]"
+        o = v.table(key, o, _OBSERVER)
+        kind = v.string(_join(key, "kind"), o["kind"], KINDS) if "kind" in o else "generalized"
+        from ..design import Disk
+
+        region = _region(v, _join(key, "region"), o["region"]) if "region" in o else Disk(-2.0, 1.0)
+        R = q0 = q1 = None
+        if "R" in o and "q0" in o:
+            raise v.err(_join(key, "q0"), "give either R or q0, not both (q0 is the number of rows of R).")
+        if "R" in o:
+            R = v.array(_join(key, "R"), o["R"], 2, "a q0 x n matrix")
+            if R.shape[1] != n_design:
+                raise v.err(_join(key, "R"), f"has shape {R.shape}, expected (q0, {n_design}) (columns = states of the designed{' fault-augmented' if n_design != n else ''} system).")
+        if "q0" in o:
+            q0 = v.number(_join(key, "q0"), o["q0"], integer=True, positive=True)
+        if "q1" in o:
+            q1 = v.number(_join(key, "q1"), o["q1"], integer=True, nonneg=True)
+            if kind == "proportional" and q1 != 0:
+                raise v.err(_join(key, "q1"), f"is {q1}; a proportional observer has q1 = 0.")
+        oname = v.string(_join(key, "name"), o["name"]) if "name" in o else f"{kind}-{i + 1}"
+        observers.append(ObserverSpec(oname, kind, region, R, q0, q1))
+    names = [o.name for o in observers]
+    for i, nm in enumerate(names):
+        if nm in names[:i]:
+            raise v.err(f"observer[{i}].name", f"'{nm}' is used by an earlier observer; names must be unique.")
+
+    study = None
+    if "study" in data:
+        s = v.table("study", data["study"], _STUDY)
+        kw = {}
+        if "samples" in s:
+            kw["samples"] = v.number("study.samples", s["samples"], integer=True, positive=True)
+        if "horizon" in s:
+            kw["horizon"] = float(v.number("study.horizon", s["horizon"], positive=True))
+        if "dt" in s:
+            kw["dt"] = float(v.number("study.dt", s["dt"], positive=True))
+        if "seed" in s:
+            kw["seed"] = v.number("study.seed", s["seed"], integer=True, nonneg=True)
+        study = StudySpec(**kw)
+        if study.dt >= study.horizon:
+            raise v.err("study.dt", f"is {study.dt}; expected a time step smaller than study.horizon = {study.horizon}.")
+    tuning = None
+    if "tuning" in data:
+        t = v.table("tuning", data["tuning"], _TUNING)
+        kw = {}
+        if "steps" in t:
+            kw["steps"] = v.number("tuning.steps", t["steps"], integer=True, positive=True)
+        if "learning_rate" in t:
+            kw["learning_rate"] = float(v.number("tuning.learning_rate", t["learning_rate"], positive=True))
+        tuning = TuningSpec(**kw)
+
+    return Config(
+        path=file, name=name, description=description, E=E, A=A, B=B, C=C, L=L,
+        feedback=feedback, x0=x0, Fa=Fa, Fs=Fs, ramp=ramp, estimate_faults=estimate_faults,
+        dA=dA, profile=profile, takagi_sugeno=ts, observers=tuple(observers), study=study,
+        tuning=tuning, raw=data,
+    )
+
+
+def _missing(v: _V, key: str):
+    raise v.err(key, f"missing required key '{key.rsplit('.', 1)[-1]}'.")
+
+
+def load_config(path) -> Config:
+    """Read and validate a TOML model/study file.
+
+    **Arguments:**
+
+    - `path`: the ``.toml`` file (format: module docstring and ``docs/config.md``).
+
+    **Returns:** a `Config`.
+
+    **Raises:** `fojax.ConfigError` naming the file, the key and what was expected
+    (missing file, TOML syntax, unknown or missing keys, non-numeric entries, wrong
+    shapes, inconsistent dimensions, bad region parameters).
+    """
+    path = pathlib.Path(path)
+    file = str(path)
+    try:
+        text = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(file, "(file)", "does not exist; pass the path of a .toml config file.") from None
+    except OSError as e:
+        raise ConfigError(file, "(file)", f"cannot be read: {e.strerror}.") from None
+    try:
+        data = tomllib.loads(text.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise ConfigError(file, "(file)", "is not UTF-8 text; a TOML file is expected.") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(file, "(syntax)", f"is not valid TOML: {e}.") from None
+    return parse_config(data, file)
+
+
+def example_names() -> list[str]:
+    """Names of the example configs shipped in ``fojax/examples`` (without ``.toml``)."""
+    import importlib.resources
+
+    root = importlib.resources.files("fojax").joinpath("examples")
+    return sorted(p.name[: -len(".toml")] for p in root.iterdir() if p.name.endswith(".toml"))
+
+
+def example_path(name: str) -> pathlib.Path:
+    """Path of a shipped example config, e.g. ``example_path("example_3_3_7")``."""
+    import importlib.resources
+
+    names = example_names()
+    if name.endswith(".toml"):
+        name = name[:-5]
+    if name not in names:
+        close = difflib.get_close_matches(name, names, n=1)
+        hint = f" Did you mean '{close[0]}'?" if close else ""
+        raise ConfigError(None, "example", f"no example named {name!r}.{hint} Available: {', '.join(names)}.")
+    return pathlib.Path(str(importlib.resources.files("fojax").joinpath("examples", f"{name}.toml")))
