@@ -276,7 +276,7 @@ class _V:
                 )
         for k in required:
             if k not in value:
-                raise self.err(_join(key, k), f"missing required key '{k}' in [{key}].")
+                raise self.err(_join(key, k), f"missing required key '{k}' in [{key or 'top level'}].")
         return value
 
     def number(self, key, value, *, positive=False, nonneg=False, integer=False) -> float | int:

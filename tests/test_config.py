@@ -1,0 +1,247 @@
+"""TOML model/study files: the shipped examples reproduce fojax.models exactly, and
+malformed files fail with a ConfigError naming the file and the key."""
+
+import importlib.resources
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fojax
+from fojax.config import example_names, example_path, load_config, parse_config
+from fojax.design import Disk, HalfPlane, Intersection, Sector
+
+
+EXAMPLES = [
+    "example_3_1_2", "example_3_1_3", "example_3_3_7", "example_4_1_3",
+    "example_4_2_2", "example_4_3_2", "example_4_4_2", "robot_arm_ts",
+]
+
+
+def _toml_value(v):
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace('"', '\\"') + '"'
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    if isinstance(v, float) and not np.isfinite(v):
+        return "nan" if np.isnan(v) else ("inf" if v > 0 else "-inf")
+    return repr(v)
+
+
+def dumps(data: dict) -> str:
+    """A minimal TOML writer for the test documents (tables, arrays of tables, inline values)."""
+    lines = [f"{k} = {_toml_value(v)}" for k, v in data.items() if not isinstance(v, dict | list) or (
+        isinstance(v, list) and not (v and isinstance(v[0], dict)))]
+    for k, v in data.items():
+        if isinstance(v, dict):
+            lines += ["", f"[{k}]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in v.items()]
+        elif isinstance(v, list) and v and isinstance(v[0], dict):
+            for item in v:
+                lines += ["", f"[[{k}]]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in item.items()]
+    return "\n".join(lines) + "\n"
+
+
+def base() -> dict:
+    ex = fojax.models.example_4_1_3()
+    return {
+        "name": "t",
+        "model": {k: np.asarray(getattr(ex, k)).tolist() for k in ("E", "A", "B", "C", "L")},
+        "observer": [{"kind": "generalized", "region": {"disk": {"center": -2.0, "radius": 1.0}}}],
+        "study": {"samples": 4, "horizon": 1.0, "dt": 0.1, "seed": 0},
+        "tuning": {"steps": 2, "learning_rate": 0.01},
+    }
+
+
+def write(tmp_path, data, name="bad.toml"):
+    p = tmp_path / name
+    p.write_text(dumps(data))
+    return p
+
+
+def test_dumper_round_trip(tmp_path):
+    cfg = load_config(write(tmp_path, base(), "ok.toml"))
+    ex = fojax.models.example_4_1_3()
+    assert np.array_equal(cfg.A, ex.A) and np.array_equal(cfg.L, ex.L)
+    assert cfg.observers[0].region == Disk(-2.0, 1.0) and cfg.study.samples == 4
+
+
+def test_examples_are_package_data():
+    root = importlib.resources.files("fojax").joinpath("examples")
+    assert sorted(p.name for p in root.iterdir() if p.name.endswith(".toml")) == [f"{e}.toml" for e in EXAMPLES]
+    assert example_names() == EXAMPLES
+    assert example_path("example_3_3_7").is_file()
+    with pytest.raises(fojax.ConfigError, match="Did you mean 'example_3_3_7'"):
+        example_path("example_3_3_8")
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_every_example_loads(name):
+    cfg = load_config(example_path(name))
+    assert cfg.name == name and cfg.path.endswith(f"{name}.toml")
+    assert cfg.E.dtype == np.float64
+
+
+def test_example_3_3_7_matches_models_exactly():
+    cfg = load_config(example_path("example_3_3_7"))
+    ex = fojax.models.example_3_3_7()
+    for k in ("E", "A", "B", "C", "L", "Fa", "Fs"):
+        assert np.array_equal(getattr(cfg, k), getattr(ex, k)), k
+    assert np.array_equal(cfg.dA[0], ex.dA) and cfg.dA.shape == (1, 6, 6)
+    assert np.array_equal(cfg.design_L(), ex.L_aug)
+    aug, ref = cfg.design_system(), ex.augmented
+    for k in ("E", "A", "B", "C"):
+        assert np.array_equal(np.asarray(getattr(aug, k)), np.asarray(getattr(ref, k))), k
+    assert cfg.profile == {"kind": "uniform", "bound": 0.3}
+    assert [o.name for o in cfg.observers] == ["PO", "FGDO"]
+    assert [o.kind for o in cfg.observers] == ["proportional", "generalized"]
+    assert cfg.study.samples == 64 and cfg.tuning.steps == 100
+    # the uncertain plant: A + delta dA for a constant delta
+    plant = parse_config({**cfg.raw, "uncertainty": {"dA": cfg.raw["uncertainty"]["dA"],
+                                                     "profile": {"kind": "constant", "value": [0.2]}}},
+                         "x.toml").plant()
+    assert isinstance(plant, fojax.UncertainDescriptorSystem)
+    assert np.allclose(np.asarray(plant.nominal_at(0.0).A), ex.A + 0.2 * ex.dA, rtol=0, atol=1e-15)
+
+
+def test_fault_examples_design_functionals():
+    ex = fojax.models.example_4_4_2()
+    cfg = load_config(example_path("example_4_4_2"))
+    assert np.array_equal(cfg.design_L(), ex.Lbar)
+    ex2 = fojax.models.example_4_2_2()
+    cfg2 = load_config(example_path("example_4_2_2"))
+    assert np.array_equal(cfg2.design_L(), ex2.Lbar)  # estimate_faults = false: [L 0]
+    ex3 = fojax.models.example_4_3_2()
+    cfg3 = load_config(example_path("example_4_3_2"))
+    assert np.array_equal(np.asarray(cfg3.design_system().A), np.asarray(ex3.augmented.A))
+
+
+def test_feedback_gives_the_closed_loop():
+    cfg = load_config(example_path("example_4_1_3"))
+    ex = fojax.models.example_4_1_3()
+    assert np.array_equal(np.asarray(cfg.system().A), ex.A + ex.B @ ex.L)
+    # consistent x0 (algebraic row -x1 - 2 x2 + x4 = 0)
+    assert cfg.x0 @ ex.A[3] == 0.0
+
+
+def test_takagi_sugeno_example_matches_models():
+    cfg = load_config(example_path("robot_arm_ts"))
+    ex = fojax.models.robot_arm_ts()
+    s, ref = cfg.system(), ex.system
+    assert isinstance(s, fojax.TakagiSugenoSystem)
+    for k in ("E", "A", "B", "C"):
+        assert np.array_equal(np.asarray(getattr(s, k)), np.asarray(getattr(ref, k))), k
+    for y in ([0.0, 0.3], [1.0, 2.5], [0.0, -4.0]):
+        y = jnp.asarray(y)
+        assert np.array_equal(s.membership(y, jnp.zeros(1)), ref.membership(y, jnp.zeros(1)))
+    assert len(cfg.rule_systems()) == 2
+
+
+def test_region_combinations(tmp_path):
+    d = base()
+    d["observer"] = [
+        {"region": {"decay": 0.5}},
+        {"region": {"damping": 0.7}},
+        {"name": "all", "kind": "PI", "region": {"disk": {"center": -3.0, "radius": 2.0}, "decay": 1.0, "damping": 0.6}},
+    ]
+    cfg = load_config(write(tmp_path, d))
+    r = [o.region for o in cfg.observers]
+    assert r[0] == HalfPlane(0.5) and r[1] == Sector(0.7)
+    assert r[2] == Intersection((Disk(-3.0, 2.0), HalfPlane(1.0), Sector(0.6)))
+    assert [o.name for o in cfg.observers] == ["generalized-1", "generalized-2", "all"]
+
+
+def _mutate(path, value):
+    d = base()
+    *head, last = path
+    t = d
+    for k in head:
+        t = t[k]
+    if value is _DELETE:
+        del t[last]
+    else:
+        t[last] = value
+    return d
+
+
+_DELETE = object()
+A_BAD = fojax.models.example_4_1_3().A.tolist()
+A_BAD[1][2] = "x"
+E_RAGGED = fojax.models.example_4_1_3().E.tolist()
+E_RAGGED[2] = [0.0, 0.0, 1.0]
+
+MALFORMED = [
+    # (path, value, key named in the message, what the message says)
+    (("model", "B"), [[1.0, 0.0]] * 3, "model.B", r"has shape \(3, 2\), expected \(4, m\)"),
+    (("model", "A"), A_BAD, "model.A", r"entry model\.A\[1\]\[2\] is 'x' \(string\)"),
+    (("model", "Bb"), [[1.0]], "model.Bb", r"unknown key 'Bb'\. Did you mean 'B'\?"),
+    (("model", "C"), _DELETE, "model.C", r"missing required key 'C'"),
+    (("model", "L"), [[1.0, 0.0, 0.0]], "model.L", r"has shape \(1, 3\), expected \(q, 4\)"),
+    (("model", "E"), E_RAGGED, "model.E", r"ragged"),
+    (("model", "E"), 3.0, "model.E", r"expected a square matrix \(nested lists of numbers\), got float"),
+    (("model", "x0"), [1.0, 2.0], "model.x0", r"has shape \(2,\), expected \(4,\)"),
+    (("model", "feedback"), [[1.0, 2.0, 3.0, 4.0]], "model.feedback", r"expected \(2, 4\)"),
+    (("observer", 0, "region", "disk", "radius"), -1.0, "observer[0].region.disk.radius", r"expected a positive number, got -1\.0"),
+    (("observer", 0, "region", "disk", "center"), -0.5, "observer[0].region.disk", r"reaches into the closed right half-plane"),
+    (("observer", 0, "region", "damping"), 1.5, "observer[0].region.damping", r"damping ratio in \(0, 1\)"),
+    (("observer", 0, "region", "decay"), "fast", "observer[0].region.decay", r"expected a number, got 'fast'"),
+    (("observer", 0, "region", "disc"), {"center": -2.0, "radius": 1.0}, "observer[0].region.disc", r"Did you mean 'disk'"),
+    (("observer", 0, "kind"), "generalised", "observer[0].kind", r"Did you mean 'generalized'"),
+    (("observer", 0, "R"), [[1.0, 0.0]], "observer[0].R", r"expected \(q0, 4\)"),
+    (("observer", 0, "q0"), 1.5, "observer[0].q0", r"expected an integer"),
+    (("study", "samples"), 0, "study.samples", r"expected a positive number, got 0"),
+    (("study", "dt"), 2.0, "study.dt", r"smaller than study\.horizon"),
+    (("study", "sample"), 3, "study.sample", r"Did you mean 'samples'"),
+    (("tuning", "learning_rate"), -0.1, "tuning.learning_rate", r"positive"),
+    (("observers",), [{"kind": "PI"}], "observers", r"unknown key 'observers'\. Did you mean 'observer'"),
+    (("faults",), {"Fa": [[1.0]] * 4, "Fs": [[1.0, 0.0]] * 3}, "faults.Fs", r"has 2 columns but faults\.Fa has 1"),
+    (("faults",), {"Fs": [[1.0]] * 2}, "faults.Fs", r"expected \(3, nf\)"),
+    (("faults",), {"ramp": True}, "faults.Fa", r"needs Fa .* Fs .* or both"),
+    (("uncertainty",), {"dA": [[[1.0, 0.0], [0.0, 1.0]]]}, "uncertainty.dA", r"expected \(k, 4, 4\)"),
+    (("uncertainty",), {"dA": [[[0.0] * 4] * 4], "profile": {"kind": "gauss"}}, "uncertainty.profile.kind", r"one of 'constant', 'uniform', 'sine'"),
+    (("uncertainty",), {"dA": [[[0.0] * 4] * 4], "profile": {"kind": "sine", "amplitude": 0.1}}, "uncertainty.profile.omega", r"missing required key 'omega'"),
+]
+
+
+@pytest.mark.parametrize("path,value,key,what", MALFORMED, ids=[m[2] + ":" + m[3][:20] for m in MALFORMED])
+def test_malformed_config_names_file_and_key(tmp_path, path, value, key, what):
+    p = write(tmp_path, _mutate(path, value))
+    with pytest.raises(fojax.ConfigError, match=what) as info:
+        load_config(p)
+    err = info.value
+    assert err.key == key and err.file == str(p)
+    assert str(err).startswith(f"{p}: [{key}] ")
+
+
+def test_takagi_sugeno_errors(tmp_path):
+    d = load_config(example_path("robot_arm_ts")).raw
+    bad = {**d, "takagi_sugeno": {**d["takagi_sugeno"], "index": 2}}
+    with pytest.raises(fojax.ConfigError, match=r"\[takagi_sugeno\.index\] is 2; expected an output index in 0\.\.1"):
+        parse_config(bad, "ts.toml")
+    bad = {**d, "takagi_sugeno": {**d["takagi_sugeno"], "premise": "sin"}}
+    with pytest.raises(fojax.ConfigError, match=r"\[takagi_sugeno\.premise\].*Did you mean 'sinc'"):
+        parse_config(bad, "ts.toml")
+    bad = {**d, "model": {**d["model"], "A": d["model"]["A"][0]}}
+    with pytest.raises(fojax.ConfigError, match=r"\[model\.A\] expected a list of n x n rule matrices"):
+        parse_config(bad, "ts.toml")
+
+
+def test_file_level_errors(tmp_path):
+    with pytest.raises(fojax.ConfigError, match=r"nope\.toml: \[\(file\)\] does not exist"):
+        load_config(tmp_path / "nope.toml")
+    p = tmp_path / "syntax.toml"
+    p.write_text("[model]\nE = [[1, 0]\n")
+    with pytest.raises(fojax.ConfigError, match=r"syntax\.toml: \[\(syntax\)\] is not valid TOML"):
+        load_config(p)
+    p.write_text("name = 'x'\n")
+    with pytest.raises(fojax.ConfigError, match=r"\[model\] missing required key 'model'"):
+        load_config(p)
+    p.write_text("[model]\nE = [[1.0, nan], [0.0, 1.0]]\nA = [[1.0]]\nB = [[1.0]]\nC = [[1.0]]\nL = [[1.0]]\n")
+    with pytest.raises(fojax.ConfigError, match=r"\[model\.E\] entry model\.E\[0\]\[1\] is nan; every entry must be finite"):
+        load_config(p)
+    p.write_text("[model]\nE = [[1.0, true], [0.0, 1.0]]\nA = [[1.0]]\nB = [[1.0]]\nC = [[1.0]]\nL = [[1.0]]\n")
+    with pytest.raises(fojax.ConfigError, match=r"\[model\.E\].*is True \(boolean\)"):
+        load_config(p)
