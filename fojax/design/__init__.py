@@ -41,4 +41,18 @@ from ._regions import (
     region_from_dict as region_from_dict,
     Sector as Sector,
 )
+from ._takagi_sugeno import (
+    check_impulse_observability as check_impulse_observability,
+    design_ts_observer as design_ts_observer,
+    TakagiSugenoObserverDesign as TakagiSugenoObserverDesign,
+)
+from ._unknown_input import (
+    check_unknown_input_modes as check_unknown_input_modes,
+    design_unknown_input_observer as design_unknown_input_observer,
+    unknown_input_error_dynamics as unknown_input_error_dynamics,
+    unknown_input_observer_matrices as unknown_input_observer_matrices,
+    unknown_input_residuals as unknown_input_residuals,
+    UnknownInputObserverDesign as UnknownInputObserverDesign,
+    UnknownInputObserverMatrices as UnknownInputObserverMatrices,
+)
 from ._verify import VerificationReport as VerificationReport, verify as verify

@@ -6,3 +6,5 @@ from ._base import (
 )
 from ._finite_time import FiniteTimeObserver as FiniteTimeObserver
 from ._generalized import GeneralizedFunctionalObserver as GeneralizedFunctionalObserver
+from ._takagi_sugeno import TakagiSugenoObserver as TakagiSugenoObserver
+from ._unknown_input import UnknownInputObserver as UnknownInputObserver

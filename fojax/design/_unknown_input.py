@@ -1,0 +1,699 @@
+r"""Functional observers with unknown-input estimation (thesis §3.2, Lemma 9, Theorem 3.2.1).
+
+**Problem.** For $E\dot x = Ax + Bu + Dd$, $y = Cx$, $z = Lx$ with an unknown
+input $d \in \mathbb R^l$ (constant, or slowly varying), the observer
+(`fojax.observer.UnknownInputObserver`)
+
+$$\dot\zeta = N\zeta + Jv + Fw + Hu + \Delta\hat d,\quad
+  \dot v = S\zeta + Gv + Mw,\quad
+  \dot{\hat d} = \Phi\zeta + \Lambda v - Ww,\quad
+  \hat z = P\zeta + Qw$$
+
+estimates $z$ and $d$. With $\varepsilon = \zeta - TEx$, $\tilde d = \hat d - d$,
+$\dot d = 0$ and
+
+- a. $NTE + F\Psi - TA = 0$, b. $H = TB$, c. $\Delta = TD$,
+- d. $STE + M\Psi = 0$, e. $\Phi TE - W\Psi = 0$, f. $PTE + Q\Psi = L$,
+
+the error $\sigma = [\varepsilon; v; \tilde d]$ obeys $\dot\sigma = \mathbb A\sigma$,
+$\mathbb A = \begin{bmatrix}N&J&\Delta\\S&G&0\\\Phi&\Lambda&0\end{bmatrix}$, and
+$\hat z - z = P\varepsilon$.
+
+**Deviations from the thesis (and why).**
+
+1. $E^\perp$ is a basis of the left null space of $[E\;D]$, not of $E$: the measured
+   signal $w = [-E^\perp Bu;\, y]$ must equal $\Psi x$, $\Psi = [E^\perp A; C]$, *with*
+   the unknown input present, which needs $E^\perp D = 0$. (The thesis's proof uses
+   $E^\perp D = 0$ without stating it as a choice of $E^\perp$.)
+2. $W$ acts on the whole measured vector $w$ (the thesis writes $Wy$), and the
+   $\hat d$ dynamics carry a free $\Lambda v$ term ($\Lambda = 0$ is the thesis's form).
+3. Condition e. is solved exactly. The thesis's (3.137–3.140) takes $W$ arbitrary
+   and $[\Phi\;\;-\bar K]\Sigma = WC$, which silently requires $\bar K = \Phi K$ — not
+   guaranteed by its general solution. Instead, with
+   $[TE; \Psi] = \begin{bmatrix}I&-K\\0&I\end{bmatrix}\Sigma$,
+   e. reads $[\Phi,\; -\Phi K - W]\Sigma = 0$, whose general solution is
+   $[\Phi,\; -\Phi K - W] = -Y_4(I - \Sigma\Sigma^+)$, i.e.
+
+   $$\Phi = -Y_4N_3,\qquad W = Y_4F_3$$
+
+   ($N_3 = (I-\Sigma\Sigma^+)[I;0]$, $F_3 = (I-\Sigma\Sigma^+)[K;I]$), for a free $Y_4$.
+   Check: $[\Phi,\,-\Phi K - W]\Sigma = -Y_4(I - \Sigma\Sigma^+)\Sigma = 0$.
+
+**Error dynamics as a linear-in-𝕐 expression.** With $N = N_1 - ZN_2 - Y_1N_3$,
+$S = -Y_2N_3$ (see `fojax.design.observer_matrices`), $\Phi = -Y_4N_3$ and
+$\Delta = TD$ (which depends on $Z$ only):
+
+$$\mathbb A = \mathbb A_1 - \mathbb Y\mathbb A_2,\quad
+  \mathbb A_1 = \begin{bmatrix}N_1 - ZN_2 & 0 & \Delta\\ 0&0&0\\0&0&0\end{bmatrix},\quad
+  \mathbb Y = \begin{bmatrix}Y_1 & J\\ Y_2 & G\\ Y_4 & \Lambda\end{bmatrix},\quad
+  \mathbb A_2 = \begin{bmatrix}N_3 & 0 & 0\\ 0 & -I & 0\end{bmatrix}.$$
+
+(Check: $\mathbb Y\mathbb A_2 = [Y_1N_3,\,-J,\,0;\; Y_2N_3,\,-G,\,0;\; Y_4N_3,\,-\Lambda,\,0]$.)
+The thesis's $\mathbb A_1$ contains $\Phi$ and its $\mathbb Y$ has no $\Lambda$.
+
+**Design (Z fixed, full Lyapunov matrix).** $Z$ is chosen first (`choose_Z`: $Z = 0$
+unless a mode of $N_1$ unobservable through $N_3$ lies outside the region; then the
+proportional region LMI with $W = X_1Z$). With $Z$ fixed, $\mathbb A_1$ is constant
+and the Chilali–Gahinet condition with $\mathcal W = X\mathbb Y$,
+
+$$L_R\otimes X + M_R\otimes(X\mathbb A_1 - \mathcal W\mathbb A_2)^\top
+  + M_R^\top\otimes(X\mathbb A_1 - \mathcal W\mathbb A_2) \prec 0,\qquad X \succ 0,$$
+
+is an LMI in $(X, \mathcal W)$; $\mathbb Y = X^{-1}\mathcal W$ (minimising
+$\|\mathcal W\|_F$, i.e. small gains). Its certificate is often ill-conditioned, so it is
+solved in coordinates preconditioned by one pole-placement solution (see `_solve_lmi`);
+the result is verified in the original coordinates. $X$ must be a *full*
+matrix: for a block-diagonal $X = \operatorname{diag}(X_{\varepsilon v}, X_d)$ the
+$\tilde d$-block of the LMI is $L_R\otimes X_d$ (the $\tilde d$-row of $X\mathbb A$ is
+$X_d[\Phi\;\Lambda\;0]$, so the $(\tilde d, \tilde d)$ block of $X\mathbb A$ is $X_d\cdot 0$), and $L_R\otimes X_d \prec 0$ means that $s = 0$ lies in the region — never
+true for a stable region (for a disk it needs $|\alpha| < \tau$, for the
+Lyapunov region $0 < 0$). The coupling $X_{d\varepsilon}$ is what lets $\Delta$ make
+the $\tilde d$ modes decay. (The thesis's Theorem 3.2.1 also uses a full $X$, with
+the Lyapunov region only.)
+
+**Existence conditions** (checked before any LMI, each with a typed error):
+$D$ has full column rank; functional observability with the new $E^\perp$
+(rank $[L; \Gamma]$ = rank $\Gamma$, $\Gamma = [E; E^\perp A; C]$); the rank
+conditions of the parameterization (`check_structure`); the fixed modes of
+$N_1$ (Lemma 8); and the **unknown-input mode**: $\tilde d$ contributes the
+eigenvalue $0$ to $\mathbb A_1$, which must be observable through $\mathbb A_2$:
+$\operatorname{rank}\begin{bmatrix}N_1 - ZN_2 & TD\\ N_3 & 0\end{bmatrix} = q_0 + l$
+(two $Z$-independent necessary versions are checked first: the rank of the same
+matrix with $Z$ eliminated, and $\operatorname{rank}N_3 \ge l$ — the $\tilde d$ columns
+are seen only through $N_3\varepsilon$). It needs, e.g., $\operatorname{rank}(TD) = l$,
+so $q_0 \ge l$. When the check fails at the chosen $Z$ but not for every $Z$, a few
+seeded perturbations of $Z$ are tried (documented in `_ui_observable_Z`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import cvxpy as cp
+import jax.numpy as jnp
+import numpy as np
+
+from .._dtype import as_matrix
+from .._errors import (
+    DetectabilityError,
+    ExistenceConditionError,
+    FunctionalObservabilityError,
+    LMIInfeasibleError,
+    RankConditionError,
+    ShapeError,
+)
+from .._linalg import left_null_space, rank, row_space
+from ..observer._unknown_input import UnknownInputObserver
+from ..plant._descriptor import check_functional, DescriptorSystem
+from . import _lmi
+from ._conditions import (
+    check_detectability,
+    check_structure,
+    default_R,
+    unobservable_modes,
+)
+from ._functional import _as_system, choose_Z, TIGHTEN
+from ._parameterization import (
+    FunctionalObserverStructure,
+    observer_matrices,
+    observer_structure,
+    pieces,
+)
+from ._regions import AbstractRegion, as_region, Disk
+from ._verify import VerificationReport, verify
+
+
+# ---------------------------------------------------------------------------- parameterization
+
+
+class UnknownInputObserverMatrices(NamedTuple):
+    """Matrices of the unknown-input observer (no rule axis)."""
+
+    N: object
+    J: object
+    F: object
+    H: object
+    Delta: object
+    S: object
+    G: object
+    M: object
+    Phi: object
+    Lambda: object
+    W: object
+    P: object
+    Q: object
+    T: object
+    K: object
+    Z_eff: object
+
+
+def unknown_input_observer_matrices(
+    s: FunctionalObserverStructure, D, Z, Y1, Y2, Y3, J, G, Y4, Lambda, *, xp=jnp
+) -> UnknownInputObserverMatrices:
+    r"""Free parameters → observer matrices (pure; traceable with ``xp=jax.numpy``).
+
+    `s` must be built with ``Eperp`` = left null space of ``[E D]`` (see module
+    docstring). Conditions a.–f. hold for every value of the parameters; $\Delta = TD$,
+    $\Phi = -Y_4N_3$, $W = Y_4F_3$, $\Lambda$ free.
+    """
+    m = observer_matrices(s, Z, Y1, Y2, Y3, J, G, xp=xp)
+    N3 = pieces(s, xp=xp).N3
+    Y4 = xp.asarray(Y4)
+    T = m.T
+    Delta = T @ xp.asarray(D)
+    Phi = -Y4 @ N3
+    W = Y4 @ m.F3
+    return UnknownInputObserverMatrices(
+        m.N[0], m.J[0], m.F[0], m.H[0], Delta, m.S[0], m.G[0], m.M[0], Phi,
+        xp.asarray(Lambda), W, m.P[0], m.Q[0], T, m.K, m.Z_eff,
+    )  # fmt: skip
+
+
+def unknown_input_error_dynamics(mats: UnknownInputObserverMatrices, xp=jnp):
+    r"""$\mathbb A = [N\;J\;\Delta;\;S\;G\;0;\;\Phi\;\Lambda\;0]$."""
+    q1, l = mats.G.shape[0], mats.Delta.shape[1]
+    return xp.concatenate(
+        [
+            xp.concatenate([mats.N, mats.J, mats.Delta], axis=1),
+            xp.concatenate([mats.S, mats.G, xp.zeros((q1, l))], axis=1),
+            xp.concatenate([mats.Phi, mats.Lambda, xp.zeros((l, l))], axis=1),
+        ],
+        axis=0,
+    )
+
+
+def unknown_input_residuals(s: FunctionalObserverStructure, D, mats, xp=np) -> dict:
+    """Residuals (spectral norm) of conditions a.–f. of Lemma 9 and the data scale
+    ``max(1, ‖E‖, ‖A‖, ‖B‖, ‖C‖, ‖L‖, ‖D‖) · max(1, ‖T‖, ‖N‖, ‖F‖, …, ‖W‖)`` (traceable
+    with ``xp=jax.numpy``)."""
+    E, A, B, C, L, Ep = (xp.asarray(x) for x in (s.E, s.A, s.B, s.C, s.L, s.Eperp))
+    D = xp.asarray(D)
+    Psi = xp.concatenate([Ep @ A, C], axis=0)
+    T = mats.T
+    TE = T @ E
+    res = {
+        "a": mats.N @ TE + mats.F @ Psi - T @ A,
+        "b": mats.H - T @ B,
+        "c": mats.Delta - T @ D,
+        "d": mats.S @ TE + mats.M @ Psi,
+        "e": mats.Phi @ TE - mats.W @ Psi,
+        "f": mats.P @ TE + mats.Q @ Psi - L,
+    }
+
+    def nrm(x):
+        return xp.linalg.norm(x, ord=2) if x.size else xp.zeros(())
+
+    out = {k: nrm(v) for k, v in res.items()}
+    data = xp.max(xp.stack([nrm(x) for x in (E, A, B, C, L, D)] + [xp.ones(())]))
+    names = ("T", "N", "F", "S", "M", "P", "Q", "Delta", "Phi", "W")
+    gains = xp.max(xp.stack([nrm(xp.asarray(getattr(mats, k))) for k in names] + [xp.ones(())]))
+    out["scale"] = data * gains
+    return out
+
+
+# ---------------------------------------------------------------------------- design object
+
+
+@dataclasses.dataclass(frozen=True)
+class UnknownInputObserverDesign:
+    """A verified unknown-input functional-observer design.
+
+    Attributes:
+        observer: the `UnknownInputObserver` (state ``[ζ; v; d̂]``).
+        region: the pole region of 𝔸 = [N J Δ; S G 0; Φ Λ 0].
+        structure: the `FunctionalObserverStructure` (E⊥ annihilates ``[E D]``).
+        D: the unknown-input matrix.
+        params: ``Z, Y1, Y2, Y3, J, G, Y4, Lambda`` (numpy).
+        T, K, Z_eff: matrices of ``T E + K Ψ = R``.
+        X: the (full) LMI certificate of 𝔸.
+        report: float64 `VerificationReport` (residuals ``a``–``f``, eigenvalues, LMI).
+        solver: solver information (``step1``: choice of Z, ``lmi``).
+    """
+
+    observer: UnknownInputObserver
+    region: AbstractRegion
+    structure: FunctionalObserverStructure
+    D: np.ndarray
+    params: dict
+    T: np.ndarray
+    K: np.ndarray
+    Z_eff: np.ndarray
+    X: np.ndarray
+    report: VerificationReport
+    solver: dict
+
+    @property
+    def R(self) -> np.ndarray:
+        return np.asarray(self.structure.R)
+
+    @property
+    def L(self) -> np.ndarray:
+        return np.asarray(self.structure.L)
+
+    @property
+    def error_matrix(self) -> np.ndarray:
+        return np.asarray(self.observer.error_matrix)
+
+    def __str__(self) -> str:
+        o = self.observer
+        return (
+            f"unknown-input functional observer: q0 = {o.q0}, q1 = {o.q1}, l = "
+            f"{o.num_unknown_inputs} unknown inputs, estimates q = {o.output_size} functions; "
+            f"error poles in {self.region.describe()}\n{self.report}"
+        )
+
+
+# ---------------------------------------------------------------------------- checks
+
+
+def _check_D(D: np.ndarray) -> None:
+    l = D.shape[1]
+    if l == 0:
+        raise ShapeError("D", ("n", "l >= 1"), tuple(D.shape), "Give at least one unknown-input direction.")
+    r = rank(D)
+    if r != l:
+        raise RankConditionError(
+            "full column rank of D",
+            f"D is {D.shape[0]} x {l} but has rank {r}: the unknown inputs are not distinguishable "
+            "(some combination of them does not act on the plant), so d cannot be estimated.",
+            "Remove dependent columns of D (merge unknown inputs that enter along the same direction).",
+            lhs=r,
+            rhs=l,
+        )
+
+
+def _check_functional_observability(E, A, C, L, Ep) -> None:
+    Gam = np.vstack([E, Ep @ A, C])
+    r0, r1 = rank(Gam), rank(np.vstack([L, Gam]))
+    if r1 != r0:
+        raise FunctionalObservabilityError(
+            "functional observability with the unknown input (Assumption 1, E⊥ annihilating [E D])",
+            f"rank [L; E; E⊥A; C] = {r1} but rank [E; E⊥A; C] = {r0}, where E⊥ spans the left null "
+            f"space of [E D] ({Ep.shape[0]} rows): the algebraic equations the unknown input enters "
+            "no longer constrain x, and z = Lx is not determined by the measured signals.",
+            "Estimate another functional (rows of L in the row space of [E; E⊥A; C]), add outputs "
+            "measuring the missing directions, or model the unknown input so that it does not "
+            "enter the algebraic equations.",
+            lhs=r1,
+            rhs=r0,
+        )
+
+
+def _ui_mode_matrix_any_Z(s: FunctionalObserverStructure, D: np.ndarray) -> np.ndarray:
+    """``[[N1', T1' D], [N2', Π T2 D], [N3, 0]]``: rank < q0 + l ⇒ no Z works."""
+    pc = pieces(s, xp=np)
+    T1p = pc.T1 - pc.Z0 @ pc.T2
+    l = D.shape[1]
+    N3 = np.asarray(pc.N3)
+    return np.block(
+        [
+            [pc.N1[0], T1p @ D],
+            [pc.N2[0], pc.PiZ @ pc.T2 @ D],
+            [N3, np.zeros((N3.shape[0], l))],
+        ]
+    )
+
+
+def _raise_ui_mode(r: int, need: int, q0: int, l: int, rTD: int | None, every_Z: bool):
+    where = "for every Z" if every_Z else "at the chosen Z (and nearby Z)"
+    extra = ""
+    if rTD is not None and rTD < l:
+        extra = f" (rank TD = {rTD} < l = {l}: some unknown input does not reach ζ)"
+    raise DetectabilityError(
+        "detectability of the unknown-input error (mode s = 0 of d̃, Lemma 9)",
+        f"rank [[N1 - Z N2, T D], [N3, 0]] = {r} < q0 + l = {need} {where}{extra}: a constant "
+        "unknown input cannot be told apart from a shift of the observer state, so d̂ - d "
+        "would not converge.",
+        f"Use a larger observer order q0 (now {q0}; at least l = {l} is needed) or another R whose "
+        "rows see the directions D excites, add outputs, or estimate fewer unknown inputs.",
+        lhs=r,
+        rhs=need,
+    )
+
+
+def check_unknown_input_modes(s: FunctionalObserverStructure, D: np.ndarray, region: AbstractRegion,
+                              Z: np.ndarray | None = None) -> None:
+    """Detectability of the pair (𝔸2, 𝔸1) of the unknown-input observer.
+
+    Without `Z`: the Z-independent necessary condition for the ``d̃`` mode. With `Z`:
+    the modes of ``N1 - Z N2`` unobservable through ``N3`` must lie in `region`, and
+    ``rank [[N1 - Z N2, T D], [N3, 0]] = q0 + l``.
+    """
+    q0, l = s.q0, D.shape[1]
+    need = q0 + l
+    if Z is None:
+        # rank ≤ rank [[N1', T1'D], [N2', ΠT2D], [N3, 0]] and ≤ q0 + rank N3 for every Z.
+        r = min(rank(_ui_mode_matrix_any_Z(s, D)), q0 + rank(np.asarray(pieces(s, xp=np).N3)))
+        if r < need:
+            _raise_ui_mode(r, need, q0, l, None, True)
+        return
+    pc = pieces(s, xp=np)
+    N1z = np.asarray(pc.N1[0] - Z @ pc.N2[0])
+    N3 = np.asarray(pc.N3)
+    bad = [lam for lam in unobservable_modes(N1z, N3) if not region.contains([lam])]
+    if bad:
+        raise DetectabilityError(
+            "detectability of (𝔸2, 𝔸1) (Lemma 8 / Remark 3)",
+            f"the mode(s) {', '.join(f'{b:.4g}' for b in bad)} of N1 - Z N2 cannot be moved by the "
+            f"gains and are not in the requested region ({region.describe()}).",
+            "Choose another R (or a larger observer order q0), add outputs, or enlarge the region.",
+            lhs=bad,
+            rhs=region.describe(),
+        )
+    T = np.asarray(pc.T1 - (pc.Z0 + Z @ pc.PiZ) @ pc.T2)
+    TD = T @ D
+    Mx = np.block([[N1z, TD], [N3, np.zeros((N3.shape[0], l))]])
+    r = rank(Mx)
+    if r < need:
+        _raise_ui_mode(r, need, q0, l, rank(TD), False)
+
+
+def _ui_observable_Z(s, D, region, Z, tries: int = 8) -> np.ndarray:
+    """`Z` itself if the unknown-input mode is observable there; else the first of a few
+    seeded perturbations ``Z + t Zr`` that makes it observable (the failing set of Z is
+    algebraic, so a generic perturbation avoids it when any Z works) while keeping the
+    other modes detectable. Raises the error of the unperturbed `Z` otherwise."""
+    try:
+        check_unknown_input_modes(s, D, region, Z)
+        return Z
+    except DetectabilityError as err:
+        first = err
+    rng = np.random.default_rng(0)
+    scale = max(1.0, float(np.abs(Z).max()) if Z.size else 1.0)
+    for k in range(tries):
+        Zr = rng.standard_normal(Z.shape)
+        Zt = Z + scale * (0.1 * 2.0 ** (k // 2)) * Zr / max(np.abs(Zr).max(), 1e-300)
+        try:
+            check_unknown_input_modes(s, D, region, Zt)
+            return Zt
+        except DetectabilityError:
+            continue
+    raise first
+
+
+def _candidate_Rs(Gam: np.ndarray, Psi: np.ndarray, L: np.ndarray, q0: int | None) -> list[np.ndarray]:
+    """Candidate R's of increasing order for unknown-input observers.
+
+    Start from a row basis of ``L``; add, one at a time, directions of the row space of
+    Γ that are new to Σ = [R; Ψ] (as `fojax.design.default_R` does), then rows of the
+    row space of Ψ. The latter make Σ row-redundant, i.e. create the output-injection
+    directions N3 ≠ 0 through which the unknown-input error is seen (rank N3 ≥ l is
+    necessary); the plain functional observer never needs them.
+    """
+    base = L if rank(L) == L.shape[0] else row_space(L)
+    S0 = np.vstack([base, Psi])
+    G_rows = row_space(Gam)
+    extra = row_space(G_rows - G_rows @ np.linalg.pinv(S0) @ S0) if S0.size else G_rows
+    pool = [*extra, *row_space(Psi), *G_rows]
+    cands, R = [base], base
+    for r in pool:
+        if rank(np.vstack([R, r])) > R.shape[0]:
+            R = np.vstack([R, r])
+            cands.append(R)
+    if q0 is None:
+        return cands
+    sel = [c for c in cands if c.shape[0] == q0]
+    if not sel:
+        raise RankConditionError(
+            "observer order",
+            f"q0 = {q0} is not between rank L = {base.shape[0]} and rank Γ = {G_rows.shape[0]} "
+            "(Γ = [E; E⊥A; C], E⊥ annihilating [E D]).",
+            "Choose q0 in that range, or pass R.",
+            lhs=q0,
+            rhs=(base.shape[0], G_rows.shape[0]),
+        )
+    return sel
+
+
+def _choose_R(E, A, B, C, L, D, Ep, region, q0):
+    """fojax's default R for unknown-input observers (see `_candidate_Rs`): the first
+    candidate that passes every existence check; when only a fixed mode is outside the
+    region, `default_R`'s search over R of the same order is tried."""
+    Psi = np.vstack([Ep @ A, C])
+    Gam = np.vstack([E, Psi])
+    last: ExistenceConditionError | None = None
+
+    def checks(R):
+        s = observer_structure(E, A, B, C, L, R, q1=0, psi="descriptor", Eperp=Ep)
+        check_structure(s)
+        check_detectability(s, region)
+        check_unknown_input_modes(s, D, region)
+
+    for R0 in _candidate_Rs(Gam, Psi, L, q0):
+        try:
+            checks(R0)
+            return R0
+        except DetectabilityError as err:
+            last = err
+            if "mode s = 0" in str(err):
+                continue
+            try:  # fixed modes outside the region: search R of this order
+                R = default_R(E, A, B, C, L, psi="descriptor", Eperp=Ep, region=region, q0=R0.shape[0], q1=0)
+                checks(R)
+                return R
+            except ExistenceConditionError as err2:
+                last = err2
+        except ExistenceConditionError as err:
+            last = err
+    assert last is not None
+    raise last
+
+
+# ---------------------------------------------------------------------------- public
+
+
+def design_unknown_input_observer(
+    sys: DescriptorSystem,
+    D,
+    L,
+    *,
+    region=None,
+    R=None,
+    q0: int | None = None,
+    q1: int | None = None,
+    margin: float = 1e-3,
+    solver: str = _lmi.DEFAULT_SOLVER,
+) -> UnknownInputObserverDesign:
+    r"""Design a verified functional observer that also estimates an unknown input (§3.2).
+
+    See the module docstring for the formulas, the deviations from the thesis and the
+    existence conditions.
+
+    **Arguments:**
+
+    - `sys`: the plant $E\dot x = Ax + Bu$, $y = Cx$ (a `fojax.DescriptorSystem`);
+      the unknown input enters as $+Dd$.
+    - `D`: ``(n, l)`` unknown-input directions (full column rank).
+    - `L`: ``(q, n)`` functional to estimate.
+    - `region`: region for all eigenvalues of $\mathbb A$ (default ``Disk(-2, 1)``);
+      any `fojax` region or ``(center, radius)``.
+    - `R`: ``(q0, n)`` with rows in the row space of $[E; E^\perp A; C]$. Default: the
+      first of candidates of increasing order (a row basis of $L$, then new directions of
+      $\Gamma$, then measured directions of $\Psi$ — these create the output-injection
+      directions $N_3$ through which $\tilde d$ is seen) that passes every existence
+      check, including the unknown-input mode; when only a fixed mode is outside the
+      region, `fojax.design.default_R`'s search at that order is tried.
+    - `q0`: observer order when `R` is not given.
+    - `q1`: size of ``v`` (default ``q0``; 0 gives a proportional observer with
+      unknown-input estimation).
+    - `margin`: strictness of the LMI (``⪯ -margin·I`` with ``X ⪰ I``).
+    - `solver`: ``"auto"`` (default), ``"CLARABEL"`` or ``"SCS"``.
+
+    **Returns:** an `UnknownInputObserverDesign`; its `report` lists the residuals of
+    a.–f. (≤ 1e-8 relative), the eigenvalues of $\mathbb A$ (inside `region`) and the
+    region LMI re-checked at $X$.
+
+    **Raises:** `ShapeError`, `RankConditionError` (rank of D, rank conditions),
+    `FunctionalObservabilityError`, `DetectabilityError` (fixed modes, unknown-input
+    mode), `LMIInfeasibleError`, `DesignVerificationError`.
+    """
+    sys = _as_system(sys)
+    region = as_region(region if region is not None else Disk(-2.0, 1.0))
+    E, A, B, C = (np.asarray(x, float) for x in (sys.E, sys.A, sys.B, sys.C))
+    n = E.shape[0]
+    D = np.asarray(as_matrix("D", D, rows=n, hint=f"D needs one row per state (n = {n})."))
+    _check_D(D)
+    L = np.asarray(check_functional(sys, L))
+    Ep = left_null_space(np.hstack([E, D]))
+    _check_functional_observability(E, A, C, L, Ep)
+    if R is None:
+        R = _choose_R(E, A, B, C, L, D, Ep, region, q0)
+    else:
+        R = np.asarray(as_matrix("R", R, cols=n, hint=f"R needs one column per state (n = {n})."))
+        if q0 is not None and q0 != R.shape[0]:
+            raise RankConditionError("observer order", f"q0 = {q0} but R has {R.shape[0]} rows.",
+                                     "Give either R or q0.", lhs=q0, rhs=R.shape[0])
+    s = observer_structure(E, A, B, C, L, R, q1=0, psi="descriptor", Eperp=Ep)
+    check_structure(s)
+    check_detectability(s, region)
+    check_unknown_input_modes(s, D, region)
+    if q1 is None:
+        q1 = s.q0
+    s = observer_structure(E, A, B, C, L, R, q1=int(q1), psi="descriptor", Eperp=Ep)
+    lmi_region = region.tightened(TIGHTEN)
+    pc = pieces(s, xp=np)
+    if all(lmi_region.contains([lam]) for lam in unobservable_modes(pc.N1[0], pc.N3)):
+        # what `choose_Z` decides too, without its (JAX-traced, slow to compile) pieces
+        Z, info = np.zeros((s.q0, pc.N2.shape[1])), {"step1": "Z = 0 (no fixed mode outside the region)"}
+    else:
+        Z, info = choose_Z(s, lmi_region, margin=margin, solver=solver)
+    Z = _ui_observable_Z(s, D, region, Z)
+    X, Yb, info["lmi"] = _solve_lmi(s, D, Z, lmi_region, margin=margin, solver=solver)
+    q0, c = s.q0, s.q0 + s.nw
+    params = {
+        "Z": Z,
+        "Y1": Yb[:q0, :c],
+        "Y2": Yb[q0 : q0 + q1, :c],
+        "Y3": np.zeros((s.q, c)),
+        "J": Yb[:q0, c:],
+        "G": Yb[q0 : q0 + q1, c:],
+        "Y4": Yb[q0 + q1 :, :c],
+        "Lambda": Yb[q0 + q1 :, c:],
+    }
+    mats = unknown_input_observer_matrices(s, D, **params, xp=np)
+    res = {k: float(v) for k, v in unknown_input_residuals(s, D, mats).items()}
+    scale = res.pop("scale")
+    report = verify(
+        res,
+        scale,
+        unknown_input_error_dynamics(mats, xp=np),
+        region,
+        X,
+        extra={"Eperp [E D] residual": float(np.abs(Ep @ np.hstack([E, D])).max()) if Ep.size else 0.0},
+    )
+    p, m = C.shape[0], B.shape[1]
+    Wu = np.vstack([-Ep @ B, np.zeros((p, m))])  # w = [-E⊥B u; y] (numpy: no JAX dispatch)
+    Wy = np.vstack([np.zeros((Ep.shape[0], p)), np.eye(p)])
+    obs = UnknownInputObserver(
+        mats.N, mats.J, mats.F, mats.H, mats.Delta, mats.S, mats.G, mats.M, mats.Phi,
+        mats.Lambda, mats.W, mats.P, mats.Q, Wu, Wy,
+    )  # fmt: skip
+    return UnknownInputObserverDesign(
+        observer=obs,
+        region=region,
+        structure=s,
+        D=D,
+        params={k: np.asarray(v) for k, v in params.items()},
+        T=np.asarray(mats.T),
+        K=np.asarray(mats.K),
+        Z_eff=np.asarray(mats.Z_eff),
+        X=X,
+        report=report,
+        solver=info,
+    )
+
+
+def _target_poles(region: AbstractRegion, k: int) -> np.ndarray:
+    """``k`` distinct real points inside `region` around ``region.target()``."""
+    c = region.target().real
+    for spread in (0.5, 0.25, 0.1, 0.03, 0.01):
+        pts = c + spread * max(1.0, abs(c)) * np.linspace(-1.0, 1.0, k) if k > 1 else np.array([c])
+        if region.contains(pts):
+            return pts
+    return c * (1.0 + 1e-3 * np.arange(k))
+
+
+def _preconditioner(A1: np.ndarray, A2: np.ndarray, region: AbstractRegion) -> np.ndarray:
+    """``S = X0^{1/2}`` from one stabilizing output injection (pole placement) and a Lyapunov
+    equation: in the coordinates ``S σ`` a certificate close to ``I`` exists, which keeps
+    the LMI well conditioned (the region LMI is invariant under this congruence)."""
+    import scipy.linalg
+    import scipy.signal
+
+    from .._linalg import row_space
+
+    Cb = row_space(A2)
+    K = scipy.signal.place_poles(A1.T, Cb.T, _target_poles(region, A1.shape[0])).gain_matrix.T
+    A0 = A1 - K @ Cb
+    if isinstance(region, Disk):
+        # Stein certificate of the disk: (A0 - αI)/τ = Ã, Ã P Ãᵀ - P + I = 0, X0 = P⁻¹.
+        At = (A0 - region.center * np.eye(A0.shape[0])) / region.radius
+        X0 = np.linalg.inv(scipy.linalg.solve_discrete_lyapunov(At, np.eye(A0.shape[0])))
+    else:
+        X0 = scipy.linalg.solve_continuous_lyapunov(A0.T, -np.eye(A0.shape[0]))
+    w, V = np.linalg.eigh(0.5 * (X0 + X0.T))
+    if not np.all(w > 0):
+        raise np.linalg.LinAlgError("Lyapunov solution is not positive definite")
+    w = w / w.max()
+    return (V * np.sqrt(w)) @ V.T
+
+
+def _solve_lmi(s, D, Z, region, *, margin, solver):
+    """Region LMI in (X full, 𝒲 = X𝕐) with Z fixed (module docstring). Returns ``(X, 𝕐, info)``.
+
+    The certificate is often ill-conditioned (a rank-deficient ``N3`` needs large
+    gains; on example 4.1.3 with ``D = e3`` cond X ≈ 3e4) and both solvers then stop at
+    ``optimal_inaccurate``. The LMI is therefore solved first in the
+    coordinates ``σ' = Sσ`` with ``S = X0^{1/2}``, ``X0`` the Lyapunov matrix of one
+    pole-placement solution (`_preconditioner`): with ``𝔸1' = S𝔸1S⁻¹``,
+    ``𝔸2' = 𝔸2S⁻¹``, ``𝕐' = S𝕐`` the region LMI is congruent to the original one,
+    and ``X = SᵀX'S`` (for a disk ``X0`` is the Stein certificate of the disk), with
+    the bound ``X' ⪯ κI`` (κ = 1e2, then 1e4): minimising ‖𝒲‖ alone drives the
+    certificate towards an unbounded, ill-conditioned optimum (observed on the closed
+    loop of example 4.1.3 with ``D = e3``: Clarabel ``optimal_inaccurate`` without the
+    bound, ``optimal`` with κ = 1e2). If the pole placement fails (e.g. an
+    unobservable mode inside the region) or these LMIs are not solved, the plain LMI
+    is tried.
+    """
+    pc = pieces(s, xp=np)
+    q0, q1, l = s.q0, s.q1, D.shape[1]
+    N3 = np.asarray(pc.N3)
+    c = N3.shape[0]
+    d = q0 + q1 + l
+    N1z = np.asarray(pc.N1[0] - Z @ pc.N2[0])
+    T = np.asarray(pc.T1 - (pc.Z0 + Z @ pc.PiZ) @ pc.T2)
+    A1 = np.zeros((d, d))
+    A1[:q0, :q0] = N1z
+    A1[:q0, q0 + q1 :] = T @ D
+    A2 = np.zeros((c + q1, d))
+    A2[:c, :q0] = N3
+    A2[c:, q0 : q0 + q1] = -np.eye(q1)
+    name = "unknown-input observer (region LMI in X, 𝒲 = X 𝕐, Z fixed)"
+    hint = (
+        "No gain places the error dynamics (including the unknown-input modes) in the "
+        "region: enlarge the region, or choose another R / observer order."
+    )
+    attempts = []
+    try:
+        S = _preconditioner(A1, A2, region)
+        # X' ⪯ κI keeps the minimiser of ‖𝒲‖ away from an unbounded, ill-conditioned X'.
+        attempts += [(S, 1e2, name + " (preconditioned, X' ⪯ 1e2 I)"),
+                     (S, 1e4, name + " (preconditioned, X' ⪯ 1e4 I)")]
+    except (ValueError, np.linalg.LinAlgError):
+        pass
+    attempts.append((np.eye(d), None, name))
+    errors = []
+    for S, kappa, nm in attempts:
+        try:
+            Xv, Y, info = _region_lmi(A1, A2, S, region, margin, solver, nm, hint, kappa)
+            break
+        except LMIInfeasibleError as err:
+            errors.append(err)
+    else:
+        raise errors[0] if len(errors) == 1 else LMIInfeasibleError(
+            name, "; ".join(f"{e.status} ({e.problem})" for e in errors),
+            {"attempts": [e.info for e in errors]}, hint,
+        )
+    # Components of 𝕐 outside the row space of 𝔸2 do not change 𝔸 (they would only
+    # enlarge F, M, W): project them away.
+    Pr = A2 @ np.linalg.pinv(A2)
+    return Xv, Y @ Pr, info
+
+
+def _region_lmi(A1, A2, S, region, margin, solver, name, hint, kappa=None):
+    d = A1.shape[0]
+    Si = np.linalg.inv(S)
+    A1s, A2s = S @ A1 @ Si, A2 @ Si
+    X = cp.Variable((d, d), symmetric=True)
+    Wv = cp.Variable((d, A2.shape[0]))
+    Mx = _lmi.region_lmi(region, X, X @ A1s - Wv @ A2s)
+    cons = [X >> np.eye(d), Mx << -float(margin) * np.eye(Mx.shape[0])]
+    if kappa is not None:
+        cons.append(X << float(kappa) * np.eye(d))
+    info = _lmi.solve(cp.Problem(cp.Minimize(cp.norm(Wv, "fro")), cons), name, hint=hint, solver=solver)
+    Xs = _lmi.value(X)
+    Xs = 0.5 * (Xs + Xs.T)
+    Ys = np.linalg.solve(Xs, _lmi.value(Wv))
+    Xv = S.T @ Xs @ S
+    return 0.5 * (Xv + Xv.T), Si @ Ys, info
