@@ -667,6 +667,9 @@ def _solve_lmi(s, D, Z, region, *, margin, solver):
     for S, kappa, nm in attempts:
         try:
             Xv, Y, info = _region_lmi(A1, A2, S, region, margin, solver, nm, hint, kappa)
+            info["problem"] = nm
+            if errors:
+                info["previous_attempts"] = [f"{e.status} ({e.problem})" for e in errors]
             break
         except LMIInfeasibleError as err:
             errors.append(err)
