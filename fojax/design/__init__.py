@@ -7,6 +7,10 @@ from ._conditions import (
     default_R as default_R,
     fixed_modes as fixed_modes,
 )
+from ._fault import (
+    design_fault_estimator as design_fault_estimator,
+    FaultEstimatorDesign as FaultEstimatorDesign,
+)
 from ._finite_time import (
     design_finite_time_observer as design_finite_time_observer,
     FiniteTimeObserverDesign as FiniteTimeObserverDesign,
