@@ -291,6 +291,24 @@ def test_state_feedback_random_regions(random_systems):
         assert scipy_admissible(E, A + B @ fb.L) and np.all(np.abs(p + 2.0) < 1.5)
 
 
+def test_state_feedback_standard_system_and_methods():
+    """E = I (no algebraic part) and each LMI method on its own."""
+    A, B = np.array([[1.0, 2.0], [0.0, -1.0]]), np.array([[0.0], [1.0]])
+    s = fojax.DescriptorSystem.from_state_space(A, B)
+    for kw, check in [
+        ({"method": "dual-lmi", "decay": 2.0}, lambda p: np.all(p.real < -2.0)),
+        (
+            {"method": "slow-subsystem", "region": Disk(-4.0, 1.0)},
+            lambda p: np.all(np.abs(p + 4) < 1),
+        ),
+        ({"method": "place", "region": Disk(-4.0, 1.0)}, lambda p: np.all(np.abs(p + 4) < 1)),
+    ]:
+        fb = design_state_feedback(s, **kw)
+        assert fb.method == kw["method"] and check(np.linalg.eigvals(A + B @ fb.L))
+    with pytest.raises(ValueError, match=r"\(half-planes\) only"):
+        design_state_feedback(s, method="dual-lmi", region=Disk(-4.0, 1.0))
+
+
 def test_not_stabilizable_raises():
     # uncontrollable unstable finite mode s = 1 (x1 is not reached by u)
     s = fojax.DescriptorSystem(
@@ -550,6 +568,11 @@ def test_finite_time_loop_fourth_order(ft_loop, ft_runs):
     assert 8.0 < e25 / e50 < 32.0, (e25, e50)
     with pytest.raises(fojax.InputError, match="multiple of the grid step"):
         loop.simulate(ex.x0, jnp.linspace(0.0, 1.0, 8))
+    # vmap over initial states (linear loop: the trajectory from 2 x0 is twice that from x0)
+    ts = jnp.linspace(0.0, 5.0, 10 * 25 + 1)
+    batch = jax.vmap(lambda x0: loop.simulate(x0, ts).x)(jnp.stack([ex.x0, 2.0 * ex.x0]))
+    np.testing.assert_allclose(batch[0], ft_runs[25][1], atol=1e-12)
+    np.testing.assert_allclose(batch[1], 2.0 * ft_runs[25][1], atol=1e-11)
 
 
 def test_simulate_lti_matches_scipy(ex413, design413):

@@ -39,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -73,6 +74,17 @@ class LoopMaps:
     s: int
 
 
+@eqx.filter_jit
+def _jit_linear_matrices(observer):
+    return observer.linear_matrices()
+
+
+def linear_matrices(observer):
+    """`observer.linear_matrices()` in one compiled call (faster than eager dispatch of its
+    block/concatenate operations for every new observer size); ``None`` if not LTI."""
+    return _jit_linear_matrices(observer)
+
+
 def _namespace(*arrays):
     """NumPy on the host (concrete inputs: no dispatch/compile cost), jax.numpy under tracing."""
     for a in arrays:
@@ -105,7 +117,7 @@ def assemble(E, A, B, C, observer, *, Fa=None, Fs=None, select=None, Br=None):
     **Raises:** `fojax.AlgebraicLoopError`, `fojax.ShapeError`.
     """
     require_x64("closed-loop assembly")
-    lm = observer.linear_matrices()
+    lm = linear_matrices(observer)
     if lm is None:
         raise TypeError(
             f"{type(observer).__name__} has no linear realisation (linear_matrices() is None); "

@@ -1,0 +1,72 @@
+"""notebooks/control_and_ftc.ipynb executes (issue 4) and prints what Chapter 4 claims.
+
+The notebook is executed once, at module level (nbclient, kernel ``python3``); the tests
+read the numbers it prints.
+"""
+
+import pathlib
+import re
+
+import nbclient
+import nbformat
+
+
+PATH = pathlib.Path(__file__).parents[1] / "notebooks" / "control_and_ftc.ipynb"
+NB = nbformat.read(PATH, as_version=4)
+nbclient.NotebookClient(
+    NB, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(PATH.parent)}}
+).execute()
+OUTPUT = "".join(
+    o.get("text", "") for c in NB.cells if c.cell_type == "code" for o in c.get("outputs", [])
+)
+FIGURES = sum(
+    "image/png" in o.get("data", {})
+    for c in NB.cells
+    if c.cell_type == "code"
+    for o in c.get("outputs", [])
+)
+
+
+def number(pattern: str) -> float:
+    m = re.search(pattern, OUTPUT)
+    assert m, f"{pattern!r} not in the notebook output"
+    return float(m.group(1))
+
+
+def test_runs_and_draws_the_figures():
+    assert not any(
+        o.get("output_type") == "error"
+        for c in NB.cells
+        if c.cell_type == "code"
+        for o in c.get("outputs", [])
+    )
+    assert FIGURES >= 6
+    for fig in (
+        "4.2",
+        "4.3",
+        "4.5",
+        "4.6",
+        "4.7",
+        "4.8",
+        "4.10",
+        "4.11",
+        "4.12",
+        "4.13",
+        "4.14",
+        "4.15",
+    ):
+        assert f"Fig. {fig} " in "".join(c.source for c in NB.cells)
+
+
+def test_separation_and_printed_poles():
+    gaps = [float(g) for g in re.findall(r"separation gap ([0-9.e+-]+)", OUTPUT)]
+    assert len(gaps) == 2 and max(gaps) < 1e-8
+    assert "printed gains, loop poles:    [-39.781, -4.477, -2.211, -2.000, -2.000" in OUTPUT
+
+
+def test_fault_tolerance_numbers():
+    assert number(r"FTC: max\|x\| on \[13, 15\] s = ([0-9.e+-]+)") < 1e-4
+    assert number(r"not FT = ([0-9.e+-]+)") > 0.05
+    assert number(r"fojax  : max ‖x − x_d‖ on \[11, 15\] s = ([0-9.e+-]+)") <= 1e-3
+    assert number(r"fojax  : f̂\(15\) − f = .*?\|x\(15\)\| = ([0-9.e+-]+)") < 1e-6
+    assert number(r"max \|ẑ − Lx\| for t ≥ h: ([0-9.e+-]+)") < 1e-8
