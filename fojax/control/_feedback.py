@@ -76,7 +76,6 @@ import numpy as np
 from .._dtype import require_x64
 from .._errors import (
     DesignVerificationError,
-    IrregularSystemError,
     LMIInfeasibleError,
     StabilizabilityError,
 )
@@ -233,8 +232,16 @@ def _uncontrollable_modes(As, Bs, tol=None) -> np.ndarray:
 
 
 def _existence_checks(sys: DescriptorSystem, E, A, B, region: AbstractRegion):
-    """Raise `StabilizabilityError` with the reason, or return the slow-subsystem data."""
+    """Raise `StabilizabilityError` with the reason, or return the slow-subsystem data.
+
+    `fojax.analysis.is_stabilizable` decides first (regular plants); the rank tests below
+    find the reason (and handle pole regions and irregular open loops, which feedback
+    can regularise).
+    """
     n, m = B.shape
+    stabilizable = None
+    if is_regular(sys):
+        stabilizable = is_stabilizable(sys)
     r, A_t, B_t, V = _svd_coordinates(E, A, B)
     L2 = _fast_feedback(A_t[r:, r:], B_t[r:])
     if L2 is None:
@@ -265,22 +272,12 @@ def _existence_checks(sys: DescriptorSystem, E, A, B, region: AbstractRegion):
             lhs=bad,
             rhs=region.describe(),
         )
-    # Cross-check with the analysis layer (plain stabilizability, regular plants).
-    try:
-        regular = is_regular(sys)
-    except Exception:  # pragma: no cover - is_regular never raises for valid systems
-        regular = False
-    if regular and isinstance(region, HalfPlane) and region.decay == 0.0:
-        try:
-            ok = is_stabilizable(sys)
-        except IrregularSystemError:  # pragma: no cover
-            ok = True
-        if not ok:  # pragma: no cover - the reasons above are exhaustive
-            raise StabilizabilityError(
-                "stabilizability",
-                "fojax.analysis.is_stabilizable(sys) is False.",
-                "Check fojax.structure_report(sys).",
-            )
+    if stabilizable is False:  # pragma: no cover - the reasons above are exhaustive
+        raise StabilizabilityError(
+            "stabilizability",
+            "fojax.analysis.is_stabilizable(sys) is False.",
+            "Check fojax.structure_report(sys).",
+        )
     return r, A_t, B_t, V, L2, As, Bs
 
 

@@ -49,7 +49,6 @@ from ..design import design_functional_observer, FunctionalObserverDesign
 from ..observer import AbstractObserver
 from ..plant import AbstractSignal, augment_faults, DescriptorSystem, Stack, Zero
 from ..plant._signals import as_signal
-from ..simulation import simulate as _simulate
 from ._feedback import design_state_feedback, StateFeedbackDesign
 from ._loop import assemble, LoopMaps
 from ._stepping import simulate_lti
@@ -181,6 +180,8 @@ class FaultTolerantControl:
             xs, R = simulate_lti(system, jnp.concatenate(X0), ts, sig)
             ts_out, stats = jnp.asarray(ts), {}
         elif backend == "fojax":
+            from ..simulation import simulate as _simulate
+
             sol = _simulate(system, jnp.concatenate(X0), ts, sig, **kwargs)
             xs, R, ts_out, stats = sol.xs, sol.us, sol.ts, sol.stats
         else:
