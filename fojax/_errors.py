@@ -144,7 +144,7 @@ class LMIInfeasibleError(FojaxError, RuntimeError):
         self.status = status
         self.info = dict(info or {})
         msg = f"LMI '{problem}' was not solved: solver status '{status}'."
-        if status == "optimal_inaccurate":
+        if "optimal_inaccurate" in status:
             msg += " fojax never accepts 'optimal_inaccurate' results."
         if hint:
             msg += " " + hint

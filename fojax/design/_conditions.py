@@ -113,8 +113,15 @@ def fixed_modes(s: FunctionalObserverStructure) -> list[np.ndarray]:
     return [unobservable_modes(N1[i], np.vstack([N2[i], N3])) for i in range(N1.shape[0])]
 
 
-def check_detectability(s: FunctionalObserverStructure, region: AbstractRegion) -> None:
-    """Raise `DetectabilityError` if some fixed mode lies outside the region."""
+def check_detectability(
+    s: FunctionalObserverStructure, region: AbstractRegion, reported: AbstractRegion | None = None
+) -> None:
+    """Raise `DetectabilityError` if some fixed mode lies outside `region`.
+
+    `reported` is the region named in the message (the user's region when `region` is
+    its tightened version).
+    """
+    shown = reported if reported is not None else region
     for i, modes in enumerate(fixed_modes(s)):
         bad = [lam for lam in modes if not region.contains([lam])]
         if bad:
@@ -123,40 +130,68 @@ def check_detectability(s: FunctionalObserverStructure, region: AbstractRegion) 
                 "detectability of (𝔸2, 𝔸1) (Lemma 8 / Remark 3)",
                 f"the mode(s) {', '.join(f'{b:.4g}' for b in bad)}{rule} of the observer cannot be "
                 f"moved by any gain (rank [λI - N1; N2; N3] < q0 = {s.q0}) and are not in the "
-                f"requested region ({region.describe()}).",
+                f"requested region ({shown.describe()}).",
                 "Choose another R (or a larger observer order q0), add outputs, or enlarge the region.",
                 lhs=bad,
-                rhs=region.describe(),
+                rhs=shown.describe(),
             )
 
 
 def _order_candidates(Gam, Psi, L, q0):
+    """Candidate R's by increasing order: a row basis of L, then directions of Γ outside
+    the row space of [R; Ψ] (they enlarge Σ), then directions of Γ outside the row space of
+    R (inside Ψ's span). The largest order is rank Γ (= rank [L; Γ] under Assumption 1)."""
     base = L if rank(L) == L.shape[0] else row_space(L)
     G_rows = row_space(Gam)
-    S0 = np.vstack([base, Psi])
-    proj = G_rows - G_rows @ np.linalg.pinv(S0) @ S0 if S0.size else G_rows
-    extra = row_space(proj)
+
+    def complement(S):
+        if S.size == 0:
+            return G_rows
+        return row_space(G_rows - G_rows @ np.linalg.pinv(S) @ S)
+
+    extra = complement(np.vstack([base, Psi]))
+    more = complement(np.vstack([base, extra])) if extra.size else complement(base)
+    rows = np.vstack([extra, more]) if extra.size else more
+    max_order = base.shape[0] + rows.shape[0]
     if q0 is None:
-        return [np.vstack([base, extra[:j]]) for j in range(extra.shape[0] + 1)], G_rows
+        return [np.vstack([base, rows[:j]]) for j in range(extra.shape[0] + 1)], G_rows
     if q0 < 1:
         raise RankConditionError("observer order", f"q0 = {q0}", "q0 must be at least 1.", lhs=q0, rhs=1)
     if q0 <= base.shape[0]:
         return [base[:q0]], G_rows
-    k = q0 - base.shape[0]
-    if k > extra.shape[0]:
+    if q0 > max_order:
         raise RankConditionError(
             "observer order",
-            f"q0 = {q0} exceeds the largest useful order {base.shape[0] + extra.shape[0]} "
-            "(rank of [L; Γ] with Γ = [E; E⊥A; C]).",
+            f"q0 = {q0} exceeds the largest useful order {max_order} (rank of [L; Γ] with "
+            "Γ = [E; E⊥A; C]: R must have independent rows in the row space of Γ).",
             "Choose a smaller q0.",
             lhs=q0,
-            rhs=base.shape[0] + extra.shape[0],
+            rhs=max_order,
         )
-    return [np.vstack([base, extra[:k]])], G_rows
+    return [np.vstack([base, rows[: q0 - base.shape[0]]])], G_rows
+
+
+class _HostStructure:
+    """A NumPy stand-in for `FunctionalObserverStructure` (the fields `pieces` reads).
+
+    The default-R search evaluates thousands of candidates; building JAX arrays for each
+    would dominate its run time.
+    """
+
+    def __init__(self, E, A, C, R, Ep):
+        from ._parameterization import _z_restriction
+
+        self.E, self.C, self.R, self.Eperp = E, C, R, Ep
+        self._A = A if A.ndim == 3 else A[None]
+        self.Z0, self.PiZ, self.solvability_residual = _z_restriction(E, A, C, R, Ep)
+        self.n, self.q0, self.num_rules = E.shape[0], R.shape[0], self._A.shape[0]
+
+    def rules_A(self):
+        return self._A
 
 
 def _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R):
-    s = observer_structure(E, A, B, C, L, R, q1=q1, psi=psi, Eperp=Ep)
+    s = _HostStructure(E, A, C, R, Ep)
     modes = np.concatenate(fixed_modes(s)) if s.q0 else np.zeros(0)
     if modes.size == 0:
         return 0.0, modes
@@ -222,7 +257,7 @@ def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int
         s = observer_structure(E, A, B, C, L, R, q1=q1, psi=psi, Eperp=Ep)
         try:
             check_structure(s)
-            check_detectability(s, inner)
+            check_detectability(s, inner, reported=region)
             return R
         except (RankConditionError, DetectabilityError) as err:
             last_err = err

@@ -209,12 +209,13 @@ class Intersection(AbstractRegion):
         return Intersection(tuple(p.tightened(fraction) for p in self.parts))
 
     def target(self):
-        # the bounded part (a disk) gives the best point; else go left until inside all parts
-        for p in self.parts:
-            if isinstance(p, Disk):
-                return p.target()
-        z = min(p.target().real for p in self.parts)
-        return complex(z)
+        # The point of largest margin among the parts' targets and a scan of the real
+        # axis (every region here is symmetric and meets the real axis when non-empty).
+        cands = np.concatenate(
+            [[p.target().real for p in self.parts], -np.logspace(-3, 4, 400)]
+        )
+        best = cands[np.argmax(self.margin(cands.astype(complex)))]
+        return complex(best)
 
     def to_dict(self):
         return {"type": "intersection", "parts": [p.to_dict() for p in self.parts]}
