@@ -21,6 +21,7 @@ from fojax.results import (
     plot_tuning_curve,
     read_design_metadata,
     save_design,
+    write_metrics,
     write_report,
 )
 
@@ -205,3 +206,20 @@ def test_json_safe_metadata_is_valid_json(design, tmp_path):
     with np.load(path, allow_pickle=False) as data:
         meta = json.loads(str(data["__metadata__"][()]))
     assert meta["sizes"] == {"n": 4, "m": 2, "p": 3, "q": 2, "q0": design.structure.q0}
+
+
+def test_write_metrics_json_and_exact_npz(tmp_path):
+    rng = np.random.default_rng(3)
+    iae = rng.gamma(2.0, 1.0, 16)
+    big = rng.normal(size=(20, 600))
+    js, npz = write_metrics(
+        tmp_path, {"PO": {"IAE": iae, "mean_IAE": float(iae.mean())}, "samples": 16, "note": "x", "traces": big}
+    )
+    meta = json.loads(js.read_text())
+    assert meta["PO"]["IAE"] == iae.tolist() and meta["samples"] == 16 and meta["note"] == "x"
+    assert meta["traces"] == {"shape": [20, 600], "npz_key": "traces"}
+    with np.load(npz, allow_pickle=False) as data:
+        assert np.array_equal(data["PO/IAE"], iae) and np.array_equal(data["traces"], big)
+        assert float(data["PO/mean_IAE"]) == iae.mean()
+    with pytest.raises(FileExistsError):
+        write_metrics(tmp_path, {"a": 1.0})

@@ -9,6 +9,7 @@ from ._io import (
     new_results_folder as new_results_folder,
     read_design_metadata as read_design_metadata,
     save_design as save_design,
+    write_metrics as write_metrics,
 )
 from ._plots import (
     plot_error_distributions as plot_error_distributions,

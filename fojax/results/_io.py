@@ -352,3 +352,64 @@ def new_results_folder(
         except FileExistsError:
             continue
     raise FileExistsError(f"could not create a new results folder under {root}")  # pragma: no cover
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def _flatten(d, prefix=""):
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            yield from _flatten(v, key + "/")
+        else:
+            yield key, v
+
+
+def write_metrics(
+    folder, metrics: dict, *, name: str = "metrics", overwrite: bool = False, max_json_size: int = 10_000
+) -> tuple[pathlib.Path, pathlib.Path]:
+    """Write metrics as ``<name>.json`` (readable) and ``<name>.npz`` (exact arrays), atomically.
+
+    **Arguments:**
+
+    - `folder`: the results folder.
+    - `metrics`: a (nested) dict of numbers, strings and arrays, e.g.
+      ``{"PO": {"IAE": iae_per_sample, "mean_IAE": 1.2}, "samples": 64}``.
+    - `name`: the file stem.
+    - `overwrite`: replace existing files (default: `FileExistsError`).
+    - `max_json_size`: arrays with more entries are written to the NPZ only (the JSON
+      records their shape and the NPZ key).
+
+    **Returns:** ``(json_path, npz_path)``. Every array and number is in the NPZ under its
+    ``/``-joined key (bit-exact float64); the JSON holds the same tree.
+    """
+    folder = pathlib.Path(folder)
+    arrays = {}
+    for key, v in _flatten(metrics):
+        if isinstance(v, str):
+            continue
+        arr = np.asarray(v)
+        if arr.dtype == object:
+            raise TypeError(f"metric {key!r} is not numeric (dtype object); cannot be written.")
+        arrays[key] = arr
+
+    def tree(d, prefix=""):
+        out = {}
+        for k, v in d.items():
+            key = f"{prefix}{k}"
+            if isinstance(v, dict):
+                out[k] = tree(v, key + "/")
+            elif isinstance(v, str):
+                out[k] = v
+            else:
+                arr = np.asarray(v)
+                if arr.size > max_json_size:
+                    out[k] = {"shape": list(arr.shape), "npz_key": key}
+                else:
+                    out[k] = _json_safe(arr.item() if arr.ndim == 0 else arr)
+        return out
+
+    npz = atomic_write_npz(folder / f"{name}.npz", arrays, overwrite=overwrite)
+    js = atomic_write_json(folder / f"{name}.json", tree(metrics), overwrite=overwrite)
+    return js, npz
