@@ -245,3 +245,16 @@ def test_file_level_errors(tmp_path):
     p.write_text("[model]\nE = [[1.0, true], [0.0, 1.0]]\nA = [[1.0]]\nB = [[1.0]]\nC = [[1.0]]\nL = [[1.0]]\n")
     with pytest.raises(fojax.ConfigError, match=r"\[model\.E\].*is True \(boolean\)"):
         load_config(p)
+
+
+@pytest.mark.parametrize("doc", ["docs/config.md", "README.md"])
+def test_documented_example_config_is_valid(tmp_path, doc):
+    import pathlib
+    import re
+
+    text = (pathlib.Path(__file__).resolve().parents[1] / doc).read_text()
+    block = re.search(r"```toml\n(.*?)```", text, re.S).group(1)
+    p = tmp_path / "doc.toml"
+    p.write_text(block)
+    cfg = load_config(p)
+    assert cfg.E.shape == (3, 3) and cfg.L.shape == (1, 3) and cfg.observers
