@@ -178,7 +178,7 @@ def design(
              float(d.report.relative_residual), d.report.passed]
         )
         figures[f"Error poles of '{spec.name}'"] = png
-        files[f"design of '{spec.name}' (fojax.load_design)"] = path
+        files[f"design of '{spec.name}' (fojax.results.load_design)"] = path
         summary.append({"name": spec.name, "file": path.name, **d.report.to_dict(),
                         "kind": spec.kind, "q0": d.observer.q0, "q1": d.observer.q1})
         out.say(f"  saved {path}")
