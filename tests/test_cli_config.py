@@ -14,6 +14,12 @@ from fojax.results import load_design, read_design_metadata
 
 
 LINEAR = [n for n in example_names() if n != "robot_arm_ts"]
+try:  # the Monte Carlo runner may not be part of this version: then `fojax study` exits 3
+    import fojax.studies  # noqa: F401
+
+    STUDIES = True
+except ImportError:
+    STUDIES = False
 
 
 # 8 of the malformed configs of test_config.py, through the command line
@@ -75,7 +81,7 @@ def runs(tmp_path_factory):
         "help": _Run("--help"),
         "design_help": _Run("design", "--help"),
         "examples": _Run("examples"),
-        "study": _Run("study"),
+        "study": _Run("study", "--samples", "4", "--horizon", "2", "--out", tmp / "study"),
         "missing": _Run("check", tmp / "missing.toml"),
         "radius0": _Run("design", radius0, "--out", tmp / "radius0-out"),
     }
@@ -182,8 +188,6 @@ def test_quiet_help_examples_and_study_placeholder(runs):
     assert h.returncode == 0 and "example:" in h.stdout and "--overwrite" in h.stdout
     r = runs["examples"]
     assert r.returncode == 0 and all(n in r.stdout for n in example_names())
-    r = runs["study"]
-    assert r.returncode == 3 and "not available yet" in r.stderr
     r = runs["missing"]
     assert r.returncode == 2 and "[(file)] does not exist" in r.stderr
 
@@ -196,3 +200,27 @@ def test_design_npz_round_trip_bit_identical_from_cli(designed):
         assert np.array_equal(np.asarray(d.observer.N), data["observer/N"])
         assert np.array_equal(d.X, data["X"])
     assert d.kind == "generalized" and d.structure.E.shape == (9, 9)
+
+
+def test_default_study_and_a_second_run_keeps_the_first(runs):
+    r = runs["study"]
+    if not STUDIES:
+        assert r.returncode == 3 and "not available yet" in r.stderr
+        return
+    assert r.returncode == 0, r.stderr
+    assert "example_3_3_7" in r.stdout and "(mean IAE)" in r.stdout
+    (first,) = list((runs["tmp"] / "study").iterdir())
+    names = {p.name for p in first.iterdir()}
+    assert {"PO.npz", "FGDO.npz", "report.md", "metrics.json", "metrics.npz", "study.npz",
+            "error-bands.png", "iae.png", "poles-PO.png", "config.toml"} <= names
+    for png in first.glob("*.png"):
+        img = mpimg.imread(png)
+        assert img.shape[:2] == (600, 800) and img[..., :3].std() > 0.01
+    report = (first / "report.md").read_text()
+    assert "| PO |" in report and "| FGDO |" in report and "![IAE per sample" in report
+    snapshot = {p.name: p.read_bytes() for p in first.iterdir()}
+    again = fojax("--quiet", "study", "--samples", "4", "--horizon", "2", "--out", runs["tmp"] / "study")
+    assert again.returncode == 0 and again.stdout == "", again.stderr
+    folders = sorted((runs["tmp"] / "study").iterdir())
+    assert len(folders) == 2 and first in folders
+    assert {p.name: p.read_bytes() for p in first.iterdir()} == snapshot

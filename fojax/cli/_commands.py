@@ -212,12 +212,152 @@ def _default_region():
     return Disk(-2.0, 1.0)
 
 
-def study(config_path: str | None = None, out_dir: str | None = None, *, quiet: bool = False) -> int:
-    """``fojax study``: not available in this version (exit code 3 with the reason)."""
-    raise _Unavailable(
-        "fojax study is not available yet: the Monte Carlo study runner and the tuning are not "
-        "part of this fojax version. Use `fojax check` and `fojax design` meanwhile."
+def _studies_available() -> bool:
+    try:
+        import fojax.studies  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def study(
+    config_path: str | None = None,
+    out_dir: str | None = None,
+    *,
+    samples: int | None = None,
+    horizon: float | None = None,
+    quiet: bool = False,
+) -> int:
+    """``fojax study``: structure check, LMI designs, Monte Carlo study, figures and report.
+
+    Default config: the §3.3.7 benchmark (`fojax/examples/example_3_3_7.toml`). The
+    samples are ``N_u`` uncertainty draws (``[uncertainty] profile = uniform``) times
+    ``N_f`` fault scenarios (4 when ``[faults]`` is given: one random fault with a random
+    onset each), ``N_u N_f ≈ [study] samples``.
+    """
+    if not _studies_available():
+        raise _Unavailable(
+            "fojax study is not available yet: the Monte Carlo study runner (fojax.studies) is "
+            "not part of this fojax version. Use `fojax check` and `fojax design` meanwhile."
+        )
+    import jax
+    import jax.numpy as jnp
+
+    from .. import studies
+    from ..analysis import structure_report
+    from ..config import example_path, load_config, StudySpec
+    from ..design import design_functional_observer
+    from ..plant import Sine
+    from ..results import (
+        new_results_folder,
+        plot_error_distributions,
+        plot_estimates,
+        plot_poles,
+        save_design,
+        write_metrics,
+        write_report,
     )
+    from ..results._io import atomic_write_bytes
+
+    out = _Progress(quiet)
+    path = config_path if config_path is not None else str(example_path("example_3_3_7"))
+    cfg = load_config(path)
+    if cfg.is_takagi_sugeno:
+        from .._errors import ConfigError
+
+        raise ConfigError(path, "takagi_sugeno", "studies of Takagi-Sugeno models are not available from config files yet.")
+    spec = cfg.study or StudySpec()
+    n_samples = samples if samples is not None else spec.samples
+    T = horizon if horizon is not None else spec.horizon
+    if n_samples < 1 or T <= spec.dt:
+        from .._errors import InputError
+
+        raise InputError(f"--samples must be >= 1 and --horizon > dt = {spec.dt}; got {n_samples}, {T}.")
+    folder = new_results_folder(out_dir if out_dir is not None else "fojax-results", prefix=f"study-{cfg.name}")
+    out.say(f"fojax study: {cfg.name} ({path}) -> results folder {folder}")
+    atomic_write_bytes(folder / "config.toml", pathlib.Path(path).read_bytes())
+
+    report = structure_report(cfg.system(), cfg.L)
+    out.say(f"structure: {report.verdict}")
+    from ..config import ObserverSpec
+
+    specs = cfg.observers or (ObserverSpec("generalized", "generalized", _default_region()),)
+    designs, figures, files = {}, {}, {}
+    for o in specs:
+        with out.step(f"designing '{o.name}' ({o.kind}, {o.region.describe()}) by LMI"):
+            d = design_functional_observer(cfg.design_system(), cfg.design_L(), kind=o.kind,
+                                           region=o.region, R=o.R, q0=o.q0, q1=o.q1)
+        designs[o.name] = d
+        files[f"design of '{o.name}'"] = save_design(d, folder / f"{o.name}.npz",
+                                                     metadata={"config": path, "observer": o.name})
+        figures[f"Error poles of '{o.name}'"] = plot_poles(folder / f"poles-{o.name}.png",
+                                                           d.report.eigenvalues, d.region)
+        out.say(f"  verification {'PASSED' if d.report.passed else 'FAILED'}")
+
+    # the Monte Carlo study
+    key = jax.random.PRNGKey(spec.seed)
+    k_u, k_f = jax.random.split(key)
+    plant = cfg.plant()
+    n_f = 4 if cfg.has_faults else 1
+    n_u = max(1, n_samples // n_f)
+    uncertainty, scenarios = (), ()
+    prefix = ("plant",)
+    if cfg.has_faults:
+        nf = (cfg.Fa if cfg.Fa is not None else cfg.Fs).shape[1]
+        plant = studies.FaultyPlant(plant, cfg.Fa, cfg.Fs, fault=studies.FaultProfile(jnp.zeros(nf)))
+        scenarios = (studies.fault_scenarios(k_f, n_f, nf, magnitude=(0.5, 1.5),
+                                             onset=(0.1 * T, 0.4 * T)),)
+        prefix = ("plant", "base")
+    if cfg.dA is not None and (cfg.profile or {}).get("kind") == "uniform":
+        b = float(cfg.profile["bound"])
+        uncertainty = (studies.constant_delta(k_u, n_u, cfg.dA.shape[0], bounds=(-b, b),
+                                              path=prefix + ("delta",)),)
+    x0 = jnp.asarray(cfg.x0) if cfg.x0 is not None else jnp.full((cfg.n,), 0.5)
+    ts = jnp.arange(0.0, T + 0.5 * spec.dt, spec.dt)
+    u = Sine(jnp.ones(cfg.B.shape[-1]), 1.0)
+    st = studies.Study(plant, x0, ts, cfg.L, u, uncertainty=uncertainty, scenarios=scenarios,
+                       fault_targets=cfg.has_faults and cfg.estimate_faults)
+    names = list(designs)
+    with out.step(f"Monte Carlo study: {st.num_samples} samples x {len(names)} observers, "
+                  f"{len(ts)} time steps (compiling first: this takes a while)"):
+        res = studies.run_study(st, [d.observer for d in designs.values()], observer_names=names,
+                                quantiles=(0.05, 0.5, 0.95), quiet=True)
+    res.save(folder / "study")
+    iae = np.asarray(res.metrics["iae"])  # (observer, uncertainty, fault, signal)
+    signals = list(res.coords["signal"])
+    per_sample = {nm: iae[k].reshape(-1, iae.shape[-1]).sum(axis=1) for k, nm in enumerate(names)}
+    flat = {nm: iae[k].reshape(-1, iae.shape[-1]) for k, nm in enumerate(names)}
+    write_metrics(folder, {
+        "signals": ",".join(signals),
+        "samples": st.num_samples,
+        "iae": flat,
+        "mean_iae": {nm: v.mean(axis=0) for nm, v in flat.items()},
+    })
+    q = np.asarray(res.metrics["quantiles"])  # (observer, quantile, time, signal)
+    figures["Estimation error, Monte Carlo 5-95 % band and median"] = plot_estimates(
+        folder / "error-bands.png", np.asarray(ts), np.zeros((len(ts), len(signals))),
+        {nm: (q[k, 0], q[k, 1], q[k, 2]) for k, nm in enumerate(names)},
+        labels=[f"e({s})" for s in signals], truth_label="zero error", title="Estimation error over the Monte Carlo samples",
+    )
+    figures["IAE per sample (sum over signals)"] = plot_error_distributions(
+        folder / "iae.png", per_sample, ylabel="IAE (sum over signals)")
+    rows = [[nm] + [float(v) for v in flat[nm].mean(axis=0)] + [float(per_sample[nm].mean())]
+            for nm in names]
+    headers = ["observer"] + [f"IAE {s}" for s in signals] + ["IAE total"]
+    rep = write_report(
+        folder, title=f"fojax study: {cfg.name}",
+        summary=f"{cfg.description}\n\nStructure: {report.verdict}\n\n{st.num_samples} samples "
+        f"({n_u} uncertainty draws x {n_f} fault scenarios), horizon {T} s, seed {spec.seed}. "
+        "Tuning is not part of this run (not available in this fojax version).",
+        tables={"Mean IAE over the samples": (headers, rows)}, figures=figures, files=files,
+    )
+    w = max(len("observer"), *(len(n) for n in names))
+    out.say("")
+    out.say(f"{'observer':<{w}}  " + "  ".join(f"{s:>9}" for s in signals) + "      total   (mean IAE)")
+    for r in rows:
+        out.say(f"{r[0]:<{w}}  " + "  ".join(f"{v:9.4g}" for v in r[1:-1]) + f"  {r[-1]:9.4g}")
+    out.say(f"\nresults: {folder} (report: {rep.name})")
+    return 0 if all(d.report.passed for d in designs.values()) else 1
 
 
 class _Unavailable(Exception):

@@ -157,7 +157,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("config", metavar="CONFIG", nargs="?", default=None,
                    help="TOML model/study file (default: the built-in §3.3.7 benchmark)")
-    p.add_argument("--out", metavar="DIR", default=None, help="parent directory of the results folder")
+    p.add_argument("--out", metavar="DIR", default=None,
+                   help="parent directory of the results folder (default: ./fojax-results)")
+    p.add_argument("--samples", type=int, default=None, help="override [study] samples")
+    p.add_argument("--horizon", type=float, default=None, help="override [study] horizon (s)")
     args = parser.parse_args(argv)
     command = args.command or "demo"
     from . import _commands
@@ -168,7 +171,10 @@ def main(argv: list[str] | None = None) -> int:
         if command == "examples":
             return _commands.examples(quiet=args.quiet)
         if command == "study":
-            return _commands.study(args.config, args.out, quiet=args.quiet)
+            _enable_x64()
+            config = None if args.config is None else _commands.resolve_config(args.config)
+            return _commands.study(config, args.out, samples=args.samples, horizon=args.horizon,
+                                   quiet=args.quiet)
         _enable_x64()
         configs = [_commands.resolve_config(c) for c in args.config]
         if command == "design" and args.name is not None and len(configs) > 1:

@@ -121,6 +121,7 @@ def plot_estimates(
     *,
     labels: Sequence[str] | None = None,
     band_label: str = "5–95 % band",
+    truth_label: str = "truth",
     title: str = "Estimates vs truth (Monte Carlo)",
     size: tuple[int, int] = DEFAULT_SIZE,
     overwrite: bool = False,
@@ -136,7 +137,7 @@ def plot_estimates(
     - `estimates`: ``{observer name: (lower, median, upper)}``, each ``(T, q)``: the
       quantiles of the estimate over the Monte Carlo samples.
     - `labels`: names of the ``q`` components (default ``z1``, ``z2``, …).
-    - `band_label`, `title`, `size` (pixels), `overwrite`.
+    - `band_label`, `truth_label`, `title`, `size` (pixels), `overwrite`.
 
     **Returns:** the PNG path.
     """
@@ -148,7 +149,7 @@ def plot_estimates(
     axes = fig.subplots(q, 1, sharex=True, squeeze=False)[:, 0]
     colors = ["tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown"]
     for i, ax in enumerate(axes):
-        ax.plot(ts, truth[:, i], color="k", lw=1.5, label="truth")
+        ax.plot(ts, truth[:, i], color="k", lw=1.5, label=truth_label)
         for j, (name, (lo, med, hi)) in enumerate(estimates.items()):
             lo, med, hi = (_as_2d(f"estimates[{name!r}]", a, len(ts)) for a in (lo, med, hi))
             c = colors[j % len(colors)]
