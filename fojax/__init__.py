@@ -8,7 +8,7 @@ Layers (data flows one way): ``plant`` (models) → ``analysis`` (structure) →
 
 import importlib.metadata
 
-from . import models as models, plant as plant
+from . import models as models, plant as plant, simulation as simulation
 from ._errors import (
     ConfigError as ConfigError,
     DesignVerificationError as DesignVerificationError,
@@ -84,6 +84,13 @@ from .plant import (
     TakagiSugenoSystem as TakagiSugenoSystem,
     UncertainDescriptorSystem as UncertainDescriptorSystem,
     Zero as Zero,
+)
+from .simulation import (
+    consistent_initial_condition as consistent_initial_condition,
+    Index1Reduction as Index1Reduction,
+    reduce_index1 as reduce_index1,
+    simulate as simulate,
+    Solution as Solution,
 )
 
 

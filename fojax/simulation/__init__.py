@@ -1,0 +1,9 @@
+"""Simulation layer: index-1 reduction, consistent initial conditions, `simulate`."""
+
+from ._reduction import (
+    consistent_initial_condition as consistent_initial_condition,
+    Index1Reduction as Index1Reduction,
+    reduce_index1 as reduce_index1,
+)
+from ._simulate import simulate as simulate
+from ._solution import Solution as Solution
