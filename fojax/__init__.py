@@ -8,8 +8,19 @@ Layers (data flows one way): ``plant`` (models) → ``analysis`` (structure) →
 
 import importlib.metadata
 
-from . import models as models, plant as plant, simulation as simulation
+from . import (
+    analysis as analysis,
+    config as config,
+    control as control,
+    design as design,
+    models as models,
+    observer as observer,
+    plant as plant,
+    results as results,
+    simulation as simulation,
+)
 from ._errors import (
+    AlgebraicLoopError as AlgebraicLoopError,
     ConfigError as ConfigError,
     DesignVerificationError as DesignVerificationError,
     DetectabilityError as DetectabilityError,
@@ -27,6 +38,7 @@ from ._errors import (
     RankConditionError as RankConditionError,
     RegionError as RegionError,
     ShapeError as ShapeError,
+    StabilizabilityError as StabilizabilityError,
 )
 from .analysis import (
     admissibility_certificate as admissibility_certificate,
@@ -63,6 +75,39 @@ from .analysis import (
     weierstrass_form as weierstrass_form,
     WeierstrassForm as WeierstrassForm,
 )
+from .config import load_config as load_config
+from .control import (
+    closed_loop as closed_loop,
+    design_actuator_ftc as design_actuator_ftc,
+    design_sensor_ftc as design_sensor_ftc,
+    design_simultaneous_ftc as design_simultaneous_ftc,
+    design_state_feedback as design_state_feedback,
+    finite_time_loop as finite_time_loop,
+)
+from .design import (
+    AbstractRegion as AbstractRegion,
+    design_fault_estimator as design_fault_estimator,
+    design_finite_time_observer as design_finite_time_observer,
+    design_functional_observer as design_functional_observer,
+    design_ts_observer as design_ts_observer,
+    design_unknown_input_observer as design_unknown_input_observer,
+    Disk as Disk,
+    FiniteTimeObserverDesign as FiniteTimeObserverDesign,
+    FunctionalObserverDesign as FunctionalObserverDesign,
+    HalfPlane as HalfPlane,
+    Intersection as Intersection,
+    observer_matrices as observer_matrices,
+    observer_structure as observer_structure,
+    Sector as Sector,
+    VerificationReport as VerificationReport,
+)
+from .observer import (
+    AbstractObserver as AbstractObserver,
+    FiniteTimeObserver as FiniteTimeObserver,
+    GeneralizedFunctionalObserver as GeneralizedFunctionalObserver,
+    TakagiSugenoObserver as TakagiSugenoObserver,
+    UnknownInputObserver as UnknownInputObserver,
+)
 from .plant import (
     AbstractMembership as AbstractMembership,
     AbstractPlant as AbstractPlant,
@@ -85,6 +130,7 @@ from .plant import (
     UncertainDescriptorSystem as UncertainDescriptorSystem,
     Zero as Zero,
 )
+from .results import load_design as load_design, save_design as save_design
 from .simulation import (
     consistent_initial_condition as consistent_initial_condition,
     Index1Reduction as Index1Reduction,
