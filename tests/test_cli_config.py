@@ -20,6 +20,12 @@ try:  # the Monte Carlo runner may not be part of this version: then `fojax stud
     STUDIES = True
 except ImportError:
     STUDIES = False
+try:
+    import fojax.tuning  # noqa: F401
+
+    TUNING = True
+except ImportError:
+    TUNING = False
 
 
 # 8 of the malformed configs of test_config.py, through the command line
@@ -81,7 +87,7 @@ def runs(tmp_path_factory):
         "help": _Run("--help"),
         "design_help": _Run("design", "--help"),
         "examples": _Run("examples"),
-        "study": _Run("study", "--samples", "4", "--horizon", "2", "--out", tmp / "study"),
+        "study": _Run("study", "--samples", "4", "--horizon", "2", "--steps", "2", "--out", tmp / "study"),
         "missing": _Run("check", tmp / "missing.toml"),
         "radius0": _Run("design", radius0, "--out", tmp / "radius0-out"),
     }
@@ -218,8 +224,13 @@ def test_default_study_and_a_second_run_keeps_the_first(runs):
         assert img.shape[:2] == (600, 800) and img[..., :3].std() > 0.01
     report = (first / "report.md").read_text()
     assert "| PO |" in report and "| FGDO |" in report and "![IAE per sample" in report
+    if TUNING:
+        assert {"FGDO-tuned.npz", "tuning-FGDO.png", "tuning-FGDO.npz"} <= names
+        assert load_design(first / "FGDO-tuned.npz").report.passed
+        assert "| FGDO-tuned |" in report and "Tuning (held-out mean IAE loss)" in report
     snapshot = {p.name: p.read_bytes() for p in first.iterdir()}
-    again = fojax("--quiet", "study", "--samples", "4", "--horizon", "2", "--out", runs["tmp"] / "study")
+    again = fojax("--quiet", "study", "--samples", "4", "--horizon", "2", "--steps", "0",
+                  "--out", runs["tmp"] / "study")
     assert again.returncode == 0 and again.stdout == "", again.stderr
     folders = sorted((runs["tmp"] / "study").iterdir())
     assert len(folders) == 2 and first in folders

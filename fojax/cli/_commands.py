@@ -220,12 +220,21 @@ def _studies_available() -> bool:
     return True
 
 
+def _tuning_module():
+    try:
+        import fojax.tuning as tuning
+    except ImportError:
+        return None
+    return tuning
+
+
 def study(
     config_path: str | None = None,
     out_dir: str | None = None,
     *,
     samples: int | None = None,
     horizon: float | None = None,
+    steps: int | None = None,
     quiet: bool = False,
 ) -> int:
     """``fojax study``: structure check, LMI designs, Monte Carlo study, figures and report.
@@ -245,7 +254,7 @@ def study(
 
     from .. import studies
     from ..analysis import structure_report
-    from ..config import example_path, load_config, StudySpec
+    from ..config import example_path, load_config, StudySpec, TuningSpec
     from ..design import design_functional_observer
     from ..plant import Sine
     from ..results import (
@@ -294,29 +303,69 @@ def study(
                                                            d.report.eigenvalues, d.region)
         out.say(f"  verification {'PASSED' if d.report.passed else 'FAILED'}")
 
-    # the Monte Carlo study
-    key = jax.random.PRNGKey(spec.seed)
-    k_u, k_f = jax.random.split(key)
-    plant = cfg.plant()
+    # the Monte Carlo study (and a separately drawn training study for the tuning)
     n_f = 4 if cfg.has_faults else 1
     n_u = max(1, n_samples // n_f)
-    uncertainty, scenarios = (), ()
-    prefix = ("plant",)
-    if cfg.has_faults:
-        nf = (cfg.Fa if cfg.Fa is not None else cfg.Fs).shape[1]
-        plant = studies.FaultyPlant(plant, cfg.Fa, cfg.Fs, fault=studies.FaultProfile(jnp.zeros(nf)))
-        scenarios = (studies.fault_scenarios(k_f, n_f, nf, magnitude=(0.5, 1.5),
-                                             onset=(0.1 * T, 0.4 * T)),)
-        prefix = ("plant", "base")
-    if cfg.dA is not None and (cfg.profile or {}).get("kind") == "uniform":
-        b = float(cfg.profile["bound"])
-        uncertainty = (studies.constant_delta(k_u, n_u, cfg.dA.shape[0], bounds=(-b, b),
-                                              path=prefix + ("delta",)),)
-    x0 = jnp.asarray(cfg.x0) if cfg.x0 is not None else jnp.full((cfg.n,), 0.5)
-    ts = jnp.arange(0.0, T + 0.5 * spec.dt, spec.dt)
-    u = Sine(jnp.ones(cfg.B.shape[-1]), 1.0)
-    st = studies.Study(plant, x0, ts, cfg.L, u, uncertainty=uncertainty, scenarios=scenarios,
-                       fault_targets=cfg.has_faults and cfg.estimate_faults)
+
+    def make_study(seed, n_u, n_f):
+        k_u, k_f = jax.random.split(jax.random.PRNGKey(seed))
+        plant = cfg.plant()
+        uncertainty, scenarios, prefix = (), (), ("plant",)
+        if cfg.has_faults:
+            nf = (cfg.Fa if cfg.Fa is not None else cfg.Fs).shape[1]
+            plant = studies.FaultyPlant(plant, cfg.Fa, cfg.Fs, fault=studies.FaultProfile(jnp.zeros(nf)))
+            scenarios = (studies.fault_scenarios(k_f, n_f, nf, magnitude=(0.5, 1.5),
+                                                 onset=(0.1 * T, 0.4 * T)),)
+            prefix = ("plant", "base")
+        if cfg.dA is not None and (cfg.profile or {}).get("kind") == "uniform":
+            b = float(cfg.profile["bound"])
+            uncertainty = (studies.constant_delta(k_u, n_u, cfg.dA.shape[0], bounds=(-b, b),
+                                                  path=prefix + ("delta",)),)
+        x0 = jnp.asarray(cfg.x0) if cfg.x0 is not None else jnp.full((cfg.n,), 0.5)
+        ts = jnp.arange(0.0, T + 0.5 * spec.dt, spec.dt)
+        u = Sine(jnp.ones(cfg.B.shape[-1]), 1.0)
+        return studies.Study(plant, x0, ts, cfg.L, u, uncertainty=uncertainty, scenarios=scenarios,
+                             fault_targets=cfg.has_faults and cfg.estimate_faults)
+
+    st = make_study(spec.seed, n_u, n_f)
+    ts = st.ts
+    tuning_rows, tuning_note = [], "Tuning: not available in this fojax version."
+    tuning = _tuning_module()
+    tspec = cfg.tuning or TuningSpec()
+    n_steps = steps if steps is not None else tspec.steps
+    if tuning is not None and n_steps > 0:
+        import optax
+
+        from ..design import Disk
+        from ..results import plot_tuning_curve
+
+        train = make_study(spec.seed + 1, max(1, n_u // 2), n_f)
+        tunable = [nm for nm, d in designs.items() if d.kind == "generalized" and isinstance(d.region, Disk)]
+        tuning_note = ("Tuning: no generalized observer with a disk region to tune."
+                       if not tunable else
+                       f"Tuning: {', '.join(tunable)} tuned for {n_steps} Adam steps (learning rate "
+                       f"{tspec.learning_rate}) on {train.num_samples} training samples drawn with seed "
+                       f"{spec.seed + 1}; the comparison uses the {st.num_samples} held-out samples.")
+        for nm in tunable:
+            with out.step(f"tuning '{nm}': {n_steps} gradient steps on {train.num_samples} training "
+                          "samples (compiling the gradient first)"):
+                tr = tuning.tune(designs[nm], train, heldout=st, steps=n_steps,
+                                 optimizer=optax.adam(tspec.learning_rate),
+                                 eval_every=max(1, n_steps // 10),
+                                 checkpoint=folder / f"tuning-{nm}", quiet=True)
+            tuned_name = f"{nm}-tuned"
+            designs[tuned_name] = tr.design
+            files[f"design of '{tuned_name}'"] = save_design(
+                tr.design, folder / f"{tuned_name}.npz", metadata={"config": path, "observer": tuned_name})
+            h = tr.history
+            held = np.asarray(h["heldout_loss"], dtype=float)
+            figures[f"Tuning curve of '{nm}'"] = plot_tuning_curve(
+                folder / f"tuning-{nm}.png", h["step"], h["train_loss"],
+                held if np.isfinite(held).any() else None, ylabel="IAE loss",
+                title=f"Tuning '{nm}': training and held-out loss")
+            tuning_rows.append([nm, n_steps, float(tr.initial_heldout), float(tr.final_heldout)])
+            out.say(f"  held-out loss {tr.initial_heldout:.4g} -> {tr.final_heldout:.4g}; "
+                    f"verification {'PASSED' if tr.design.report.passed else 'FAILED'}")
     names = list(designs)
     with out.step(f"Monte Carlo study: {st.num_samples} samples x {len(names)} observers, "
                   f"{len(ts)} time steps (compiling first: this takes a while)"):
@@ -347,9 +396,12 @@ def study(
     rep = write_report(
         folder, title=f"fojax study: {cfg.name}",
         summary=f"{cfg.description}\n\nStructure: {report.verdict}\n\n{st.num_samples} samples "
-        f"({n_u} uncertainty draws x {n_f} fault scenarios), horizon {T} s, seed {spec.seed}. "
-        "Tuning is not part of this run (not available in this fojax version).",
-        tables={"Mean IAE over the samples": (headers, rows)}, figures=figures, files=files,
+        f"({st.num_uncertainty} uncertainty draws x {st.num_scenarios} fault scenarios), horizon {T} s, "
+        f"seed {spec.seed}. " + tuning_note,
+        tables={"Mean IAE over the samples": (headers, rows),
+                **({"Tuning (held-out mean IAE loss)": (["observer", "steps", "before", "after"], tuning_rows)}
+                   if tuning_rows else {})},
+        figures=figures, files=files,
     )
     w = max(len("observer"), *(len(n) for n in names))
     out.say("")

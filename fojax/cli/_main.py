@@ -161,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="parent directory of the results folder (default: ./fojax-results)")
     p.add_argument("--samples", type=int, default=None, help="override [study] samples")
     p.add_argument("--horizon", type=float, default=None, help="override [study] horizon (s)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="override [tuning] steps (0: no tuning)")
     args = parser.parse_args(argv)
     command = args.command or "demo"
     from . import _commands
@@ -174,6 +176,7 @@ def main(argv: list[str] | None = None) -> int:
             _enable_x64()
             config = None if args.config is None else _commands.resolve_config(args.config)
             return _commands.study(config, args.out, samples=args.samples, horizon=args.horizon,
+                                   steps=args.steps,
                                    quiet=args.quiet)
         _enable_x64()
         configs = [_commands.resolve_config(c) for c in args.config]
