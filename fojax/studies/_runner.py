@@ -1,0 +1,452 @@
+r"""`run_study`: many uncertain plants × fault scenarios × observers in one compiled call.
+
+**How a study runs.** A `Study` holds a *template* (plant, initial state, input, grid,
+functional ``L``) and two tuples of `Family` objects: `uncertainty` (all of one size
+``N_u``) and `scenarios` (all of one size ``N_f``). Sample ``(i, j)`` is the template
+with the ``i``-th member of every uncertainty family and the ``j``-th of every scenario
+family substituted. The flat batch of ``N_u N_f`` index pairs is simulated with
+`jax.vmap` over `fojax.simulate` inside one `equinox.filter_jit` function: new
+numbers (a new key, new observer gains) reuse the compiled code; only a new
+*structure* (types, shapes, chunk size, options) compiles again (`TRACE_COUNTS`).
+
+**Chunks and devices (one code path).** The index batch is cut into chunks of a fixed
+size (the last one padded with copies of sample 0, whose results are dropped, so the
+shape never changes), and every chunk is placed on a 1-d `jax.sharding.Mesh` over
+`devices` (default `jax.devices()`) with its batch axis sharded
+(``NamedSharding(mesh, P("batch"))``); the template, families and observers are
+replicated. Inside the compiled chunk `jax.shard_map` runs each device's slice with
+its own vmapped adaptive loop: with plain sharding propagation the batched while loop's
+"any sample still running" test becomes an all-reduce at every step, which on forced
+host devices of a busy CPU stalled for minutes. With one device this is the plain
+single-device run.
+
+**Metrics** (per sample, observer and estimated signal, for the error
+$e = \hat z - z$ on the grid, trapezoidal rule): IAE $\int|e|$, ISE $\int e^2$, ITAE
+$\int (t - t_0)|e|$, peak $\max|e|$, settling time (the first grid time after which
+$|e| \le$ `settle_tol` for good, $+\infty$ if $|e|$ exceeds it at the final time), and
+time-wise quantiles of $e$ over all samples (confidence bands, computed on the host
+from the per-chunk errors).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import math
+import os
+import tempfile
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import Array, Float
+from tqdm.auto import tqdm
+
+from .._errors import InputError, ShapeError
+from ..observer import AbstractObserver
+from ..plant import AbstractPlant, AbstractSignal, as_signal
+from ..simulation import simulate
+from ._families import Family
+from ._wrappers import FaultyPlant
+
+
+#: Number of traces of the compiled study chunk and of the study loss.
+TRACE_COUNTS: collections.Counter = collections.Counter()
+
+METRICS = ("iae", "ise", "itae", "peak", "settling_time")
+
+
+class _Sample(eqx.Module):
+    plant: AbstractPlant
+    x0: Float[Array, " n"]
+
+
+class Study(eqx.Module):
+    r"""A batch of simulation scenarios (see module docstring).
+
+    **Arguments:**
+
+    - `plant`: template plant (any `fojax.AbstractPlant`; wrap it in `FaultyPlant` /
+      `NoisyPlant` for fault or noise families).
+    - `x0`: ``(n,)`` template initial state.
+    - `ts`: ``(T,)`` output grid.
+    - `L`: ``(q, n)`` functional: the true signal is $z = Lx$; with
+      `fault_targets=True` and a `FaultyPlant` template the fault $\phi(t)$ is appended
+      (for observers that also estimate the faults).
+    - `u`: input signal (shared by all samples), constant vector, or ``None``.
+    - `uncertainty`: families of size ``N_u`` (axis ``"uncertainty"``).
+    - `scenarios`: families of size ``N_f`` (axis ``"fault"``).
+    - `signal_names`: names of the ``q`` (+ ``n_f``) estimated signals.
+    """
+
+    plant: AbstractPlant
+    x0: Float[Array, " n"]
+    ts: Float[Array, " T"]
+    L: Float[Array, "q n"]
+    u: AbstractSignal
+    uncertainty: tuple[Family, ...]
+    scenarios: tuple[Family, ...]
+    signal_names: tuple[str, ...] = eqx.field(static=True)
+    fault_targets: bool = eqx.field(static=True)
+
+    def __init__(self, plant, x0, ts, L, u=None, uncertainty=(), scenarios=(), signal_names=None,
+                 fault_targets=False):
+        if not isinstance(plant, AbstractPlant):
+            raise InputError(f"plant must be a fojax.AbstractPlant, got {type(plant).__name__}.")
+        self.plant = plant
+        self.x0 = jnp.asarray(x0, dtype=jnp.float64)
+        self.ts = jnp.asarray(ts, dtype=jnp.float64)
+        self.L = jnp.atleast_2d(jnp.asarray(L, dtype=jnp.float64))
+        if self.L.shape[1] != plant.n:
+            raise ShapeError("L", ("q", plant.n), tuple(self.L.shape), "L needs one column per state.")
+        self.u = as_signal(u, plant.m)
+        self.uncertainty = tuple(uncertainty)
+        self.scenarios = tuple(scenarios)
+        for name, fams in (("uncertainty", self.uncertainty), ("scenarios", self.scenarios)):
+            sizes = {f.size for f in fams}
+            if len(sizes) > 1:
+                raise InputError(f"all {name} families must have the same size; got {sorted(sizes)}.")
+        if fault_targets and not isinstance(plant, FaultyPlant):
+            raise InputError("fault_targets=True needs a FaultyPlant template (its fault is the target).")
+        self.fault_targets = bool(fault_targets)
+        q = self.L.shape[0] + (plant.fault.size if fault_targets else 0)
+        if signal_names is None:
+            signal_names = tuple(f"z{i + 1}" for i in range(self.L.shape[0]))
+            if fault_targets:
+                signal_names += tuple(f"f{i + 1}" for i in range(plant.fault.size))
+        if len(signal_names) != q:
+            raise ShapeError("signal_names", f"{q} names", f"{len(signal_names)}")
+        self.signal_names = tuple(signal_names)
+
+    @property
+    def num_uncertainty(self) -> int:
+        return self.uncertainty[0].size if self.uncertainty else 1
+
+    @property
+    def num_scenarios(self) -> int:
+        return self.scenarios[0].size if self.scenarios else 1
+
+    @property
+    def num_samples(self) -> int:
+        return self.num_uncertainty * self.num_scenarios
+
+    @property
+    def num_signals(self) -> int:
+        return len(self.signal_names)
+
+    def sample(self, i, j) -> tuple[AbstractPlant, Array]:
+        """``(plant, x0)`` of sample ``(i, j)`` (indices may be traced)."""
+        s = _Sample(self.plant, self.x0)
+        for f in self.uncertainty:
+            s = f.apply(s, i)
+        for f in self.scenarios:
+            s = f.apply(s, j)
+        return s.plant, s.x0
+
+    def target(self, plant, ts, xs) -> Array:
+        """``(T, q)`` true signals of one sample."""
+        z = xs @ self.L.T
+        if self.fault_targets:
+            z = jnp.concatenate([z, jax.vmap(plant.fault)(ts)], axis=1)
+        return z
+
+    def split(self, uncertainty: int) -> tuple[Study, Study]:
+        """Split the uncertainty axis: samples ``[:k]`` and ``[k:]`` (train / held-out)."""
+        a = tuple(f[:uncertainty] for f in self.uncertainty)
+        b = tuple(f[uncertainty:] for f in self.uncertainty)
+        return eqx.tree_at(lambda s: s.uncertainty, self, a), eqx.tree_at(lambda s: s.uncertainty, self, b)
+
+
+@dataclasses.dataclass(frozen=True)
+class SimConfig:
+    """Static options of the simulation inside a study (hashable: part of the compile key)."""
+
+    method: str = "auto"
+    rtol: float = 1e-8
+    atol: float = 1e-10
+    max_steps: int = 100_000
+    settle_tol: float = 0.05
+    solver: object = None  # a diffrax solver (hashable module) or None: simulate's default
+
+
+def error_metrics(ts, e, settle_tol: float = 0.05) -> dict[str, Array]:
+    r"""IAE, ISE, ITAE, peak and settling time of errors ``e`` ``(T, q)`` on the grid ``ts``.
+
+    Trapezoidal rule on the grid; settling time: first grid time ``t_k - t_0`` after
+    which ``|e| ≤ settle_tol`` for good (``inf`` if violated at the last time).
+    """
+    a = jnp.abs(e)
+    dt = jnp.diff(ts)[:, None]
+    tr = ts - ts[0]
+
+    def trap(v):
+        return jnp.sum(0.5 * (v[1:] + v[:-1]) * dt, axis=0)
+
+    above = a > settle_tol
+    T = ts.shape[0]
+    k = jnp.arange(T)[:, None]
+    last = jnp.max(jnp.where(above, k, -1), axis=0)
+    settle = jnp.where(last < 0, 0.0, jnp.where(last == T - 1, jnp.inf, tr[jnp.minimum(last + 1, T - 1)]))
+    return {
+        "iae": trap(a),
+        "ise": trap(e**2),
+        "itae": trap(tr[:, None] * a),
+        "peak": jnp.max(a, axis=0),
+        "settling_time": settle,
+    }
+
+
+def sample_errors(study: Study, observers, i, j, cfg: SimConfig):
+    """Errors ``ẑ_k − z`` ``(T, q)`` of every observer for sample ``(i, j)``, and success."""
+    plant, x0 = study.sample(i, j)
+    sol = simulate(
+        plant, x0, study.ts, study.u, observers=tuple(observers), method=cfg.method, rtol=cfg.rtol,
+        atol=cfg.atol, max_steps=cfg.max_steps, throw=False, solver=cfg.solver,
+    )
+    z = study.target(plant, study.ts, sol.xs)
+    return tuple(zh - z for zh in sol.estimates), sol.stats["success"]
+
+
+@eqx.filter_jit
+def _run_chunk(study, observers, iu, jf, cfg: SimConfig, keep_errors: bool, mesh: Mesh):
+    TRACE_COUNTS["run_study"] += 1
+    dyn, static = eqx.partition((study, observers), eqx.is_array)
+
+    def local(dyn, iu, jf):
+        st, obs = eqx.combine(dyn, static)
+
+        def one(i, j):
+            errs, ok = sample_errors(st, obs, i, j, cfg)
+            mets = tuple(error_metrics(st.ts, e, cfg.settle_tol) for e in errs)
+            return mets, (errs if keep_errors else None), ok
+
+        return jax.vmap(one)(iu, jf)
+
+    # shard_map: every device runs its own vmapped simulation on its slice of the batch
+    # (no cross-device collective inside the adaptive time loop).
+    batch = PartitionSpec("batch")
+    return jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec(), batch, batch), out_specs=batch,
+                         check_vma=False)(
+        dyn, iu, jf
+    )
+
+
+def _mesh(devices):
+    devices = list(jax.devices() if devices is None else devices)
+    mesh = Mesh(np.asarray(devices), ("batch",))
+    return mesh, NamedSharding(mesh, PartitionSpec("batch")), NamedSharding(mesh, PartitionSpec())
+
+
+def _replicate(tree, sharding):
+    arrays, rest = eqx.partition(tree, eqx.is_array)
+    return eqx.combine(jax.device_put(arrays, sharding), rest)
+
+
+def _indices(study: Study):
+    k = np.arange(study.num_samples)
+    return k // study.num_scenarios, k % study.num_scenarios
+
+
+@dataclasses.dataclass
+class StudyResult:
+    """Per-sample metrics with named axes.
+
+    Attributes:
+        metrics: dict of numpy arrays: ``"iae", "ise", "itae", "peak", "settling_time"``
+            ``(observer, uncertainty, fault, signal)``; ``"quantiles"``
+            ``(observer, quantile, time, signal)``; ``"success"`` ``(uncertainty, fault)``.
+        axes: dict metric name → tuple of axis names.
+        coords: labels: ``observer`` and ``signal`` names (strings), ``quantile`` levels
+            and ``time`` (the grid) as float arrays.
+        attrs: options of the run (JSON-serialisable).
+    """
+
+    metrics: dict
+    axes: dict
+    coords: dict
+    attrs: dict = dataclasses.field(default_factory=dict)
+
+    def summary(self, metric: str = "iae") -> dict:
+        """``{observer: {signal: (mean, std)}}`` over all samples."""
+        v = self.metrics[metric]
+        out = {}
+        for o, oname in enumerate(self.coords["observer"]):
+            flat = v[o].reshape(-1, v.shape[-1])
+            out[oname] = {
+                s: (float(np.mean(flat[:, k])), float(np.std(flat[:, k])))
+                for k, s in enumerate(self.coords["signal"])
+            }
+        return out
+
+    def save(self, path) -> None:
+        """Write ``path + ".npz"`` (arrays) and ``path + ".json"`` (axes, names, attrs), each
+        atomically (temporary file in the same directory, then `os.replace`)."""
+        path = os.fspath(path)
+        arrays = {f"metric:{k}": np.asarray(v) for k, v in self.metrics.items()}
+        meta = {"axes": {k: list(v) for k, v in self.axes.items()}, "attrs": self.attrs, "coords": {}}
+        for k, v in self.coords.items():
+            if isinstance(v, np.ndarray) and v.dtype.kind == "f":
+                arrays[f"coord:{k}"] = v
+            else:
+                meta["coords"][k] = list(v)
+        _atomic_write(path + ".npz", lambda f: np.savez(f, **arrays))
+        _atomic_write(path + ".json", lambda f: f.write(json.dumps(meta, indent=1).encode()))
+
+    @classmethod
+    def load(cls, path) -> StudyResult:
+        path = os.fspath(path)
+        with open(path + ".json") as f:
+            meta = json.load(f)
+        with np.load(path + ".npz") as data:
+            arrays = {k: data[k] for k in data.files}
+        metrics = {k.split(":", 1)[1]: v for k, v in arrays.items() if k.startswith("metric:")}
+        coords = {k: tuple(v) for k, v in meta["coords"].items()}
+        coords.update({k.split(":", 1)[1]: v for k, v in arrays.items() if k.startswith("coord:")})
+        axes = {k: tuple(v) for k, v in meta["axes"].items()}
+        return cls(metrics=metrics, axes=axes, coords=coords, attrs=meta["attrs"])
+
+
+def _atomic_write(path: str, write) -> None:
+    d = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=os.path.basename(path))
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def run_study(
+    study: Study,
+    observers: AbstractObserver | Sequence[AbstractObserver],
+    *,
+    observer_names: Sequence[str] | None = None,
+    chunk_size: int | None = None,
+    devices=None,
+    quantiles: Sequence[float] = (0.05, 0.25, 0.5, 0.75, 0.95),
+    settle_tol: float = 0.05,
+    method: str = "auto",
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 100_000,
+    solver=None,
+    quiet: bool = False,
+) -> StudyResult:
+    r"""Simulate every sample of `study` with `observers` and return per-sample metrics.
+
+    **Arguments:**
+
+    - `study`: a `Study`.
+    - `observers`: one observer or a sequence; each must estimate ``study.num_signals``
+      signals.
+    - `observer_names`: labels (default ``"observer0", ...``).
+    - `chunk_size`: samples per compiled call (default: the whole batch); rounded up to a
+      multiple of the number of devices. The last chunk is padded, so one compilation
+      serves every chunk.
+    - `devices`: devices of the 1-d mesh the batch axis is sharded over (default
+      `jax.devices()`).
+    - `quantiles`: levels of the time-wise error quantiles (``()``: none; then the
+      per-chunk errors are not kept on the host).
+    - `settle_tol`: tolerance of the settling time.
+    - `method`, `rtol`, `atol`, `max_steps`, `solver`: passed to `fojax.simulate`
+      (``throw=False``; failed samples are flagged in ``metrics["success"]``). For
+      non-stiff studies an explicit solver (``diffrax.Tsit5()``) compiles and runs much
+      faster than the default implicit one.
+    - `quiet`: no progress bar.
+
+    **Returns:** a `StudyResult`.
+    """
+    if isinstance(observers, AbstractObserver):
+        observers = (observers,)
+    observers = tuple(observers)
+    if not observers:
+        raise InputError("run_study needs at least one observer.")
+    for k, o in enumerate(observers):
+        if o.output_size != study.num_signals:
+            raise ShapeError(
+                f"observers[{k}].output_size", study.num_signals, o.output_size,
+                "Each observer must estimate the study's signals (L, plus faults with fault_targets).",
+            )
+    names = tuple(observer_names) if observer_names is not None else tuple(f"observer{k}" for k in range(len(observers)))
+    if len(names) != len(observers):
+        raise ShapeError("observer_names", len(observers), len(names))
+    cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps),
+                    settle_tol=float(settle_tol), solver=solver)
+    mesh, batch_sh, rep_sh = _mesh(devices)
+    ndev = mesh.devices.size
+    B = study.num_samples
+    chunk = B if chunk_size is None else int(chunk_size)
+    chunk = max(ndev, int(math.ceil(chunk / ndev)) * ndev)
+    n_chunks = int(math.ceil(B / chunk))
+    iu, jf = _indices(study)
+    pad = n_chunks * chunk - B
+    iu = np.concatenate([iu, np.zeros(pad, dtype=iu.dtype)])
+    jf = np.concatenate([jf, np.zeros(pad, dtype=jf.dtype)])
+    study_r = _replicate(study, rep_sh)
+    obs_r = _replicate(observers, rep_sh)
+    keep = len(quantiles) > 0
+    mets, errs, oks = [], [], []
+    for c in tqdm(range(n_chunks), disable=quiet, desc="study", unit="chunk"):
+        sl = slice(c * chunk, (c + 1) * chunk)
+        a = jax.device_put(jnp.asarray(iu[sl]), batch_sh)
+        b = jax.device_put(jnp.asarray(jf[sl]), batch_sh)
+        m, e, ok = _run_chunk(study_r, obs_r, a, b, cfg, keep, mesh)
+        mets.append(jax.tree.map(np.asarray, m))
+        oks.append(np.asarray(ok))
+        if keep:
+            errs.append(tuple(np.asarray(x) for x in e))
+    Nu, Nf, q = study.num_uncertainty, study.num_scenarios, study.num_signals
+    metrics = {}
+    for name in METRICS:
+        per_obs = [np.concatenate([m[o][name] for m in mets])[:B].reshape(Nu, Nf, q) for o in range(len(observers))]
+        metrics[name] = np.stack(per_obs)
+    metrics["success"] = np.concatenate(oks)[:B].reshape(Nu, Nf)
+    axes = {name: ("observer", "uncertainty", "fault", "signal") for name in METRICS}
+    axes["success"] = ("uncertainty", "fault")
+    if keep:
+        qs = []
+        for o in range(len(observers)):
+            E = np.concatenate([e[o] for e in errs])[:B]
+            qs.append(np.quantile(E, np.asarray(quantiles), axis=0))
+        metrics["quantiles"] = np.stack(qs)
+        axes["quantiles"] = ("observer", "quantile", "time", "signal")
+    coords = {
+        "observer": names,
+        "signal": study.signal_names,
+        "quantile": np.asarray(quantiles, dtype=float),
+        "time": np.asarray(study.ts),
+    }
+    attrs = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "solver"}
+    attrs.update(solver=type(solver).__name__ if solver is not None else "default", chunk_size=chunk,
+                 num_chunks=n_chunks, num_devices=int(ndev))
+    return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=attrs)
+
+
+def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", quantile: float | None = None,
+               weights=None, cfg: SimConfig = SimConfig()) -> Array:
+    r"""Differentiable scalar loss of one observer over all samples of `study`.
+
+    Per sample: the (weighted) mean over signals of the IAE or ISE of $\hat z - z$; then
+    the mean over samples, or the `quantile` (e.g. 0.9) of the per-sample values.
+    Traceable (use inside `jax.jit` / `jax.grad`).
+    """
+    if loss not in ("iae", "ise"):
+        raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
+    iu, jf = (jnp.asarray(a) for a in _indices(study))
+    w = jnp.full((study.num_signals,), 1.0 / study.num_signals) if weights is None else jnp.asarray(weights)
+
+    def one(i, j):
+        (e,), _ = sample_errors(study, (observer,), i, j, cfg)
+        return error_metrics(study.ts, e, cfg.settle_tol)[loss] @ w
+
+    per = jax.vmap(one)(iu, jf)
+    return jnp.mean(per) if quantile is None else jnp.quantile(per, quantile)

@@ -1,0 +1,9 @@
+"""Gradient tuning of observer gains over Monte Carlo studies (optax), certified at every iterate."""
+
+from ._tune import (
+    initial_parameters as initial_parameters,
+    observer_from_parameters as observer_from_parameters,
+    TRACE_COUNTS as TRACE_COUNTS,
+    tune as tune,
+    TuneResult as TuneResult,
+)

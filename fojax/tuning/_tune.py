@@ -1,0 +1,390 @@
+r"""Gradient tuning of functional-observer gains under uncertainty (optax), certified at every iterate.
+
+**Parameterization (documented choice: the exact disk parameterization with a fixed
+certificate).** The LMI design returns a certificate $X \succ 0$ for its disk region
+$\mathcal Q(\alpha, \tau)$. `fojax.design.disk_gain` maps *every* parameter $\Theta$
+(through the contraction $\mathcal L = \Theta(I + \Theta^\top\Theta)^{-1/2}$, Cholesky
+form) and every $Y_\perp$ to a gain $\mathbb Y$ whose error dynamics
+$\mathbb A = \mathbb A_1(Z) - \mathbb Y\mathbb A_2$ satisfy
+$(\mathbb A - \alpha I)^\top X(\mathbb A - \alpha I) \prec \tau^2 X$ — all eigenvalues in the
+disk — as long as the margin $\tau - \|A_\perp(Z)\|$ is positive. The free parameters
+are
+
+- ``Theta`` ``(d, k)`` (the gain $\mathbb Y = [Y_1\,J;\,Y_2\,G]$; the component
+  $Y_\perp$ outside the range of $\tilde B$ is kept at the LMI value: it multiplies
+  $\mathbb A_2$ and $F_3$, whose columns lie in the range of $\mathbb A_2$, so it changes
+  nothing — its gradient is identically zero),
+- ``Y3`` ``(q, c)`` (enters only $P, Q$, i.e. which combination of $\varepsilon$ and $w$ is
+  output; conditions a.–d. hold for every value),
+- optionally ``Z`` (`tune_Z=True`): it moves $\mathbb A_1$, so the margin can shrink.
+  A step whose margin is $\le$ `min_margin` is *backtracked* (the update is halved up to
+  `max_backtracks` times, all candidates evaluated inside the same jitted step); if no
+  fraction is valid the iterate is rejected and the parameters stay. A rejected
+  iterate is never returned.
+
+The observer matrices are rebuilt from `fojax.design.observer_matrices` at every
+step, so conditions a.–d. hold identically (they are built in, not penalized). The
+initial $(\Theta, Y_\perp)$ are obtained by inverting the map at the LMI gain, so
+tuning starts exactly at the LMI design. Every accepted iterate is re-checked on the
+host (eigenvalues of $\mathbb A$ in the region with a positive margin).
+
+Only ``kind="generalized"`` and ``"proportional"`` designs are tunable this way (the PI
+constraint $S = -Y_2N_3 = 0$ is not preserved by the disk map).
+
+**One jitted step.** Loss (batched mean or quantile of IAE/ISE over the training
+study), gradient and the optax update (with the backtracking candidates) form one
+`equinox.filter_jit` function, compiled once (`TRACE_COUNTS["tune_step"]`).
+
+**Checkpoints.** ``checkpoint=path`` writes, every `checkpoint_every` steps, the
+parameters, the optimizer state, the step, the PRNG key and the history (``path.npz`` +
+``path.json``, each written to a temporary file and moved with `os.replace`).
+``resume=True`` continues from it; the result equals an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import os
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm.auto import tqdm
+
+from .._errors import InputError
+from ..design import Disk, FunctionalObserverDesign, pieces
+from ..design._functional import build_observer, verify_structure_design
+from ..design._gain_parameterization import contraction, disk_gain
+from ..design._parameterization import error_dynamics, observer_matrices
+from ..studies._runner import _atomic_write, SimConfig, Study, study_loss
+
+
+#: Number of traces of the jitted tuning step and of the held-out evaluation.
+TRACE_COUNTS: collections.Counter = collections.Counter()
+
+
+class _Fixed(eqx.Module):
+    """The fixed data of the parameterization (arrays; sizes static)."""
+
+    structure: object
+    X: jax.Array
+    N1: jax.Array
+    N2: jax.Array
+    A2: jax.Array
+    Z: jax.Array
+    Yperp: jax.Array
+    center: float = eqx.field(static=True)
+    radius: float = eqx.field(static=True)
+    rank: int = eqx.field(static=True)
+    kind: str = eqx.field(static=True)
+
+
+def _A1(fx: _Fixed, Z):
+    s = fx.structure
+    q0, q1 = s.q0, s.q1
+    top = fx.N1 - Z @ fx.N2
+    if q1 == 0:
+        return top
+    return jnp.block([[top, jnp.zeros((q0, q1))], [jnp.zeros((q1, q0 + q1))]])
+
+
+def _gain(fx: _Fixed, params):
+    Z = params.get("Z", fx.Z)
+    Y, margin = disk_gain(fx.X, _A1(fx, Z), fx.A2, fx.center, fx.radius, contraction(params["Theta"]),
+                          fx.Yperp, rank=fx.rank)
+    return Z, Y, margin
+
+
+def _split(fx: _Fixed, Y):
+    s = fx.structure
+    q0, c = s.q0, s.q0 + s.nw
+    return {"Y1": Y[:q0, :c], "J": Y[:q0, c:], "Y2": Y[q0:, :c], "G": Y[q0:, c:]}
+
+
+def free_parameters_to_design_params(fx: _Fixed, params) -> tuple[dict, jax.Array]:
+    """``({Z, Y1, Y2, Y3, J, G}, margin)`` for the tuning parameters (traceable)."""
+    Z, Y, margin = _gain(fx, params)
+    out = dict(_split(fx, Y), Z=Z, Y3=params["Y3"])
+    return out, margin
+
+
+def observer_from_parameters(fx: _Fixed, params):
+    """The observer for the tuning parameters (traceable), and the margin."""
+    p, margin = free_parameters_to_design_params(fx, params)
+    mats = observer_matrices(fx.structure, **p)
+    return build_observer(fx.structure, mats, kind=fx.kind), margin
+
+
+def _inverse_contraction(Lc: np.ndarray) -> np.ndarray:
+    """Θ with ``contraction(Θ) = Lc`` (``‖Lc‖ < 1``): ``Θ = Lc C_u``, ``C_u C_uᵀ = (I − LcᵀLc)^{-1}``
+    with ``C_u`` upper triangular (a reversed Cholesky factor)."""
+    k = Lc.shape[1]
+    S = np.linalg.inv(np.eye(k) - Lc.T @ Lc)
+    S = 0.5 * (S + S.T)
+    J = np.eye(k)[::-1]
+    Cu = J @ np.linalg.cholesky(J @ S @ J) @ J
+    return Lc @ Cu
+
+
+def initial_parameters(design: FunctionalObserverDesign, region: Disk | None = None, *, tune_Z: bool = False):
+    """``(fixed, params)`` reproducing the LMI design's gain exactly (host).
+
+    Inverts `disk_gain` at the design's 𝕐: ``𝓛 = F⁻¹ M V_b`` with
+    ``M = L_xᵀ(𝔸 − αI)L_x^{-ᵀ}``, ``Y_⊥ = L_xᵀ 𝕐``, and ``Θ`` from the inverse contraction.
+    """
+    if design.kind not in ("generalized", "proportional"):
+        raise InputError(
+            f"tune supports generalized and proportional designs; got kind={design.kind!r} (the PI "
+            "constraint S = -Y2 N3 = 0 is not preserved by the disk parameterization)."
+        )
+    region = design.region if region is None else region
+    if not isinstance(region, Disk):
+        raise InputError(
+            f"tune parameterizes disk regions only; got {region.describe()}. Design the observer "
+            "with region=fojax.Disk(center, radius)."
+        )
+    s = design.structure
+    if s.num_rules != 1:
+        raise InputError("tune supports single-rule (LTI) structures only.")
+    pc = pieces(s, xp=np)
+    q0, q1 = s.q0, s.q1
+    c = pc.N3.shape[0]
+    N1, N2, N3 = np.asarray(pc.N1[0]), np.asarray(pc.N2[0]), np.asarray(pc.N3)
+    A2 = N3 if q1 == 0 else np.block([[N3, np.zeros((c, q1))], [np.zeros((q1, q0)), -np.eye(q1)]])
+    p = design.params
+    Z = np.asarray(p["Z"])
+    Y = np.asarray(p["Y1"]) if q1 == 0 else np.block([[p["Y1"], p["J"]], [p["Y2"], p["G"]]])
+    A1 = N1 - Z @ N2 if q1 == 0 else np.block([[N1 - Z @ N2, np.zeros((q0, q1))], [np.zeros((q1, q0 + q1))]])
+    X = 0.5 * (design.X + design.X.T)
+    d = X.shape[0]
+    k = int(np.linalg.matrix_rank(A2))
+    al, tau = region.center, region.radius
+    Lx = np.linalg.cholesky(X)
+    LxinvT = np.linalg.inv(Lx.T)
+    Aa = A1 - Y @ A2
+    M = Lx.T @ (Aa - al * np.eye(d)) @ LxinvT
+    U, sv, Vt = np.linalg.svd(A2 @ LxinvT)
+    Vb, Vp = Vt[:k].T, Vt[k:].T
+    M0 = Lx.T @ (A1 - al * np.eye(d)) @ LxinvT
+    F = np.linalg.cholesky(tau**2 * np.eye(d) - (M0 @ Vp) @ (M0 @ Vp).T)
+    Lc = np.linalg.solve(F, M @ Vb)
+    if not np.linalg.norm(Lc, 2) < 1.0:
+        raise InputError(
+            f"the design's certificate X does not certify {region.describe()} for its own gain "
+            f"(‖𝓛‖ = {np.linalg.norm(Lc, 2):.4f} ≥ 1); pass the region the design was made for."
+        )
+    params = {"Theta": jnp.asarray(_inverse_contraction(Lc)), "Y3": jnp.asarray(p["Y3"])}
+    if tune_Z:
+        params["Z"] = jnp.asarray(Z)
+    fx = _Fixed(s, jnp.asarray(X), jnp.asarray(N1), jnp.asarray(N2), jnp.asarray(A2), jnp.asarray(Z),
+                jnp.asarray(Lx.T @ Y), float(al), float(tau), k, design.kind)
+    return fx, params
+
+
+@dataclasses.dataclass
+class TuneResult:
+    """Result of `tune`.
+
+    Attributes:
+        design: the tuned, verified `FunctionalObserverDesign` (same structure, region and
+            certificate X as the LMI design; ``solver["tuning"]`` holds the run's options).
+        params: the tuning parameters of the returned design (``Theta, Y3[, Z]``).
+        history: dict of lists per step: ``step, train_loss, heldout_loss`` (``nan`` when
+            not evaluated), ``margin``, ``accepted``, ``backtracks``, ``max_real_eig``.
+        initial_heldout, final_heldout: held-out loss of the LMI design and of the result.
+    """
+
+    design: FunctionalObserverDesign
+    params: dict
+    history: dict
+    initial_heldout: float | None
+    final_heldout: float | None
+
+
+def _loss_fn(params, fx, study, loss, quantile, weights, cfg):
+    obs, _ = observer_from_parameters(fx, params)
+    return study_loss(study, obs, loss=loss, quantile=quantile, weights=weights, cfg=cfg)
+
+
+@eqx.filter_jit
+def _step(params, opt_state, fx, study, optimizer, loss, quantile, weights, cfg, min_margin, n_back):
+    TRACE_COUNTS["tune_step"] += 1
+    value, grads = eqx.filter_value_and_grad(_loss_fn)(params, fx, study, loss, quantile, weights, cfg)
+    updates, new_state = optimizer.update(grads, opt_state, params)
+    scales = 0.5 ** jnp.arange(n_back + 1, dtype=jnp.float64)
+
+    def margin_at(sc):
+        cand = jax.tree.map(lambda p, u: p + sc * u, params, updates)
+        _, _, m = _gain(fx, cand)
+        return m
+
+    margins = jax.vmap(margin_at)(scales)
+    ok = (margins > min_margin) & jnp.isfinite(margins)
+    first = jnp.argmax(ok)
+    any_ok = jnp.any(ok)
+    sc = jnp.where(any_ok, scales[first], 0.0)
+    new_params = jax.tree.map(lambda p, u: p + sc * u, params, updates)
+    return value, new_params, new_state, jnp.where(any_ok, margins[first], margins[0]), any_ok, first
+
+
+@eqx.filter_jit
+def _evaluate(params, fx, study, loss, quantile, weights, cfg):
+    TRACE_COUNTS["evaluate"] += 1
+    return _loss_fn(params, fx, study, loss, quantile, weights, cfg)
+
+
+def _host_check(fx: _Fixed, params, region) -> tuple[bool, float, float]:
+    p, margin = free_parameters_to_design_params(fx, params)
+    mats = observer_matrices(fx.structure, **{k: np.asarray(v) for k, v in p.items()}, xp=np)
+    eigs = np.linalg.eigvals(np.asarray(error_dynamics(mats, xp=np))[0])
+    inside = bool(np.all(region.margin(eigs) > 0))
+    return inside and float(margin) > 0, float(margin), float(np.max(eigs.real))
+
+
+def _save_checkpoint(path, params, opt_state, step, key, history):
+    leaves = jax.tree.leaves((params, opt_state))
+    arrays = {f"leaf{i}": np.asarray(x) for i, x in enumerate(leaves)}
+    arrays["key"] = np.asarray(key)
+    _atomic_write(path + ".npz", lambda f: np.savez(f, **arrays))
+    meta = {"step": int(step), "history": history}
+    _atomic_write(path + ".json", lambda f: f.write(json.dumps(meta).encode()))
+
+
+def _load_checkpoint(path, params, opt_state):
+    with open(path + ".json") as f:
+        meta = json.load(f)
+    with np.load(path + ".npz") as data:
+        leaves = [jnp.asarray(data[f"leaf{i}"]) for i in range(len(jax.tree.leaves((params, opt_state))))]
+        key = jnp.asarray(data["key"])
+    treedef = jax.tree.structure((params, opt_state))
+    params, opt_state = jax.tree.unflatten(treedef, leaves)
+    return params, opt_state, meta["step"], key, meta["history"]
+
+
+def tune(
+    design: FunctionalObserverDesign,
+    train_study: Study,
+    *,
+    heldout: Study | None = None,
+    steps: int = 100,
+    optimizer: optax.GradientTransformation | None = None,
+    loss: str = "iae",
+    quantile: float | None = None,
+    weights=None,
+    region: Disk | None = None,
+    tune_Z: bool = False,
+    min_margin: float = 1e-6,
+    max_backtracks: int = 8,
+    eval_every: int = 1,
+    key=None,
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: int = 1,
+    resume: bool = False,
+    method: str = "auto",
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 100_000,
+    callback: Callable | None = None,
+    quiet: bool = True,
+) -> TuneResult:
+    r"""Tune the free parameters of a functional-observer design by gradient descent.
+
+    See the module docstring for the parameterization (every iterate is a valid
+    observer with eigenvalues in the disk), backtracking, and checkpoints.
+
+    **Arguments:**
+
+    - `design`: an LMI design (`fojax.design.design_functional_observer`,
+      ``kind="generalized"`` or ``"proportional"``, disk region).
+    - `train_study`: a `fojax.studies.Study` whose signals the observer estimates.
+    - `heldout`: a study of samples never used for training (its loss is reported).
+    - `steps`: total number of optimizer steps (including those of a resumed run).
+    - `optimizer`: an optax transformation (default ``optax.adam(1e-2)``).
+    - `loss`: ``"iae"`` or ``"ise"`` of $\hat z - z$ (mean over signals, or `weights`);
+      `quantile`: use this quantile over samples instead of the mean.
+    - `region`: the disk to stay in (default: the design's region).
+    - `tune_Z`: also move ``Z`` (with backtracking on the margin).
+    - `min_margin`, `max_backtracks`: acceptance rule for ``Z`` moves.
+    - `eval_every`: held-out evaluation period (steps).
+    - `key`: PRNG key stored with the checkpoint (reserved for stochastic training).
+    - `checkpoint`, `checkpoint_every`, `resume`: see the module docstring.
+    - `method`, `rtol`, `atol`, `max_steps`: simulation options (`fojax.simulate`).
+    - `callback`: called as ``callback(step, record)`` after every step.
+    - `quiet`: no progress bar.
+
+    **Returns:** a `TuneResult`.
+    """
+    if loss not in ("iae", "ise"):
+        raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
+    region = design.region if region is None else region
+    fx, params = initial_parameters(design, region, tune_Z=tune_Z)
+    optimizer = optax.adam(1e-2) if optimizer is None else optimizer
+    opt_state = optimizer.init(params)
+    key = jax.random.PRNGKey(0) if key is None else key
+    cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps))
+    w = None if weights is None else jnp.asarray(weights, dtype=jnp.float64)
+    history = {k: [] for k in ("step", "train_loss", "heldout_loss", "margin", "accepted", "backtracks",
+                               "max_real_eig")}
+    start = 0
+    path = None if checkpoint is None else os.fspath(checkpoint)
+    if resume and path is not None and os.path.exists(path + ".json"):
+        params, opt_state, start, key, history = _load_checkpoint(path, params, opt_state)
+
+    def heldout_loss(p):
+        if heldout is None:
+            return float("nan")
+        return float(_evaluate(p, fx, heldout, loss, quantile, w, cfg))
+
+    initial_heldout = heldout_loss(initial_parameters(design, region, tune_Z=tune_Z)[1]) if heldout else None
+    for step in tqdm(range(start, steps), disable=quiet, desc="tune", unit="step"):
+        key, _ = jax.random.split(key)
+        value, cand, cand_state, margin, ok, nback = _step(
+            params, opt_state, fx, train_study, optimizer, loss, quantile, w, cfg, float(min_margin),
+            int(max_backtracks),
+        )
+        accepted = bool(ok)
+        if accepted:
+            accepted, margin_h, maxre = _host_check(fx, cand, region)
+        if accepted:
+            params = cand
+        else:
+            _, margin_h, maxre = _host_check(fx, params, region)
+        opt_state = cand_state
+        ho = heldout_loss(params) if (heldout is not None and (step + 1) % eval_every == 0) else float("nan")
+        rec = dict(step=step + 1, train_loss=float(value), heldout_loss=ho, margin=margin_h, accepted=accepted,
+                   backtracks=int(nback), max_real_eig=maxre)
+        for k, v in rec.items():
+            history[k].append(v)
+        if callback is not None:
+            callback(step + 1, rec)
+        if path is not None and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
+            _save_checkpoint(path, params, opt_state, step + 1, key, history)
+    final_heldout = heldout_loss(params) if heldout is not None else None
+    tuned = _verified_design(design, fx, params, region, dict(loss=loss, quantile=quantile, steps=steps,
+                                                               tune_Z=tune_Z))
+    return TuneResult(design=tuned, params=params, history=history, initial_heldout=initial_heldout,
+                      final_heldout=final_heldout)
+
+
+def _verified_design(design, fx, params, region, options) -> FunctionalObserverDesign:
+    p, _ = free_parameters_to_design_params(fx, params)
+    p = {k: np.asarray(v) for k, v in p.items()}
+    mats, report = verify_structure_design(fx.structure, p, region, np.asarray(fx.X))
+    return FunctionalObserverDesign(
+        observer=build_observer(fx.structure, mats, kind=design.kind),
+        kind=design.kind,
+        region=region,
+        structure=fx.structure,
+        params=p,
+        T=np.asarray(mats.T),
+        K=np.asarray(mats.K),
+        Z_eff=np.asarray(mats.Z_eff),
+        X=np.asarray(fx.X),
+        report=report,
+        solver=dict(design.solver, tuning=options),
+    )
