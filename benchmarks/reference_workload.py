@@ -1,0 +1,682 @@
+"""Issue 7, study 1: the reference workload (thesis §4.1.3 loop, B Monte Carlo samples).
+
+Runs fojax and the four peers of `peers.py` on the same samples, checks that all of
+them agree on the per-sample metrics, then times them and writes a table
+(Markdown + JSON) to ``benchmarks/results/``.
+
+    pip install ".[bench]"
+    python benchmarks/reference_workload.py                      # the full study
+    python benchmarks/reference_workload.py --sizes 1 10 100 1000 --repeats 3
+    python benchmarks/reference_workload.py --peers expm rk4 --loop-max-b 100
+
+Timing rules: imports and workload construction are outside the timed region; the
+first call of every method is timed and reported separately (for fojax the JAX caches
+are cleared first, and compilation is timed on its own by ahead-of-time lowering in
+``jit`` mode, or estimated as first call - median in ``vmap`` mode; see `FojaxRunner`);
+then the method is repeated and the median is reported, with
+``jax.block_until_ready`` on fojax's output. The Python-loop peers (a) and (b) are run
+up to ``--loop-max-b`` samples; for larger B their time is extrapolated linearly from
+the per-sample time at the largest measured B and marked ``extrapolated`` everywhere.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+# Single-threaded BLAS unless the caller says otherwise: on this 2-core machine the NumPy/SciPy
+# peers' tiny 7x7 BLAS/LAPACK calls are 2-10x *faster* with one OpenBLAS thread (threads only
+# contend), so this favours the peers. Must happen before NumPy is imported. XLA (fojax) uses
+# its own thread pool and is not affected.
+BLAS_THREADS = {v: os.environ.setdefault(v, "1") for v in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+
+import jax  # noqa: E402
+
+
+jax.config.update("jax_enable_x64", True)
+
+import _workload as wlmod  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import peers  # noqa: E402
+
+
+SIZES = (1, 10, 100, 1_000, 10_000, 100_000)
+
+#: Largest acceptable relative difference of each method's metrics to the exact peer (d).
+#: solve_ivp's rtol = 1e-6 bounds its accuracy (measured ~1e-7); RK4 with dt = 1e-3 has a
+#: local error ~ (39.78e-3)^5 / 120 on the fastest mode (measured ~1e-10 on the metrics);
+#: python-control and fojax are exact discretisations like (d), up to rounding.
+TOLERANCES = {"solve_ivp": 1e-4, "control": 1e-10, "rk4": 1e-8, "expm": 1e-12, "fojax": 1e-8}
+
+
+# ================================================================================ fojax
+class FojaxUnavailable(RuntimeError):
+    pass
+
+
+def _closed_loop_jnp(A_plant):
+    """The 8×8 closed-loop matrix from the printed gains, with jax.numpy (see `_workload`)."""
+    g = {k: jnp.asarray(getattr(wlmod, k)) for k in "B C L N J F H S G M P Q E_PERP".split()}
+    # w = [-E_perp B u; y] with u = zhat = P zeta + Q w: an algebraic loop in u, but
+    # E_perp B = [0, 0] for this plant (checked here and in _workload), so w = [0; C] x.
+    assert not np.any(wlmod.E_PERP @ wlmod.B)
+    W = jnp.concatenate([jnp.zeros((1, 4)), g["C"]], axis=0)
+    BQW = g["B"] @ g["Q"] @ W
+    HQW = g["H"] @ g["Q"] @ W
+    Z = jnp.zeros((4, 2))
+    return jnp.block(
+        [
+            [A_plant + BQW, g["B"] @ g["P"], Z],
+            [g["F"] @ W + HQW, g["N"] + g["H"] @ g["P"], g["J"]],
+            [g["M"] @ W, g["S"], g["G"]],
+        ]
+    )
+
+
+def _fojax_error_rows():
+    """``(2, 8)`` map from the closed-loop state to ``zhat - L x``."""
+    W = jnp.concatenate([jnp.zeros((1, 4)), jnp.asarray(wlmod.C)], axis=0)
+    QW_L = jnp.asarray(wlmod.Q) @ W - jnp.asarray(wlmod.L)
+    return jnp.concatenate([QW_L, jnp.asarray(wlmod.P), jnp.zeros((2, 2))], axis=1)
+
+
+class FojaxRunner:
+    """The fojax entry: ``(A_plant (B,4,4), x0 (B,8)) -> (B,2)`` metrics, public API only.
+
+    Builds the 8-state closed-loop `fojax.DescriptorSystem` of each sample with jax.numpy
+    and `jax.vmap`s `fojax.simulate` over ``(A_k, x0_k)``. Two ways of calling it:
+
+    - ``mode="jit"``: the whole study (vmap of simulate + the metrics) is one `jax.jit`
+      program, compiled ahead of time per batch shape (compile time measured on its own);
+      batches larger than `chunk` are streamed with ``jax.lax.map(..., batch_size=chunk)``.
+    - ``mode="vmap"``: ``jax.vmap(simulate)`` called eagerly (fojax's own `filter_jit`
+      compiles the core once), then a jitted metrics function; batches larger than
+      `chunk` are streamed in a Python loop over equal chunks (the last one padded, so
+      there is one compilation). Compile time is reported as first call − median.
+    - ``mode="auto"``: ``"jit"`` if fojax can be traced inside an outer `jax.jit`,
+      otherwise ``"vmap"`` (the reason is kept in `fallback_reason`).
+    """
+
+    def __init__(self, chunk: int = 10_000, mode: str = "auto"):
+        import fojax
+
+        if not hasattr(fojax, "simulate"):
+            raise FojaxUnavailable(
+                "fojax.simulate does not exist yet (the simulation layer of issue 7 is not "
+                "merged); this entry is written against "
+                "`fojax.simulate(plant, x0, ts) -> Solution(.xs (T, n))`."
+            )
+        self.fojax = fojax
+        self.chunk = int(chunk)
+        self.requested_mode = mode
+        self.mode = mode
+        self.fallback_reason = ""
+        self.E_cl = jnp.asarray(wlmod.E_CL)
+        self.ts = jnp.asarray(wlmod.TS)
+        self.dt = float(wlmod.DT_GRID)
+        self.Ce = _fojax_error_rows()
+        self._jit_batch = jax.jit(self._batch_traced)
+        self._metrics = jax.jit(self._metrics_from_xs)
+        self._vmapped = jax.vmap(self._trajectory)
+        self._compiled: dict = {}
+
+    # -- single trajectory, metrics ------------------------------------------------
+    def _trajectory(self, Ak, x0):
+        plant = self.fojax.DescriptorSystem(self.E_cl, _closed_loop_jnp(Ak))
+        return self.fojax.simulate(plant, x0, self.ts).xs  # (T, 8)
+
+    def _metrics_from_xs(self, xs):  # (..., T, 8) -> (..., 2)
+        fx = jnp.sum(jnp.abs(xs[..., :4]), axis=-1)
+        fe = jnp.sum(jnp.abs(xs @ self.Ce.T), axis=-1)
+        f = jnp.stack([fx, fe], axis=-1)
+        return self.dt * (jnp.sum(f, axis=-2) - 0.5 * (f[..., 0, :] + f[..., -1, :]))
+
+    def _batch_traced(self, A_plant, x0):
+        one = lambda Ak, x: self._metrics_from_xs(self._trajectory(Ak, x))
+        if A_plant.shape[0] <= self.chunk:
+            return jax.vmap(one)(A_plant, x0)
+        return jax.lax.map(lambda a: one(*a), (A_plant, x0), batch_size=self.chunk)
+
+    # -- public ------------------------------------------------------------------
+    def prepare(self, A_plant, x0) -> float | None:
+        """Compile for this batch shape; returns the compile time (``None`` in vmap mode)."""
+        if self.mode in ("auto", "jit"):
+            t0 = time.perf_counter()
+            try:
+                compiled = self._jit_batch.lower(A_plant, x0).compile()
+            except jax.errors.JAXTypeError as e:  # e.g. ConcretizationTypeError
+                if self.mode == "jit":
+                    raise
+                self.mode = "vmap"
+                self.fallback_reason = (
+                    f"fojax.simulate cannot be traced inside an outer jax.jit "
+                    f"({type(e).__name__}: {str(e).splitlines()[0]}); using eager jax.vmap"
+                )
+                print(f"!! {self.fallback_reason}")
+                return None
+            self.mode = "jit"
+            self._compiled[A_plant.shape] = compiled
+            return time.perf_counter() - t0
+        return None
+
+    def __call__(self, A_plant, x0):
+        if self.mode in ("auto", "jit"):
+            if A_plant.shape not in self._compiled:
+                self.prepare(A_plant, x0)
+            if self.mode == "jit":
+                return self._compiled[A_plant.shape](A_plant, x0)
+        B = A_plant.shape[0]
+        if B <= self.chunk:
+            return self._metrics(self._vmapped(A_plant, x0))
+        n_chunks = -(-B // self.chunk)
+        pad = n_chunks * self.chunk - B
+        if pad:
+            A_plant = jnp.concatenate([A_plant, jnp.repeat(A_plant[-1:], pad, axis=0)])
+            x0 = jnp.concatenate([x0, jnp.repeat(x0[-1:], pad, axis=0)])
+        outs = []
+        for i in range(n_chunks):
+            sl = slice(i * self.chunk, (i + 1) * self.chunk)
+            outs.append(self._metrics(self._vmapped(A_plant[sl], x0[sl])))
+        return jnp.concatenate(outs)[:B]
+
+    @property
+    def label(self) -> str:
+        return f"fojax.simulate ({self.mode})"
+
+
+def fojax_inputs(wl: wlmod.Workload):
+    return jnp.asarray(wl.A_plant), jnp.asarray(wl.x0_cl)
+
+
+def run_fojax(batch: wlmod.Workload, chunk: int = 10_000, mode: str = "auto") -> np.ndarray:
+    """fojax on the reference workload: ``(B, 2)`` metrics (IAE of |x|_1, of |zhat - Lx|_1).
+
+    Uses only fojax's public API (`fojax.DescriptorSystem`, `fojax.simulate`) and JAX.
+    """
+    runner = FojaxRunner(chunk, mode)
+    return np.asarray(jax.block_until_ready(runner(*fojax_inputs(batch))))
+
+
+# ================================================================================ helpers
+def rel_diff(m: np.ndarray, ref: np.ndarray) -> float:
+    return float(np.max(np.abs(m - ref) / np.abs(ref)))
+
+
+def machine_info() -> dict:
+    cpu = platform.processor() or ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                mem = f"{int(line.split()[1]) / 2**20:.1f} GiB"
+    except OSError:
+        pass
+    versions = {}
+    for mod in ("numpy", "scipy", "control", "jax", "jaxlib", "equinox", "diffrax", "fojax"):
+        try:
+            versions[mod] = __import__(mod).__version__
+        except Exception:  # noqa: BLE001
+            versions[mod] = "not installed"
+    try:
+        commit = subprocess.run(
+            ["git", "-C", str(HERE), "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.strip()
+    except OSError:
+        commit = ""
+    return {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "cpu": cpu,
+        "logical_cores": os.cpu_count(),
+        "cores_available": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "memory": mem,
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "jax_backend": jax.default_backend(),
+        "dtype": "float64",
+        "blas_threads": BLAS_THREADS,
+        "versions": versions,
+        "git_commit": commit,
+        "load_average_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
+    }
+
+
+def time_repeated(call, repeats: int, budget: float, first_counts: bool = True):
+    """First call, then up to `repeats` timed calls (stopping once `budget` s are spent).
+
+    If the first call alone exceeds `budget` and `first_counts` (no compilation in it:
+    the NumPy/SciPy peers), no repetition is made and the first call is the (single)
+    measurement. Otherwise at least one repetition is timed. Returns
+    ``(result, first, times)``.
+    """
+    t0 = time.perf_counter()
+    out = call()
+    first = time.perf_counter() - t0
+    times: list[float] = []
+    if first > budget and first_counts:
+        return out, first, [first]
+    spent = 0.0
+    while len(times) < repeats and spent < budget:
+        t0 = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - t0)
+        spent += times[-1]
+    return out, first, times
+
+
+HANG_NOTE = (
+    "Known cause with jax/jaxlib 0.10.x on small CPUs: batched LAPACK kernels (LU via "
+    "jnp.linalg.solve / expm under vmap) run jax::ParallelBatchMap on XLA's intra-op thread pool "
+    "and block on it; when as many independent batched LAPACK calls as pool threads run at once, "
+    "every pool thread waits and the program deadlocks (jaxlib >= 0.11 compiles that parallel "
+    "path out). Confirm with `gdb -p <pid> -batch -ex 'thread apply all bt'` (look for "
+    "ParallelBatchMap / lapack_dgetrf_ffi)."
+)
+
+
+class Watchdog:
+    """Abort the process if a fojax call deadlocks (no CPU progress) or exceeds `limit` s.
+
+    JAX releases the GIL while XLA executes, so this thread keeps running during a hang.
+    `on_abort(reason)` is called (e.g. to write the partial results) before ``os._exit(3)``.
+    """
+
+    def __init__(self, limit: float, idle: float, on_abort):
+        self.limit, self.idle, self.on_abort = limit, idle, on_abort
+        self.what = None
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        threading.Thread(target=self._run, daemon=True).start()
+
+    def watch(self, what: str):
+        watchdog = self
+
+        class _Ctx:
+            def __enter__(self):
+                with watchdog._lock:
+                    watchdog.what = (what, time.monotonic())
+                    watchdog._cpu = (time.process_time(), time.monotonic())
+
+            def __exit__(self, *exc):
+                with watchdog._lock:
+                    watchdog.what = None
+
+        return _Ctx()
+
+    def _run(self):
+        while not self._stop.wait(5.0):
+            with self._lock:
+                if self.what is None:
+                    continue
+                what, t_start = self.what
+                cpu_then, t_then = self._cpu
+                now, cpu_now = time.monotonic(), time.process_time()
+                if cpu_now - cpu_then > 0.5:
+                    self._cpu = (cpu_now, now)
+                    stalled = False
+                else:
+                    stalled = now - t_then > self.idle
+                over = now - t_start > self.limit
+            if stalled or over:
+                why = (
+                    f"no CPU progress for {self.idle:.0f} s (deadlock)"
+                    if stalled
+                    else f"exceeded --hang-timeout {self.limit:.0f} s"
+                )
+                reason = f"ABORTED: {what} {why}. {HANG_NOTE}"
+                print(f"\n!! {reason}", file=sys.stderr, flush=True)
+                try:
+                    self.on_abort(reason)
+                finally:
+                    os._exit(3)
+
+
+# ================================================================================ study
+def agreement(check_b: int, which: list[str], fojax_fn, seed: int, watchdog) -> dict:
+    wl = wlmod.make_workload(check_b, seed)
+    ref = peers.expm_reference(wl)
+    res = {}
+    for name in which:
+        label, variants = peers.PEERS[name]
+        for vname, fn in variants.items():
+            res[f"{name}:{vname}"] = rel_diff(fn(wl), ref)
+    if fojax_fn is not None:
+        with watchdog.watch(f"fojax agreement check (B = {check_b})"):
+            res["fojax"] = rel_diff(np.asarray(fojax_fn(*fojax_inputs(wl))), ref)
+    return res
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=list(SIZES))
+    ap.add_argument("--peers", nargs="+", default=list(peers.PEERS), choices=list(peers.PEERS))
+    ap.add_argument("--no-fojax", action="store_true", help="time the peers only")
+    ap.add_argument("--repeats", type=int, default=5, help="timed repetitions after the first call")
+    ap.add_argument("--budget", type=float, default=60.0, help="seconds of repetitions per method and B")
+    ap.add_argument(
+        "--loop-max-b",
+        type=int,
+        default=1000,
+        help="largest B run by the Python-loop peers (a), (b); beyond it their time is extrapolated",
+    )
+    ap.add_argument(
+        "--variant-max-b",
+        type=int,
+        default=10_000,
+        help="up to this B both axis orders of peers (c), (d) are timed; above it only the "
+        "faster one at the largest such B",
+    )
+    ap.add_argument("--check-b", type=int, default=100, help="samples of the agreement check")
+    ap.add_argument("--chunk", type=int, default=10_000, help="fojax streaming chunk")
+    ap.add_argument(
+        "--fojax-mode",
+        choices=("auto", "jit", "vmap"),
+        default="auto",
+        help="outer jax.jit around vmap(simulate) (jit), eager vmap (vmap), or jit if possible (auto)",
+    )
+    ap.add_argument(
+        "--hang-timeout",
+        type=float,
+        default=1800.0,
+        help="abort (writing partial results) if one fojax entry takes longer than this",
+    )
+    ap.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=120.0,
+        help="abort if a fojax call makes no CPU progress for this long (a deadlock)",
+    )
+    ap.add_argument("--seed", type=int, default=wlmod.DEFAULT_SEED)
+    ap.add_argument("--out", type=Path, default=HERE / "results")
+    args = ap.parse_args(argv)
+    if args.repeats < 1:
+        ap.error("--repeats must be at least 1")
+    sizes = sorted(set(args.sizes))
+
+    info = machine_info()
+    print(f"# reference workload ({info['date']}, {info['cpu']}, {info['cores_available']} cores)")
+    poles = wlmod.nominal_finite_poles()
+    print("nominal finite poles:", np.array2string(poles, precision=3, max_line_width=200))
+    assert np.allclose(np.sort_complex(poles), np.sort_complex(wlmod.EXPECTED_POLES), atol=0.011)
+    worst = wlmod.max_real_pole_over_interval()
+    print(f"max Re(finite pole) over delta in [-0.3, 0.3]: {worst:.3f} (every sample is stable)")
+
+    # ---------------------------------------------------------------- fojax setup
+    fojax_fn = None
+    fojax_msg = ""
+    if not args.no_fojax:
+        try:
+            fojax_fn = FojaxRunner(args.chunk, args.fojax_mode)
+        except FojaxUnavailable as e:
+            fojax_msg = str(e)
+            print(f"!! fojax entry skipped: {fojax_msg}")
+
+    rows: list[dict] = []
+    failed: list[str] = []
+    agree: dict = {}
+    state = dict(info=info, agree=agree, rows=rows, args=args, fojax_fn=fojax_fn, fojax_msg=fojax_msg, failed=failed)
+    watchdog = Watchdog(args.hang_timeout, args.idle_timeout, lambda reason: write_results(state, reason))
+
+    # ---------------------------------------------------------------- agreement first
+    print(f"\n## agreement on {args.check_b} samples (max relative difference to exact peer (d))")
+    agree.update(agreement(args.check_b, args.peers, fojax_fn, args.seed, watchdog))
+    for key, val in agree.items():
+        tol = TOLERANCES[key.split(":")[0]]
+        ok = val <= tol
+        print(f"  {key:22s} {val:9.2e}  (tolerance {tol:.0e}) {'ok' if ok else 'FAIL'}")
+        if not ok:
+            failed.append(key)
+    if failed:
+        print(f"!! methods disagree: {failed}; no timings reported")
+        return 1
+
+    # ---------------------------------------------------------------- timing
+    best_variant: dict[str, str] = {}
+    for B in sizes:
+        wl = wlmod.make_workload(B, args.seed)
+        ref_B = None
+        print(f"\n## B = {B}")
+        for name in args.peers:
+            label, variants = peers.PEERS[name]
+            loop_peer = name in ("solve_ivp", "control")
+            if loop_peer and B > args.loop_max_b:
+                base = [r for r in rows if r["method"] == name and not r["extrapolated"]]
+                if not base:
+                    continue
+                b0 = base[-1]
+                t = b0["median_s"] * B / b0["B"]
+                rows.append(
+                    dict(
+                        method=name,
+                        label=label,
+                        variant=b0["variant"],
+                        B=B,
+                        first_s=None,
+                        median_s=t,
+                        reps=0,
+                        all_s=[],
+                        extrapolated=True,
+                        extrapolated_from_B=b0["B"],
+                        rel_diff_vs_expm=None,
+                    )
+                )
+                print(f"  {label:45s} {t:10.3f} s  (EXTRAPOLATED from B = {b0['B']})")
+                continue
+            if B > args.variant_max_b and name in best_variant:
+                vitems = [(best_variant[name], variants[best_variant[name]])]
+            else:
+                vitems = list(variants.items())
+            cand = []
+            for vname, fn in vitems:
+                out, first, times = time_repeated(lambda fn=fn: fn(wl), args.repeats, args.budget)
+                med = statistics.median(times)
+                cand.append((med, vname, first, times, out))
+                print(f"  {label:45s} [{vname:11s}] first {first:9.3f} s  median {med:9.3f} s  ({len(times)} reps)")
+            med, vname, first, times, out = min(cand, key=lambda c: c[0])
+            if B <= args.variant_max_b and len(variants) > 1:
+                best_variant[name] = vname
+            if name == "expm":
+                ref_B = out
+            rows.append(
+                dict(
+                    method=name,
+                    label=label,
+                    variant=vname,
+                    B=B,
+                    first_s=first,
+                    median_s=med,
+                    reps=len(times),
+                    all_s=times,
+                    extrapolated=False,
+                    all_variants={c[1]: c[0] for c in cand},
+                    _out=out,
+                )
+            )
+        if fojax_fn is not None:
+            xin = fojax_inputs(wl)
+            jax.clear_caches()  # a cold start at every B: the first call compiles
+            with watchdog.watch(f"fojax at B = {B}"):
+                compile_s = fojax_fn.prepare(*xin)  # AOT compile (jit mode), None in vmap mode
+                out, first, times = time_repeated(
+                    lambda: jax.block_until_ready(fojax_fn(*xin)),
+                    args.repeats,
+                    args.budget,
+                    first_counts=False,
+                )
+            med = statistics.median(times)
+            compile_note = "AOT lower+compile"
+            if compile_s is None:  # vmap mode: the first call traces and compiles
+                compile_s = max(first - med, 0.0)
+                compile_note = "first call - median"
+            print(
+                f"  {fojax_fn.label:45s} [compile {compile_s:6.2f} s] first {first:9.3f} s  "
+                f"median {med:9.3f} s  ({len(times)} reps)"
+            )
+            rows.append(
+                dict(
+                    method="fojax",
+                    label=fojax_fn.label,
+                    variant=f"chunk={args.chunk}",
+                    B=B,
+                    compile_s=compile_s,
+                    compile_note=compile_note,
+                    first_s=first,
+                    median_s=med,
+                    reps=len(times),
+                    all_s=times,
+                    extrapolated=False,
+                    _out=np.asarray(out),
+                )
+            )
+        for r in rows:
+            if r["B"] == B and "_out" in r:
+                out = r.pop("_out")
+                r["rel_diff_vs_expm"] = None if ref_B is None else rel_diff(out, ref_B)
+                if ref_B is not None:
+                    tol = TOLERANCES[r["method"]]
+                    if r["rel_diff_vs_expm"] > tol:
+                        print(f"!! {r['method']} disagrees with (d) at B = {B}: {r['rel_diff_vs_expm']:.2e}")
+                        failed.append(f"{r['method']}@{B}")
+        write_results(state, status=f"partial (done up to B = {B} of {sizes})")
+
+    write_results(state, status="complete", echo=True)
+    return 1 if failed else 0
+
+
+def write_results(state: dict, status: str, echo: bool = False) -> None:
+    """Markdown + JSON into ``args.out`` (called after every B, on abort and at the end)."""
+    info, agree, rows, args = state["info"], state["agree"], state["rows"], state["args"]
+    fojax_fn, fojax_msg, failed = state["fojax_fn"], state["fojax_msg"], state["failed"]
+    rows = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
+    info = dict(info, load_average_at_end=os.getloadavg() if hasattr(os, "getloadavg") else None)
+    for r in rows:
+        r["samples_per_s"] = r["B"] / r["median_s"]
+        f = [x for x in rows if x["method"] == "fojax" and x["B"] == r["B"]]
+        if f and r["method"] != "fojax":
+            r["t_fojax_over_t_peer"] = f[0]["median_s"] / r["median_s"]
+            r["fojax_speedup"] = r["median_s"] / f[0]["median_s"]
+    fojax_note = ""
+    if fojax_fn is not None:
+        fojax_note = f"fojax mode: {fojax_fn.mode} (requested {fojax_fn.requested_mode}), chunk {args.chunk}"
+        if fojax_fn.fallback_reason:
+            fojax_note += f"; {fojax_fn.fallback_reason}"
+    md = render_markdown(info, agree, rows, fojax_msg, fojax_note, args, status)
+    if echo:
+        print("\n" + md)
+    args.out.mkdir(parents=True, exist_ok=True)
+    stamp = info["date"].replace(":", "").replace("-", "")[:15]
+    (args.out / f"reference_workload_{stamp}.md").write_text(md)
+    (args.out / "reference_workload_latest.md").write_text(md)
+    payload = dict(
+        study="reference_workload",
+        status=status,
+        machine=info,
+        settings=dict(vars(args), out=str(args.out)),
+        tolerances=TOLERANCES,
+        agreement_check=dict(B=args.check_b, max_rel_diff_vs_expm=agree),
+        fojax_unavailable=fojax_msg or None,
+        fojax_note=fojax_note or None,
+        rows=rows,
+        disagreements=failed,
+    )
+    for name in (f"reference_workload_{stamp}.json", "reference_workload_latest.json"):
+        (args.out / name).write_text(json.dumps(payload, indent=2, default=float))
+    if echo:
+        print(f"written to {args.out}/reference_workload_{stamp}.{{md,json}}")
+
+
+def _fmt(x, spec):
+    return "—" if x is None else format(x, spec)
+
+
+def render_markdown(info, agree, rows, fojax_msg, fojax_note, args, status) -> str:
+    v = info["versions"]
+    lines = [
+        "# Reference workload (issue 7): thesis §4.1.3 observer-based control loop",
+        "",
+        f"- status: {status}",
+        f"- date: {info['date']}; git {info['git_commit']}",
+        f"- machine: {info['cpu']}, {info['cores_available']} cores available "
+        f"({info['logical_cores']} logical), {info['memory']}; {info['platform']}; "
+        f"load average at start {tuple(round(x, 2) for x in info['load_average_at_start'] or ())}, "
+        f"at end {tuple(round(x, 2) for x in info['load_average_at_end'] or ())}",
+        f"- Python {info['python']}; " + ", ".join(f"{k} {val}" for k, val in v.items()),
+        f"- float64; horizon [0, 10] s, 0.01 s grid (1001 points); seed {args.seed}; "
+        f"median of up to {args.repeats} repetitions (budget {args.budget:.0f} s per entry) after a "
+        "separately timed first call",
+        "",
+        f"## Agreement (B = {args.check_b}; max relative difference of the per-sample metrics to the exact peer (d))",
+        "",
+        "| method | max rel. diff | tolerance |",
+        "|---|---|---|",
+    ]
+    for key, val in agree.items():
+        lines.append(f"| {key} | {val:.2e} | {TOLERANCES[key.split(':')[0]]:.0e} |")
+    if fojax_msg:
+        lines += ["", f"**fojax not measured:** {fojax_msg}"]
+    if fojax_note:
+        lines += ["", f"- {fojax_note}"]
+    lines += [
+        "",
+        "## Timings",
+        "",
+        "`fojax speed-up` = t_peer / t_fojax (> 1: fojax faster); `t_fojax/t_peer` is its inverse. "
+        "*extrap.* = not run, extrapolated linearly from the largest measured B.",
+        "",
+        "| B | method | variant | compile (s) | first call (s) | median (s) | reps | samples/s | "
+        "rel. diff vs (d) | t_fojax/t_peer | fojax speed-up |",
+        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        med = f"{r['median_s']:.4g}" + (" *extrap.*" if r["extrapolated"] else "")
+        lines.append(
+            f"| {r['B']} | {r['label']} | {r['variant']} | {_fmt(r.get('compile_s'), '.2f')} | "
+            f"{_fmt(r['first_s'], '.4g')} | {med} | {r['reps']} | {r['samples_per_s']:.4g} | "
+            f"{_fmt(r.get('rel_diff_vs_expm'), '.1e')} | {_fmt(r.get('t_fojax_over_t_peer'), '.3g')} | "
+            f"{_fmt(r.get('fojax_speedup'), '.3g')} |"
+        )
+    peer_names = [p for p in peers.PEERS if any(r["method"] == p for r in rows)]
+    if any(r["method"] == "fojax" for r in rows):
+        lines += [
+            "",
+            "## fojax speed-up (t_peer / t_fojax) by B",
+            "",
+            "| B | " + " | ".join(peers.PEERS[p][0] for p in peer_names) + " |",
+            "|---:|" + "---:|" * len(peer_names),
+        ]
+        for B in sorted({r["B"] for r in rows}):
+            cells = []
+            for p in peer_names:
+                r = [x for x in rows if x["method"] == p and x["B"] == B]
+                if r and "fojax_speedup" in r[0]:
+                    cells.append(f"{r[0]['fojax_speedup']:.3g}" + (" *extrap.*" if r[0]["extrapolated"] else ""))
+                else:
+                    cells.append("—")
+            lines.append(f"| {B} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
