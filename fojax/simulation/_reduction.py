@@ -51,6 +51,7 @@ from jaxtyping import Array, Float
 
 from .._errors import ImpulsiveSystemError, InputError, IrregularSystemError, ShapeError
 from .._linalg import rank as _host_rank, RANK_ATOL, RANK_RTOL
+from .._small_linalg import solve_small
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..plant._descriptor import DescriptorSystem
 from ..plant._signals import Constant, Zero
@@ -252,7 +253,7 @@ def solve_fast(
             return algebraic_residual(plant, split, t, zs + w, u_t)
 
         M = split.newton_matrix(jax.jacfwd(h_lin)(zf0))
-        return zs - jnp.linalg.solve(M, h_lin(zf0))
+        return zs - solve_small(M, h_lin(zf0))
 
     p_s, t_s, u_s, zs_s = _sg((plant, jnp.asarray(t, dtype=z.dtype), u, zs))
 
@@ -263,7 +264,7 @@ def solve_fast(
 
     def newton(_, zf):
         M = split.newton_matrix(jax.jacfwd(h_s, argnums=1)(t_s, zf))
-        return zf - jnp.linalg.solve(M, h_s(t_s, zf))
+        return zf - solve_small(M, h_s(t_s, zf))
 
     if iters > 2:
         zf = lax.fori_loop(0, iters, newton, zf)
@@ -274,7 +275,7 @@ def solve_fast(
     # One Jacobian serves the last Newton step (fast columns) and the rate (slow ones).
     Jt, Jz = lax.stop_gradient(jax.jacfwd(h_s, argnums=(0, 1))(t_s, zf))
     M = split.newton_matrix(Jz)
-    z_new = zs + zf - jnp.linalg.solve(M, algebraic_residual(plant, split, t, zs + zf, u_t))
+    z_new = zs + zf - solve_small(M, algebraic_residual(plant, split, t, zs + zf, u_t))
     if linearization:
         return z_new, (Jt, Jz, M)
     return z_new
@@ -328,8 +329,9 @@ def reduce_linear_masked(E, A, B) -> MaskedLinearReduction:
     At = split.U.T @ A @ split.V
     Bt = split.U.T @ B
     M = split.newton_matrix(At)
-    K = -jnp.linalg.solve(M, mf[:, None] * At * ms[None, :])  # slow → fast comps
-    Ku = -jnp.linalg.solve(M, mf[:, None] * Bt)
+    # one solve for both right-hand sides (slow → fast components, and input → fast)
+    KK = -solve_small(M, jnp.concatenate([mf[:, None] * At * ms[None, :], mf[:, None] * Bt], axis=1))
+    K, Ku = KK[:, : At.shape[1]], KK[:, At.shape[1] :]
     P = jnp.diag(ms) + K  # z = P z_slow + Ku u
     rows = (ms / split.sigma)[:, None]
     As = rows * (At @ P)

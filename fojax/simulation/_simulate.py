@@ -57,10 +57,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.scipy.linalg import expm
 
 from .._dtype import as_float_array
 from .._errors import InputError, ShapeError
+from .._small_linalg import expm_small, solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..plant._uncertain import UncertainDescriptorSystem
@@ -417,7 +417,7 @@ def discretize(Aj, Bj, h, nu: int = QUADRATURE_NODES):
     N, m = Bj.shape
     c, Vinv = _gauss_legendre(nu)
     if m == 0:
-        return expm(h * Aj), jnp.zeros((nu, N, 0), dtype=Aj.dtype), c
+        return expm_small(h * Aj), jnp.zeros((nu, N, 0), dtype=Aj.dtype), c
     size = N + nu * m
     M = jnp.zeros((size, size), dtype=Aj.dtype)
     M = M.at[:N, :N].set(h * Aj).at[:N, N : N + m].set(h * Bj)
@@ -425,7 +425,7 @@ def discretize(Aj, Bj, h, nu: int = QUADRATURE_NODES):
     for i in range(nu - 1):
         a, b = N + i * m, N + (i + 1) * m
         M = M.at[a : a + m, b : b + m].set(eye)
-    F = expm(M)
+    F = expm_small(M)
     Phi = F[:N, :N]
     G = jnp.stack([F[:N, N + i * m : N + (i + 1) * m] for i in range(nu)])  # (nu, N, m)
     W = jnp.einsum("ij,ink->jnk", jnp.asarray(Vinv, dtype=Aj.dtype), G)
@@ -553,7 +553,7 @@ def _fast_rate(lin, dz_slow):
     re-solved), and it is not error-controlled.
     """
     Jt, Jz, M = lin
-    return -jnp.linalg.solve(M, Jt + Jz @ lax.stop_gradient(dz_slow))
+    return -solve_small(M, Jt + Jz @ lax.stop_gradient(dz_slow))
 
 
 def _diffrax(plant, split, x0c, ts, u, observers, xi0s, solver, adjoint, cfg: _Config):
