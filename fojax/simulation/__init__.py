@@ -1,5 +1,6 @@
 """Simulation layer: index-1 reduction, consistent initial conditions, `simulate`."""
 
+from ._batch import simulate_lti_batch as simulate_lti_batch
 from ._reduction import (
     consistent_initial_condition as consistent_initial_condition,
     Index1Reduction as Index1Reduction,
