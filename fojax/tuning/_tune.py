@@ -54,7 +54,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from tqdm.auto import tqdm
+from tqdm import tqdm
 
 from .._errors import InputError
 from ..design import Disk, FunctionalObserverDesign, pieces
