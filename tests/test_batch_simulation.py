@@ -195,8 +195,10 @@ def test_chunked_equals_unchunked_exactly(batch_result):
         model, params, x0, TS, metrics=METRICS, chunk_size=3
     )  # 3 + 3 + 1 (padded)
     assert TRACE_COUNTS["simulate_lti_batch"] == before + 1  # one kernel for all chunks
+    blocked = simulate_lti_batch(model, params, x0, TS, metrics=METRICS, chunk_size=B, block=2)
     for name in METRICS:
         np.testing.assert_array_equal(np.asarray(chunked[name]), out[name])
+        np.testing.assert_array_equal(np.asarray(blocked[name]), out[name])
 
 
 def test_traceable_inside_jit(batch_result):
