@@ -195,6 +195,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fojax: {err}", file=sys.stderr)
         return 3
     except Exception as err:  # one-line reason, non-zero exit
+        import os
+
+        if os.environ.get("FOJAX_DEBUG"):  # full traceback for bug reports
+            raise
         from fojax import FojaxError
 
         if isinstance(err, FojaxError | FileExistsError):
