@@ -213,6 +213,26 @@ def test_traceable_inside_jit(batch_result):
         np.testing.assert_allclose(np.asarray(res[name]), out[name], rtol=1e-13)
 
 
+def test_vmapped_simulate_traceable_inside_jit(batch_result):
+    # `simulate`'s method resolution inspects a concrete ts with NumPy (no float() of a tracer).
+    params, x0, _, _ = batch_result
+    ts = jnp.asarray(TS)  # a concrete jax.Array closed over by the jitted function
+
+    @jax.jit
+    def first_states(p, x):
+        def one(pk, xk):
+            plant, obs = model(pk)
+            return fojax.simulate(plant, xk, ts).xs[-1]
+
+        return jax.vmap(one)(p, x)
+
+    p2 = jax.tree.map(lambda a: jnp.asarray(a[:2]), params)
+    got = first_states(p2, jnp.asarray(x0[:2]))
+    plant, _ = model(jax.tree.map(lambda a: a[0], p2))
+    ref = fojax.simulate(plant, jnp.asarray(x0[0]), jnp.asarray(TS)).xs[-1]
+    np.testing.assert_allclose(np.asarray(got[0]), np.asarray(ref), rtol=1e-12, atol=1e-14)
+
+
 def test_refuses_bad_inputs(batch_result):
     params, x0, _, _ = batch_result
     with pytest.raises(fojax.InputError, match="uniform"):

@@ -292,12 +292,16 @@ def _resolve_method(method, plant, observers, ts, u) -> str:
     obs_lin = all(o.linear_matrices() is not None for o in observers)
     uniform, on_grid, dev = True, True, 0.0
     if is_concrete(ts):
-        dev, h = (float(v) for v in _grid_deviation(ts))
+        # NumPy, not jax.numpy: inside an outer `jax.jit` jnp operations on a concrete
+        # ts return tracers, and float() of them would fail.
+        t = np.asarray(ts)
+        h = (t[-1] - t[0]) / (t.shape[0] - 1)
+        dev = float(np.max(np.abs(t - (t[0] + np.arange(t.shape[0]) * h))) / h)
         uniform = dev <= UNIFORM_GRID_RTOL
         bps = [b for b in _breakpoints(plant, u) if is_concrete(b)]
         if uniform and bps:
             b = np.concatenate([np.asarray(v).ravel() for v in bps])
-            t0, t1 = float(ts[0]), float(ts[-1])
+            t0, t1 = float(t[0]), float(t[-1])
             b = b[(b > t0) & (b < t1)]
             k = (b - t0) / h
             on_grid = bool(np.all(np.abs(k - np.round(k)) <= 1e-9 * np.maximum(1.0, k)))
