@@ -63,8 +63,9 @@ class AbstractRegion(eqx.Module):
         out = np.kron(L, X) + np.kron(M, XA.T) + np.kron(M.T, XA)
         return 0.5 * (out + out.T)
 
+    @abc.abstractmethod
     def to_dict(self) -> dict:
-        raise NotImplementedError
+        """A JSON-able description (inverse: `region_from_dict`)."""
 
     def __str__(self) -> str:
         return self.describe()
