@@ -66,8 +66,22 @@ KINDS = ("generalized", "PI", "proportional")
 TIGHTEN = 0.05
 
 
+class StructureDesignMixin:
+    """``R`` and ``L`` of a design object that holds a `FunctionalObserverStructure`."""
+
+    structure: FunctionalObserverStructure
+
+    @property
+    def R(self) -> np.ndarray:
+        return np.asarray(self.structure.R)
+
+    @property
+    def L(self) -> np.ndarray:
+        return np.asarray(self.structure.L)
+
+
 @dataclasses.dataclass(frozen=True)
-class FunctionalObserverDesign:
+class FunctionalObserverDesign(StructureDesignMixin):
     """A verified functional-observer design.
 
     Attributes:
@@ -93,14 +107,6 @@ class FunctionalObserverDesign:
     X: np.ndarray
     report: VerificationReport
     solver: dict
-
-    @property
-    def R(self) -> np.ndarray:
-        return np.asarray(self.structure.R)
-
-    @property
-    def L(self) -> np.ndarray:
-        return np.asarray(self.structure.L)
 
     @property
     def error_matrix(self) -> np.ndarray:

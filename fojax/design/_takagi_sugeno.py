@@ -63,6 +63,7 @@ from ._functional import (
     prepare_structure,
     solve_gains,
     split_Y,
+    StructureDesignMixin,
     TIGHTEN,
     verify_structure_design,
 )
@@ -72,7 +73,7 @@ from ._verify import LMI_MARGIN, VerificationReport
 
 
 @dataclasses.dataclass(frozen=True)
-class TakagiSugenoObserverDesign:
+class TakagiSugenoObserverDesign(StructureDesignMixin):
     """A verified Takagi–Sugeno functional-observer design.
 
     Attributes:
@@ -99,14 +100,6 @@ class TakagiSugenoObserverDesign:
     X: np.ndarray
     report: VerificationReport
     solver: dict
-
-    @property
-    def R(self) -> np.ndarray:
-        return np.asarray(self.structure.R)
-
-    @property
-    def L(self) -> np.ndarray:
-        return np.asarray(self.structure.L)
 
     @property
     def num_rules(self) -> int:

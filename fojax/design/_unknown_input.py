@@ -113,7 +113,7 @@ from ._conditions import (
     default_R,
     unobservable_modes,
 )
-from ._functional import _as_system, choose_Z, TIGHTEN
+from ._functional import _as_system, choose_Z, StructureDesignMixin, TIGHTEN
 from ._parameterization import (
     FunctionalObserverStructure,
     observer_matrices,
@@ -216,7 +216,7 @@ def unknown_input_residuals(s: FunctionalObserverStructure, D, mats, xp=np) -> d
 
 
 @dataclasses.dataclass(frozen=True)
-class UnknownInputObserverDesign:
+class UnknownInputObserverDesign(StructureDesignMixin):
     """A verified unknown-input functional-observer design.
 
     Attributes:
@@ -242,14 +242,6 @@ class UnknownInputObserverDesign:
     X: np.ndarray
     report: VerificationReport
     solver: dict
-
-    @property
-    def R(self) -> np.ndarray:
-        return np.asarray(self.structure.R)
-
-    @property
-    def L(self) -> np.ndarray:
-        return np.asarray(self.structure.L)
 
     @property
     def error_matrix(self) -> np.ndarray:
