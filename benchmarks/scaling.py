@@ -1,0 +1,546 @@
+r"""Issue 7, item 3: how fojax's batched LTI simulation scales with the state dimension n
+(and its memory with the batch size B).
+
+What is measured
+----------------
+1. **Time vs state dimension** (the main table). For each n in ``--dims`` (default
+   4, 8, 16, 32, 64): a random *stable, index-1* descriptor system
+   $E\dot x = A_k x$ (see `random_stable_index1`), ``--batch`` samples (default 1,000),
+   horizon [0, 10] s, 0.01 s output grid (1001 points), float64; per sample one metric, the
+   IAE of $\|x(t)\|_1$ (trapezoid rule on the grid). Two methods:
+
+   - fojax: `fojax.simulation.simulate_lti_batch(model, A_k, x0, ts, metrics={"x":
+     ("iae_l1", I)})` (public API only; fojax does its own index-1 reduction and exact
+     discretisation, all inside the timed call);
+   - peer (d) written as `peers.py` writes it, generically: the hand reduction
+     $A^{\rm s}_k$, $T$ (outside the timed region, as in `peers.py`),
+     ``scipy.linalg.expm(A^s_k dt)`` for the stacked samples, a recurrence vectorised over
+     the batch accumulating the metric while stepping; both axis orders (batch first /
+     batch last) are timed and the faster is kept.
+
+   Before any timing the two methods are run on ``--check-b`` samples (default 100) and
+   must agree to ``<= 1e-8`` relative (the entry is reported as ``disagree`` without
+   timings otherwise); at the timed B they are compared again.
+   Reported per n: fojax compile time (≈ first call − median; the JAX caches are cleared
+   first), first call, median of up to ``--repeats`` repetitions, samples/s, the
+   peer's first call and median, the ratio t_peer / t_fojax, and the peak RSS.
+
+2. **Memory (and time) vs B** (``--memory-sizes``, default 1 … 100,000, at
+   ``--memory-n`` = 8): the same two methods, fojax and (d), at each B; reported with the
+   peak resident set size (``getrusage`` high-water mark) of the process, its value just
+   before the first call (imports and inputs built) and the increase, so that "memory grows
+   linearly with B" can be read off.
+
+3. **Time vs B on the reference workload** is *not* re-measured: the table is copied
+   from ``results/reference_workload_latest.json`` (with that file's date) when it exists.
+
+Every entry (one method at one (n, B)) runs in a fresh Python process
+(`_common.run_worker`): the compile time is a cold start, the peak RSS belongs to that
+entry alone, and a hung entry is killed after ``--hard-timeout`` s and reported as such.
+Results: ``results/scaling_<date>.{md,json}`` and ``results/scaling_latest.{md,json}``.
+
+Examples::
+
+    python benchmarks/scaling.py                                  # the full study
+    python benchmarks/scaling.py --dims 4 8 --batch 100 --memory-sizes 1 100 --repeats 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import _common  # noqa: E402
+
+
+if __name__ == "__main__":
+    _common.limit_blas_threads()  # before NumPy (see _common)
+
+import numpy as np  # noqa: E402
+import scipy.linalg  # noqa: E402
+from scipy.optimize import linear_sum_assignment  # noqa: E402
+from scipy.stats import ortho_group  # noqa: E402
+
+
+DIMS = (4, 8, 16, 32, 64)
+MEMORY_SIZES = (1, 10, 100, 1_000, 10_000, 100_000)
+T_END, DT = 10.0, 0.01
+DELTA = 0.3  # samples: A_k = A + delta_k dA, delta_k ~ U[-DELTA, DELTA], ||dA||_2 = 1
+ABSCISSA_BOUND = -1.0  # every sample's log-norm (hence every finite pole) is <= this
+TOL = 1e-8
+DEFAULT_SEED = 20261121
+
+
+# ============================================================================ the systems
+@dataclasses.dataclass(frozen=True)
+class RandomLoop:
+    r"""A random stable index-1 descriptor system and its hand reduction.
+
+    $E = U\,\mathrm{diag}(I_r, 0)\,V$, $A = U A_0 V$ with $U, V$ random orthogonal; in the
+    coordinates $\tilde x = Vx = [\tilde x_1; \tilde x_2]$ the algebraic rows read
+    $0 = A_{0,21}\tilde x_1 + A_{0,22}\tilde x_2$ ($A_{0,22}$ invertible: index 1) and
+    $\dot{\tilde x}_1 = A^{\rm s}\tilde x_1$ with
+    $A^{\rm s} = A_{0,11} - A_{0,12}A_{0,22}^{-1}A_{0,21}$; $x = T\tilde x_1$ with
+    $T = V^\top[I_r; -A_{0,22}^{-1}A_{0,21}]$. Samples perturb only the $(1,1)$ block,
+    $\Delta A = U\,\mathrm{blkdiag}(D, 0)\,V$ with $\|D\|_2 = 1$, so $T$ is common to all.
+    """
+
+    n: int
+    r: int
+    E: np.ndarray  # (n, n)
+    A: np.ndarray  # (n, n) nominal
+    dA: np.ndarray  # (n, n) perturbation direction
+    As: np.ndarray  # (r, r) nominal slow matrix
+    D: np.ndarray  # (r, r) slow perturbation (As_k = As + delta_k D)
+    T: np.ndarray  # (n, r) slow coordinates -> x
+    shift: float  # how far A_{0,11} was shifted left
+
+
+def log_norm(M: np.ndarray) -> float:
+    """Logarithmic 2-norm (numerical abscissa): max eigenvalue of the symmetric part."""
+    return float(np.linalg.eigvalsh(0.5 * (M + M.T)).max())
+
+
+def random_stable_index1(n: int, seed: int, n_alg: int | None = None) -> RandomLoop:
+    r"""A random stable index-1 descriptor system of dimension `n` (see `RandomLoop`).
+
+    - $n_{\rm alg}$ = ``max(1, n // 4)`` algebraic equations by default ($r = n - n_{\rm alg}$);
+    - $A_0$ has i.i.d. $\mathcal N(0, 1/n)$ entries, $A_{0,22} \leftarrow A_{0,22} - I$
+      redrawn until its condition number is below 50 (a well-posed index-1 part);
+    - $A_{0,11}$ is shifted left by the amount that puts the logarithmic norm of every
+      sample's slow matrix, $\mu_2(A^{\rm s} + \delta D) \le \mu_2(A^{\rm s}) + |\delta|$,
+      at or below ``ABSCISSA_BOUND`` = −1 for $|\delta| \le$ ``DELTA``. Hence every finite
+      pole of every sample has real part ≤ −1 < −0.5 (and
+      $\|e^{A^{\rm s}_k t}\| \le e^{-t}$: no transient growth), whatever the batch size.
+    """
+    rng = np.random.default_rng(seed)
+    n_alg = max(1, n // 4) if n_alg is None else int(n_alg)
+    r = n - n_alg
+    if not 1 <= r < n:
+        raise ValueError(f"need 1 <= n - n_alg < n, got n = {n}, n_alg = {n_alg}")
+    A0 = rng.standard_normal((n, n)) / np.sqrt(n)
+    A0[r:, r:] -= np.eye(n_alg)
+    while np.linalg.cond(A0[r:, r:]) > 50.0:
+        A0[r:, r:] = rng.standard_normal((n_alg, n_alg)) / np.sqrt(n) - np.eye(n_alg)
+    K = np.linalg.solve(A0[r:, r:], A0[r:, :r])  # x2 = -K x1
+    As = A0[:r, :r] - A0[:r, r:] @ K
+    shift = log_norm(As) + DELTA - ABSCISSA_BOUND
+    A0[:r, :r] -= shift * np.eye(r)
+    As = As - shift * np.eye(r)
+    D = rng.standard_normal((r, r))
+    D /= np.linalg.norm(D, 2)
+    U = ortho_group.rvs(n, random_state=rng)
+    V = ortho_group.rvs(n, random_state=rng)
+    S = np.diag([1.0] * r + [0.0] * n_alg)
+    Dfull = np.zeros((n, n))
+    Dfull[:r, :r] = D
+    T = V.T @ np.vstack([np.eye(r), -K])
+    return RandomLoop(n=n, r=r, E=U @ S @ V, A=U @ A0 @ V, dA=U @ Dfull @ V, As=As, D=D, T=T, shift=shift)
+
+
+@dataclasses.dataclass(frozen=True)
+class Samples:
+    delta: np.ndarray  # (B,)
+    A: np.ndarray  # (B, n, n) descriptor matrices (fojax's input)
+    x0: np.ndarray  # (B, n) consistent initial states
+    As: np.ndarray  # (B, r, r) slow matrices (the peer's input)
+    z0: np.ndarray  # (B, r) slow initial states
+
+
+def make_samples(loop: RandomLoop, B: int, seed: int) -> Samples:
+    """Sample k: ``delta_k ~ U[-DELTA, DELTA]``, slow initial state ``z0_k ~ N(0, I)``,
+    ``x0_k = T z0_k`` (consistent). Two independent streams of one SeedSequence, so sample k
+    is the same for every B > k."""
+    s_delta, s_x0 = np.random.SeedSequence([seed, loop.n]).spawn(2)
+    delta = np.random.default_rng(s_delta).uniform(-DELTA, DELTA, B)
+    z0 = np.random.default_rng(s_x0).standard_normal((B, loop.r))
+    A = loop.A[None] + delta[:, None, None] * loop.dA[None]
+    As = loop.As[None] + delta[:, None, None] * loop.D[None]
+    return Samples(delta=delta, A=A, x0=z0 @ loop.T.T, As=As, z0=z0)
+
+
+def check_loop(loop: RandomLoop, samples: Samples, pencil_samples: int = 10) -> dict:
+    """Independent checks: finite generalized eigenvalues of the pencils ``(A_k, E)``
+    (``scipy.linalg.eigvals``, QZ) for the nominal system, the extreme ``delta = ±DELTA``
+    and the first `pencil_samples` samples: exactly ``r`` finite ones (index 1 / impulse
+    free) equal to ``eig(As_k)``; every sample's slow matrix: max real eigenvalue < −0.5.
+    Raises ``AssertionError`` when a claim fails."""
+    B = samples.A.shape[0]
+    cases = [(loop.A, loop.As), (loop.A + DELTA * loop.dA, loop.As + DELTA * loop.D),
+             (loop.A - DELTA * loop.dA, loop.As - DELTA * loop.D)]
+    cases += [(samples.A[k], samples.As[k]) for k in range(min(B, pencil_samples))]
+    worst_pencil = -np.inf
+    for Ak, Ask in cases:
+        lam = scipy.linalg.eigvals(Ak, loop.E)
+        fin = lam[np.isfinite(lam) & (np.abs(lam) < 1e8)]
+        assert fin.size == loop.r, f"{fin.size} finite poles, expected r = {loop.r} (index 1)"
+        ref = np.linalg.eigvals(Ask)
+        i, j = linear_sum_assignment(np.abs(fin[:, None] - ref[None, :]))
+        err = np.abs(fin[i] - ref[j]).max() / max(1.0, np.abs(ref).max())
+        assert err <= 1e-8, f"pencil poles differ from eig(As) by {err:.1e}"
+        worst_pencil = max(worst_pencil, float(fin.real.max()))
+    worst = float(np.linalg.eigvals(samples.As).real.max())
+    assert worst < -0.5 and worst_pencil < -0.5, (worst, worst_pencil)
+    return {
+        "n": loop.n,
+        "r": loop.r,
+        "n_alg": loop.n - loop.r,
+        "max_real_finite_pole_pencil": worst_pencil,
+        "max_real_slow_eig_all_samples": worst,
+        "nominal_fastest_pole": float(np.abs(np.linalg.eigvals(loop.As)).max()),
+        "shift": loop.shift,
+    }
+
+
+# ============================================================================ the methods
+def grid() -> np.ndarray:
+    return np.linspace(0.0, T_END, int(round(T_END / DT)) + 1)
+
+
+def expm_batch_first(As, T, z0, dt=DT, n_points=None):
+    """Peer (d), ``(B, r)`` layout: ``Z <- einsum('bij,bj->bi', Phi, Z)``; IAE of |T z|_1."""
+    n_points = grid().size if n_points is None else n_points
+    Phi = scipy.linalg.expm(As * dt)  # SciPy maps over the leading axis
+    Z = z0.copy()
+    f0 = np.abs(Z @ T.T).sum(1)
+    acc = 0.5 * f0
+    f = f0
+    for _ in range(n_points - 1):
+        Z = np.einsum("bij,bj->bi", Phi, Z)
+        f = np.abs(Z @ T.T).sum(1)
+        acc += f
+    return dt * (acc - 0.5 * f)
+
+
+def expm_batch_last(As, T, z0, dt=DT, n_points=None):
+    """Peer (d), ``(r, B)`` layout: ``Z <- einsum('ijb,jb->ib', Phi, Z)``; IAE of |T z|_1."""
+    n_points = grid().size if n_points is None else n_points
+    Phi = np.ascontiguousarray(np.moveaxis(scipy.linalg.expm(As * dt), 0, -1))
+    Z = np.ascontiguousarray(z0.T)
+    f = np.abs(T @ Z).sum(0)
+    acc = 0.5 * f
+    for _ in range(n_points - 1):
+        Z = np.einsum("ijb,jb->ib", Phi, Z)
+        f = np.abs(T @ Z).sum(0)
+        acc += f
+    return dt * (acc - 0.5 * f)
+
+
+PEER_VARIANTS = {"batch-first": expm_batch_first, "batch-last": expm_batch_last}
+
+
+def fojax_call(loop: RandomLoop, samples: Samples, chunk_size: int | None = None):
+    """``() -> (B,)`` metrics with `fojax.simulation.simulate_lti_batch` (needs x64 on)."""
+    import jax
+    import jax.numpy as jnp
+
+    import fojax
+    from fojax.simulation import simulate_lti_batch
+
+    E = jnp.asarray(loop.E)
+
+    def model(A):  # one function object per process: the compiled kernel is reused
+        return fojax.DescriptorSystem(E, A)
+
+    A, x0, ts = jnp.asarray(samples.A), jnp.asarray(samples.x0), jnp.asarray(grid())
+    metrics = {"x": ("iae_l1", jnp.eye(loop.n))}
+    kw = {} if chunk_size is None else {"chunk_size": int(chunk_size)}
+
+    def call():
+        return jax.block_until_ready(simulate_lti_batch(model, A, x0, ts, metrics=metrics, **kw)["x"])
+
+    return call
+
+
+# ============================================================================ worker
+def worker(spec: dict) -> dict:
+    """One entry in this (fresh) process: ``spec["task"]`` is "check", "fojax" or "peer".
+
+    Memory: ``rss_before_first_call_mib`` (current RSS with the inputs built),
+    ``peak_rss_first_call_mib`` (``getrusage`` high-water mark after the first call; for
+    fojax it includes compilation), then the mark is reset and ``peak_rss_repeats_mib`` is
+    the high-water mark over the repetitions (the steady-state working memory);
+    ``rss_increase_mib`` = repeats peak − before.
+    """
+    n, B, seed = spec["n"], spec["B"], spec["seed"]
+    if spec["task"] != "peer":  # the peer never imports JAX (its RSS is NumPy/SciPy only)
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    loop = random_stable_index1(n, seed + n)
+    samples = make_samples(loop, B, seed)
+    res: dict = {"task": spec["task"], "n": n, "B": B, "status": "ok"}
+    if spec["task"] == "check":
+        res["system"] = check_loop(loop, samples)
+        out_f = np.asarray(fojax_call(loop, samples, spec.get("chunk"))())
+        res["rel_diff"] = {
+            v: _common.rel_diff(out_f, fn(samples.As, loop.T, samples.z0)) for v, fn in PEER_VARIANTS.items()
+        }
+        res["metric_range"] = [float(out_f.min()), float(out_f.max())]
+        return res
+    mem: dict = {}
+
+    def after_first():
+        mem["peak_rss_first_call_mib"] = _common.peak_rss_mib()
+        mem["peak_reset"] = _common.reset_peak_rss()
+
+    def timed(call):
+        mem.clear()
+        out, first, times = _common.time_repeated(call, spec["repeats"], spec["budget"], after_first)
+        return out, first, times, dict(mem, peak_rss_repeats_mib=_common.peak_rss_mib())
+
+    rss_before = _common.current_rss_mib()
+    if spec["task"] == "fojax":
+        import jax
+
+        call = fojax_call(loop, samples, spec.get("chunk"))
+        jax.clear_caches()
+        out, first, times, m = timed(call)
+        med = statistics.median(times)
+        res.update(first_s=first, median_s=med, all_s=times, reps=len(times),
+                   compile_s=max(first - med, 0.0), compile_note="first call - median (caches cleared)")
+    else:
+        cands = []
+        for v in spec["variants"]:
+            fn = PEER_VARIANTS[v]
+            o, first, times, m = timed(lambda fn=fn: fn(samples.As, loop.T, samples.z0))
+            cands.append((statistics.median(times), v, first, times, o, m))
+        med, v, first, times, out, m = min(cands, key=lambda c: c[0])
+        res.update(first_s=first, median_s=med, all_s=times, reps=len(times), variant=v,
+                   all_variants={c[1]: c[0] for c in cands})
+    res.update(m, rss_before_first_call_mib=rss_before, peak_rss_mib=max(m["peak_rss_first_call_mib"],
+                                                                         m["peak_rss_repeats_mib"]))
+    if rss_before is not None and m["peak_reset"]:
+        res["rss_increase_mib"] = m["peak_rss_repeats_mib"] - rss_before
+    np.save(spec["save"], np.asarray(out))
+    return res
+
+
+# ============================================================================ driver
+def batch_scaling_from_reference(path: Path) -> dict | None:
+    """fojax and peer (d) vs B from reference_workload's JSON (not re-measured)."""
+    if not path.exists():
+        return None
+    d = json.loads(path.read_text())
+    rows = []
+    for r in d.get("rows", []):
+        if r.get("method") in ("fojax", "expm") and not r.get("extrapolated"):
+            rows.append({k: r.get(k) for k in ("method", "label", "variant", "B", "compile_s", "first_s",
+                                               "median_s", "samples_per_s", "fojax_speedup")})
+    return {"file": path.name, "date": d.get("machine", {}).get("date"), "status": d.get("status"), "rows": rows}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--dims", type=int, nargs="+", default=list(DIMS), help="state dimensions n (default 4 … 64)")
+    ap.add_argument("--batch", type=int, default=1000, help="samples B of the n study (default 1000)")
+    ap.add_argument("--check-b", type=int, default=100, help="samples of the agreement check before timing")
+    ap.add_argument("--memory-n", type=int, default=8, help="state dimension of the memory-vs-B sweep")
+    ap.add_argument("--memory-sizes", type=int, nargs="*", default=list(MEMORY_SIZES),
+                    help="batch sizes of the memory-vs-B sweep (none: skip it)")
+    ap.add_argument("--no-peer", action="store_true", help="time fojax only (agreement is still checked)")
+    ap.add_argument("--peer-variants", nargs="+", default=list(PEER_VARIANTS), choices=list(PEER_VARIANTS),
+                    help="axis orders of peer (d) to time (the faster is kept)")
+    ap.add_argument("--repeats", type=int, default=5, help="timed repetitions after the first call")
+    ap.add_argument("--budget", type=float, default=60.0, help="seconds of repetitions per entry")
+    ap.add_argument("--chunk", type=int, default=None, help="fojax chunk_size (default: fojax's default)")
+    ap.add_argument("--hard-timeout", type=float, default=1800.0, help="kill an entry after this many seconds")
+    ap.add_argument("--seed", type=int, default=DEFAULT_SEED)
+    ap.add_argument("--reference-json", type=Path, default=_common.RESULTS / "reference_workload_latest.json",
+                    help="where the time-vs-B table of the reference workload is read from")
+    ap.add_argument("--out", type=Path, default=_common.RESULTS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        _common.emit_worker_result(worker(json.loads(args.worker)))
+        return 0
+    if args.repeats < 1:
+        ap.error("--repeats must be at least 1")
+
+    info = _common.machine_info()
+    print(f"# scaling ({info['date']}, {info['cpu']}, {info['cores_available']} cores)")
+    state = {"info": info, "args": args, "dims": [], "memory": [], "failed": []}
+    tmp = Path(tempfile.mkdtemp(prefix="fojax-scaling-"))
+    base = dict(seed=args.seed, chunk=args.chunk, repeats=args.repeats, budget=args.budget,
+                variants=args.peer_variants)
+
+    def entry(task, n, B, tag):
+        spec = dict(base, task=task, n=n, B=B, save=str(tmp / f"{tag}-{task}-{n}-{B}.npy"))
+        res = _common.run_worker(Path(__file__), spec, args.hard_timeout)
+        if res.get("status") == "ok" and task != "check":
+            res["_out"] = np.load(spec["save"])
+        return res
+
+    def measure(n, B, tag, check_first: bool) -> dict:
+        row: dict = {"n": n, "B": B}
+        if check_first:
+            chk = entry("check", n, min(args.check_b, B), tag)
+            if chk.get("status") != "ok":
+                row.update(status=f"check {chk.get('status')}", error=chk.get("error"), stderr=chk.get("stderr"))
+                return row
+            row["system"] = chk["system"]
+            row["check_B"] = chk["B"]
+            row["check_rel_diff"] = max(chk["rel_diff"].values())
+            if not row["check_rel_diff"] <= TOL:
+                row["status"] = f"disagree ({row['check_rel_diff']:.1e} > {TOL:.0e}): not timed"
+                return row
+        f = entry("fojax", n, B, tag)
+        row["fojax"] = {k: v for k, v in f.items() if not k.startswith("_")}
+        p = entry("peer", n, B, tag) if not args.no_peer else None
+        if p is not None:
+            row["peer"] = {k: v for k, v in p.items() if not k.startswith("_")}
+        if f.get("status") != "ok":
+            row["status"] = f"fojax {f.get('status')}"
+            return row
+        row["status"] = "ok"
+        if p is not None and p.get("status") == "ok":
+            row["rel_diff"] = _common.rel_diff(f["_out"], p["_out"])
+            row["peer_over_fojax"] = p["median_s"] / f["median_s"]
+            if not row["rel_diff"] <= TOL:
+                row["status"] = f"disagree at B ({row['rel_diff']:.1e})"
+        return row
+
+    for n in args.dims:
+        print(f"\n## n = {n}, B = {args.batch}", flush=True)
+        row = measure(n, args.batch, "dims", check_first=True)
+        state["dims"].append(row)
+        _print_row(row)
+        if not row["status"].startswith("ok"):
+            state["failed"].append(f"n={n}: {row['status']}")
+        write(state, "partial")
+    if args.memory_sizes:
+        print(f"\n## memory vs B (n = {args.memory_n})", flush=True)
+        chk_done = False
+        for B in sorted(set(args.memory_sizes)):
+            row = measure(args.memory_n, B, "mem", check_first=not chk_done)
+            chk_done = chk_done or "check_rel_diff" in row
+            state["memory"].append(row)
+            _print_row(row)
+            write(state, "partial")
+    state["reference"] = batch_scaling_from_reference(args.reference_json)
+    write(state, "complete", echo=True)
+    return 1 if state["failed"] else 0
+
+
+def _print_row(row):
+    f, p = row.get("fojax", {}), row.get("peer", {})
+    print(
+        f"  status {row['status']}; check rel diff {_common.fmt(row.get('check_rel_diff'), '.1e')}; "
+        f"fojax compile {_common.fmt(f.get('compile_s'), '.2f')} s first {_common.fmt(f.get('first_s'), '.3g')} s "
+        f"median {_common.fmt(f.get('median_s'), '.3g')} s peak RSS {_common.fmt(f.get('peak_rss_mib'), '.0f')} MiB; "
+        f"peer (d) median {_common.fmt(p.get('median_s'), '.3g')} s peak RSS {_common.fmt(p.get('peak_rss_mib'), '.0f')} MiB; "
+        f"t_peer/t_fojax {_common.fmt(row.get('peer_over_fojax'), '.3g')}",
+        flush=True,
+    )
+
+
+def write(state: dict, status: str, echo: bool = False) -> None:
+    args = state["args"]
+    info = dict(state["info"], load_average_at_end=_common.load_average())
+    for rows in (state["dims"], state["memory"]):
+        for r in rows:
+            for m in ("fojax", "peer"):
+                if r.get(m, {}).get("median_s"):
+                    r[m]["samples_per_s"] = r["B"] / r[m]["median_s"]
+    payload = dict(
+        study="scaling",
+        status=status,
+        machine=info,
+        settings=dict({k: v for k, v in vars(args).items() if k != "worker"}, out=str(args.out),
+                      reference_json=str(args.reference_json)),
+        workload=dict(horizon_s=T_END, dt=DT, points=grid().size, delta=DELTA, abscissa_bound=ABSCISSA_BOUND,
+                      metric="IAE of |x|_1 (trapezoid on the grid)", tolerance=TOL),
+        dims=state["dims"],
+        memory=state["memory"],
+        batch_scaling_reference=state.get("reference"),
+        failures=state["failed"],
+    )
+    _common.write_results(args.out, "scaling", payload, render_markdown(payload), echo=echo)
+
+
+def render_markdown(d: dict) -> str:
+    s, fmt = d["settings"], _common.fmt
+    lines = [
+        "# Scaling of fojax's batched LTI simulation (issue 7)",
+        "",
+        f"- status: {d['status']}",
+        *_common.machine_lines(d["machine"]),
+        f"- float64; horizon [0, {T_END:g}] s, {DT} s grid ({grid().size} points); random stable index-1 "
+        f"descriptor systems (n_alg = max(1, n // 4), every finite pole Re ≤ {ABSCISSA_BOUND}); metric: IAE of "
+        f"‖x‖₁; median of up to {s['repeats']} repetitions after a separately timed first call; every entry in "
+        "a fresh process",
+        "",
+        f"## Time vs state dimension n (B = {s['batch']})",
+        "",
+        "fojax = `simulate_lti_batch` (compile ≈ first call − median, caches cleared); (d) = "
+        "`scipy.linalg.expm` per sample + vectorised recurrence (faster axis order). "
+        "`t_(d)/t_fojax` > 1: fojax faster. Peak RSS = process high-water mark.",
+        "",
+        "| n | r | agreement | compile (s) | fojax first (s) | fojax median (s) | fojax samples/s | "
+        "(d) median (s) | (d) samples/s | t_(d)/t_fojax | peak RSS fojax (MiB) | peak RSS (d) (MiB) | status |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for r in d["dims"]:
+        f, p = r.get("fojax", {}), r.get("peer", {})
+        lines.append(
+            f"| {r['n']} | {r.get('system', {}).get('r', '—')} | {fmt(r.get('rel_diff', r.get('check_rel_diff')), '.1e')} | "
+            f"{fmt(f.get('compile_s'), '.2f')} | {fmt(f.get('first_s'), '.3g')} | {fmt(f.get('median_s'), '.3g')} | "
+            f"{fmt(f.get('samples_per_s'), '.3g')} | {fmt(p.get('median_s'), '.3g')} | {fmt(p.get('samples_per_s'), '.3g')} | "
+            f"{fmt(r.get('peer_over_fojax'), '.3g')} | {fmt(f.get('peak_rss_mib'), '.0f')} | "
+            f"{fmt(p.get('peak_rss_mib'), '.0f')} | {r['status']} |"
+        )
+    if d["memory"]:
+        lines += [
+            "",
+            f"## Memory (and time) vs B (n = {s['memory_n']})",
+            "",
+            "RSS (MiB) of the entry's process: *before* = current RSS after imports and building the inputs; "
+            "*first* = high-water mark after the first call (fojax: includes compilation); *reps* = high-water "
+            "mark over the repetitions (reset after the first call: the working memory of a compiled run); "
+            "*increase* = reps − before. The peer (d) process does not import JAX.",
+            "",
+            "| B | fojax median (s) | fojax samples/s | fojax RSS before | first | reps | increase | "
+            "(d) median (s) | (d) RSS before | reps | increase | t_(d)/t_fojax | status |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        ]
+        for r in d["memory"]:
+            f, p = r.get("fojax", {}), r.get("peer", {})
+            lines.append(
+                f"| {r['B']} | {fmt(f.get('median_s'), '.3g')} | {fmt(f.get('samples_per_s'), '.3g')} | "
+                f"{fmt(f.get('rss_before_first_call_mib'), '.0f')} | {fmt(f.get('peak_rss_first_call_mib'), '.0f')} | "
+                f"{fmt(f.get('peak_rss_repeats_mib'), '.0f')} | {fmt(f.get('rss_increase_mib'), '.1f')} | "
+                f"{fmt(p.get('median_s'), '.3g')} | {fmt(p.get('rss_before_first_call_mib'), '.0f')} | "
+                f"{fmt(p.get('peak_rss_repeats_mib'), '.0f')} | {fmt(p.get('rss_increase_mib'), '.1f')} | "
+                f"{fmt(r.get('peer_over_fojax'), '.3g')} | {r['status']} |"
+            )
+    ref = d.get("batch_scaling_reference")
+    lines += ["", "## Time vs B on the reference workload (copied from reference_workload's JSON)", ""]
+    if not ref:
+        lines.append("*not available* (run `python benchmarks/reference_workload.py` first)")
+    else:
+        lines += [
+            f"From `{ref['file']}` dated {ref['date']} (status: {str(ref['status'])[:80]}).",
+            "",
+            "| B | method | compile (s) | median (s) | samples/s |",
+            "|---:|---|---:|---:|---:|",
+        ]
+        for r in sorted(ref["rows"], key=lambda r: (r["B"], r["method"])):
+            lines.append(
+                f"| {r['B']} | {r['label']} | {fmt(r.get('compile_s'), '.2f')} | {fmt(r.get('median_s'), '.4g')} | "
+                f"{fmt(r.get('samples_per_s'), '.4g')} |"
+            )
+    if d["failures"]:
+        lines += ["", "**Failures:** " + "; ".join(d["failures"])]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
