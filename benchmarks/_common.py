@@ -4,7 +4,12 @@
 Scripts call `limit_blas_threads` **before importing NumPy**: like `reference_workload.py`
 it sets ``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS`` to 1 unless the caller set them (the
 NumPy/SciPy peers' small BLAS calls are faster single-threaded on the 2-core reference
-machine; XLA uses its own thread pool). Importing this module changes nothing.
+machine; XLA uses its own thread pool).
+
+Importing this module puts the repository root on ``sys.path`` (right after
+``benchmarks/``), so the scripts measure the fojax of this checkout even when a
+non-editable copy is installed in site-packages (``machine_info`` records which
+``fojax`` was imported).
 
 Contents: the machine/versions/date record (`machine_info`, same fields as
 `reference_workload.machine_info` plus the cvxpy/solver/optax versions), the peak resident
@@ -29,7 +34,10 @@ from pathlib import Path
 
 
 HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
 RESULTS = HERE / "results"
+if str(REPO) not in sys.path:
+    sys.path.insert(1 if sys.path and Path(sys.path[0]).resolve() == HERE else 0, str(REPO))
 BLAS_VARS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
@@ -105,6 +113,12 @@ def machine_info() -> dict:
         backend = jax.default_backend()
     except Exception:  # noqa: BLE001
         backend = None
+    try:
+        import fojax
+
+        fojax_path = str(Path(fojax.__file__).resolve().parent)
+    except Exception:  # noqa: BLE001
+        fojax_path = None
     return {
         "date": utc_now(),
         "cpu": cpu,
@@ -118,6 +132,7 @@ def machine_info() -> dict:
         "blas_threads": {v: os.environ.get(v) for v in BLAS_VARS},
         "versions": {m: _version(m) for m in VERSION_MODULES},
         "git_commit": commit,
+        "fojax_imported_from": fojax_path,
         "load_average_at_start": load_average(),
     }
 
