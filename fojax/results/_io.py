@@ -1,23 +1,40 @@
 r"""Saved designs and results folders that last.
 
 **Design files.** `save_design` writes one ``.npz`` file (NumPy's zip of ``.npy``
-arrays, no pickles) holding every matrix of a `fojax.design.FunctionalObserverDesign`
-in float64 exactly as computed, plus one entry ``__metadata__`` with a JSON document:
+arrays, no pickles) holding every matrix of a design object of `fojax.design` in
+float64 exactly as computed, plus one entry ``__metadata__`` with a JSON document:
 
-- ``format`` = ``"fojax-design"``, ``format_version`` = 1, ``fojax_version``,
-  ``created`` (UTC timestamp, ISO 8601);
+- ``format`` = ``"fojax-design"``, ``format_version`` = 2, ``fojax_version``,
+  ``created`` (UTC timestamp, ISO 8601), ``design_class`` (one of `DESIGN_CLASSES`);
 - ``kind``, ``region`` (`AbstractRegion.to_dict`), the static fields of the
   structure (``q1``, ``psi``, ``solvability_residual``), the sizes ``n, m, p, q, q0``;
 - ``report``: the `VerificationReport` (`to_dict`, eigenvalues kept in the arrays);
 - ``solver``: the solver information (JSON-safe copy; non-JSON values as strings);
 - ``user``: optional user metadata passed to `save_design`.
 
-Array entries are named ``observer/N`` … ``observer/Wy``, ``structure/E``, ``A``,
-``B``, ``C``, ``L``, ``R``, ``Eperp``, ``Z0``, ``PiZ`` (plant matrices, functional
-and the parameterization), ``params/Z`` … ``params/G``, ``T``, ``K``, ``Z_eff``,
-``X`` (LMI certificate) and ``report/eigenvalues``. `load_design` rebuilds the
-design with bit-identical arrays (``np.array_equal`` on every entry), so the loaded
-observer produces identical outputs.
+Array entries of a `FunctionalObserverDesign` are named ``observer/N`` …
+``observer/Wy``, ``structure/E``, ``A``, ``B``, ``C``, ``L``, ``R``, ``Eperp``, ``Z0``,
+``PiZ`` (plant matrices, functional and the parameterization), ``params/Z`` …
+``params/G``, ``T``, ``K``, ``Z_eff``, ``X`` (LMI certificate) and
+``report/eigenvalues``. The other classes add to or nest this layout:
+
+- `TakagiSugenoObserverDesign`: rule-stacked observer matrices, ``observer/T``, and the
+  membership functions (``membership`` in the metadata: class and fields; arrays under
+  ``observer/membership/…``). `load_design` rebuilds fojax's own membership classes;
+  for other classes pass ``membership=``.
+- `UnknownInputObserverDesign`: the observer matrices of eq. 3.110 (``observer/Delta``,
+  ``observer/Phi``, ``observer/Lambda``, ``observer/W`` …) and ``D``.
+- `FiniteTimeObserverDesign`: the two designs under ``designs/0/`` and ``designs/1/``
+  (metadata ``designs``), ``observer/h``, ``observer/Gamma_now``,
+  ``observer/Gamma_delay``, and ``h``, ``reconstruction_rcond``,
+  ``reconstruction_residual`` as 0-d arrays.
+- `FaultEstimatorDesign`: the design of the augmented system under ``design/``
+  (metadata ``design``), ``augmented/E`` … ``augmented/C``, and ``q``, ``n_faults``,
+  ``ramp`` in the metadata.
+
+`load_design` rebuilds an object of the saved class with bit-identical arrays
+(``np.array_equal`` on every entry), so the loaded observer produces identical
+outputs. Files of format 1 (functional designs only, no ``design_class``) still load.
 
 **Atomic, never clobbering.** Every file is written to a temporary file in the
 target directory and then moved into place (`os.replace`, or a hard link when
@@ -33,6 +50,7 @@ with an explicit `name`, an existing folder is refused unless ``overwrite=True``
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime as _dt
 import io
 import json
@@ -45,7 +63,8 @@ import numpy as np
 
 
 FORMAT = "fojax-design"
-FORMAT_VERSION = 1
+#: 2: every design class (``design_class`` entry); 1: `FunctionalObserverDesign` only.
+FORMAT_VERSION = 2
 
 _OBSERVER_FIELDS = ("N", "J", "F", "H", "S", "G", "M", "P", "Q", "Wu", "Wy")
 _STRUCTURE_FIELDS = ("E", "A", "B", "C", "L", "R", "Eperp", "Z0", "PiZ")
@@ -157,59 +176,209 @@ def atomic_write_npz(path, arrays: dict, *, overwrite: bool = False) -> pathlib.
 
 # --------------------------------------------------------------------------- designs
 
+#: The design classes `save_design` writes (``design_class`` in the metadata).
+DESIGN_CLASSES = (
+    "FunctionalObserverDesign",
+    "TakagiSugenoObserverDesign",
+    "UnknownInputObserverDesign",
+    "FiniteTimeObserverDesign",
+    "FaultEstimatorDesign",
+)
+_TS_OBSERVER_FIELDS = _OBSERVER_FIELDS + ("T",)
+_UIO_OBSERVER_FIELDS = (
+    "N", "J", "F", "H", "Delta", "S", "G", "M", "Phi", "Lambda", "W", "P", "Q", "Wu", "Wy",
+)  # fmt: skip
+_SYSTEM_FIELDS = ("E", "A", "B", "C")
 
-def save_design(design, path, *, overwrite: bool = False, metadata: dict | None = None) -> pathlib.Path:
-    """Save a functional-observer design to one ``.npz`` file (format in the module docstring).
 
-    **Arguments:**
+def _design_class_map() -> dict:
+    from ..design import (
+        FaultEstimatorDesign,
+        FiniteTimeObserverDesign,
+        FunctionalObserverDesign,
+        TakagiSugenoObserverDesign,
+        UnknownInputObserverDesign,
+    )
 
-    - `design`: a `fojax.design.FunctionalObserverDesign`.
-    - `path`: destination file (conventionally ``*.npz``); its directory must exist.
-    - `overwrite`: replace an existing file (default: raise `FileExistsError`).
-    - `metadata`: optional JSON-serialisable user metadata (e.g. the config file).
+    classes = (
+        FunctionalObserverDesign,
+        TakagiSugenoObserverDesign,
+        UnknownInputObserverDesign,
+        FiniteTimeObserverDesign,
+        FaultEstimatorDesign,
+    )
+    return {c.__name__: c for c in classes}
 
-    **Returns:** the path written.
-    """
-    from ..design import FunctionalObserverDesign
 
-    if not isinstance(design, FunctionalObserverDesign):
-        raise TypeError(
-            f"save_design expects a fojax.design.FunctionalObserverDesign, got "
-            f"{type(design).__name__}."
-        )
-    obs, s = design.observer, design.structure
-    arrays: dict[str, np.ndarray] = {}
-    for k in _OBSERVER_FIELDS:
-        arrays[f"observer/{k}"] = np.asarray(getattr(obs, k))
+def _report_meta(report, p: str, arrays: dict) -> dict:
+    arrays[f"{p}report/eigenvalues"] = np.asarray(report.eigenvalues)
+    rep = report.to_dict()
+    rep.pop("eigenvalues_real", None)
+    rep.pop("eigenvalues_imag", None)
+    rep["extra"] = _json_safe(dict(report.extra))
+    return rep
+
+
+def _structure_design_meta(d, p: str, arrays: dict, observer_fields: tuple) -> dict:
+    """Arrays and metadata of a design object holding a `FunctionalObserverStructure`
+    (functional, Takagi–Sugeno and unknown-input designs), under the key prefix `p`."""
+    obs, s = d.observer, d.structure
+    for k in observer_fields:
+        arrays[f"{p}observer/{k}"] = np.asarray(getattr(obs, k))
     for k in _STRUCTURE_FIELDS:
-        arrays[f"structure/{k}"] = np.asarray(getattr(s, k))
-    for k, v in design.params.items():
-        arrays[f"params/{k}"] = np.asarray(v)
+        arrays[f"{p}structure/{k}"] = np.asarray(getattr(s, k))
+    for k, v in d.params.items():
+        arrays[f"{p}params/{k}"] = np.asarray(v)
     for k in _TOP_FIELDS:
-        arrays[k] = np.asarray(getattr(design, k))
-    arrays["report/eigenvalues"] = np.asarray(design.report.eigenvalues)
-    report = design.report.to_dict()
-    report.pop("eigenvalues_real", None)
-    report.pop("eigenvalues_imag", None)
-    report["extra"] = _json_safe(dict(design.report.extra))
-    meta = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "fojax_version": fojax_version(),
-        "created": _timestamp(),
-        "kind": design.kind,
-        "observer_kind": obs.kind,
-        "region": design.region.to_dict(),
-        "region_description": design.region.describe(),
+        arrays[p + k] = np.asarray(getattr(d, k))
+    return {
+        "region": d.region.to_dict(),
+        "region_description": d.region.describe(),
         "structure": {
             "q1": int(s.q1),
             "psi": s.psi,
             "solvability_residual": float(s.solvability_residual),
         },
         "sizes": {"n": int(s.n), "m": int(s.m), "p": int(s.p), "q": int(s.q), "q0": int(s.q0)},
-        "params": sorted(design.params),
-        "report": report,
-        "solver": _json_safe(design.solver),
+        "params": sorted(d.params),
+        "report": _report_meta(d.report, p, arrays),
+        "solver": _json_safe(d.solver),
+    }
+
+
+def _functional_meta(d, p: str, arrays: dict) -> dict:
+    return {
+        "kind": d.kind,
+        "observer_kind": d.observer.kind,
+        **_structure_design_meta(d, p, arrays, _OBSERVER_FIELDS),
+    }
+
+
+class _NotStorable(Exception):
+    pass
+
+
+def _module_meta(obj, p: str, arrays: dict) -> dict:
+    """A membership (any `equinox.Module` tree of arrays, numbers and strings): class
+    name + fields in the metadata, arrays under ``p/<field>``. Raises `_NotStorable`."""
+    import equinox as eqx
+    import jax
+
+    cls = type(obj)
+    fields = {}
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        key = f"{p}/{f.name}"
+        if isinstance(v, eqx.Module):
+            fields[f.name] = {"module": _module_meta(v, key, arrays)}
+        elif v is None or isinstance(v, bool | int | str):
+            fields[f.name] = {"value": v}
+        elif isinstance(v, float):
+            fields[f.name] = {"float": repr(v)}  # repr round-trips exactly (inf, nan too)
+        elif isinstance(v, np.ndarray | np.generic | jax.Array):
+            arr = np.asarray(v)
+            if arr.dtype == object:
+                raise _NotStorable(f"{cls.__qualname__}.{f.name} has dtype object")
+            arrays[key] = arr
+            fields[f.name] = {"array": key}
+        else:
+            raise _NotStorable(f"{cls.__qualname__}.{f.name} is a {type(v).__name__}")
+    return {"class": f"{cls.__module__}:{cls.__qualname__}", "fields": fields}
+
+
+def _membership_meta(membership, arrays: dict) -> dict:
+    staged: dict = {}
+    try:
+        meta = _module_meta(membership, "observer/membership", staged)
+    except _NotStorable as err:
+        cls = type(membership)
+        return {"class": f"{cls.__module__}:{cls.__qualname__}", "stored": False, "reason": str(err)}
+    arrays.update(staged)
+    return {**meta, "stored": True}
+
+
+def _ts_meta(d, arrays: dict) -> dict:
+    return {
+        "kind": d.kind,
+        "observer_kind": d.observer.kind,
+        "num_rules": int(d.observer.num_rules),
+        "membership": _membership_meta(d.observer.membership, arrays),
+        **_structure_design_meta(d, "", arrays, _TS_OBSERVER_FIELDS),
+    }
+
+
+def _uio_meta(d, arrays: dict) -> dict:
+    arrays["D"] = np.asarray(d.D)
+    meta = _structure_design_meta(d, "", arrays, _UIO_OBSERVER_FIELDS)
+    meta["sizes"]["l"] = int(np.shape(d.D)[1])
+    return meta
+
+
+def _finite_time_meta(d, arrays: dict) -> dict:
+    o = d.observer
+    arrays["observer/h"] = np.asarray(o.h)
+    arrays["observer/Gamma_now"] = np.asarray(o.Gamma_now)
+    arrays["observer/Gamma_delay"] = np.asarray(o.Gamma_delay)
+    scalars = ("h", "reconstruction_rcond", "reconstruction_residual")
+    for k in scalars:
+        arrays[k] = np.asarray(getattr(d, k), dtype=np.float64)
+    return {
+        "kind": d.designs[0].kind,
+        "designs": [_functional_meta(di, f"designs/{i}/", arrays) for i, di in enumerate(d.designs)],
+        **{k: float(getattr(d, k)) for k in scalars},
+    }
+
+
+def _fault_meta(d, arrays: dict) -> dict:
+    for k in _SYSTEM_FIELDS:
+        arrays[f"augmented/{k}"] = np.asarray(getattr(d.augmented, k))
+    return {
+        "kind": d.design.kind,
+        "design": _functional_meta(d.design, "design/", arrays),
+        "q": int(d.q),
+        "n_faults": int(d.n_faults),
+        "ramp": bool(d.ramp),
+    }
+
+
+_SAVERS = {
+    "FunctionalObserverDesign": lambda d, arrays: _functional_meta(d, "", arrays),
+    "TakagiSugenoObserverDesign": _ts_meta,
+    "UnknownInputObserverDesign": _uio_meta,
+    "FiniteTimeObserverDesign": _finite_time_meta,
+    "FaultEstimatorDesign": _fault_meta,
+}
+
+
+def save_design(design, path, *, overwrite: bool = False, metadata: dict | None = None) -> pathlib.Path:
+    """Save a verified design to one ``.npz`` file (format in the module docstring).
+
+    **Arguments:**
+
+    - `design`: a design object of `fojax.design`: `FunctionalObserverDesign`,
+      `TakagiSugenoObserverDesign`, `UnknownInputObserverDesign`,
+      `FiniteTimeObserverDesign` or `FaultEstimatorDesign`.
+    - `path`: destination file (conventionally ``*.npz``); its directory must exist.
+    - `overwrite`: replace an existing file (default: raise `FileExistsError`).
+    - `metadata`: optional JSON-serialisable user metadata (e.g. the config file).
+
+    **Returns:** the path written.
+    """
+    classes = _design_class_map()
+    name = next((n for n, c in classes.items() if type(design) is c), None)
+    if name is None:
+        raise TypeError(
+            f"save_design expects a design object of fojax.design ({', '.join(DESIGN_CLASSES)}), "
+            f"got {type(design).__name__}."
+        )
+    arrays: dict[str, np.ndarray] = {}
+    meta = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "fojax_version": fojax_version(),
+        "created": _timestamp(),
+        "design_class": name,
+        **_SAVERS[name](design, arrays),
         "user": _json_safe(metadata or {}),
     }
     for k, v in arrays.items():
@@ -241,45 +410,14 @@ def _metadata(data, path) -> dict:
     return meta
 
 
-def load_design(path):
-    """Load a design written by `save_design`; arrays are bit-identical to the saved ones.
-
-    **Arguments:**
-
-    - `path`: a file written by `save_design`.
-
-    **Returns:** a `fojax.design.FunctionalObserverDesign` (observer, structure, params,
-    `T`, `K`, `Z_eff`, `X`, `report`, `solver`); the metadata (fojax version, creation
-    time, user metadata) is in ``design.solver["saved"]``.
-    """
-    import jax.numpy as jnp
-
-    from .._dtype import require_x64
-    from ..design import FunctionalObserverDesign, FunctionalObserverStructure, region_from_dict
+def _report_from(rep: dict, arrays: dict, p: str):
     from ..design._verify import VerificationReport
-    from ..observer import GeneralizedFunctionalObserver
 
-    require_x64("load_design")
-    path = pathlib.Path(path)
-    with np.load(path, allow_pickle=False) as data:
-        meta = _metadata(data, path)
-        arrays = {k: np.array(data[k]) for k in data.files if k != "__metadata__"}
-    obs = GeneralizedFunctionalObserver(
-        *(jnp.asarray(arrays[f"observer/{k}"]) for k in _OBSERVER_FIELDS), kind=meta["observer_kind"]
-    )
-    st = meta["structure"]
-    structure = FunctionalObserverStructure(
-        **{k: jnp.asarray(arrays[f"structure/{k}"]) for k in _STRUCTURE_FIELDS},
-        solvability_residual=float(st["solvability_residual"]),
-        q1=int(st["q1"]),
-        psi=str(st["psi"]),
-    )
-    rep = meta["report"]
-    report = VerificationReport(
+    return VerificationReport(
         residuals=dict(rep["residuals"]),
         scale=rep["scale"],
         relative_residual=rep["relative_residual"],
-        eigenvalues=arrays["report/eigenvalues"],
+        eigenvalues=arrays[f"{p}report/eigenvalues"],
         region=rep["region"],
         region_margin=rep["region_margin"],
         lmi_max_eig=rep["lmi_max_eig"],
@@ -288,22 +426,186 @@ def load_design(path):
         failures=tuple(rep["failures"]),
         extra=dict(rep.get("extra", {})),
     )
-    solver = dict(meta.get("solver") or {})
-    solver["saved"] = {
-        k: meta[k] for k in ("fojax_version", "created", "format_version", "user") if k in meta
-    }
-    return FunctionalObserverDesign(
-        observer=obs,
-        kind=meta["kind"],
-        region=region_from_dict(meta["region"]),
+
+
+def _structure_design_kwargs(m: dict, arrays: dict, p: str, saved: dict) -> dict:
+    """Constructor arguments shared by the structure-based design classes."""
+    import jax.numpy as jnp
+
+    from ..design import FunctionalObserverStructure, region_from_dict
+
+    st = m["structure"]
+    structure = FunctionalObserverStructure(
+        **{k: jnp.asarray(arrays[f"{p}structure/{k}"]) for k in _STRUCTURE_FIELDS},
+        solvability_residual=float(st["solvability_residual"]),
+        q1=int(st["q1"]),
+        psi=str(st["psi"]),
+    )
+    solver = dict(m.get("solver") or {})
+    solver["saved"] = saved
+    prefix = f"{p}params/"
+    return dict(
+        region=region_from_dict(m["region"]),
         structure=structure,
-        params={k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("params/")},
-        T=arrays["T"],
-        K=arrays["K"],
-        Z_eff=arrays["Z_eff"],
-        X=arrays["X"],
-        report=report,
+        params={k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)},
+        T=arrays[p + "T"],
+        K=arrays[p + "K"],
+        Z_eff=arrays[p + "Z_eff"],
+        X=arrays[p + "X"],
+        report=_report_from(m["report"], arrays, p),
         solver=solver,
+    )
+
+
+def _observer_arrays(arrays: dict, p: str, fields: tuple) -> list:
+    import jax.numpy as jnp
+
+    return [jnp.asarray(arrays[f"{p}observer/{k}"]) for k in fields]
+
+
+def _load_functional(m: dict, arrays: dict, p: str, saved: dict):
+    from ..design import FunctionalObserverDesign
+    from ..observer import GeneralizedFunctionalObserver
+
+    obs = GeneralizedFunctionalObserver(*_observer_arrays(arrays, p, _OBSERVER_FIELDS), kind=m["observer_kind"])
+    return FunctionalObserverDesign(observer=obs, kind=m["kind"], **_structure_design_kwargs(m, arrays, p, saved))
+
+
+def _module_from(m: dict, arrays: dict):
+    import importlib
+
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    module, _, qualname = m["class"].partition(":")
+    if module != "fojax" and not module.startswith("fojax."):
+        raise _NotStorable(f"{m['class']} is not a fojax class (fojax never imports code named in a file)")
+    try:
+        cls = importlib.import_module(module)
+        for part in qualname.split("."):
+            cls = getattr(cls, part)
+    except (ImportError, AttributeError):
+        raise _NotStorable(f"{m['class']} does not exist in this fojax version") from None
+    if not (isinstance(cls, type) and issubclass(cls, eqx.Module)):
+        raise _NotStorable(f"{m['class']} is not an equinox.Module")
+    kwargs = {}
+    for name, f in m["fields"].items():
+        if "module" in f:
+            kwargs[name] = _module_from(f["module"], arrays)
+        elif "array" in f:
+            kwargs[name] = jnp.asarray(arrays[f["array"]])
+        elif "float" in f:
+            kwargs[name] = float(f["float"])
+        else:
+            kwargs[name] = f["value"]
+    return cls(**kwargs)
+
+
+def _load_ts(m: dict, arrays: dict, saved: dict, membership=None, path=None):
+    from .._errors import InputError
+    from ..design import TakagiSugenoObserverDesign
+    from ..observer import TakagiSugenoObserver
+
+    mm = m["membership"]
+    if membership is None:
+        try:
+            if not mm.get("stored", True):
+                raise _NotStorable(f"it was not stored ({mm.get('reason', 'not a tree of arrays')})")
+            membership = _module_from(mm, arrays)
+        except _NotStorable as err:
+            raise InputError(
+                f"{path}: the membership functions of this Takagi–Sugeno design ({mm['class']}) "
+                f"cannot be rebuilt: {err}. Pass the plant's membership: "
+                "load_design(path, membership=plant.membership)."
+            ) from None
+    *mats, T = _observer_arrays(arrays, "", _TS_OBSERVER_FIELDS)
+    obs = TakagiSugenoObserver(*mats, T, membership, kind=m["observer_kind"])
+    return TakagiSugenoObserverDesign(observer=obs, kind=m["kind"], **_structure_design_kwargs(m, arrays, "", saved))
+
+
+def _load_uio(m: dict, arrays: dict, saved: dict):
+    from ..design import UnknownInputObserverDesign
+    from ..observer import UnknownInputObserver
+
+    obs = UnknownInputObserver(*_observer_arrays(arrays, "", _UIO_OBSERVER_FIELDS))
+    return UnknownInputObserverDesign(observer=obs, D=arrays["D"], **_structure_design_kwargs(m, arrays, "", saved))
+
+
+def _load_finite_time(m: dict, arrays: dict, saved: dict):
+    import jax.numpy as jnp
+
+    from ..design import FiniteTimeObserverDesign
+    from ..observer import FiniteTimeObserver
+
+    designs = tuple(_load_functional(mi, arrays, f"designs/{i}/", saved) for i, mi in enumerate(m["designs"]))
+    obs = FiniteTimeObserver(
+        designs[0].observer,
+        designs[1].observer,
+        *(jnp.asarray(arrays[f"observer/{k}"]) for k in ("h", "Gamma_now", "Gamma_delay")),
+    )
+    return FiniteTimeObserverDesign(
+        obs, designs, *(float(arrays[k]) for k in ("h", "reconstruction_rcond", "reconstruction_residual"))
+    )
+
+
+def _load_fault(m: dict, arrays: dict, saved: dict):
+    import jax.numpy as jnp
+
+    from ..design import FaultEstimatorDesign
+    from ..plant import DescriptorSystem
+
+    aug = DescriptorSystem(*(jnp.asarray(arrays[f"augmented/{k}"]) for k in _SYSTEM_FIELDS))
+    design = _load_functional(m["design"], arrays, "design/", saved)
+    return FaultEstimatorDesign(design, aug, int(m["q"]), int(m["n_faults"]), bool(m["ramp"]))
+
+
+def load_design(path, *, membership=None):
+    """Load a design written by `save_design`; arrays are bit-identical to the saved ones.
+
+    **Arguments:**
+
+    - `path`: a file written by `save_design`.
+    - `membership`: only for Takagi–Sugeno designs whose membership functions are not
+      fojax classes (fojax rebuilds `fojax.SectorMembership` and the other fojax
+      memberships from the file, but never imports code named in a file): the
+      plant's `fojax.AbstractMembership`.
+
+    **Returns:** an object of the saved class (`FunctionalObserverDesign`,
+    `TakagiSugenoObserverDesign`, `UnknownInputObserverDesign`,
+    `FiniteTimeObserverDesign` or `FaultEstimatorDesign`) whose arrays equal the saved
+    ones bit for bit, so its observer produces identical outputs. The metadata (fojax
+    version, creation time, user metadata) is in ``design.solver["saved"]`` (for
+    finite-time and fault-estimator designs: in the `solver` of each inner
+    `FunctionalObserverDesign`).
+
+    **Raises:** `fojax.InputError` for a file that is not a fojax design, has a newer
+    format, or holds a design class this version does not know.
+    """
+    from .._dtype import require_x64
+    from .._errors import InputError
+
+    require_x64("load_design")
+    path = pathlib.Path(path)
+    with np.load(path, allow_pickle=False) as data:
+        meta = _metadata(data, path)
+        arrays = {k: np.array(data[k]) for k in data.files if k != "__metadata__"}
+    name = meta.get("design_class", "FunctionalObserverDesign")  # format 1: functional only
+    saved = {k: meta[k] for k in ("fojax_version", "created", "format_version", "user") if k in meta}
+    if membership is not None and name != "TakagiSugenoObserverDesign":
+        raise InputError(f"membership= applies to Takagi–Sugeno designs only; {path} holds a {name}.")
+    if name == "FunctionalObserverDesign":
+        return _load_functional(meta, arrays, "", saved)
+    if name == "TakagiSugenoObserverDesign":
+        return _load_ts(meta, arrays, saved, membership=membership, path=path)
+    if name == "UnknownInputObserverDesign":
+        return _load_uio(meta, arrays, saved)
+    if name == "FiniteTimeObserverDesign":
+        return _load_finite_time(meta, arrays, saved)
+    if name == "FaultEstimatorDesign":
+        return _load_fault(meta, arrays, saved)
+    raise InputError(
+        f"{path} holds a design of class {name!r}, which this fojax version cannot load "
+        f"(known: {', '.join(DESIGN_CLASSES)}); upgrade fojax."
     )
 
 
