@@ -6,10 +6,10 @@ it sets ``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS`` to 1 unless the caller set 
 NumPy/SciPy peers' small BLAS calls are faster single-threaded on the 2-core reference
 machine; XLA uses its own thread pool).
 
-Importing this module puts the repository root on ``sys.path`` (right after
-``benchmarks/``), so the scripts measure the fojax of this checkout even when a
+Scripts also call `prefer_checkout`, which puts the repository root on ``sys.path``
+(right after ``benchmarks/``), so they measure the fojax of this checkout even when a
 non-editable copy is installed in site-packages (``machine_info`` records which
-``fojax`` was imported).
+``fojax`` was imported). Importing this module changes nothing.
 
 Contents: the machine/versions/date record (`machine_info`, same fields as
 `reference_workload.machine_info` plus the cvxpy/solver/optax versions), the peak resident
@@ -36,8 +36,14 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 RESULTS = HERE / "results"
-if str(REPO) not in sys.path:
-    sys.path.insert(1 if sys.path and Path(sys.path[0]).resolve() == HERE else 0, str(REPO))
+
+
+def prefer_checkout() -> None:
+    """Import fojax from this checkout (call before the first ``import fojax``)."""
+    if str(REPO) not in sys.path:
+        sys.path.insert(1 if sys.path and Path(sys.path[0]).resolve() == HERE else 0, str(REPO))
+
+
 BLAS_VARS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 

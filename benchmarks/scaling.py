@@ -63,6 +63,7 @@ import _common  # noqa: E402
 
 if __name__ == "__main__":
     _common.limit_blas_threads()  # before NumPy (see _common)
+    _common.prefer_checkout()  # measure this checkout's fojax
 
 import numpy as np  # noqa: E402
 import scipy.linalg  # noqa: E402

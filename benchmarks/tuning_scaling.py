@@ -49,6 +49,7 @@ import _common  # noqa: E402
 
 if __name__ == "__main__":
     _common.limit_blas_threads()  # before NumPy (see _common)
+    _common.prefer_checkout()  # measure this checkout's fojax
 
 
 SIZES = (8, 32, 128, 512, 2048)
