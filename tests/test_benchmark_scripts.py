@@ -1,0 +1,180 @@
+"""The scaling benchmarks' generators and report writer do what they claim; no timing here.
+
+- `benchmarks/scaling.py`: the random descriptor systems are regular, index 1 (exactly
+  rank E finite poles), stable with every finite pole (nominal and every sample) left of
+  -0.5, the hand reduction (slow matrix, output map T, consistent x0) solves the descriptor
+  equation, and the generic exact-discretisation peer (d) equals the closed form
+  x(t) = T V exp(Λt) V⁻¹ z0 on the grid in both axis orders.
+- `benchmarks/design_scaling.py`: the design problems have the documented sizes and are
+  functionally observable (fojax and an independent NumPy rank test).
+- `benchmarks/tuning_scaling.py`: the batch factorisation.
+- `benchmarks/make_readme.py`: copies numbers from the JSON files, skips unknown schemas,
+  and only rewrites the README between its markers.
+"""
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import design_scaling  # noqa: E402
+import make_readme  # noqa: E402
+import scaling  # noqa: E402
+import tuning_scaling  # noqa: E402
+
+import fojax  # noqa: E402
+
+
+def _finite_poles(A, E):
+    """Finite generalized eigenvalues of (A, E) from QZ's homogeneous pairs (alpha, beta)."""
+    ab = scipy.linalg.eigvals(A, E, homogeneous_eigvals=True)
+    alpha, beta = ab
+    scale = max(1.0, np.linalg.norm(A, 2), np.linalg.norm(E, 2))
+    fin = np.abs(beta) > 1e-9 * scale
+    return alpha[fin] / beta[fin]
+
+
+@pytest.mark.parametrize("n", [4, 8, 16])
+def test_random_loop_is_regular_index1_and_stable(n):
+    loop = scaling.random_stable_index1(n, seed=100 + n)
+    E, A = loop.E, loop.A
+    r = np.linalg.matrix_rank(E)
+    assert r == loop.r == n - max(1, n // 4)
+    # regular: det(sE - A) != 0 at a random s
+    s = 0.37 + 1.1j
+    assert abs(np.linalg.det(s * E - A)) > 1e-8
+    samples = scaling.make_samples(loop, 6, seed=3)
+    for Ak in [A, A + scaling.DELTA * loop.dA, A - scaling.DELTA * loop.dA, *samples.A]:
+        lam = _finite_poles(Ak, E)
+        # impulse free (index 1 since E is singular): exactly rank E finite poles
+        assert lam.size == r
+        assert lam.real.max() < -0.5
+    # the construction's bound: log-norm of every slow matrix <= -1 (hence poles <= -1)
+    for Ask in samples.As:
+        assert np.linalg.eigvalsh(0.5 * (Ask + Ask.T)).max() <= scaling.ABSCISSA_BOUND + 1e-12
+
+
+@pytest.mark.parametrize("n", [4, 9])
+def test_hand_reduction_solves_the_descriptor_equation(n):
+    loop = scaling.random_stable_index1(n, seed=7 * n)
+    samples = scaling.make_samples(loop, 3, seed=1)
+    T = loop.T
+    for Ak, Ask, z0, x0 in zip(samples.A, samples.As, samples.z0, samples.x0):
+        # x = T z with z' = As z solves E x' = A_k x:  E T As = A_k T
+        np.testing.assert_allclose(loop.E @ T @ Ask, Ak @ T, atol=1e-11 * np.abs(Ak).max())
+        np.testing.assert_allclose(x0, T @ z0, rtol=1e-14)
+        # x0 is consistent: A_k x0 lies in the range of E (no component along E's left null space)
+        U, sv, _ = np.linalg.svd(loop.E)
+        null_left = U[:, sv < 1e-10]
+        assert np.abs(null_left.T @ Ak @ x0).max() <= 1e-11 * np.abs(Ak @ x0).max()
+        # its poles are the pencil's finite poles
+        lam = np.sort_complex(_finite_poles(Ak, loop.E))
+        np.testing.assert_allclose(lam, np.sort_complex(np.linalg.eigvals(Ask)), rtol=1e-8, atol=1e-9)
+
+
+def test_samples_do_not_depend_on_the_batch_size():
+    loop = scaling.random_stable_index1(6, seed=2)
+    a, b = scaling.make_samples(loop, 3, seed=5), scaling.make_samples(loop, 10, seed=5)
+    np.testing.assert_array_equal(a.A, b.A[:3])
+    np.testing.assert_array_equal(a.x0, b.x0[:3])
+
+
+def test_generic_expm_peer_equals_closed_form():
+    loop = scaling.random_stable_index1(4, seed=11)
+    samples = scaling.make_samples(loop, 2, seed=4)
+    ts = scaling.grid()
+    dt = ts[1] - ts[0]
+    want = []
+    for Ask, z0 in zip(samples.As, samples.z0):
+        # x(t) = T V diag(exp(λ t)) V⁻¹ z0 on the whole grid at once (As is diagonalisable)
+        lam, V = np.linalg.eig(Ask)
+        assert np.linalg.cond(V) < 1e6
+        c = np.linalg.solve(V, z0)
+        x = (loop.T @ V @ (np.exp(np.outer(lam, ts)) * c[:, None])).real  # (n, T)
+        f = np.abs(x).sum(0)
+        want.append(dt * (f.sum() - 0.5 * (f[0] + f[-1])))
+    for fn in scaling.PEER_VARIANTS.values():
+        got = fn(samples.As, loop.T, samples.z0)
+        np.testing.assert_allclose(got, want, rtol=1e-10)
+
+
+@pytest.mark.parametrize("n", [4, 6, 12])
+def test_design_problems_are_functionally_observable(n):
+    pb = design_scaling.random_design_problem(n, seed=9)
+    assert pb.B.shape == (n, 2)
+    assert pb.C.shape == (max(1, n // 4), n)
+    assert pb.L.shape == (max(1, n // 2), n) and pb.q0 == max(1, n // 2)
+    sysm = fojax.DescriptorSystem(pb.E, pb.A, pb.B, pb.C)
+    assert fojax.analysis.is_functionally_observable(sysm, pb.L)
+    # independently: rank [L; E; E⊥A; C] = rank [E; E⊥A; C] (Darouach's condition)
+    U, sv, _ = np.linalg.svd(pb.E)
+    Eperp = U[:, sv < 1e-10].T
+    base = np.vstack([pb.E, Eperp @ pb.A, pb.C])
+    rk = np.linalg.matrix_rank
+    assert rk(np.vstack([pb.L, base]), tol=1e-9) == rk(base, tol=1e-9) == n
+    again = design_scaling.random_design_problem(n, seed=9)
+    np.testing.assert_array_equal(again.L, pb.L)
+
+
+@pytest.mark.parametrize("B", [1, 8, 12, 32, 2048, 97])
+def test_tuning_batch_factorisation(B):
+    nu, nf = tuning_scaling.factor(B)
+    assert nu * nf == B and nf <= nu
+    assert all(B % d for d in range(nf + 1, int(np.sqrt(B)) + 1))
+
+
+# ------------------------------------------------------------------ make_readme
+MACHINE = {"date": "2031-01-02T03:04:05+00:00", "cpu": "Test CPU", "cores_available": 2, "git_commit": "abc1234",
+           "versions": {"jax": "9.9.9", "fojax": "0.0.1"}, "load_average_at_start": [0.5, 0.5, 0.5]}
+
+
+def _write(folder, name, payload):
+    (folder / f"{name}_latest.json").write_text(json.dumps(payload))
+
+
+def test_make_readme_copies_numbers_and_skips_unknown_schemas(tmp_path):
+    rows = [
+        {"method": "expm", "label": "(d)", "B": 10, "median_s": 0.25, "first_s": 0.3, "extrapolated": False,
+         "fojax_speedup": 0.625},
+        {"method": "solve_ivp", "label": "(a)", "B": 10, "median_s": 3.5, "first_s": 3.5, "extrapolated": True,
+         "fojax_speedup": 8.75},
+        {"method": "fojax", "label": "fojax", "B": 10, "median_s": 0.4, "first_s": 6.125, "compile_s": 5.725,
+         "extrapolated": False},
+    ]
+    _write(tmp_path, "reference_workload", {"status": "complete", "machine": MACHINE, "rows": rows,
+                                            "agreement_check": {"B": 10, "max_rel_diff_vs_expm": {"fojax": 3e-14}}})
+    _write(tmp_path, "time_varying", {"status": "complete", "machine": MACHINE, "something_else": [1, 2]})
+    text = make_readme.render(tmp_path)
+    assert "2031-01-02T03:04:05+00:00" in text and "Test CPU" in text and "jax 9.9.9" in text
+    assert "| 10 | 0.4 | 25 | 5.72 | 8.75 *extrap.* | 0.625 |" in text
+    assert "3.0e-14" in text
+    assert "fojax is slower than (d) expm + recurrence at B = 10 (0.62×)" in text
+    assert "6.12 s" in text  # first call at the smallest B, compilation included
+    assert "keys are not the expected ones" in text and "something_else" in text
+    assert "`scaling`" in text and "`design_scaling`" in text  # listed as not measured
+
+
+def test_make_readme_only_touches_the_marked_section(tmp_path):
+    readme = tmp_path / "README.md"
+    before, after = "# title\n\nintro\n\n## Benchmarks\n\n", "\n\n## next\n\ntext\n"
+    readme.write_text(before + make_readme.START + "\nold\n" + make_readme.END + after)
+    make_readme.update_readme(readme, "new section\n")
+    assert readme.read_text() == before + make_readme.START + "\nnew section\n" + make_readme.END + after
+    make_readme.update_readme(readme, "new section\n")  # idempotent
+    assert readme.read_text().count("new section") == 1
+    readme.write_text("no markers\n")
+    with pytest.raises(SystemExit, match="markers"):
+        make_readme.update_readme(readme, "x")
+
+
+def test_repository_readme_has_the_markers():
+    text = (ROOT / "README.md").read_text()
+    i, j = text.find(make_readme.START), text.find(make_readme.END)
+    assert 0 <= i < j and "## Benchmarks" in text[:i]
