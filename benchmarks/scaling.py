@@ -50,6 +50,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shutil
 import statistics
 import sys
 import tempfile
@@ -369,7 +370,14 @@ def main(argv=None) -> int:
     info = _common.machine_info()
     print(f"# scaling ({info['date']}, {info['cpu']}, {info['cores_available']} cores)")
     state = {"info": info, "args": args, "dims": [], "memory": [], "failed": []}
-    tmp = Path(tempfile.mkdtemp(prefix="fojax-scaling-"))
+    tmp = Path(tempfile.mkdtemp(prefix="fojax-scaling-"))  # the workers' outputs (.npy), removed at the end
+    try:
+        return _run(args, state, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _run(args, state: dict, tmp: Path) -> int:
     base = dict(seed=args.seed, chunk=args.chunk, repeats=args.repeats, budget=args.budget,
                 variants=args.peer_variants)
 
