@@ -136,6 +136,7 @@ from .simulation import (
     Index1Reduction as Index1Reduction,
     reduce_index1 as reduce_index1,
     simulate as simulate,
+    simulate_batch_exponential as simulate_batch_exponential,
     Solution as Solution,
 )
 

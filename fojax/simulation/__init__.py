@@ -1,6 +1,7 @@
 """Simulation layer: index-1 reduction, consistent initial conditions, `simulate`."""
 
 from ._batch import simulate_lti_batch as simulate_lti_batch
+from ._exponential import simulate_batch_exponential as simulate_batch_exponential
 from ._reduction import (
     consistent_initial_condition as consistent_initial_condition,
     Index1Reduction as Index1Reduction,
