@@ -26,7 +26,8 @@ work).
   *between* grid points costs $O(h)$ on that interval — ``method="auto"`` then uses
   diffrax.
 - ``"diffrax"`` (everything else): the slow coordinates (and observer states) are
-  integrated with an adaptive stiff solver (default `diffrax.Kvaerno5` with a
+  integrated with an adaptive stiff solver (default `diffrax.Kvaerno5`, its Newton
+  steps solved by `fojax.simulation._implicit.SmallLU`, with a
   `diffrax.PIDController`); the fast coordinates are solved from the algebraic
   equations at every right-hand-side evaluation (one linear solve, or warm-started
   Newton for nonlinear plants) and again at every output time, so the returned
@@ -64,6 +65,7 @@ from .._small_linalg import expm_small, solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..plant._uncertain import UncertainDescriptorSystem
+from ._implicit import default_implicit_solver
 from ._reduction import (
     check_x0,
     constraint_residual_norm,
@@ -157,7 +159,10 @@ def simulate(
       input's breakpoints) are traced, ``"auto"`` cannot inspect them and assumes a
       uniform grid; a non-uniform traced grid then fails at run time (``throw``) or
       sets ``stats["success"] = False``.
-    - `solver`: diffrax solver (default `diffrax.Kvaerno5()`, stiff-safe).
+    - `solver`: diffrax solver (default: `diffrax.Kvaerno5`, stiff-safe, whose Newton
+      step uses fojax's LAPACK-free `SmallLU`, so that it also runs inside `jax.vmap`
+      and `jax.shard_map` — see `fojax.simulation._implicit`; a plain
+      ``diffrax.Kvaerno5()`` fails inside `fojax.studies.run_study`).
     - `rtol`, `atol`: tolerances of the `diffrax.PIDController`.
     - `max_steps`: diffrax step budget.
     - `strict`: raise `fojax.InconsistentInitialConditionError` when
@@ -202,7 +207,7 @@ def simulate(
     host_initial_checks(plant, x0, ts[0], u, strict=strict, tol=consistency_tol)
     method = _resolve_method(method, plant, observers, ts, u)
     if solver is None:
-        solver = diffrax.Kvaerno5()
+        solver = default_implicit_solver()
     if adjoint is None:
         adjoint = diffrax.RecursiveCheckpointAdjoint()
     runtime_checks = not (concrete and is_concrete(ts))
