@@ -19,6 +19,7 @@ sys.path.insert(0, str(BENCH))
 
 import _workload as wl  # noqa: E402
 import peers  # noqa: E402
+import peers_tv  # noqa: E402
 
 
 def _finite(lam):
@@ -132,3 +133,81 @@ def test_fojax_matches_exact_peer(batch3, reference3):
     m = reference_workload.run_fojax(batch3)
     assert m.shape == (3, 2)
     np.testing.assert_allclose(m, reference3, rtol=1e-8)
+
+
+# ------------------------------------------------------------ study 2: time-varying δ(t), fault
+
+
+@pytest.fixture(scope="module")
+def tv3():
+    return wl.make_tv_workload(3, seed=7)
+
+
+@pytest.fixture(scope="module")
+def tv_reference3(tv3):
+    return peers_tv.tight_reference(tv3)
+
+
+def test_tv_samples_and_reduction():
+    tv = wl.make_tv_workload(50, seed=7)
+    # sample ranges, and sample k does not depend on B
+    assert np.all((tv.amplitude >= 0) & (tv.amplitude <= wl.TV_AMPLITUDE_MAX))
+    assert np.all((tv.omega >= 0.5) & (tv.omega <= 5.0))
+    assert np.all((tv.phase >= 0) & (tv.phase < 2 * np.pi))
+    assert np.all(np.abs(tv.fault) <= wl.FAULT_MAX) and tv.fault.shape == (50, 2)
+    small = wl.make_tv_workload(3, seed=7)
+    np.testing.assert_array_equal(small.omega, tv.omega[:3])
+    np.testing.assert_array_equal(small.fault, tv.fault[:3])
+    # the initial states are study 1's (same stream)
+    np.testing.assert_array_equal(tv.x0_cl, wl.make_workload(50, seed=7).x0_cl)
+    # delta(t) is the documented sinusoid
+    t = 1.234
+    np.testing.assert_allclose(tv.delta(t), tv.amplitude * np.sin(tv.omega * t + tv.phase))
+    # affine in delta: the hand reduction of A(delta) equals A_red0 + delta dA_red, and dA_red
+    # is Delta A on the differential indices (entries (1,3) and (2,2) only)
+    for d in (-0.3, 0.11, 0.3):
+        A_red, T = wl.reduce_index1(wl.closed_loop_A(wl.A + d * wl.DELTA_A))
+        np.testing.assert_allclose(A_red, tv.A_red0 + d * tv.dA_red, atol=1e-12)
+        np.testing.assert_array_equal(T, tv.T)
+    expected = np.zeros((7, 7))
+    expected[0, 2] = expected[1, 1] = 1.0
+    np.testing.assert_allclose(tv.dA_red, expected, atol=1e-14)
+    # the reduced ODE solves the descriptor equation with the fault:
+    # E_cl d/dt (T x_d) = A_cl(delta) T x_d + B_f f for any x_d, f
+    rng = np.random.default_rng(0)
+    xd, f, d = rng.normal(size=7), rng.normal(size=2), 0.23
+    xdot = (tv.A_red0 + d * tv.dA_red) @ xd + tv.b_fault @ f
+    A_cl = wl.closed_loop_A(wl.A + d * wl.DELTA_A)
+    np.testing.assert_allclose(wl.E_CL @ tv.T @ xdot, A_cl @ tv.T @ xd + wl.B_FAULT_CL @ f, atol=1e-12)
+    np.testing.assert_allclose(wl.full_output_rows() @ tv.T, tv.C_out, atol=1e-15)
+
+
+def test_tv_every_delta_profile_is_stable():
+    # a common quadratic Lyapunov function at both vertices of |delta| <= 0.3, decay rate 0.5
+    P, worst = wl.quadratic_stability_certificate(alpha=0.5)
+    assert worst < 0 and np.linalg.eigvalsh(P).min() > 0
+
+
+def test_tv_peers_agree_with_tight_reference(tv3, tv_reference3):
+    assert np.all(tv_reference3 > 1.0)
+    # the reference itself: 10x tighter tolerances change it by < 1e-10
+    one = wl.make_tv_workload(1, seed=7)
+    rel = np.max(np.abs(peers_tv.tight_reference(one, rtol=1e-13, atol=1e-15) - tv_reference3[:1]))
+    assert rel / np.min(tv_reference3[:1]) < 1e-10
+    for fn in (peers_tv.rk4_batch_first, peers_tv.rk4_batch_last):
+        rel = np.max(np.abs(fn(tv3) - tv_reference3) / tv_reference3)
+        assert 1e-14 < rel < 1e-8  # RK4 dt = 1e-3: ~1e-10; identical output would be a wiring error
+    rel = np.max(np.abs(peers_tv.solve_ivp_loop(one) - tv_reference3[:1]) / tv_reference3[:1])
+    assert rel < 1e-4  # RK45 at rtol 1e-6
+
+
+def test_fojax_tv_matches_tight_reference(tv3, tv_reference3):
+    import time_varying
+
+    m = np.asarray(time_varying.run_fojax(tv3, substeps=3))
+    assert m.shape == (3, 2)
+    np.testing.assert_allclose(m, tv_reference3, rtol=1e-9)
+    # and the fault and the time variation matter at that level
+    frozen = wl.make_tv_workload(3, seed=7)
+    object.__setattr__(frozen, "amplitude", np.zeros(3))
+    assert np.max(np.abs(np.asarray(time_varying.run_fojax(frozen, substeps=3)) - m) / m) > 1e-3

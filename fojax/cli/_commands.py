@@ -369,10 +369,11 @@ def study(
     names = list(designs)
     with out.step(f"Monte Carlo study: {st.num_samples} samples x {len(names)} observers, "
                   f"{len(ts)} time steps (compiling first: this takes a while)"):
-        # Explicit Tsit5: the benchmark loops are not stiff (error poles in the designed disks),
-        # it compiles and runs much faster than the implicit default, and the implicit
-        # Kvaerno5 currently fails inside the vmapped study of a FaultyPlant with lineax's
-        # "pytree does not match out_structure" (open bug, see the issue-5 notes).
+        # Explicit Tsit5: the benchmark loops are not stiff (error poles in the designed disks)
+        # and the implicit default (Kvaerno5; works in studies since the issue-5 fix) is much
+        # slower here. Measured with `fojax study --samples 16 --horizon 2 --steps 0` on the
+        # 2 shared cores: first run_study call (compile + run) 97 s vs 23 s, a second call
+        # 0.58 s vs 0.12 s; mean IAEs agree to ~1e-6.
         import diffrax
 
         res = studies.run_study(st, [d.observer for d in designs.values()], observer_names=names,

@@ -1,0 +1,358 @@
+"""Issue 7, study 2: the §4.1.3 loop with a time-varying δ(t) and a constant actuator fault.
+
+Exact discretisation does not apply (the loop is time-varying), so fojax's entry is
+`fojax.simulate_batch_exponential` (a fourth-order exponential integrator around the
+nominal loop, batched) and the peers are (a) a Python loop of `solve_ivp` (RK45, rtol 1e-6,
+atol 1e-9) and (c) NumPy RK4 with dt = 1e-3 vectorised over the batch (both axis orders,
+the faster kept). Every method is first compared with a tight reference (DOP853, rtol
+1e-12, atol 1e-14) on `--ref-b` samples; fojax then runs with the *largest* step (fewest
+substeps per 0.01 s grid interval) whose error is at most RK4's, i.e. at equal or better
+accuracy. Timings and the table as in `reference_workload.py`:
+
+    python benchmarks/time_varying.py                       # B = 1, 100, 1000, 10000
+    python benchmarks/time_varying.py --sizes 1 100 1000 --repeats 3
+    python benchmarks/time_varying.py --substeps 3 --loop-max-b 100
+
+Timing rules: imports, drawing the samples and the peers' hand reduction are outside the
+timed region; the first call of every method is timed separately (for fojax after
+`jax.clear_caches()`, so it includes compilation, reported as first call − median); then up
+to `--repeats` repetitions within `--budget` seconds, median reported, fojax's output
+through `jax.block_until_ready`. The solve_ivp loop runs up to `--loop-max-b` samples and is
+extrapolated linearly beyond (marked *extrap.*).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+from pathlib import Path
+
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import _common  # noqa: E402
+
+
+BLAS_THREADS = _common.limit_blas_threads()  # before NumPy: favours the peers (see README)
+_common.prefer_checkout()
+
+import jax  # noqa: E402
+
+
+jax.config.update("jax_enable_x64", True)
+
+import _workload as wlmod  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import peers_tv  # noqa: E402
+
+
+SIZES = (1, 100, 1_000, 10_000)
+SUBSTEP_CANDIDATES = (1, 2, 3, 4, 5, 6, 8)
+NAME = "time_varying"
+
+
+# ================================================================================ fojax
+_E_CL = jnp.asarray(wlmod.E_CL)
+_A_CL0 = jnp.asarray(wlmod.closed_loop_A(wlmod.A))
+_DA_CL = jnp.asarray(wlmod.DELTA_A_CL)
+_B_F = jnp.asarray(wlmod.B_FAULT_CL)
+_C_FULL = jnp.asarray(wlmod.full_output_rows())
+METRICS = {"x": ("iae_l1", _C_FULL[:4]), "e": ("iae_l1", _C_FULL[4:])}
+
+
+def tv_model(p):
+    """One sample: the 8-state closed loop with δ(t) = a sin(ωt + φ) on ΔA and the fault.
+
+    Module-level (a stable function object, so fojax's compiled kernels are reused). Public
+    API only: `fojax.UncertainDescriptorSystem` with a `fojax.Sine` uncertainty, wrapped in
+    `fojax.studies.FaultyPlant` with the constant fault entering through ``[B; 0]``.
+    """
+    import fojax
+    from fojax.studies import FaultyPlant
+
+    nominal = fojax.DescriptorSystem(_E_CL, _A_CL0)
+    delta = fojax.Sine(p["amplitude"], p["omega"], p["phase"])
+    plant = fojax.UncertainDescriptorSystem(nominal, dA=_DA_CL, delta=delta)
+    return FaultyPlant(plant, Fa=_B_F, fault=fojax.Constant(p["fault"]))
+
+
+def fojax_inputs(wl: wlmod.TimeVaryingWorkload):
+    params = {
+        "amplitude": jnp.asarray(wl.amplitude),
+        "omega": jnp.asarray(wl.omega),
+        "phase": jnp.asarray(wl.phase),
+        "fault": jnp.asarray(wl.fault),
+    }
+    return params, jnp.asarray(wl.x0_cl), jnp.asarray(wl.ts)
+
+
+def run_fojax(wl: wlmod.TimeVaryingWorkload, substeps: int, chunk: int = 4096):
+    """``(B, 2)`` metrics (IAE of |x|_1, of |zhat - Lx|_1) from fojax, as a JAX array."""
+    from fojax import simulate_batch_exponential
+
+    params, x0, ts = fojax_inputs(wl)
+    out = simulate_batch_exponential(
+        tv_model, params, x0, ts, metrics=METRICS, substeps=substeps, chunk_size=chunk
+    )
+    return jnp.stack([out["x"], out["e"]], axis=-1)
+
+
+# ================================================================================ study
+def accuracy(ref_b: int, seed: int, candidates, fixed_substeps, chunk: int) -> dict:
+    """Each method's max relative error vs the tight reference on the first `ref_b` samples."""
+    wl = wlmod.make_tv_workload(ref_b, seed)
+    ref = peers_tv.tight_reference(wl)
+    # the reference's own accuracy: DOP853 with tolerances 10x tighter on a few samples
+    few = wlmod.make_tv_workload(min(ref_b, 5), seed)
+    tighter = peers_tv.tight_reference(few, rtol=1e-13, atol=1e-15)
+    res = {"reference_self_check": _common.rel_diff(ref[: few.size], tighter)}
+    for name, (_, variants) in peers_tv.PEERS_TV.items():
+        for vname, fn in variants.items():
+            res[f"{name}:{vname}"] = _common.rel_diff(fn(wl), ref)
+    rk4_err = max(v for k, v in res.items() if k.startswith("rk4:"))
+    fojax_errs = {}
+    for s in [fixed_substeps] if fixed_substeps else candidates:
+        fojax_errs[s] = _common.rel_diff(np.asarray(run_fojax(wl, s, chunk)), ref)
+    if fixed_substeps:
+        chosen = fixed_substeps
+    else:
+        ok = [s for s in candidates if fojax_errs[s] <= rk4_err]
+        chosen = ok[0] if ok else max(candidates)
+    res["fojax_by_substeps"] = fojax_errs
+    res["fojax"] = fojax_errs[chosen]
+    res["substeps"] = chosen
+    res["rk4_error"] = rk4_err
+    return res
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=list(SIZES))
+    ap.add_argument("--peers", nargs="+", default=list(peers_tv.PEERS_TV), choices=list(peers_tv.PEERS_TV))
+    ap.add_argument("--repeats", type=int, default=5, help="timed repetitions after the first call")
+    ap.add_argument("--budget", type=float, default=60.0, help="seconds of repetitions per method and B")
+    ap.add_argument(
+        "--loop-max-b",
+        type=int,
+        default=1000,
+        help="largest B run by the solve_ivp loop (a); beyond it its time is extrapolated",
+    )
+    ap.add_argument(
+        "--variant-max-b",
+        type=int,
+        default=10_000,
+        help="up to this B both axis orders of RK4 are timed; above it only the faster one",
+    )
+    ap.add_argument("--ref-b", type=int, default=20, help="samples of the tight reference (accuracy check)")
+    ap.add_argument(
+        "--substeps",
+        type=int,
+        default=None,
+        help="fojax steps per 0.01 s grid interval (default: the fewest that are at least as "
+        f"accurate as RK4 among {SUBSTEP_CANDIDATES})",
+    )
+    ap.add_argument("--chunk", type=int, default=4096, help="fojax chunk_size")
+    ap.add_argument("--seed", type=int, default=wlmod.DEFAULT_SEED)
+    ap.add_argument("--out", type=Path, default=_common.RESULTS)
+    args = ap.parse_args(argv)
+    if args.repeats < 1:
+        ap.error("--repeats must be at least 1")
+    sizes = sorted(set(args.sizes))
+
+    info = _common.machine_info()
+    info["blas_threads"] = BLAS_THREADS
+    print(f"# time-varying study ({info['date']}, {info['cpu']}, {info['cores_available']} cores)")
+    P, worst = wlmod.quadratic_stability_certificate()
+    print(
+        "common Lyapunov matrix for |delta| <= 0.3, decay rate 0.5: largest vertex eigenvalue "
+        f"{worst:.3g} (< 0: every sample is stable for any delta(t) profile)"
+    )
+    if not worst < 0:
+        print("!! stability certificate failed")
+        return 1
+
+    # ---------------------------------------------------------------- accuracy first
+    print(f"\n## accuracy on {args.ref_b} samples (max relative error vs DOP853 rtol 1e-12, atol 1e-14)")
+    acc = accuracy(args.ref_b, args.seed, SUBSTEP_CANDIDATES, args.substeps, args.chunk)
+    print(f"  reference vs DOP853 rtol 1e-13 (5 samples)  {acc['reference_self_check']:9.2e}")
+    for key in [k for k in acc if ":" in k]:
+        print(f"  {key:44s} {acc[key]:9.2e}")
+    for s, e in acc["fojax_by_substeps"].items():
+        print(f"  fojax, {s} step(s) per 0.01 s (h = {0.01 / s:.4g} s) {e:12.2e}")
+    substeps = acc["substeps"]
+    print(f"  -> fojax runs with substeps = {substeps} (error {acc['fojax']:.2e} vs RK4 {acc['rk4_error']:.2e})")
+    if not acc["fojax"] <= acc["rk4_error"]:
+        print("!! no candidate step is as accurate as RK4; timing the finest one anyway")
+
+    rows: list[dict] = []
+    state = dict(info=info, acc=acc, rows=rows, args=args, substeps=substeps)
+
+    # ---------------------------------------------------------------- timing
+    best_variant: dict[str, str] = {}
+    for B in sizes:
+        wl = wlmod.make_tv_workload(B, args.seed)
+        print(f"\n## B = {B}")
+        outs = {}
+        for name in args.peers:
+            label, variants = peers_tv.PEERS_TV[name]
+            if name == "solve_ivp" and B > args.loop_max_b:
+                base = [r for r in rows if r["method"] == name and not r["extrapolated"]]
+                if not base:
+                    continue
+                b0 = base[-1]
+                t = b0["median_s"] * B / b0["B"]
+                rows.append(
+                    dict(method=name, label=label, variant=b0["variant"], B=B, first_s=None, median_s=t,
+                         reps=0, all_s=[], extrapolated=True, extrapolated_from_B=b0["B"])
+                )
+                print(f"  {label:40s} {t:10.3f} s  (EXTRAPOLATED from B = {b0['B']})")
+                continue
+            if B > args.variant_max_b and name in best_variant:
+                vitems = [(best_variant[name], variants[best_variant[name]])]
+            else:
+                vitems = list(variants.items())
+            cand = []
+            for vname, fn in vitems:
+                out, first, times = _common.time_repeated(lambda fn=fn: fn(wl), args.repeats, args.budget)
+                med = statistics.median(times)
+                cand.append((med, vname, first, times, out))
+                print(f"  {label:40s} [{vname:11s}] first {first:9.3f} s  median {med:9.3f} s  ({len(times)} reps)")
+            med, vname, first, times, out = min(cand, key=lambda c: c[0])
+            if B <= args.variant_max_b and len(variants) > 1:
+                best_variant[name] = vname
+            outs[name] = out
+            rows.append(
+                dict(method=name, label=label, variant=vname, B=B, first_s=first, median_s=med, reps=len(times),
+                     all_s=times, extrapolated=False, all_variants={c[1]: c[0] for c in cand})
+            )
+        jax.clear_caches()  # a cold start at every B: the first call compiles
+        out, first, times = _common.time_repeated(
+            lambda: jax.block_until_ready(run_fojax(wl, substeps, args.chunk)), args.repeats, args.budget
+        )
+        med = statistics.median(times)
+        compile_s = max(first - med, 0.0)
+        label = f"fojax.simulate_batch_exponential (substeps={substeps})"
+        print(f"  {label:40s} [compile {compile_s:6.2f} s] first {first:9.3f} s  median {med:9.3f} s  ({len(times)} reps)")
+        row = dict(method="fojax", label=label, variant=f"chunk={args.chunk}", B=B, compile_s=compile_s,
+                   compile_note="first call - median (caches cleared)", first_s=first, median_s=med,
+                   reps=len(times), all_s=times, extrapolated=False)
+        if "rk4" in outs:
+            row["rel_diff_vs_rk4"] = _common.rel_diff(np.asarray(out), outs["rk4"])
+            print(f"  fojax vs RK4 at this B: max relative difference {row['rel_diff_vs_rk4']:.2e}")
+        rows.append(row)
+        write_results(state, status=f"partial (done up to B = {B} of {sizes})")
+
+    write_results(state, status="complete", echo=True)
+    return 0
+
+
+def _method_error(acc, method, variant):
+    """The method's max relative error vs the tight reference (accuracy check)."""
+    return acc.get("fojax" if method == "fojax" else f"{method}:{variant}")
+
+
+def write_results(state: dict, status: str, echo: bool = False) -> None:
+    info, acc, args = state["info"], state["acc"], state["args"]
+    rows = [dict(r) for r in state["rows"]]
+    info = dict(info, load_average_at_end=_common.load_average())
+    for r in rows:
+        r["samples_per_s"] = r["B"] / r["median_s"]
+        r["max_rel_error_vs_reference"] = _method_error(acc, r["method"], r["variant"])
+        f = [x for x in rows if x["method"] == "fojax" and x["B"] == r["B"]]
+        if f and r["method"] != "fojax":
+            r["t_fojax_over_t_peer"] = f[0]["median_s"] / r["median_s"]
+            r["fojax_speedup"] = r["median_s"] / f[0]["median_s"]
+    md = render_markdown(info, acc, rows, args, state["substeps"], status)
+    payload = dict(
+        study=NAME,
+        status=status,
+        machine=info,
+        settings=dict(vars(args), out=str(args.out)),
+        workload=dict(
+            delta="a_k sin(omega_k t + phi_k)",
+            amplitude=[0.0, wlmod.TV_AMPLITUDE_MAX],
+            omega_rad_s=list(wlmod.TV_OMEGA_RANGE),
+            phase=[0.0, "2 pi"],
+            fault=f"constant, each of 2 components U[-{wlmod.FAULT_MAX}, {wlmod.FAULT_MAX}], plant input u + f",
+            horizon_s=float(wlmod.T_END),
+            grid_s=float(wlmod.DT_GRID),
+        ),
+        accuracy=dict(reference="solve_ivp DOP853 rtol 1e-12 atol 1e-14", samples=args.ref_b, **acc),
+        substeps=state["substeps"],
+        rows=rows,
+    )
+    _common.write_results(args.out, NAME, payload, md, echo=echo)
+
+
+def render_markdown(info, acc, rows, args, substeps, status) -> str:
+    fmt = _common.fmt
+    lines = [
+        "# Study 2 (issue 7): §4.1.3 loop with a time-varying δ(t) and a constant actuator fault",
+        "",
+        f"- status: {status}",
+        *_common.machine_lines(info),
+        f"- float64; horizon [0, 10] s, 0.01 s grid (1001 points); δ_k(t) = a_k sin(ω_k t + φ_k), "
+        f"a ~ U[0, {wlmod.TV_AMPLITUDE_MAX}], ω ~ U{list(wlmod.TV_OMEGA_RANGE)} rad/s, φ ~ U[0, 2π); "
+        f"fault f_k ~ U[-{wlmod.FAULT_MAX}, {wlmod.FAULT_MAX}]² on the plant input; seed {args.seed}; "
+        f"median of up to {args.repeats} repetitions (budget {args.budget:.0f} s per entry) after a "
+        "separately timed first call",
+        "",
+        f"## Accuracy (max relative error of the per-sample metrics vs DOP853 rtol 1e-12, atol 1e-14; "
+        f"{args.ref_b} samples)",
+        "",
+        "| method | max rel. error |",
+        "|---|---|",
+        f"| reference itself (vs DOP853 rtol 1e-13, atol 1e-15, 5 samples) | {acc['reference_self_check']:.1e} |",
+    ]
+    for key in [k for k in acc if ":" in k]:
+        lines.append(f"| {key} | {acc[key]:.1e} |")
+    for s, e in acc["fojax_by_substeps"].items():
+        mark = " **(timed)**" if s == substeps else ""
+        lines.append(f"| fojax, {s} step(s) per grid interval (h = {0.01 / s:.4g} s){mark} | {e:.1e} |")
+    lines += [
+        "",
+        f"fojax is timed with {substeps} step(s) per 0.01 s interval: the fewest whose error is at most "
+        "RK4's (equal or better accuracy)." if args.substeps is None else f"fojax substeps fixed to {substeps}.",
+        "",
+        "## Timings",
+        "",
+        "`fojax speed-up` = t_peer / t_fojax (> 1: fojax faster). *extrap.* = not run, extrapolated "
+        "linearly from the largest measured B. `rel. diff vs RK4`: fojax's metrics against RK4's at that B.",
+        "",
+        "| B | method | variant | compile (s) | first call (s) | median (s) | reps | samples/s | "
+        "max rel. error | rel. diff vs RK4 | fojax speed-up |",
+        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        med = f"{r['median_s']:.4g}" + (" *extrap.*" if r["extrapolated"] else "")
+        lines.append(
+            f"| {r['B']} | {r['label']} | {r['variant']} | {fmt(r.get('compile_s'), '.2f')} | "
+            f"{fmt(r['first_s'], '.4g')} | {med} | {r['reps']} | {r['samples_per_s']:.4g} | "
+            f"{fmt(r.get('max_rel_error_vs_reference'), '.1e')} | {fmt(r.get('rel_diff_vs_rk4'), '.1e')} | "
+            f"{fmt(r.get('fojax_speedup'), '.3g')} |"
+        )
+    peer_names = [p for p in peers_tv.PEERS_TV if any(r["method"] == p for r in rows)]
+    if any(r["method"] == "fojax" for r in rows):
+        lines += [
+            "",
+            "## fojax speed-up (t_peer / t_fojax) by B",
+            "",
+            "| B | " + " | ".join(peers_tv.PEERS_TV[p][0] for p in peer_names) + " |",
+            "|---:|" + "---:|" * len(peer_names),
+        ]
+        for B in sorted({r["B"] for r in rows}):
+            cells = []
+            for p in peer_names:
+                r = [x for x in rows if x["method"] == p and x["B"] == B]
+                if r and "fojax_speedup" in r[0]:
+                    cells.append(f"{r[0]['fojax_speedup']:.3g}" + (" *extrap.*" if r[0]["extrapolated"] else ""))
+                else:
+                    cells.append("—")
+            lines.append(f"| {B} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
