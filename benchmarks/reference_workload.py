@@ -42,6 +42,28 @@ sys.path.insert(0, str(HERE))
 # its own thread pool and is not affected.
 BLAS_THREADS = {v: os.environ.setdefault(v, "1") for v in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
+
+def _host_devices_from_argv() -> int:
+    """``--host-devices N`` (default: the usable cores) read before JAX is imported."""
+    argv = sys.argv[1:]
+    for i, a in enumerate(argv):
+        if a.startswith("--host-devices="):
+            return int(a.split("=", 1)[1])
+        if a == "--host-devices" and i + 1 < len(argv):
+            return int(argv[i + 1])
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+# fojax spreads the samples over all JAX devices with jax.shard_map (one code path); on a CPU,
+# XLA exposes one device unless told otherwise, so the benchmark asks for one host device per
+# core (the standard XLA flag; must be set before JAX is imported). --host-devices 1 measures
+# fojax on one core.
+HOST_DEVICES = _host_devices_from_argv()
+if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={HOST_DEVICES}"
+    ).strip()
+
 import jax  # noqa: E402
 
 
@@ -263,6 +285,7 @@ def machine_info() -> dict:
         "platform": platform.platform(),
         "python": platform.python_version(),
         "jax_backend": jax.default_backend(),
+        "jax_devices": jax.device_count(),
         "dtype": "float64",
         "blas_threads": BLAS_THREADS,
         "versions": versions,
@@ -398,6 +421,13 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--check-b", type=int, default=100, help="samples of the agreement check")
     ap.add_argument("--chunk", type=int, default=4096, help="fojax streaming chunk (samples per compiled call)")
+    ap.add_argument(
+        "--host-devices",
+        type=int,
+        default=HOST_DEVICES,
+        help="JAX host devices fojax shards the samples over (default: one per usable core; read before "
+        "JAX is imported; 1 = fojax on one core). The NumPy/SciPy peers are single-threaded.",
+    )
     ap.add_argument(
         "--fojax-mode",
         choices=("auto", "eager", "jit", "vmap-simulate"),
@@ -588,7 +618,8 @@ def write_results(state: dict, status: str, echo: bool = False) -> None:
             r["fojax_speedup"] = r["median_s"] / f[0]["median_s"]
     fojax_note = ""
     if fojax_fn is not None:
-        fojax_note = f"fojax mode: {fojax_fn.mode} (requested {fojax_fn.requested_mode}), chunk {args.chunk}"
+        fojax_note = (f"fojax mode: {fojax_fn.mode} (requested {fojax_fn.requested_mode}), chunk {args.chunk}, "
+                      f"{jax.device_count()} JAX host device(s) (jax.shard_map over the samples)")
         if fojax_fn.fallback_reason:
             fojax_note += f"; {fojax_fn.fallback_reason}"
     md = render_markdown(info, agree, rows, fojax_msg, fojax_note, args, status)

@@ -5,18 +5,23 @@ A Monte Carlo study of a linear time-invariant loop needs per-sample *numbers*
 
 1. builds every sample's plant and observers with a user function ``model(params_k)``
    (under `jax.vmap`), reduces the joint system to its slow ODE
-   $\dot w = \mathcal A_k w$ in the masked SVD coordinates of `fojax.simulation`
-   (the same reduction as `fojax.simulate`'s exact method) and discretises it exactly,
-   $\Phi_k = e^{\mathcal A_k h}$ (`fojax.simulation._simulate.discretize`, LAPACK-free);
-2. steps all samples of a chunk together with the batch as the **last** axis
-   (state ``(N, B)``, ``Φ`` ``(N, N, B)``, so each step is ``N²`` fused elementwise
-   multiply–adds over the batch) in one `jax.lax.scan` over the grid;
-3. accumulates the requested reductions of linear outputs *inside* the scan
-   (trapezoid rule on the output grid), so no ``(B, T, N)`` trajectory is ever stored
-   and memory grows linearly with ``B``.
+   $\dot w = \mathcal A_k w$ in the ``rank E`` slow SVD coordinates of `fojax.simulation`
+   (the reduction of `fojax.simulate`'s exact method; the SVD of ``E`` is computed once
+   when all samples share it) and discretises it exactly, $\Phi_k = e^{\mathcal A_k h}$
+   (`expm_last`: Taylor scaling-and-squaring vectorised over the samples, LAPACK-free);
+2. when the metric outputs $o = G_k w$ have at most as many independent rows as states,
+   changes coordinates to $w' = S_k w$ whose leading entries *are* the outputs, so a time
+   step is a single ``N × N`` product per sample (`_output_basis`);
+3. steps a block of samples together with the batch as the **last** axis (state
+   ``(N, b)``, ``Φ`` ``(N, N, b)``: each step is ``N²`` fused multiply–adds over the
+   block, whose data stays in cache) in one `jax.lax.scan` over the grid, and
+   accumulates the requested reductions *inside* the scan (trapezoid rule), so no
+   ``(B, T, N)`` trajectory is ever stored and memory grows linearly with ``B``;
+4. spreads the blocks over all devices with `jax.shard_map` (round-robin, each device
+   computing only blocks that hold real samples).
 
-Batches larger than `chunk_size` are streamed in fixed-size chunks (the last one
-padded by repeating its last sample), so one compilation serves every ``B``.
+Batches larger than `chunk_size` are streamed in fixed-size chunks, so one compilation
+serves every ``B``.
 """
 
 from __future__ import annotations
@@ -28,14 +33,22 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
+from jax import lax, shard_map
+from jax.sharding import Mesh, PartitionSpec
 
 from .._dtype import as_float_array
 from .._errors import InputError, ShapeError
+from .._small_linalg import solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, Zero
-from ._reduction import host_initial_checks, is_concrete, lti_matrices, reduce_linear_masked
-from ._simulate import discretize, UNIFORM_GRID_RTOL
+from ._reduction import (
+    host_initial_checks,
+    is_concrete,
+    lti_matrices,
+    reduce_linear_masked,
+    svd_split,
+)
+from ._simulate import UNIFORM_GRID_RTOL
 
 
 #: Number of traces of the compiled chunk kernel (tests prove no retrace with it).
@@ -70,8 +83,15 @@ def _as_model_output(out):
     )
 
 
-def _joint_system(plant, observers, x0):
-    """Joint slow matrix ``(N, N)``, initial slow state ``(N,)`` and output map ``(n+Σ, N)``."""
+def _joint_system(plant, observers, x0, split=None, r=None):
+    """Joint slow matrix ``(N, N)``, initial slow state ``(N,)``, output map ``(n+Σ, N)`` and
+    a validity flag.
+
+    With ``r`` (static) the plant part is kept in its ``r`` slow SVD coordinates only
+    (``N = r + Σ``, the compact form); the flag is ``False`` when the sample's slow mask is
+    not ``[1]*r + [0]*(n-r)`` (a different rank of ``E``). Without ``r`` the masked
+    full-size form is used (``N = n + Σ``, fast coordinates identically zero).
+    """
     mats = lti_matrices(plant)
     if mats is None:
         raise InputError(
@@ -85,10 +105,17 @@ def _joint_system(plant, observers, x0):
         raise InputError(
             f"simulate_lti_batch needs LTI observers (linear_matrices() not None); {bad} are not."
         )
-    red = reduce_linear_masked(plant.E, A, B)
+    red = reduce_linear_masked(plant.E, A, B, split)
     n = A.shape[0]
-    Cs = C @ red.Tx
-    blocks = [[red.As] + [jnp.zeros((n, o.state_size)) for o in observers]]
+    As, Tx = red.As, red.Tx
+    z0 = red.split.slow * (red.split.V.T @ x0)
+    if r is None:
+        r, ok = n, jnp.asarray(True)
+    else:
+        ok = jnp.all(red.split.slow == (jnp.arange(n) < r))
+        As, Tx, z0 = As[:r, :r], Tx[:, :r], z0[:r]
+    Cs = C @ Tx
+    blocks = [[As] + [jnp.zeros((r, o.state_size)) for o in observers]]
     for i, o in enumerate(observers):
         L = o.linear_matrices()
         row = [L.By @ Cs]
@@ -96,13 +123,11 @@ def _joint_system(plant, observers, x0):
             row.append(L.A if i == j else jnp.zeros((o.state_size, o2.state_size)))
         blocks.append(row)
     Aj = jnp.block(blocks)
-    w0 = jnp.concatenate(
-        [red.split.slow * (red.split.V.T @ x0)] + [o.initial_state() for o in observers]
-    )
+    w0 = jnp.concatenate([z0] + [o.initial_state() for o in observers])
     # joint vector [x; ξ_1; ...] = blkdiag(Tx, I) w
-    no = Aj.shape[0] - n
-    out_map = jnp.block([[red.Tx, jnp.zeros((n, no))], [jnp.zeros((no, n)), jnp.eye(no)]])
-    return Aj, w0, out_map
+    no = Aj.shape[0] - r
+    out_map = jnp.block([[Tx, jnp.zeros((n, no))], [jnp.zeros((no, r)), jnp.eye(no)]])
+    return Aj, w0, out_map, ok
 
 
 def _matvec_last(M, v):
@@ -113,62 +138,199 @@ def _matvec_last(M, v):
     return acc
 
 
-@eqx.filter_jit
-def _chunk_core(model, params, x0, h, Cstack, layout):
-    """One chunk: ``params`` leaves and ``x0`` have a leading chunk axis; returns ``(R, Bc)``."""
-    TRACE_COUNTS["simulate_lti_batch"] += 1
-    T, kinds, block = layout
+def _matmul_last(A, B):
+    """``C[:, :, b] = A[:, :, b] @ B[:, :, b]`` as elementwise FMAs over the batch axis."""
+    acc = A[:, 0, None, :] * B[None, 0, :, :]
+    for j in range(1, A.shape[1]):
+        acc = acc + A[:, j, None, :] * B[None, j, :, :]
+    return acc
+
+
+#: Taylor degree and scaling threshold of `expm_last`: for ‖X‖₁ ≤ θ the remainder of the
+#: degree-m Taylor polynomial is ≤ θ^(m+1)/(m+1)! · e^θ ≈ 4e-19 (θ = 1/2, m = 16).
+_TAYLOR_DEGREE, _TAYLOR_THETA = 16, 0.5
+
+
+def expm_last(M):
+    r"""Matrix exponentials of a batch stored batch-last: ``M`` ``(N, N, b)`` → ``(N, N, b)``.
+
+    Scaling and squaring with a degree-16 Taylor polynomial (Horner), per sample: the
+    number of squarings $s_k = \max(0, \lceil\log_2(\|M_k\|_1/\theta)\rceil)$ with
+    $\theta = 1/2$ (truncation error $< 10^{-18}$ relative before squaring). All products
+    are elementwise multiply–adds over the batch axis (no LAPACK, vectorised over the
+    samples); each sample's result depends only on its own matrix, so it does not change
+    with how samples are grouped into blocks. Agrees with `scipy.linalg.expm` to rounding
+    on the matrices of a simulation step (``‖hA‖`` of order one; tested).
+    """
+    N = M.shape[0]
+    norm = jnp.max(jnp.sum(jnp.abs(M), axis=0), axis=0)  # (b,) induced 1-norm
+    s = jnp.where(norm > _TAYLOR_THETA, jnp.ceil(jnp.log2(norm / _TAYLOR_THETA)), 0.0)
+    s = jnp.clip(jnp.where(jnp.isfinite(s), s, 0.0), 0, 1000).astype(jnp.int32)
+    X = M * jnp.exp2(-s.astype(M.dtype))[None, None, :]
+    eye = jnp.eye(N, dtype=M.dtype)[:, :, None]
+    E = eye + X / _TAYLOR_DEGREE
+    for k in range(_TAYLOR_DEGREE - 1, 0, -1):
+        E = eye + _matmul_last(X, E) / k
+    smax = jnp.max(s)
+
+    def square(i, E):
+        return jnp.where((i < s)[None, None, :], _matmul_last(E, E), E)
+
+    return lax.fori_loop(0, smax, square, E)
+
+
+#: Largest accepted ``‖S‖₁‖S⁻¹‖₁`` of the output-coordinate transform (per sample).
+OUTPUT_BASIS_MAX_COND = 1e8
+
+
+def _output_basis(G0: np.ndarray):
+    """Host: ``(ind, Nc)`` for the output-coordinate transform, or ``None``.
+
+    ``ind`` (a tuple) selects ``ρ`` linearly independent rows of the metric map ``G0``
+    (pivoted QR of the row-normalised ``G0``); ``Nc`` ``(N − ρ, N)`` is an orthonormal
+    basis of the complement of their span, so ``S = [D G_ind; Nc]`` is invertible and
+    well conditioned. ``None`` when ``S`` would be ill-conditioned (``cond₁ > 1e4``)."""
+    import scipy.linalg
+
+    K, N = G0.shape
+    nrm = np.linalg.norm(G0, axis=1, keepdims=True)
+    if not np.all(np.isfinite(G0)) or np.any(nrm == 0):
+        return None
+    Gs = G0 / nrm
+    _, R, piv = scipy.linalg.qr(Gs.T, pivoting=True, mode="economic")
+    diag = np.abs(np.diag(R))
+    rho = int(np.sum(diag > 1e-10 * diag[0]))
+    ind = tuple(int(i) for i in np.sort(piv[:rho]))
+    _, _, Vt = np.linalg.svd(Gs[list(ind)])
+    Nc = Vt[rho:]
+    S0 = np.concatenate([Gs[list(ind)], Nc], axis=0)
+    if np.linalg.cond(S0, 1) > 1e4:
+        return None
+    return ind, Nc
+
+
+def _block_kernel(model, params, x0, h, Cstack, T, kinds, split, r, basis):
+    """One block of samples (leading axis ``b``): metrics ``(R, b)``.
+
+    With ``basis = (ind, Nc)`` (from `_output_basis` on the host), each sample's slow
+    state is expressed in the coordinates ``w' = S w``, ``S = [D G_ind; Nc]``, whose first
+    ``ρ`` entries are the (row-scaled) independent metric outputs; the other outputs are
+    ``(G_dep S⁻¹) w'``. A step is then one ``N × N`` product plus ``(K − ρ) × N`` for the
+    dependent outputs, instead of ``N × N + K × N``. A sample whose ``S`` has
+    ``cond₁ > OUTPUT_BASIS_MAX_COND`` gets ``nan`` metrics.
+    """
+    K = Cstack.shape[0]
+    if basis is not None:
+        ind, Nc = basis
+        dep = tuple(i for i in range(K) if i not in ind)
+        order = np.argsort(np.array(ind + dep))  # o = concat([o_ind, o_dep])[order]
 
     def per_sample(p, x0k):
         plant, observers = _as_model_output(model(p))
-        Aj, w0, out_map = _joint_system(plant, observers, x0k)
-        Phi, _, _ = discretize(Aj, jnp.zeros((Aj.shape[0], 0), Aj.dtype), h)
-        return Phi, w0, Cstack @ out_map
+        Aj, w0, out_map, ok = _joint_system(plant, observers, x0k, split, r)
+        G = Cstack @ out_map
+        if basis is None:
+            return Aj, w0, G, jnp.ones((K,), Aj.dtype), ok
+        Gi = G[jnp.array(ind)]
+        d = jnp.linalg.norm(Gi, axis=1)
+        S = jnp.concatenate([Gi / d[:, None], Nc], axis=0)
+        Sinv = solve_small(S, jnp.eye(S.shape[0], dtype=S.dtype))
+        cond = jnp.max(jnp.sum(jnp.abs(S), axis=0)) * jnp.max(jnp.sum(jnp.abs(Sinv), axis=0))
+        ok = ok & (cond <= OUTPUT_BASIS_MAX_COND)
+        Gd = G[jnp.array(dep, dtype=int)] @ Sinv if dep else jnp.zeros((0, S.shape[0]), S.dtype)
+        return S @ Aj @ Sinv, S @ w0, Gd, d, ok
 
-    Phi, w0, G = jax.vmap(per_sample)(params, x0)  # (B,N,N), (B,N), (B,K,N)
-    bc = x0.shape[0]
-    sub = min(block, bc)
-    n_sub = -(-bc // sub)
-    pad = n_sub * sub - bc
-    if pad:
-        padf = lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)], axis=0)  # noqa: E731
-        Phi, w0, G = padf(Phi), padf(w0), padf(G)
-    # (n_sub, ..., sub): batch last within each cache-sized block
-    Phi = jnp.moveaxis(Phi.reshape((n_sub, sub) + Phi.shape[1:]), 1, -1)
-    G = jnp.moveaxis(G.reshape((n_sub, sub) + G.shape[1:]), 1, -1)
-    w0 = jnp.moveaxis(w0.reshape(n_sub, sub, -1), 1, -1)
+    Aj, w0, G, scale, ok = jax.vmap(per_sample)(params, x0)  # (b,N,N), (b,N), (b,·,N), (b,·), (b,)
+    Phi = expm_last(jnp.moveaxis(h * Aj, 0, -1))  # (N, N, b)
+    G = jnp.moveaxis(G, 0, -1)  # (K or K-ρ, N, b)
+    scale = scale.T
+    w0 = w0.T  # (N, b)
 
-    def integrand(G, w):  # (N, b) -> (R, b)
-        o = _matvec_last(G, w)
+    def outputs(w):
+        if basis is None:
+            return _matvec_last(G, w)
+        parts = [w[: len(ind)] * scale]
+        if dep:
+            parts.append(_matvec_last(G, w))
+        return jnp.concatenate(parts, axis=0)[order]
+
+    def integrand(w):  # (N, b) -> (R, b)
+        o = outputs(w)
         parts, off = [], 0
         for kind, k in kinds:
-            ok = o[off : off + k]
+            ok_ = o[off : off + k]
             off += k
             if kind == "iae":
-                parts.append(jnp.abs(ok))
+                parts.append(jnp.abs(ok_))
             elif kind == "ise":
-                parts.append(ok * ok)
+                parts.append(ok_ * ok_)
             elif kind == "iae_l1":
-                parts.append(jnp.sum(jnp.abs(ok), axis=0, keepdims=True))
+                parts.append(jnp.sum(jnp.abs(ok_), axis=0, keepdims=True))
             else:  # ise_l2
-                parts.append(jnp.sum(ok * ok, axis=0, keepdims=True))
+                parts.append(jnp.sum(ok_ * ok_, axis=0, keepdims=True))
         return jnp.concatenate(parts, axis=0)
 
-    def run_block(args):
-        Phi, w0, G = args
+    def step(carry, _):
+        w, acc = carry
+        w = _matvec_last(Phi, w)
+        return (w, acc + integrand(w)), None
 
-        def step(carry, _):
-            w, acc = carry
-            w = _matvec_last(Phi, w)
-            return (w, acc + integrand(G, w)), None
+    f0 = integrand(w0)
+    (w_end, acc), _ = lax.scan(step, (w0, jnp.zeros_like(f0)), None, length=T - 1)
+    # trapezoid: h (f_0/2 + f_1 + ... + f_{T-2} + f_{T-1}/2); acc holds f_1 .. f_{T-1}
+    out = h * (acc + 0.5 * f0 - 0.5 * integrand(w_end))
+    return jnp.where(ok[None, :], out, jnp.nan)
 
-        f0 = integrand(G, w0)
-        (w_end, acc), _ = lax.scan(step, (w0, jnp.zeros_like(f0)), None, length=T - 1)
-        # trapezoid: h (f_0/2 + f_1 + ... + f_{T-2} + f_{T-1}/2); acc holds f_1 .. f_{T-1}
-        return h * (acc + 0.5 * f0 - 0.5 * integrand(G, w_end))
 
-    out = lax.map(run_block, (Phi, w0, G))  # (n_sub, R, sub)
-    return jnp.moveaxis(out, 0, 1).reshape(out.shape[1], n_sub * sub)[:, :bc]
+def _device_kernel(model, params, x0, nvalid, h, Cstack, layout, split, Nc, dev):
+    """The blocks of one device: ``params``/``x0`` ``(nb, block, ...)``; the first
+    ``nvalid`` blocks are computed (a while loop), the others stay zero."""
+    T, kinds, _, r, R = layout
+    nb, block = x0.shape[0], x0.shape[1]
+
+    def body(i, out):
+        take = lambda a: lax.dynamic_index_in_dim(a, i, keepdims=False)  # noqa: E731
+        res = _block_kernel(model, jax.tree.map(take, params), take(x0), h, Cstack, T, kinds, split, r, Nc)
+        return lax.dynamic_update_index_in_dim(out, res, i, 0)
+
+    out = jnp.zeros((nb, R, block), dtype=x0.dtype)
+    return lax.fori_loop(0, nvalid[dev], body, out)
+
+
+@eqx.filter_jit
+def _chunk_core(model, params, x0, nreal, h, Cstack, layout, split, Nc, mesh):
+    """One chunk of ``bc`` samples (leading axis), of which the first ``nreal`` are real.
+
+    Samples are grouped in blocks of ``block``; block ``k`` goes to device ``k mod D``
+    (balanced within one block); each device computes only its blocks that hold real
+    samples. Returns ``(R, bc)``.
+    """
+    TRACE_COUNTS["simulate_lti_batch"] += 1
+    T, kinds, block, r, R = layout
+    bc = x0.shape[0]
+    D = 1 if mesh is None else mesh.devices.size
+    nb = bc // (block * D)
+    # (bc, ...) -> (D, nb, block, ...): block k = j*D + d on device d
+    arrange = lambda a: jnp.swapaxes(a.reshape((nb, D, block) + a.shape[1:]), 0, 1)  # noqa: E731
+    P, X = jax.tree.map(arrange, params), arrange(x0)
+    nblocks = (nreal + block - 1) // block
+    nvalid = jnp.clip((nblocks - jnp.arange(D) + D - 1) // D, 0, nb)  # (D,)
+    if mesh is None:
+        out = _device_kernel(model, jax.tree.map(lambda a: a[0], P), X[0], nvalid, h, Cstack, layout, split, Nc, 0)
+        out = out[None]
+    else:
+        spec = PartitionSpec("devices")
+
+        def local(p, x, nv):
+            d = lax.axis_index("devices")
+            o = _device_kernel(model, jax.tree.map(lambda a: a[0], p), x[0], nv, h, Cstack, layout, split, Nc, d)
+            return o[None]
+
+        out = shard_map(
+            local, mesh=mesh, in_specs=(spec, spec, PartitionSpec()), out_specs=spec, check_vma=False
+        )(P, X, nvalid)
+    # (D, nb, R, block) -> (R, nb, D, block) -> (R, bc)
+    return jnp.transpose(out, (2, 1, 0, 3)).reshape(R, bc)
 
 
 def _check_metrics(metrics, size):
@@ -223,6 +385,31 @@ def _step_size(ts):
     return T, h, ts
 
 
+def _mesh_for(devices):
+    """A 1-d mesh over `devices` (``None``: all local devices of the default backend), or
+    ``None`` for a single device."""
+    if devices is None:
+        devices = jax.local_devices()
+    devices = list(devices)
+    if not devices:
+        raise InputError("devices must contain at least one jax.Device.")
+    if len(devices) == 1:
+        return None
+    return Mesh(np.array(devices), ("devices",))
+
+
+def _shared_split(model, params, plant0):
+    """The SVD split of ``E`` when every sample has the same ``E`` (checked on the host for
+    concrete inputs), else ``None`` (each sample computes its own split)."""
+    if not is_concrete(params):
+        return None
+    E0 = np.asarray(plant0.E)
+    Es = np.asarray(jax.vmap(lambda p: _as_model_output(model(p))[0].E)(params))
+    if not np.array_equal(Es, np.broadcast_to(E0, Es.shape)):
+        return None
+    return jax.tree.map(lambda a: jnp.asarray(np.asarray(a)), svd_split(jnp.asarray(E0)))
+
+
 def simulate_lti_batch(
     model: Callable,
     params,
@@ -232,28 +419,42 @@ def simulate_lti_batch(
     metrics: Mapping[str, tuple],
     chunk_size: int = DEFAULT_CHUNK,
     block: int = DEFAULT_BLOCK,
+    devices=None,
 ) -> dict:
     r"""Integrated metrics of a batch of LTI descriptor plants (+ LTI observers), exactly.
 
     For every sample $k$, ``model(params_k)`` returns a linear time-invariant descriptor
     plant $E\dot x = A_k x$ (zero input: put feedback into the matrices) and optionally
     LTI observers $\dot\xi_i = A_{o,i}\xi_i + B_{y,i} y$ started at their
-    `initial_state()`. The joint system is reduced to its slow ODE and discretised
-    exactly on the uniform grid ``ts`` (one matrix exponential per sample, as in
-    `fojax.simulate`'s ``"exact"`` method); all samples of a chunk are then stepped
-    together and, for each requested metric ``name: (kind, C)`` with $o = C\,[x;\xi_1;
-    \dots]$, the trapezoid rule on ``ts`` is accumulated during the time loop:
+    `initial_state()`. The joint system is reduced to its slow ODE (the index-1
+    reduction of `fojax.simulate`, kept in the ``rank E`` slow coordinates) and
+    discretised exactly on the uniform grid ``ts`` (one matrix exponential per sample,
+    `expm_last`); the samples are then stepped together and, for each requested metric
+    ``name: (kind, C)`` with $o = C\,[x;\xi_1;\dots]$, the trapezoid rule on ``ts`` is
+    accumulated during the time loop:
 
     - ``"iae"``: $\int |o_i|\,\mathrm dt$ per row of ``C`` → ``(B, k)``;
     - ``"ise"``: $\int o_i^2\,\mathrm dt$ per row → ``(B, k)``;
     - ``"iae_l1"``: $\int \|o\|_1\,\mathrm dt$ → ``(B,)``;
     - ``"ise_l2"``: $\int \|o\|_2^2\,\mathrm dt$ → ``(B,)``.
 
-    No trajectory is stored: memory is ``O(B N²)``. Batches larger than `chunk_size`
-    are streamed in chunks of exactly `chunk_size` samples (the last one padded), so
-    the kernel is compiled once per *structure* (model, shapes, metric kinds, chunk)
-    and reused for any ``B`` and any numbers. Traceable inside `jax.jit` (then the
-    chunks run in a `jax.lax.map`).
+    **How it runs.** No trajectory is stored. Batches are streamed in chunks of
+    `chunk_size` samples (rounded up to a multiple of ``block × devices``; the last
+    chunk padded), so the kernel is compiled once per *structure* (model, shapes, metric
+    kinds, chunk) and reused for any ``B`` and any numbers; memory is
+    ``O(chunk_size)``. Inside a chunk, samples are processed in blocks of `block`: a
+    block is discretised and then stepped through the whole grid with the batch as the
+    last axis (``Φ`` ``(N, N, block)``, each step ``N²`` fused multiply–adds per
+    sample), so its data stays in the CPU cache; only blocks holding real samples are
+    computed. With several devices (`devices`, default: all local devices, e.g.
+    ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` for two CPU cores) the blocks
+    are distributed round-robin with `jax.shard_map` — one code path for one or many
+    devices; the result does not depend on the number of devices or the block size
+    (each sample's arithmetic is the same).
+
+    When every sample has the same ``E`` (checked on the host), its SVD split is
+    computed once; otherwise each sample computes its own and a sample whose ``rank E``
+    differs from the first sample's gets ``nan`` metrics.
 
     **Arguments:**
 
@@ -267,18 +468,19 @@ def simulate_lti_batch(
     - `ts`: ``(T,)`` uniform increasing output grid.
     - `metrics`: mapping ``name -> (kind, C)``, ``kind`` in ``METRIC_KINDS``, ``C`` of
       shape ``(k, n + Σ observer sizes)`` (or ``(n + Σ,)``).
-    - `chunk_size`: samples per compiled call (default 4096): discretised together,
-      then stepped in blocks.
+    - `chunk_size`: samples per compiled call (default 4096).
     - `block`: samples stepped together in one time loop (default 256): ``Φ`` and the
       output maps of a block, ``8 (N² + k N) · block`` bytes, should fit in the CPU's
-      L2 cache. (Unrolling the time loop was measured 10x slower: XLA fuses the
-      unrolled steps into loops that recompute.)
+      L2 cache. (Unrolling the time loop was measured slower.)
+    - `devices`: the devices to spread the blocks over (default `jax.local_devices()`).
 
     **Returns:** a dict ``name -> (B,)`` or ``(B, k)`` array (float64).
 
     **Raises:** `fojax.InputError` (non-LTI model, unknown metric kind, non-uniform
-    grid), `fojax.ShapeError`; index-1 checks run on the host for the first sample when
-    the inputs are concrete. Samples whose plant is impulsive give non-finite metrics.
+    grid, bad sizes), `fojax.ShapeError`; index-1 checks run on the host for the first
+    sample when the inputs are concrete. Samples whose plant is impulsive give non-finite
+    metrics. Not differentiable in reverse mode (the block loop has a data-dependent
+    trip count); use `fojax.simulate` under `jax.grad`.
     """
     leaves = jax.tree.leaves(params)
     if not leaves:
@@ -290,9 +492,11 @@ def simulate_lti_batch(
             raise ShapeError(
                 "params leaves", f"leading batch axis {Bn} (= x0.shape[0])", tuple(jnp.shape(leaf))
             )
-    chunk_size = int(chunk_size)
+    chunk_size, block = int(chunk_size), int(block)
     if chunk_size < 1:
         raise InputError(f"chunk_size must be a positive integer, got {chunk_size}.")
+    if block < 1:
+        raise InputError(f"block must be a positive integer, got {block}.")
     T, h, ts = _step_size(ts)
     params = jax.tree.map(jnp.asarray, params)
     first = jax.tree.map(lambda a: a[0], params)
@@ -304,35 +508,51 @@ def simulate_lti_batch(
     names, kinds, Cstack = _check_metrics(metrics, size)
     if lti_matrices(plant0) is not None and is_concrete(plant0, x0):
         host_initial_checks(plant0, x0[0], ts[0], Zero(plant0.m), strict=False, tol=0.0)
-    layout = (T, kinds, int(block))
+    # static slow dimension: rank E of the first sample
+    r = int(np.sum(np.asarray(svd_split(jnp.asarray(plant0.E)).slow))) if is_concrete(plant0) else None
+    split = _shared_split(model, params, plant0)
+    Nc = None
+    if is_concrete(params, x0):
+        def first_map(p, xk):
+            plant, observers = _as_model_output(model(p))
+            return Cstack @ _joint_system(plant, observers, xk, split, r)[2]
 
-    bc = min(chunk_size, Bn)
+        Nc = _output_basis(np.asarray(first_map(first, x0[0])))
+        Nc = None if Nc is None else (Nc[0], jnp.asarray(Nc[1]))
+    mesh = _mesh_for(devices)
+    D = 1 if mesh is None else mesh.devices.size
+    block = min(block, -(-min(chunk_size, Bn) // D))  # tiny batches: no block of mostly padding
+    unit = block * D
+    bc = -(-chunk_size // unit) * unit
+    R = sum(1 if kd in ("iae_l1", "ise_l2") else k for kd, k in kinds)
+    layout = (T, kinds, block, r, R)
+
     n_chunks = -(-Bn // bc)
     pad = n_chunks * bc - Bn
     if pad:
         padf = lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)], axis=0)  # noqa: E731
         params, x0 = jax.tree.map(padf, params), padf(x0)
+    nreal = np.minimum(Bn - bc * np.arange(n_chunks), bc)
     if n_chunks == 1:
-        out = _chunk_core(model, params, x0, h, Cstack, layout)
+        out = _chunk_core(model, params, x0, jnp.asarray(nreal[0]), h, Cstack, layout, split, Nc, mesh)
     elif is_concrete(params, x0, h, Cstack):
         outs = []
         for i in range(n_chunks):
             sl = lambda a, i=i: a[i * bc : (i + 1) * bc]  # noqa: E731
-            outs.append(_chunk_core(model, jax.tree.map(sl, params), sl(x0), h, Cstack, layout))
+            outs.append(_chunk_core(model, jax.tree.map(sl, params), sl(x0), jnp.asarray(nreal[i]), h, Cstack,
+                                    layout, split, Nc, mesh))
         out = jnp.concatenate(outs, axis=1)
     else:
         resh = lambda a: a.reshape((n_chunks, bc) + a.shape[1:])  # noqa: E731
         res = lax.map(
-            lambda px: _chunk_core(model, px[0], px[1], h, Cstack, layout),
-            (jax.tree.map(resh, params), resh(x0)),
+            lambda px: _chunk_core(model, px[0], px[1], px[2], h, Cstack, layout, split, Nc, mesh),
+            (jax.tree.map(resh, params), resh(x0), jnp.asarray(nreal)),
         )  # (n_chunks, R, bc)
         out = jnp.moveaxis(res, 1, 0).reshape(res.shape[1], n_chunks * bc)
     out = out[:, :Bn].T  # (B, R)
     result, off = {}, 0
     for name, (kind, k) in zip(names, kinds):
-        r = 1 if kind in ("iae_l1", "ise_l2") else k
-        result[name] = (
-            out[:, off] if r == 1 and kind in ("iae_l1", "ise_l2") else out[:, off : off + r]
-        )
-        off += r
+        r_ = 1 if kind in ("iae_l1", "ise_l2") else k
+        result[name] = out[:, off] if kind in ("iae_l1", "ise_l2") else out[:, off : off + r_]
+        off += r_
     return result

@@ -322,9 +322,13 @@ class MaskedLinearReduction(eqx.Module):
     split: SVDSplit
 
 
-def reduce_linear_masked(E, A, B) -> MaskedLinearReduction:
-    """Traceable linear reduction with static (``n``) shapes; see the module docstring."""
-    split = svd_split(E)
+def reduce_linear_masked(E, A, B, split: SVDSplit | None = None) -> MaskedLinearReduction:
+    """Traceable linear reduction with static (``n``) shapes; see the module docstring.
+
+    `split`: a precomputed `svd_split(E)` (e.g. shared by a batch of plants with the
+    same ``E``); computed from `E` when ``None``.
+    """
+    split = svd_split(E) if split is None else split
     ms, mf = split.slow, split.fast
     At = split.U.T @ A @ split.V
     Bt = split.U.T @ B
