@@ -281,6 +281,32 @@ def test_reproduces_simulate_lti_batch(batch):
     assert max_rel(out, ref) < 1e-10
 
 
+def model_autonomous(p):
+    return fojax.DescriptorSystem(jnp.asarray(E), jnp.asarray(ACL) + 0.0 * p)
+
+
+def test_autonomous_common_loop_is_exact_stepping(batch):
+    # No signals, no input, the same matrices for every sample: g vanishes identically, the
+    # plan has nothing to apply (the kernel only multiplies by e^{hA0}) — exact stepping.
+    _, x0 = batch
+    metrics = {"x": ("iae", jnp.eye(4)), "l2": ("ise_l2", jnp.eye(4))}
+    p = jnp.zeros(B)
+    ref = simulate_lti_batch(model_autonomous, p, jnp.asarray(x0), jnp.asarray(TS), metrics=metrics)
+    out = simulate_batch_exponential(model_autonomous, p, jnp.asarray(x0), jnp.asarray(TS), metrics=metrics)
+    assert max_rel(out, ref) < 1e-12
+
+
+def test_observer_shapes_are_checked():
+    with pytest.raises(fojax.ShapeError, match=r"observers\[0\].linear_matrices\(\).Bu has shape \(2, 2\), expected \(2, 0\)"):
+        simulate_batch_exponential(
+            lambda q: (fojax.DescriptorSystem(jnp.asarray(E), jnp.asarray(ACL) * q, C=jnp.asarray(C0)), (_observer({"xi0": jnp.zeros(2)}),)),
+            jnp.ones(2),
+            jnp.ones((2, 4)),
+            jnp.asarray(TS),
+            metrics=METRICS,
+        )
+
+
 # ------------------------------------------------------------------- errors
 
 
