@@ -21,9 +21,9 @@ lineax 0.1.1):
    can deadlock jaxlib 0.10.2's CPU thread pool (see `fojax._small_linalg`).
 
 `SmallLU` replaces that linear solver: LU with partial pivoting written in plain XLA
-operations (like `fojax._small_linalg.solve_small`, statically unrolled over the
-matrix size, which is small for every fojax simulation), and it compares only the
-shapes and dtypes of the right-hand side, never the sharding. The factorisation is done
+operations (fixed-length `lax.fori_loop`\ s over the rows, so the traced program does
+not grow with the matrix size), and it compares only the shapes and dtypes of the
+right-hand side, never the sharding. The factorisation is done
 once per Jacobian (`init`) and reused by every Newton iteration (`compute`).
 `default_implicit_solver` is what `simulate` uses when no `solver` is given.
 """
@@ -38,6 +38,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
+from jax import lax
 
 from .._errors import ShapeError
 
@@ -53,11 +54,10 @@ def lu_factor_small(A):
     """
     n = A.shape[0]
     rows = jnp.arange(n)
-    perm = rows
-    M = A
-    for i in range(n):
-        col = jnp.where(rows >= i, jnp.abs(M[:, i]), -1.0)
-        p = jnp.argmax(col)
+
+    def step(i, carry):
+        M, perm = carry
+        p = jnp.argmax(jnp.where(rows >= i, jnp.abs(M[:, i]), -1.0))
         ri, rp = M[i], M[p]
         M = M.at[i].set(rp).at[p].set(ri)
         qi, qp = perm[i], perm[p]
@@ -66,28 +66,41 @@ def lu_factor_small(A):
         upper = jnp.where(rows > i, M[i], 0.0)  # update only the trailing block
         M = M - factors[:, None] * upper[None, :]
         M = M.at[:, i].set(jnp.where(rows > i, factors, M[:, i]))
-    return M, perm
+        return M, perm
+
+    # A fixed-length fori_loop (a scan): trace size independent of n, vmaps without a
+    # batched predicate.
+    return lax.fori_loop(0, n, step, (A, rows))
 
 
 def lu_solve_small(LU, perm, b, transpose: bool = False):
     r"""Solve $Ax = b$ (or $A^\top x = b$) from `lu_factor_small`'s ``(LU, perm)``.
 
-    Forward and back substitution, unrolled (no LAPACK/BLAS custom call).
+    Forward and back substitution in fixed-length loops (no LAPACK/BLAS custom call).
     """
     n = LU.shape[0]
+    rows = jnp.arange(n)
+
+    def lower(i, w):  # unit lower triangular L w = rhs, row i
+        return w.at[i].add(-(LU[i] @ jnp.where(rows < i, w, 0.0)))
+
+    def upper(k, w):  # U w = rhs, row i = n - 1 - k
+        i = n - 1 - k
+        return w.at[i].set((w[i] - LU[i] @ jnp.where(rows > i, w, 0.0)) / LU[i, i])
+
+    def upper_t(i, v):  # Uᵀ v = rhs (lower triangular), row i
+        return v.at[i].set((v[i] - LU[:, i] @ jnp.where(rows < i, v, 0.0)) / LU[i, i])
+
+    def lower_t(k, v):  # Lᵀ v = rhs (unit upper triangular), row i = n - 1 - k
+        i = n - 1 - k
+        return v.at[i].add(-(LU[:, i] @ jnp.where(rows > i, v, 0.0)))
+
     if not transpose:  # L U x = b[perm]
-        w = b[perm]
-        for i in range(n):
-            w = w.at[i].set(w[i] - LU[i, :i] @ w[:i])
-        for i in reversed(range(n)):
-            w = w.at[i].set((w[i] - LU[i, i + 1 :] @ w[i + 1 :]) / LU[i, i])
-        return w
+        w = lax.fori_loop(0, n, lower, b[perm])
+        return lax.fori_loop(0, n, upper, w)
     # Aᵀ = Uᵀ Lᵀ P: Uᵀ v = b, Lᵀ w = v, x = Pᵀ w.
-    v = b
-    for i in range(n):
-        v = v.at[i].set((v[i] - LU[:i, i] @ v[:i]) / LU[i, i])
-    for i in reversed(range(n)):
-        v = v.at[i].set(v[i] - LU[i + 1 :, i] @ v[i + 1 :])
+    v = lax.fori_loop(0, n, upper_t, b)
+    v = lax.fori_loop(0, n, lower_t, v)
     return jnp.zeros_like(v).at[perm].set(v)
 
 
@@ -137,9 +150,9 @@ class SmallLU(lx.AbstractLinearSolver):
 
     Use it as the Newton linear solver of diffrax's implicit solvers when they run
     inside `jax.shard_map` (every `fojax.studies.run_study`) or under `jax.vmap` on a
-    busy CPU (see the module docstring for the two bugs it avoids). Cost: the
-    factorisation is unrolled over the matrix size ``N`` (trace size ``O(N)``), meant
-    for ``N ≲ 60``.
+    busy CPU (see the module docstring for the two bugs it avoids). Meant for the small
+    systems fojax simulates: the factorisation is ``N`` sequential row steps of
+    ``O(N²)`` work (no blocking).
 
     **Arguments:** none.
     """
