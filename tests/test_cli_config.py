@@ -10,10 +10,10 @@ import pytest
 from test_config import _mutate, dumps, MALFORMED
 
 from fojax.config import example_names, example_path
+from fojax.design import TakagiSugenoObserverDesign
 from fojax.results import load_design, read_design_metadata
 
 
-LINEAR = [n for n in example_names() if n != "robot_arm_ts"]
 try:  # the Monte Carlo runner may not be part of this version: then `fojax study` exits 3
     import fojax.studies  # noqa: F401
 
@@ -81,13 +81,13 @@ def runs(tmp_path_factory):
     radius0.write_text(dumps(_mutate(("observer", 0, "region", "disk", "radius"), 0.0)))
     r = {
         "check": _Run("check", *example_names()),
-        "design": _Run("design", *LINEAR, "--out", tmp / "runs"),
-        "ts": _Run("design", "robot_arm_ts", "--out", tmp / "ts"),
+        "design": _Run("design", *example_names(), "--out", tmp / "runs"),
         "quiet": _Run("check", "example_3_1_3", "--quiet"),
         "help": _Run("--help"),
         "design_help": _Run("design", "--help"),
         "examples": _Run("examples"),
         "study": _Run("study", "--samples", "4", "--horizon", "2", "--steps", "2", "--out", tmp / "study"),
+        "ts_study": _Run("study", "robot_arm_ts", "--out", tmp / "ts-study"),
         "missing": _Run("check", tmp / "missing.toml"),
         "radius0": _Run("design", radius0, "--out", tmp / "radius0-out"),
     }
@@ -122,12 +122,12 @@ def test_check_every_example(checked):
     assert "Assumption 1 yes" in out and "Assumption 1 NO" not in out
 
 
-def test_design_every_linear_example(designed):
+def test_design_every_example(designed):
     r, out = designed
     assert r.returncode == 0, r.stderr
     folders = sorted(p for p in out.iterdir() if p.is_dir())
-    assert len(folders) == len(LINEAR)
-    for name in LINEAR:
+    assert len(folders) == len(example_names()) == 8
+    for name in example_names():
         (folder,) = [f for f in folders if f.name.startswith(f"design-{name}-")]
         assert (folder / "config.toml").read_bytes() == example_path(name).read_bytes()
         report = (folder / "report.md").read_text()
@@ -144,11 +144,31 @@ def test_design_every_linear_example(designed):
     assert "verified" in r.stdout and "NO" not in r.stdout.split("verified")[-1]
 
 
-def test_design_of_takagi_sugeno_is_refused_with_one_line(runs):
-    r = runs["ts"]
-    assert r.returncode == 2
+def test_design_of_the_takagi_sugeno_example(designed):
+    r, out = designed
+    (folder,) = out.glob("design-robot_arm_ts-*")
+    d = load_design(folder / "generalized.npz")
+    assert type(d) is TakagiSugenoObserverDesign and d.report.passed
+    assert d.observer.num_rules == 2 and d.structure.psi == "output"  # w = y (eq. 3.152)
+    # the functional of the config, estimated with every rule's error poles in the disk
+    assert np.array_equal(d.L, np.eye(5)[[1, 3]])
+    assert np.all(np.abs(d.report.eigenvalues + 2.0) < 1.0) and d.report.eigenvalues.size == 8
+    assert d.report.extra["lyapunov_max_eig"] < 0  # common certificate: time-varying weights
+    # the verification is printed
+    block = r.stdout.split("fojax design: robot_arm_ts")[1].split("results:")[0]
+    assert "Takagi-Sugeno model with 2 rules" in block and "2 rules, common T" in block
+    assert "verification PASSED" in block and "lyapunov_max_eig" in block
+
+
+def test_study_of_takagi_sugeno_is_refused_with_one_line(runs):
+    r = runs["ts_study"]
+    if not STUDIES:
+        assert r.returncode == 3
+        return
+    assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.count("\n") == 1
-    assert "[takagi_sugeno] observer design for Takagi-Sugeno models is not available" in r.stderr
+    assert "[takagi_sugeno] studies of Takagi-Sugeno models are not available" in r.stderr
+    assert not (runs["tmp"] / "ts-study").exists()
 
 
 def test_second_design_never_destroys_the_first(tmp_path):

@@ -110,9 +110,15 @@ def design(
     overwrite: bool = False,
     quiet: bool = False,
 ) -> int:
-    """Design, verify and save every ``[[observer]]`` of `config_path` in a new results folder."""
+    """Design, verify and save every ``[[observer]]`` of `config_path` in a new results folder.
+
+    For a Takagi–Sugeno model (``[takagi_sugeno]``) every observer is a Takagi–Sugeno
+    functional observer (`fojax.design.design_ts_observer`: one common $T$, per-rule
+    gains, a common certificate for all rules); otherwise
+    `fojax.design.design_functional_observer` on the (fault-augmented) system.
+    """
     from .._errors import ConfigError
-    from ..design import design_functional_observer
+    from ..design import design_functional_observer, design_ts_observer
     from ..results import (
         atomic_write_json,
         new_results_folder,
@@ -124,12 +130,12 @@ def design(
 
     out = _Progress(quiet)
     cfg = _load(config_path)
-    if cfg.is_takagi_sugeno:
+    if cfg.is_takagi_sugeno and cfg.has_faults:
         raise ConfigError(
             config_path,
-            "takagi_sugeno",
-            "observer design for Takagi-Sugeno models is not available from config files yet; "
-            "`fojax check` analyses each rule.",
+            "faults",
+            "fault estimation for Takagi-Sugeno models is not available; remove [faults] to "
+            "design Takagi-Sugeno functional observers of z = L x.",
         )
     from ..config import ObserverSpec
 
@@ -146,6 +152,11 @@ def design(
     atomic_write_bytes(folder / "config.toml", pathlib.Path(config_path).read_bytes(), overwrite=overwrite)
     if cfg.has_faults:
         out.say(f"  designing for the fault-augmented system ({sys_.n} states), functional {L.shape[0]} x {L.shape[1]}")
+    if cfg.is_takagi_sugeno:
+        out.say(f"  Takagi-Sugeno model with {sys_.num_rules} rules: one observer per [[observer]] with "
+                "a common T and per-rule gains, error poles of every rule (and every convex "
+                "combination) in the region")
+    design_fn = design_ts_observer if cfg.is_takagi_sugeno else design_functional_observer
     rows, figures, files, summary = [], {}, {}, []
     all_passed = True
     for spec in observers:
@@ -153,7 +164,7 @@ def design(
             f"designing observer '{spec.name}' ({spec.kind}, error poles in "
             f"{spec.region.describe()}): structure checks, LMI solve, float64 verification"
         ):
-            d = design_functional_observer(
+            d = design_fn(
                 sys_, L, kind=spec.kind, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1
             )
         out.say(f"  {d}")
