@@ -383,8 +383,9 @@ def study(
         # Explicit Tsit5: the benchmark loops are not stiff (error poles in the designed disks)
         # and the implicit default (Kvaerno5; works in studies since the issue-5 fix) is much
         # slower here. Measured with `fojax study --samples 16 --horizon 2 --steps 0` on the
-        # 2 shared cores: first run_study call (compile + run) 97 s vs 23 s, a second call
-        # 0.58 s vs 0.12 s; mean IAEs agree to ~1e-6.
+        # 2 shared cores: first run_study call (compile + run) ~33 s vs ~12 s CPU time
+        # (49-80 s vs 17-21 s wall), a second call 0.2-0.5 s vs 0.06-0.13 s; mean IAEs
+        # agree to ~1e-6.
         import diffrax
 
         res = studies.run_study(st, [d.observer for d in designs.values()], observer_names=names,
