@@ -1,19 +1,27 @@
 """The `fojax check` / `fojax design` / `fojax study` commands, run as subprocesses."""
 
+import json
+import os
 import re
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
 from test_config import _mutate, dumps, MALFORMED
 
+from fojax.cli._main import main
 from fojax.config import example_names, example_path
 from fojax.design import TakagiSugenoObserverDesign
 from fojax.results import load_design, read_design_metadata
 
 
+# the resume tests: a small LTI study (no implicit solver), 4 tuning steps of about a second
+RESUME_ARGS = ("example_4_1_3", "--samples", "4", "--horizon", "1", "--steps", "4")
 try:  # the Monte Carlo runner may not be part of this version: then `fojax study` exits 3
     import fojax.studies  # noqa: F401
 
@@ -32,19 +40,21 @@ except ImportError:
 CLI_MALFORMED = [MALFORMED[i] for i in (0, 1, 2, 3, 9, 11, 17, 22)]
 
 
-def fojax(*args, cwd=None):
+def fojax(*args, cwd=None, env=None):
     return subprocess.run(
-        [sys.executable, "-m", "fojax.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd
+        [sys.executable, "-m", "fojax.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd,
+        env=env,
     )
 
 
 class _Run:
     """A subprocess started at once; `.returncode`, `.stdout`, `.stderr` wait for it."""
 
-    def __init__(self, *args):
+    def __init__(self, *args, env=None):
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "fojax.cli", *map(str, args)],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+            start_new_session=True,  # its own process group (the resume test interrupts one)
         )
         self._out = None
 
@@ -79,6 +89,10 @@ def runs(tmp_path_factory):
         bad[key] = p
     radius0 = tmp / "radius0.toml"
     radius0.write_text(dumps(_mutate(("observer", 0, "region", "disk", "radius"), 0.0)))
+    # The studies share a persistent JAX compilation cache: the later ones (second run,
+    # interrupted run, resumed run) then skip the minutes of compiling the first one pays.
+    study_env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(tmp / "jax-cache"),
+                     JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
     r = {
         "check": _Run("check", *example_names()),
         "design": _Run("design", *example_names(), "--out", tmp / "runs"),
@@ -86,13 +100,15 @@ def runs(tmp_path_factory):
         "help": _Run("--help"),
         "design_help": _Run("design", "--help"),
         "examples": _Run("examples"),
-        "study": _Run("study", "--samples", "4", "--horizon", "2", "--steps", "2", "--out", tmp / "study"),
+        "study": _Run("study", "--samples", "4", "--horizon", "2", "--steps", "2", "--out", tmp / "study",
+                      env=study_env),
+        "resume_a": _Run("study", *RESUME_ARGS, "--out", tmp / "resume-a", env=study_env),
         "ts_study": _Run("study", "robot_arm_ts", "--out", tmp / "ts-study"),
         "missing": _Run("check", tmp / "missing.toml"),
         "radius0": _Run("design", radius0, "--out", tmp / "radius0-out"),
     }
     r |= {f"bad:{k}": _Run("check", p) for k, p in bad.items()}
-    r["tmp"], r["bad"] = tmp, bad
+    r["tmp"], r["bad"], r["study_env"] = tmp, bad, study_env
     yield r
     for v in r.values():
         if isinstance(v, _Run) and v.proc.poll() is None:
@@ -237,7 +253,7 @@ def test_default_study_and_a_second_run_keeps_the_first(runs):
     assert "example_3_3_7" in r.stdout and "(mean IAE)" in r.stdout
     (first,) = list((runs["tmp"] / "study").iterdir())
     names = {p.name for p in first.iterdir()}
-    assert {"PO.npz", "FGDO.npz", "report.md", "metrics.json", "metrics.npz", "study.npz",
+    assert {"PO.npz", "FGDO.npz", "report.md", "metrics.json", "metrics.npz", "study.npz", "study-options.json",
             "error-bands.png", "iae.png", "poles-PO.png", "config.toml"} <= names
     for png in first.glob("*.png"):
         img = mpimg.imread(png)
@@ -250,8 +266,193 @@ def test_default_study_and_a_second_run_keeps_the_first(runs):
         assert "| FGDO-tuned |" in report and "Tuning (held-out mean IAE loss)" in report
     snapshot = {p.name: p.read_bytes() for p in first.iterdir()}
     again = fojax("--quiet", "study", "--samples", "4", "--horizon", "2", "--steps", "0",
-                  "--out", runs["tmp"] / "study")
+                  "--out", runs["tmp"] / "study", env=runs["study_env"])
     assert again.returncode == 0 and again.stdout == "", again.stderr
     folders = sorted((runs["tmp"] / "study").iterdir())
     assert len(folders) == 2 and first in folders
     assert {p.name: p.read_bytes() for p in first.iterdir()} == snapshot
+
+
+# --------------------------------------------------------------------------- study --resume
+
+
+def _study_folder(run):
+    return Path(re.search(r"-> results folder (\S+)", run.stdout).group(1))
+
+
+def _npz(path):
+    with np.load(path, allow_pickle=False) as data:
+        return {k: data[k] for k in data.files if k != "__metadata__"}
+
+
+def _assert_same_arrays(a, b):
+    assert a.keys() == b.keys() and a
+    for k in a:
+        assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), k
+
+
+def _assert_consistent(folder):
+    """Only complete files: no temporary files, every .npz and .json readable."""
+    names = sorted(p.name for p in folder.iterdir())
+    assert not [n for n in names if n.startswith(".") or "tmp" in n], names
+    for p in folder.glob("*.npz"):
+        _npz(p)
+    for p in folder.glob("*.json"):
+        json.loads(p.read_text())
+
+
+@pytest.fixture(scope="module")
+def interrupted(runs):
+    """A second study with the options of `runs["resume_a"]`, interrupted (SIGINT to its
+    process group, as Ctrl-C does) once its tuning checkpoint shows step 1 of 4; started
+    after the first study, so that it reuses its compilation cache."""
+    if not (STUDIES and TUNING):
+        pytest.skip("fojax study with tuning is not available in this version")
+    assert runs["resume_a"].returncode == 0, runs["resume_a"].stderr
+    out = runs["tmp"] / "interrupted"
+    run = _Run("study", *RESUME_ARGS, "--out", out, env=runs["study_env"])
+    deadline = time.monotonic() + 600
+    while run.proc.poll() is None and time.monotonic() < deadline:
+        ck = list(out.glob("*/tuning-generalized.json"))
+        if ck and json.loads(ck[0].read_text())["step"] >= 1:
+            os.killpg(run.proc.pid, signal.SIGINT)
+            break
+        time.sleep(0.01)
+    assert run.returncode == 130, (run.returncode, run.stderr)
+    (folder,) = out.iterdir()
+    return run, folder
+
+
+def test_interrupted_study_leaves_a_consistent_folder(interrupted):
+    run, folder = interrupted
+    line = run.stderr.strip().splitlines()[-1]
+    assert line == (f"fojax: interrupted; every file in {folder} is complete (tuning checkpoints "
+                    f"included). Continue with: fojax study --resume {folder}")
+    _assert_consistent(folder)
+    names = {p.name for p in folder.iterdir()}
+    assert {"config.toml", "study-options.json", "generalized.npz", "proportional.npz",
+            "tuning-generalized.npz", "tuning-generalized.json"} <= names
+    assert "generalized-tuned.npz" not in names and "report.md" not in names  # stopped while tuning
+    ck = json.loads((folder / "tuning-generalized.json").read_text())
+    assert 1 <= ck["step"] < 4  # interrupted before the last step
+    assert ck["history"]["step"] == list(range(1, ck["step"] + 1))
+    opts = json.loads((folder / "study-options.json").read_text())
+    assert {k: opts[k] for k in ("samples", "horizon", "steps", "seed")} == {
+        "samples": 4, "horizon": 1.0, "steps": 4, "seed": 0}
+
+
+@pytest.fixture(scope="module")
+def resumed(interrupted, runs):
+    _, folder = interrupted
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    step = json.loads((folder / "tuning-generalized.json").read_text())["step"]
+    return fojax("study", "--resume", folder, env=runs["study_env"]), folder, before, step
+
+
+def test_resumed_study_equals_the_uninterrupted_one_bit_for_bit(runs, resumed):
+    r, folder, before, step = resumed
+    assert r.returncode == 0, r.stderr
+    assert f"resuming example_4_1_3 in {folder}" in r.stdout
+    assert f"steps {step + 1}..4 (resumed from the checkpoint at step {step})" in r.stdout
+    first = _study_folder(runs["resume_a"])  # the same study, never interrupted
+    # the tuned design, the whole tuning checkpoint (parameters, optimizer state, history) and
+    # every Monte Carlo metric are bit-identical to the uninterrupted run's
+    a, b = load_design(first / "generalized-tuned.npz"), load_design(folder / "generalized-tuned.npz")
+    assert b.report.passed and b.solver["tuning"]["steps"] == 4
+    for k in ("N", "J", "F", "H", "S", "G", "M", "P", "Q"):
+        assert np.array_equal(getattr(a.observer, k), getattr(b.observer, k)), k
+    for name in ("generalized-tuned.npz", "tuning-generalized.npz", "metrics.npz", "study.npz"):
+        _assert_same_arrays(_npz(first / name), _npz(folder / name))
+    ha = json.loads((first / "tuning-generalized.json").read_text())
+    hb = json.loads((folder / "tuning-generalized.json").read_text())
+    assert ha["step"] == hb["step"] == 4
+    for k, v in ha["history"].items():
+        assert np.array_equal(np.asarray(v, float), np.asarray(hb["history"][k], float), equal_nan=True), k
+    # the first run's files that are not regenerated are untouched; the folder is complete
+    for name in ("config.toml", "study-options.json", "generalized.npz", "proportional.npz"):
+        assert (folder / name).read_bytes() == before[name], name
+    assert {p.name for p in first.iterdir()} == {p.name for p in folder.iterdir()}
+    _assert_consistent(folder)
+    assert "| generalized-tuned |" in (folder / "report.md").read_text()
+
+
+def _main(capsys, *args):
+    code = main(["study", *map(str, args)])
+    captured = capsys.readouterr()
+    return code, captured.err
+
+
+def test_resume_refuses_a_folder_of_another_study_with_one_line(runs, tmp_path, capsys):
+    if not STUDIES:
+        pytest.skip("fojax study is not available in this version")
+    assert runs["resume_a"].returncode == 0, runs["resume_a"].stderr
+    first = _study_folder(runs["resume_a"])
+    snapshot = {p.name: p.read_bytes() for p in first.iterdir()}
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    designed = tmp_path / "designed"  # what `fojax design` leaves: a config.toml, no options
+    designed.mkdir()
+    (designed / "config.toml").write_bytes(example_path("example_4_1_3").read_bytes())
+    other = example_path("example_3_3_7")
+    edited = tmp_path / "edited"  # a study folder whose config.toml was edited afterwards
+    edited.mkdir()
+    for name in ("config.toml", "study-options.json"):
+        (edited / name).write_bytes((first / name).read_bytes())
+    with open(edited / "config.toml", "a") as f:
+        f.write("# edited\n")
+    cases = [
+        (["--resume", edited], f"--resume {edited}: its config.toml was changed after the study"),
+        (["--resume", empty], f"--resume {empty}: the folder has no config.toml, so it is not a `fojax study`"),
+        (["--resume", designed], f"--resume {designed}: the folder has no readable study-options.json"),
+        (["--resume", tmp_path / "nope"], f"--resume {tmp_path / 'nope'}: no such results folder."),
+        ([other, "--resume", first], f"--resume {first}: CONFIG {other} differs from the config.toml"),
+        (["--resume", first, "--samples", "8"], "the study in it was made with --samples 4, not 8; omit --samples"),
+        (["--resume", first, "--horizon", "3"], "made with --horizon 1.0, not 3.0"),
+        (["--resume", first, "--steps", "5"], "made with --steps 4, not 5"),
+        (["--resume", first, "--out", tmp_path], f"--resume reuses {first}; --out cannot be given with it."),
+    ]
+    for argv, message in cases:
+        code, err = _main(capsys, *argv)
+        assert code == 2, (argv, err)
+        assert err.count("\n") == 1 and err.startswith("fojax: error: --resume"), err
+        assert message in err, (message, err)
+    assert {p.name: p.read_bytes() for p in first.iterdir()} == snapshot
+
+
+def test_a_signal_during_a_checkpoint_write_takes_effect_after_it(tmp_path):
+    """`fojax study` defers SIGINT/SIGTERM while the tuning writes its checkpoint pair (a
+    .npz and a .json that must agree), and raises KeyboardInterrupt right after."""
+    import inspect
+
+    import fojax.tuning._tune as tune_module
+    from fojax.cli._commands import _Interrupts
+
+    # the writer the CLI recognises is the one the tuning uses
+    name, part = _Interrupts.PAIRED_WRITERS[0]
+    assert part in inspect.getfile(getattr(tune_module, name))
+    # a stand-in with the same name and file: the signal arrives between its two writes
+    src = (
+        "import pathlib\n"
+        "def _save_checkpoint(path, kill, pause):\n"
+        "    pathlib.Path(path + '.npz').write_text('1')\n"
+        "    kill()\n"
+        "    pause()\n"
+        "    pathlib.Path(path + '.json').write_text('1')\n"
+    )
+    ns = {}
+    exec(compile(src, str(tmp_path / "tuning" / "_tune.py"), "exec"), ns)
+    path = str(tmp_path / "ck")
+    written = False
+    with _Interrupts() as interrupts, pytest.raises(KeyboardInterrupt):
+        ns["_save_checkpoint"](path, lambda: os.kill(os.getpid(), signal.SIGTERM), lambda: time.sleep(0.2))
+        written = os.path.exists(path + ".json")  # reached: the write was not interrupted
+        for _ in range(500):  # the interruption follows at once
+            time.sleep(0.01)
+    assert written and interrupts.signum == signal.SIGTERM
+    # outside a checkpoint write a signal interrupts at once
+    with _Interrupts(), pytest.raises(KeyboardInterrupt):
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(500):
+            time.sleep(0.01)
+        pytest.fail("not interrupted")
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import pathlib
+import signal
 import time
 
 import numpy as np
@@ -239,6 +242,9 @@ def _tuning_module():
     return tuning
 
 
+STUDY_OPTIONS = "study-options.json"
+
+
 def study(
     config_path: str | None = None,
     out_dir: str | None = None,
@@ -246,6 +252,7 @@ def study(
     samples: int | None = None,
     horizon: float | None = None,
     steps: int | None = None,
+    resume: str | None = None,
     quiet: bool = False,
 ) -> int:
     """``fojax study``: structure check, LMI designs, Monte Carlo study, figures and report.
@@ -254,22 +261,208 @@ def study(
     samples are ``N_u`` uncertainty draws (``[uncertainty] profile = uniform``) times
     ``N_f`` fault scenarios (4 when ``[faults]`` is given: one random fault with a random
     onset each), ``N_u N_f ≈ [study] samples``.
+
+    The results folder holds the config (``config.toml``) and the effective options
+    (``study-options.json``: samples, horizon, steps, seed, dt, learning rate). With
+    `resume` (a folder of an interrupted study) that folder is reused: its config and
+    options are read back (a different CONFIG or option is refused), the designs saved in
+    it are loaded (bit-identical, so the tuning checkpoint ``tuning-<name>`` refers to
+    exactly them), the tuning continues from its checkpoint, and the files the run
+    regenerates (tuned designs, study results, metrics, figures, report) are replaced.
+
+    SIGINT/SIGTERM stop the study with exit code 130/143 and leave the folder consistent
+    (every file is written atomically; a signal arriving while a tuning checkpoint is
+    being written takes effect once that write is complete).
     """
     if not _studies_available():
         raise _Unavailable(
             "fojax study is not available yet: the Monte Carlo study runner (fojax.studies) is "
             "not part of this fojax version. Use `fojax check` and `fojax design` meanwhile."
         )
+    from .._errors import ConfigError, InputError
+    from ..config import example_path, load_config, StudySpec, TuningSpec
+    from ..results import atomic_write_json, new_results_folder
+    from ..results._io import atomic_write_bytes, fojax_version
+
+    out = _Progress(quiet)
+    if resume is not None:
+        folder, path, cfg = _resume_folder(
+            resume, config_path, out_dir, {"samples": samples, "horizon": horizon, "steps": steps}
+        )
+        opts = json.loads((folder / STUDY_OPTIONS).read_text())
+        n_samples, T, n_steps = opts["samples"], opts["horizon"], opts["steps"]
+    else:
+        path = config_path if config_path is not None else str(example_path("example_3_3_7"))
+        cfg = load_config(path)
+    if cfg.is_takagi_sugeno:
+        raise ConfigError(path, "takagi_sugeno", "studies of Takagi-Sugeno models are not available from config files yet.")
+    spec = cfg.study or StudySpec()
+    tspec = cfg.tuning or TuningSpec()
+    if resume is None:
+        n_samples = samples if samples is not None else spec.samples
+        T = horizon if horizon is not None else spec.horizon
+        n_steps = steps if steps is not None else tspec.steps
+        if n_samples < 1 or T <= spec.dt or n_steps < 0:
+            raise InputError(
+                f"--samples must be >= 1, --horizon > dt = {spec.dt} and --steps >= 0; got "
+                f"{n_samples}, {T}, {n_steps}."
+            )
+    options = {"samples": n_samples, "horizon": T, "steps": n_steps, "seed": spec.seed,
+               "dt": spec.dt, "learning_rate": tspec.learning_rate}
+    if resume is not None:
+        changed = [k for k, v in options.items() if opts.get(k) != v]
+        if changed:
+            raise InputError(
+                f"--resume {folder}: its config.toml now gives {', '.join(f'{k} = {options[k]}' for k in changed)} "
+                f"but the study was run with {', '.join(f'{k} = {opts.get(k)}' for k in changed)} "
+                "(defaults of another fojax version?); start a new study instead."
+            )
+        out.say(f"fojax study: resuming {cfg.name} in {folder} (config.toml and options of the first run: "
+                f"{n_samples} samples, horizon {T} s, {n_steps} tuning steps)")
+    else:
+        folder = new_results_folder(out_dir if out_dir is not None else "fojax-results", prefix=f"study-{cfg.name}")
+        out.say(f"fojax study: {cfg.name} ({path}) -> results folder {folder}")
+        config_bytes = pathlib.Path(path).read_bytes()
+        atomic_write_bytes(folder / "config.toml", config_bytes)
+        atomic_write_json(folder / STUDY_OPTIONS, {
+            "command": "fojax study", "config": str(path), "name": cfg.name,
+            "config_sha256": hashlib.sha256(config_bytes).hexdigest(), **options,
+            "fojax_version": fojax_version(),
+        })
+    with _Interrupts() as interrupts:
+        try:
+            return _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps,
+                          resumed=resume is not None)
+        except KeyboardInterrupt:
+            import sys
+
+            code = 128 + (interrupts.signum or signal.SIGINT)
+            print(f"fojax: interrupted; every file in {folder} is complete (tuning checkpoints "
+                  f"included). Continue with: fojax study --resume {folder}", file=sys.stderr, flush=True)
+            return code
+
+
+def _resume_folder(folder, config_path, out_dir, given: dict):
+    """Validate ``--resume FOLDER``; returns ``(folder, config path, Config)``."""
+    import dataclasses
+
+    from .._errors import InputError
+    from ..config import load_config
+
+    folder = pathlib.Path(folder)
+    if out_dir is not None:
+        raise InputError(f"--resume reuses {folder}; --out cannot be given with it.")
+    if not folder.is_dir():
+        raise InputError(f"--resume {folder}: no such results folder.")
+    saved_config = folder / "config.toml"
+    options = folder / STUDY_OPTIONS
+    if not saved_config.is_file():
+        raise InputError(
+            f"--resume {folder}: the folder has no config.toml, so it is not a `fojax study` "
+            "results folder; give the folder printed by the interrupted study."
+        )
+    try:
+        opts = json.loads(options.read_text())
+        ok = isinstance(opts, dict) and opts.get("command") == "fojax study"
+    except (OSError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(
+            f"--resume {folder}: the folder has no readable {STUDY_OPTIONS}, so it was not made by "
+            "`fojax study` of this fojax version; start a new study instead."
+        )
+    if hashlib.sha256(saved_config.read_bytes()).hexdigest() != opts.get("config_sha256"):
+        raise InputError(
+            f"--resume {folder}: its config.toml was changed after the study in it was started "
+            f"(SHA-256 differs from the one in {STUDY_OPTIONS}); start a new study instead."
+        )
+    if config_path is not None and not pathlib.Path(config_path).is_file():
+        raise InputError(f"--resume {folder}: CONFIG {config_path} does not exist; omit it (the "
+                         "folder's config.toml is used).")
+    if config_path is not None and pathlib.Path(config_path).read_bytes() != saved_config.read_bytes():
+        raise InputError(
+            f"--resume {folder}: CONFIG {config_path} differs from the config.toml the study in "
+            "it was made with; omit CONFIG (the folder's config.toml is used) or start a new study."
+        )
+    for k, v in given.items():
+        if v is not None and v != opts.get(k):
+            raise InputError(
+                f"--resume {folder}: the study in it was made with --{k} {opts.get(k)}, not {v}; "
+                f"omit --{k} (the first run's value is used) or start a new study."
+            )
+    cfg = load_config(saved_config)
+    # the first run's config path and name (a config without `name` is named after its file)
+    cfg = dataclasses.replace(cfg, path=opts["config"], name=opts["name"])
+    return folder, opts["config"], cfg
+
+
+class _Interrupts:
+    """SIGINT/SIGTERM raise `KeyboardInterrupt` (so that atomic writers remove their
+    temporary files), except while a tuning checkpoint (an ``.npz`` + ``.json`` pair) is
+    being written: then the interruption happens right after that write."""
+
+    #: (function name, part of its file path) of writers that must not be interrupted
+    PAIRED_WRITERS = (("_save_checkpoint", "tuning"),)
+
+    def __init__(self):
+        self.signum = None
+        self._old = {}
+        self._waiting = False
+
+    def __enter__(self):
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._old[sig] = signal.signal(sig, self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        return False
+
+    @classmethod
+    def _in_paired_write(cls, frame) -> bool:
+        while frame is not None:
+            code = frame.f_code
+            if any(code.co_name == n and part in code.co_filename for n, part in cls.PAIRED_WRITERS):
+                return True
+            frame = frame.f_back
+        return False
+
+    def _handler(self, signum, frame):
+        self.signum = self.signum or signum
+        if self._in_paired_write(frame):
+            if not self._waiting:  # interrupt once the write is complete
+                import threading
+
+                self._waiting = True
+                threading.Thread(target=self._after_write, args=(threading.main_thread().ident,),
+                                 daemon=True).start()
+            return
+        raise KeyboardInterrupt
+
+    def _after_write(self, main_id):
+        import _thread
+        import sys
+
+        while self._in_paired_write(sys._current_frames().get(main_id)):
+            time.sleep(0.01)
+        self._waiting = False
+        _thread.interrupt_main(self.signum)
+
+
+def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resumed: bool) -> int:
+    """The body of `study` (after the results folder is set up)."""
     import jax
     import jax.numpy as jnp
 
     from .. import studies
     from ..analysis import structure_report
-    from ..config import example_path, load_config, StudySpec, TuningSpec
     from ..design import design_functional_observer
     from ..plant import Sine
     from ..results import (
-        new_results_folder,
         plot_error_distributions,
         plot_estimates,
         plot_poles,
@@ -277,26 +470,8 @@ def study(
         write_metrics,
         write_report,
     )
-    from ..results._io import atomic_write_bytes
 
-    out = _Progress(quiet)
-    path = config_path if config_path is not None else str(example_path("example_3_3_7"))
-    cfg = load_config(path)
-    if cfg.is_takagi_sugeno:
-        from .._errors import ConfigError
-
-        raise ConfigError(path, "takagi_sugeno", "studies of Takagi-Sugeno models are not available from config files yet.")
-    spec = cfg.study or StudySpec()
-    n_samples = samples if samples is not None else spec.samples
-    T = horizon if horizon is not None else spec.horizon
-    if n_samples < 1 or T <= spec.dt:
-        from .._errors import InputError
-
-        raise InputError(f"--samples must be >= 1 and --horizon > dt = {spec.dt}; got {n_samples}, {T}.")
-    folder = new_results_folder(out_dir if out_dir is not None else "fojax-results", prefix=f"study-{cfg.name}")
-    out.say(f"fojax study: {cfg.name} ({path}) -> results folder {folder}")
-    atomic_write_bytes(folder / "config.toml", pathlib.Path(path).read_bytes())
-
+    ow = resumed  # a resumed run replaces the files it regenerates
     report = structure_report(cfg.system(), cfg.L)
     out.say(f"structure: {report.verdict}")
     from ..config import ObserverSpec
@@ -304,14 +479,21 @@ def study(
     specs = cfg.observers or (ObserverSpec("generalized", "generalized", _default_region()),)
     designs, figures, files = {}, {}, {}
     for o in specs:
-        with out.step(f"designing '{o.name}' ({o.kind}, {o.region.describe()}) by LMI"):
-            d = design_functional_observer(cfg.design_system(), cfg.design_L(), kind=o.kind,
-                                           region=o.region, R=o.R, q0=o.q0, q1=o.q1)
+        saved = folder / f"{o.name}.npz"
+        if resumed and saved.exists():
+            # the design the first run saved (and tuned from): bit-identical to the LMI design
+            d = _saved_design(saved, o)
+            out.say(f"loaded '{o.name}' ({o.kind}, {o.region.describe()}) saved by the first run")
+            files[f"design of '{o.name}'"] = saved
+        else:
+            with out.step(f"designing '{o.name}' ({o.kind}, {o.region.describe()}) by LMI"):
+                d = design_functional_observer(cfg.design_system(), cfg.design_L(), kind=o.kind,
+                                               region=o.region, R=o.R, q0=o.q0, q1=o.q1)
+            files[f"design of '{o.name}'"] = save_design(d, saved, overwrite=ow,
+                                                         metadata={"config": path, "observer": o.name})
         designs[o.name] = d
-        files[f"design of '{o.name}'"] = save_design(d, folder / f"{o.name}.npz",
-                                                     metadata={"config": path, "observer": o.name})
         figures[f"Error poles of '{o.name}'"] = plot_poles(folder / f"poles-{o.name}.png",
-                                                           d.report.eigenvalues, d.region)
+                                                           d.report.eigenvalues, d.region, overwrite=ow)
         out.say(f"  verification {'PASSED' if d.report.passed else 'FAILED'}")
 
     # the Monte Carlo study (and a separately drawn training study for the tuning)
@@ -342,8 +524,6 @@ def study(
     ts = st.ts
     tuning_rows, tuning_note = [], "Tuning: not available in this fojax version."
     tuning = _tuning_module()
-    tspec = cfg.tuning or TuningSpec()
-    n_steps = steps if steps is not None else tspec.steps
     if tuning is not None and n_steps > 0:
         import optax
 
@@ -358,22 +538,27 @@ def study(
                        f"{tspec.learning_rate}) on {train.num_samples} training samples drawn with seed "
                        f"{spec.seed + 1}; the comparison uses the {st.num_samples} held-out samples.")
         for nm in tunable:
-            with out.step(f"tuning '{nm}': {n_steps} gradient steps on {train.num_samples} training "
+            checkpoint = folder / f"tuning-{nm}"
+            done = _checkpoint_step(checkpoint) if resumed else None
+            what = (f"{n_steps} gradient steps" if done is None else
+                    f"steps {done + 1}..{n_steps} (resumed from the checkpoint at step {done})")
+            with out.step(f"tuning '{nm}': {what} on {train.num_samples} training "
                           "samples (compiling the gradient first)"):
                 tr = tuning.tune(designs[nm], train, heldout=st, steps=n_steps,
                                  optimizer=optax.adam(tspec.learning_rate),
                                  eval_every=max(1, n_steps // 10),
-                                 checkpoint=folder / f"tuning-{nm}", quiet=True)
+                                 checkpoint=checkpoint, resume=resumed, quiet=True)
             tuned_name = f"{nm}-tuned"
             designs[tuned_name] = tr.design
             files[f"design of '{tuned_name}'"] = save_design(
-                tr.design, folder / f"{tuned_name}.npz", metadata={"config": path, "observer": tuned_name})
+                tr.design, folder / f"{tuned_name}.npz", overwrite=ow,
+                metadata={"config": path, "observer": tuned_name})
             h = tr.history
             held = np.asarray(h["heldout_loss"], dtype=float)
             figures[f"Tuning curve of '{nm}'"] = plot_tuning_curve(
                 folder / f"tuning-{nm}.png", h["step"], h["train_loss"],
                 held if np.isfinite(held).any() else None, ylabel="IAE loss",
-                title=f"Tuning '{nm}': training and held-out loss")
+                title=f"Tuning '{nm}': training and held-out loss", overwrite=ow)
             tuning_rows.append([nm, n_steps, float(tr.initial_heldout), float(tr.final_heldout)])
             out.say(f"  held-out loss {tr.initial_heldout:.4g} -> {tr.final_heldout:.4g}; "
                     f"verification {'PASSED' if tr.design.report.passed else 'FAILED'}")
@@ -400,15 +585,16 @@ def study(
         "samples": st.num_samples,
         "iae": flat,
         "mean_iae": {nm: v.mean(axis=0) for nm, v in flat.items()},
-    })
+    }, overwrite=ow)
     q = np.asarray(res.metrics["quantiles"])  # (observer, quantile, time, signal)
     figures["Estimation error, Monte Carlo 5-95 % band and median"] = plot_estimates(
         folder / "error-bands.png", np.asarray(ts), np.zeros((len(ts), len(signals))),
         {nm: (q[k, 0], q[k, 1], q[k, 2]) for k, nm in enumerate(names)},
         labels=[f"e({s})" for s in signals], truth_label="zero error", title="Estimation error over the Monte Carlo samples",
+        overwrite=ow,
     )
     figures["IAE per sample (sum over signals)"] = plot_error_distributions(
-        folder / "iae.png", per_sample, ylabel="IAE (sum over signals)")
+        folder / "iae.png", per_sample, ylabel="IAE (sum over signals)", overwrite=ow)
     rows = [[nm] + [float(v) for v in flat[nm].mean(axis=0)] + [float(per_sample[nm].mean())]
             for nm in names]
     headers = ["observer"] + [f"IAE {s}" for s in signals] + ["IAE total"]
@@ -420,7 +606,7 @@ def study(
         tables={"Mean IAE over the samples": (headers, rows),
                 **({"Tuning (held-out mean IAE loss)": (["observer", "steps", "before", "after"], tuning_rows)}
                    if tuning_rows else {})},
-        figures=figures, files=files,
+        figures=figures, files=files, overwrite=ow,
     )
     w = max(len("observer"), *(len(n) for n in names))
     out.say("")
@@ -429,6 +615,33 @@ def study(
         out.say(f"{r[0]:<{w}}  " + "  ".join(f"{v:9.4g}" for v in r[1:-1]) + f"  {r[-1]:9.4g}")
     out.say(f"\nresults: {folder} (report: {rep.name})")
     return 0 if all(d.report.passed for d in designs.values()) else 1
+
+
+def _saved_design(path, spec):
+    """The design a first run saved for observer `spec` (checked to be that observer's)."""
+    import dataclasses
+
+    from .._errors import InputError
+    from ..results import load_design, read_design_metadata
+
+    meta = read_design_metadata(path)
+    d = load_design(path)
+    if (meta.get("user", {}).get("observer") != spec.name or getattr(d, "kind", None) != spec.kind
+            or d.region != spec.region):
+        raise InputError(
+            f"{path} is not the design of observer '{spec.name}' ({spec.kind}, "
+            f"{spec.region.describe()}) of the folder's config.toml; the folder was changed after "
+            "the first run. Start a new study instead."
+        )
+    return dataclasses.replace(d, solver={k: v for k, v in d.solver.items() if k != "saved"})
+
+
+def _checkpoint_step(checkpoint) -> int | None:
+    """The step of a tuning checkpoint (``<checkpoint>.json``), or None if there is none."""
+    try:
+        return int(json.loads(pathlib.Path(f"{checkpoint}.json").read_text())["step"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 class _Unavailable(Exception):

@@ -29,9 +29,12 @@ examples:
                                         new folder under ./fojax-results
   fojax design my_model.toml --out runs --name first   choose the folder
   fojax --quiet design my_model.toml    only errors (exit code tells success)
+  fojax study my_model.toml             Monte Carlo study + tuning (Ctrl-C: stop; continue
+                                        with fojax study --resume <its folder>)
 
 exit codes: 0 success; 1 a design failed verification; 2 error (one-line reason on
-stderr); 3 command not available in this installation.
+stderr); 3 command not available in this installation; 130/143 study interrupted by
+SIGINT/SIGTERM (resumable).
 Python: fojax.config.load_config, fojax.results.save_design / load_design.
 """
 
@@ -153,7 +156,11 @@ def main(argv: list[str] | None = None) -> int:
         parents=[quiet],
         help="Monte Carlo robustness study (default: the built-in §3.3.7 benchmark)",
         description="Design, Monte Carlo study, tuning and comparison of the observers of "
-        "CONFIG (default: the §3.3.7 benchmark).",
+        "CONFIG (default: the §3.3.7 benchmark), in a NEW results folder. Ctrl-C (or SIGTERM) "
+        "stops it with the folder consistent; --resume FOLDER continues it.",
+        epilog="example: fojax study --samples 64 --steps 50 --out runs\n"
+        "         fojax study --resume runs/study-example_3_3_7-<UTC time>",
+        formatter_class=raw,
     )
     p.add_argument("config", metavar="CONFIG", nargs="?", default=None,
                    help="TOML model/study file (default: the built-in §3.3.7 benchmark)")
@@ -163,6 +170,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--horizon", type=float, default=None, help="override [study] horizon (s)")
     p.add_argument("--steps", type=int, default=None,
                    help="override [tuning] steps (0: no tuning)")
+    p.add_argument("--resume", metavar="FOLDER", default=None,
+                   help="continue an interrupted study in its results FOLDER: its config.toml and "
+                   "options are reused, the tuning continues from its checkpoint, the files the run "
+                   "regenerates are replaced (CONFIG, --samples, --horizon, --steps, if given, must "
+                   "match the first run)")
     args = parser.parse_args(argv)
     command = args.command or "demo"
     from . import _commands
@@ -176,8 +188,7 @@ def main(argv: list[str] | None = None) -> int:
             _enable_x64()
             config = None if args.config is None else _commands.resolve_config(args.config)
             return _commands.study(config, args.out, samples=args.samples, horizon=args.horizon,
-                                   steps=args.steps,
-                                   quiet=args.quiet)
+                                   steps=args.steps, resume=args.resume, quiet=args.quiet)
         _enable_x64()
         configs = [_commands.resolve_config(c) for c in args.config]
         if command == "design" and args.name is not None and len(configs) > 1:
