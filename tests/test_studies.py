@@ -171,7 +171,7 @@ def test_study_loss_gradient_matches_finite_differences(bench):
                     scenarios=(S.constant_faults(key, 2, x0, 3),), signal_names=SIGNALS)
     from fojax.tuning import initial_parameters, observer_from_parameters
 
-    fx, params = initial_parameters(d)
+    fx, params = initial_parameters(d, parameterization="disk")
     cfg = S.SimConfig(method="exact")
 
     def f(p, st):
