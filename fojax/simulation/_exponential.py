@@ -52,13 +52,13 @@ augmented matrix $\begin{bsmallmatrix} hA_0 & I & & \\ & 0 & I & \\ & & 0 & I\\ 
 \varphi_3]$), computed once per call by scaling and squaring with a Taylor polynomial
 (matrix products only: LAPACK-free, quick to compile).
 
-**Speed.** Only the components of $w$ that $g$ reads (the columns where some $D_{k,i}$ or
-$\bar A_k - A_0$ is non-zero) and the components it writes are ever multiplied by the
-$\varphi$-matrices on their way through the stages, so a perturbation that touches two
-entries of a 7-state loop costs a fraction of a full $N\times N$ product. Terms that are
-identical for every sample of a chunk (to round-off, $10^{-13}$ relative) are applied as
-one shared matrix product; terms that vanish are skipped. This *plan* is read on the
-host from the set-up of each chunk when the inputs are concrete (under an outer
+**Speed.** The stages only need what $g$ reads from a state and writes: the
+perturbation's non-zero rows and columns. Terms identical for every sample of a chunk
+(to round-off, $10^{-13}$ relative) are *shared*: their matrices are multiplied into the
+stacked $\varphi$-matrices once per call, so each step is four matrix products (one per
+stage, all samples of a block at once) plus elementwise work; per-sample terms are applied
+as fused multiply–adds over the batch; terms that vanish are skipped. This *plan* is read
+on the host from the set-up of each chunk when the inputs are concrete (under an outer
 `jax.jit` every term is treated as per-sample, which is correct but slower); different
 plans compile different kernels, so compilation happens once per structure *and*
 sparsity pattern. All samples of a block are stepped together with the batch as the
