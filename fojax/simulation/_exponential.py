@@ -834,9 +834,9 @@ def simulate_batch_exponential(
     signal frequencies and amplitudes, and the fast modes of $A_0$ the perturbation
     couples into. Check by halving the step (the error should drop ~16×). Measured on
     the time-varying §4.1.3 loop of ``benchmarks/time_varying.py`` ($|\delta| \le 0.3$,
-    $\omega \le 5$ rad/s, fastest pole −39.8): metrics to ~2e-9 relative with one step per
-    0.01 s, ~1e-10 with 2, ~2e-11 with 3 and ~7e-12 with 4 substeps (NumPy RK4 with
-    $h = 10^{-3}$: ~1e-10). Signals should be smooth between
+    $\omega \le 5$ rad/s, fastest pole −39.8; worst of 100 samples): metrics to ~2e-9
+    relative with one step per 0.01 s, ~2e-10 with 2 and ~4e-11 with 3 substeps (NumPy RK4
+    with $h = 10^{-3}$: ~1e-10). Signals should be smooth between
     steps: a jump (a `fojax.Step`, `fojax.PiecewiseConstant`) costs $O(h)$ locally unless it
     falls on a step boundary.
 
@@ -846,8 +846,10 @@ def simulate_batch_exponential(
     have decayed — in the loop above almost the whole error is made in the first
     ~0.05 s. ``startup=(k, s)`` integrates the first ``k`` grid intervals with ``s`` steps
     each and the rest with `substeps`; take $k\,\Delta t \approx 5/|\lambda_{\max}(A_0)|$.
-    Measured on that loop: ``substeps=1, startup=(10, 8)`` gives ~6e-11 (1,070 steps
-    instead of the 3,000 that uniform steps need for ~2e-11, and 1,000 for ~2e-9).
+    Measured on that loop (worst of 100 samples): ``substeps=2, startup=(13, 4)`` gives
+    ~2e-11 with 2,026 steps, better than uniform ``substeps=3`` (3,000 steps); with
+    ``substeps=1`` after the same start-up the bulk step limits (~3e-10: signals up to
+    5 rad/s).
 
     **Arguments:**
 
