@@ -263,7 +263,7 @@ def test_default_study_and_a_second_run_keeps_the_first(runs):
     if TUNING:
         assert {"FGDO-tuned.npz", "tuning-FGDO.png", "tuning-FGDO.npz"} <= names
         assert load_design(first / "FGDO-tuned.npz").report.passed
-        assert "| FGDO-tuned |" in report and "Tuning (held-out mean IAE loss)" in report
+        assert "| FGDO-tuned |" in report and "## Tuning" in report and "study IAE total, LMI" in report
     snapshot = {p.name: p.read_bytes() for p in first.iterdir()}
     again = fojax("--quiet", "study", "--samples", "4", "--horizon", "2", "--steps", "0",
                   "--out", runs["tmp"] / "study", env=runs["study_env"])

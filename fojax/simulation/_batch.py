@@ -8,7 +8,8 @@ A Monte Carlo study of a linear time-invariant loop needs per-sample *numbers*
    $\dot w = \mathcal A_k w$ in the ``rank E`` slow SVD coordinates of `fojax.simulation`
    (the reduction of `fojax.simulate`'s exact method; the SVD of ``E`` is computed once
    when all samples share it) and discretises it exactly, $\Phi_k = e^{\mathcal A_k h}$
-   (`expm_last`: Taylor scaling-and-squaring vectorised over the samples, LAPACK-free);
+   (`expm_last`: Taylor/Paterson–Stockmeyer scaling-and-squaring over the samples,
+   LAPACK-free);
 2. when the metric outputs $o = G_k w$ have at most as many independent rows as states,
    changes coordinates to $w' = S_k w$ whose leading entries *are* the outputs, so a time
    step is a single ``N × N`` product per sample (`_output_basis`);
@@ -138,45 +139,54 @@ def _matvec_last(M, v):
     return acc
 
 
-def _matmul_last(A, B):
-    """``C[:, :, b] = A[:, :, b] @ B[:, :, b]`` as elementwise FMAs over the batch axis."""
-    acc = A[:, 0, None, :] * B[None, 0, :, :]
-    for j in range(1, A.shape[1]):
-        acc = acc + A[:, j, None, :] * B[None, j, :, :]
-    return acc
-
-
 #: Taylor degree and scaling threshold of `expm_last`: for ‖X‖₁ ≤ θ the remainder of the
-#: degree-m Taylor polynomial is ≤ θ^(m+1)/(m+1)! · e^θ ≈ 4e-19 (θ = 1/2, m = 16).
-_TAYLOR_DEGREE, _TAYLOR_THETA = 16, 0.5
+#: degree-m Taylor polynomial is ≤ θ^(m+1)/(m+1)! · e^θ ≈ 2e-17 (θ = 1, m = 18).
+_TAYLOR_DEGREE, _TAYLOR_THETA, _PS_BLOCK = 18, 1.0, 4
+
+
+def _mm_last(A, B):
+    """Batch-last matrix product ``(N, K, b) × (K, M, b) → (N, M, b)`` (measured 2× faster
+    than explicit multiply-adds for the ``expm`` products)."""
+    return jnp.einsum("ijb,jkb->ikb", A, B)
 
 
 def expm_last(M):
     r"""Matrix exponentials of a batch stored batch-last: ``M`` ``(N, N, b)`` → ``(N, N, b)``.
 
-    Scaling and squaring with a degree-16 Taylor polynomial (Horner), per sample: the
-    number of squarings $s_k = \max(0, \lceil\log_2(\|M_k\|_1/\theta)\rceil)$ with
-    $\theta = 1/2$ (truncation error $< 10^{-18}$ relative before squaring). All products
-    are elementwise multiply–adds over the batch axis (no LAPACK, vectorised over the
-    samples); each sample's result depends only on its own matrix, so it does not change
-    with how samples are grouped into blocks. Agrees with `scipy.linalg.expm` to rounding
-    on the matrices of a simulation step (``‖hA‖`` of order one; tested).
+    Scaling and squaring with the degree-18 Taylor polynomial, evaluated by the
+    Paterson–Stockmeyer scheme (powers up to $X^4$, then Horner in $X^4$: 7 products
+    instead of 17), per sample: $s_k = \max(0, \lceil\log_2\|M_k\|_1\rceil)$ squarings
+    (truncation error $\le e/19! \approx 2\cdot 10^{-17}$ relative before squaring). All
+    products run over the batch axis (no LAPACK); each sample's result depends only on its
+    own matrix, so it does not change with how samples are grouped into blocks. Agrees
+    with `scipy.linalg.expm` to rounding (tested).
     """
+    import math
+
     N = M.shape[0]
     norm = jnp.max(jnp.sum(jnp.abs(M), axis=0), axis=0)  # (b,) induced 1-norm
     s = jnp.where(norm > _TAYLOR_THETA, jnp.ceil(jnp.log2(norm / _TAYLOR_THETA)), 0.0)
     s = jnp.clip(jnp.where(jnp.isfinite(s), s, 0.0), 0, 1000).astype(jnp.int32)
     X = M * jnp.exp2(-s.astype(M.dtype))[None, None, :]
-    eye = jnp.eye(N, dtype=M.dtype)[:, :, None]
-    E = eye + X / _TAYLOR_DEGREE
-    for k in range(_TAYLOR_DEGREE - 1, 0, -1):
-        E = eye + _matmul_last(X, E) / k
-    smax = jnp.max(s)
+    powers = [jnp.broadcast_to(jnp.eye(N, dtype=M.dtype)[:, :, None], M.shape), X]
+    for _ in range(2, _PS_BLOCK + 1):
+        powers.append(_mm_last(powers[-1], X))
+    coef = [1.0 / math.factorial(k) for k in range(_TAYLOR_DEGREE + 1)]
+    nblk = _TAYLOR_DEGREE // _PS_BLOCK + 1
+
+    def chunk(j):  # Σ_i c[j·blk + i] X^i
+        terms = [coef[j * _PS_BLOCK + i] * powers[i] for i in range(_PS_BLOCK)
+                 if j * _PS_BLOCK + i <= _TAYLOR_DEGREE]
+        return sum(terms[1:], terms[0])
+
+    E = chunk(nblk - 1)
+    for j in range(nblk - 2, -1, -1):
+        E = _mm_last(E, powers[_PS_BLOCK]) + chunk(j)
 
     def square(i, E):
-        return jnp.where((i < s)[None, None, :], _matmul_last(E, E), E)
+        return jnp.where((i < s)[None, None, :], _mm_last(E, E), E)
 
-    return lax.fori_loop(0, smax, square, E)
+    return lax.fori_loop(0, jnp.max(s), square, E)
 
 
 #: Largest accepted ``‖S‖₁‖S⁻¹‖₁`` of the output-coordinate transform (per sample).
