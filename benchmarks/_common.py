@@ -47,6 +47,28 @@ def prefer_checkout() -> None:
 BLAS_VARS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
+def host_devices_from_argv() -> int:
+    """``--host-devices N`` (default: the usable cores), read before JAX is imported."""
+    argv = sys.argv[1:]
+    for i, a in enumerate(argv):
+        if a.startswith("--host-devices="):
+            return int(a.split("=", 1)[1])
+        if a == "--host-devices" and i + 1 < len(argv):
+            return int(argv[i + 1])
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def force_host_devices() -> int:
+    """One JAX host device per core (fojax shards its batches over all devices with
+    `jax.shard_map`; XLA exposes one CPU device unless told otherwise). Call before JAX is
+    imported; returns the count (``--host-devices 1``: fojax on one core)."""
+    n = host_devices_from_argv()
+    if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                                   f" --xla_force_host_platform_device_count={n}").strip()
+    return n
+
+
 def limit_blas_threads() -> dict:
     """Single-threaded BLAS unless the caller set the variables (call before NumPy)."""
     return {v: os.environ.setdefault(v, "1") for v in BLAS_VARS}
@@ -116,9 +138,9 @@ def machine_info() -> dict:
     try:
         import jax
 
-        backend = jax.default_backend()
+        backend, devices = jax.default_backend(), jax.device_count()
     except Exception:  # noqa: BLE001
-        backend = None
+        backend, devices = None, None
     try:
         import fojax
 
@@ -134,6 +156,7 @@ def machine_info() -> dict:
         "platform": platform.platform(),
         "python": platform.python_version(),
         "jax_backend": backend,
+        "jax_devices": devices,
         "dtype": "float64",
         "blas_threads": {v: os.environ.get(v) for v in BLAS_VARS},
         "versions": {m: _version(m) for m in VERSION_MODULES},

@@ -39,6 +39,7 @@ import _common  # noqa: E402
 
 BLAS_THREADS = _common.limit_blas_threads()  # before NumPy: favours the peers (see README)
 _common.prefer_checkout()
+HOST_DEVICES = _common.force_host_devices()
 
 import jax  # noqa: E402
 
@@ -205,6 +206,9 @@ def main(argv=None) -> int:
         help="do not time the start-up schedule entry (finer steps over the initial layer)",
     )
     ap.add_argument("--chunk", type=int, default=4096, help="fojax chunk_size")
+    ap.add_argument("--host-devices", type=int, default=HOST_DEVICES,
+                    help="JAX host devices fojax spreads the samples over (default: one per usable core; "
+                    "read before JAX is imported). The NumPy/SciPy peers are single-threaded.")
     ap.add_argument("--seed", type=int, default=wlmod.DEFAULT_SEED)
     ap.add_argument("--out", type=Path, default=_common.RESULTS)
     args = ap.parse_args(argv)

@@ -258,6 +258,17 @@ def test_chunks_blocks_and_padding_do_not_change_results(batch, by_substeps):
         np.testing.assert_allclose(out[k], by_substeps[4][k], rtol=1e-13)
 
 
+def test_device_count_does_not_change_results(batch, by_substeps):
+    # conftest forces 4 host devices; the fixture ran on all of them (blocks round-robin)
+    params, x0 = batch
+    assert jax.device_count() >= 2
+    one = run(params, x0, substeps=4, devices=jax.devices()[:1])
+    two = run(params, x0, substeps=4, block=1, devices=jax.devices()[:2])
+    for k in METRICS:
+        np.testing.assert_array_equal(np.asarray(one[k]), np.asarray(by_substeps[4][k]))
+        np.testing.assert_allclose(np.asarray(two[k]), np.asarray(by_substeps[4][k]), rtol=1e-13)
+
+
 def test_traceable_inside_jit(batch, by_substeps):
     params, x0 = batch
     f = jax.jit(lambda p, x: run(p, x, substeps=4))

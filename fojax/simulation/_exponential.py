@@ -76,14 +76,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
+from jax import lax, shard_map
+from jax.sharding import PartitionSpec
 
 from .._dtype import as_float_array
 from .._errors import InputError, ShapeError
 from .._small_linalg import solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal, Constant
-from ._batch import _check_metrics, METRIC_KINDS
+from ._batch import _check_metrics, _mesh_for, METRIC_KINDS
 from ._reduction import (
     host_initial_checks,
     is_concrete,
@@ -598,7 +599,7 @@ def _step_chunk(sigpack, data, phis, t0, h_grid, layout):
     ``h_grid / substeps`` and at the start-up step ``h_grid / startup_substeps``.
     """
     TRACE_COUNTS["simulate_batch_exponential"] += 1
-    T, (n_start, sub_start, substeps), kinds, block, plan = layout
+    T, (n_start, sub_start, substeps), kinds, block, plan, mesh = layout
     keep, rows, cols = (np.asarray(a, dtype=int) for a in plan[:3])
     nr = len(rows)
     R_out = data["G"].shape[2]
@@ -748,7 +749,24 @@ def _step_chunk(sigpack, data, phis, t0, h_grid, layout):
         o_last = outputs(w_end, c_end, v_end)
         return h_grid * (acc + 0.5 * o_first - 0.5 * o_last)
 
-    out = lax.map(run_block, per_sample)  # (n_sub, Rm, sub)
+    D = 1 if mesh is None else mesh.devices.size
+    if D == 1 or n_sub < D:
+        out = lax.map(run_block, per_sample)  # (n_sub, Rm, sub)
+    else:
+        # blocks round-robin over the devices (block k on device k mod D), one code path
+        nb = -(-n_sub // D)
+        extra = nb * D - n_sub
+        if extra:
+            per_sample = jax.tree.map(
+                lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)], axis=0), per_sample)
+        arranged = jax.tree.map(lambda a: jnp.swapaxes(a.reshape((nb, D) + a.shape[1:]), 0, 1), per_sample)
+
+        def local(ps):
+            return lax.map(run_block, jax.tree.map(lambda a: a[0], ps))[None]
+
+        spec = PartitionSpec("devices")
+        out = shard_map(local, mesh=mesh, in_specs=(spec,), out_specs=spec, check_vma=False)(arranged)
+        out = jnp.swapaxes(out, 0, 1).reshape((nb * D,) + out.shape[2:])[:n_sub]
     return jnp.moveaxis(out, 0, 1).reshape(out.shape[1], n_sub * sub)[:, :bc]
 
 
@@ -802,6 +820,7 @@ def simulate_batch_exponential(
     startup: tuple[int, int] | None = None,
     chunk_size: int = DEFAULT_CHUNK,
     block: int = DEFAULT_BLOCK,
+    devices=None,
 ) -> dict:
     r"""Integrated metrics of a batch of time-varying linear descriptor loops (exponential RK4).
 
@@ -872,6 +891,10 @@ def simulate_batch_exponential(
     - `chunk_size`: largest number of samples per compiled call (default 4096): ``B`` is
       split into ``⌈B / chunk_size⌉`` equal chunks (whole blocks), the last one padded.
     - `block`: samples stepped together in one time loop (default 256).
+    - `devices`: the devices the blocks of a chunk are spread over, round-robin, with
+      `jax.shard_map` (default `jax.local_devices()`; on a CPU e.g.
+      ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` for two cores). The result
+      does not depend on the number of devices.
 
     **Returns:** a dict ``name -> (B,)`` or ``(B, k)`` array (float64).
 
@@ -959,6 +982,8 @@ def simulate_batch_exponential(
         padf = lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)], axis=0)  # noqa: E731
         params, x0 = jax.tree.map(padf, params), padf(x0)
 
+    mesh = _mesh_for(devices)
+
     def run_chunk(p, x, plan, check=False):
         data, sigpack, stats, A0 = _setup_chunk(model, p, x, Cstack, reference)
         if check:
@@ -968,7 +993,7 @@ def simulate_batch_exponential(
         keep = np.asarray(plan.keep, dtype=int)
         A0k = A0[keep][:, keep]
         phis = (phi_functions(A0k, h / substeps), phi_functions(A0k, h / sub_start))
-        return _step_chunk(sigpack, data, phis, t0, h, (T, schedule, kinds, int(block), plan))
+        return _step_chunk(sigpack, data, phis, t0, h, (T, schedule, kinds, int(block), plan, mesh))
 
     if concrete:
         outs = []
