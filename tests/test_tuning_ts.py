@@ -172,3 +172,42 @@ def test_refusals():
     des = design_ts_observer(ts_sys, L_ARM, kind="generalized")
     with pytest.raises(fojax.InputError, match=r"does not satisfy the LMI of disk centred at -2 with radius 0.3"):
         initial_ts_parameters(des, Disk(-2.0, 0.3))
+
+
+def test_resume_from_checkpoint_equals_uninterrupted(setup, run, tmp_path):
+    des, train, _ = setup
+    opts = dict(optimizer=OPT, barrier=BARRIER, solver=SOLVER)  # the compiled step of `run` is reused
+    ref = tune_takagi_sugeno(des, train, steps=5, **opts)
+    path = str(tmp_path / "ckpt")
+    tune_takagi_sugeno(des, train, steps=3, checkpoint=path, **opts)
+    res = tune_takagi_sugeno(des, train, steps=5, checkpoint=path, resume=True, **opts)
+    for k in ref.params:
+        np.testing.assert_array_equal(np.asarray(res.params[k]), np.asarray(ref.params[k]))
+    assert res.history["step"] == [1, 2, 3, 4, 5]
+    assert res.history["train_loss"] == ref.history["train_loss"]
+
+
+def test_common_lmi_margin_for_non_disk_regions():
+    """The traced margin (Kronecker form with the region's L_R, M_R) equals the float64 one from
+    `AbstractRegion.lmi_matrix` and the Lyapunov matrix, at the design and at perturbed gains."""
+    from fojax.tuning._tune_ts import _margin_and_barrier
+
+    region = fojax.HalfPlane(1.0) & fojax.Sector(0.8)
+    des = design_ts_observer(robot_arm_ts().system, L_ARM, kind="generalized", R=R4, region=region)
+    fx, params = initial_ts_parameters(des)
+    X = des.X
+    rng = np.random.default_rng(0)
+    signs = set()
+    for scale in (0.0, 0.05, 1.0):
+        p = {k: v + scale * rng.standard_normal(v.shape) for k, v in params.items()}
+        _, As = _rule_matrices(des, p)
+        ref = min(
+            min(-np.linalg.eigvalsh(region.lmi_matrix(X, X @ A)).max(), -np.linalg.eigvalsh(A.T @ X + X @ A).max())
+            for A in As
+        ) / np.linalg.norm(X, 2)
+        margin, logdet = _margin_and_barrier(fx, p)
+        np.testing.assert_allclose(float(margin), ref, rtol=1e-9, atol=1e-12)
+        assert np.isfinite(float(logdet)) == (ref > 0)
+        signs.add(bool(ref > 0))
+    assert signs == {True, False}  # admissible and inadmissible points were both compared
+    assert float(_margin_and_barrier(fx, params)[0]) > 0  # the design itself is admissible
