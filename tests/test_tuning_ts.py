@@ -172,6 +172,22 @@ def test_refusals():
     des = design_ts_observer(ts_sys, L_ARM, kind="generalized")
     with pytest.raises(fojax.InputError, match=r"does not satisfy the LMI of disk centred at -2 with radius 0.3"):
         initial_ts_parameters(des, Disk(-2.0, 0.3))
+    arm = robot_arm()
+    one_signal = Study(arm.system, robot_arm_ts().x0, TS, L_ARM[:1], u=U)
+    with pytest.raises(fojax.InputError, match=r"the study has 1 signals but the observer estimates 2"):
+        tune_takagi_sugeno(des, one_signal, steps=1)
+
+
+def test_proportional_design_parameters():
+    """q1 = 0: the empty v-blocks (Y2, J, G) are not tuning parameters; the start is the design."""
+    des = design_ts_observer(robot_arm_ts().system, L_ARM, kind="proportional", R=R4)
+    fx, params = initial_ts_parameters(des)
+    assert sorted(params) == ["Y1", "Y3", "Z"]
+    obs = ts_observer_from_parameters(fx, params)
+    assert obs.q1 == 0 and obs.kind == "proportional"
+    for name in "NFHPQ":
+        np.testing.assert_allclose(np.asarray(getattr(obs, name)), np.asarray(getattr(des.observer, name)),
+                                   rtol=0, atol=1e-12 * max(1.0, np.abs(getattr(des.observer, name)).max()))
 
 
 def test_resume_from_checkpoint_equals_uninterrupted(setup, run, tmp_path):
