@@ -1,5 +1,6 @@
 """Test configuration: 64-bit JAX, strict rank promotion, a deterministic key factory."""
 
+import gc
 import os
 
 
@@ -31,3 +32,17 @@ def getkey():
 @pytest.fixture
 def rng():
     return np.random.default_rng(20261121)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_code():
+    """Drop JAX's compiled executables after every test module.
+
+    Each XLA:CPU executable keeps its own memory mappings; the whole suite compiles
+    thousands of them, and one process would exceed Linux's default limit of 65,530
+    mappings per process (``vm.max_map_count``), which ends in a segmentation fault inside
+    the compiler. Modules compile their own kernels anyway (module-scoped fixtures).
+    """
+    yield
+    jax.clear_caches()
+    gc.collect()

@@ -98,7 +98,7 @@ def test_example_3_3_7_matches_models_exactly():
     assert cfg.profile == {"kind": "uniform", "bound": 0.3}
     assert [o.name for o in cfg.observers] == ["PO", "FGDO"]
     assert [o.kind for o in cfg.observers] == ["proportional", "generalized"]
-    assert cfg.study.samples == 64 and cfg.tuning.steps == 100
+    assert cfg.study.samples == 64 and cfg.tuning.steps == 60 and cfg.tuning.learning_rate == 0.1
     # the uncertain plant: A + delta dA for a constant delta
     plant = parse_config({**cfg.raw, "uncertainty": {"dA": cfg.raw["uncertainty"]["dA"],
                                                      "profile": {"kind": "constant", "value": [0.2]}}},

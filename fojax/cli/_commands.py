@@ -583,7 +583,7 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
                 tr = tuning.tune(designs[nm], train, heldout=heldout_small, steps=n_steps,
                                  optimizer=optax.adam(tspec.learning_rate),
                                  eval_every=max(1, n_steps // 10),
-                                 checkpoint=checkpoint, resume=resumed, quiet=True)
+                                 checkpoint=checkpoint, resume=resumed, quiet=out.quiet)
             tuned_name = f"{nm}-tuned"
             designs[tuned_name] = tr.design
             files[f"design of '{tuned_name}'"] = save_design(
@@ -610,7 +610,7 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
         import diffrax
 
         res = studies.run_study(st, [d.observer for d in designs.values()], observer_names=names,
-                                quantiles=(0.05, 0.5, 0.95), quiet=True, solver=diffrax.Tsit5())
+                                quantiles=(0.05, 0.5, 0.95), quiet=out.quiet, solver=diffrax.Tsit5())
     res.save(folder / "study")
     iae = np.asarray(res.metrics["iae"])  # (observer, uncertainty, fault, signal)
     signals = list(res.coords["signal"])

@@ -415,7 +415,10 @@ def tune(
     - `train_study`: a `fojax.studies.Study` whose signals the observer estimates.
     - `heldout`: a study of samples never used for training (its loss is reported).
     - `steps`: total number of optimizer steps (including those of a resumed run).
-    - `optimizer`: an optax transformation (default ``optax.adam(1e-2)``).
+    - `optimizer`: an optax transformation (default ``optax.adam(1e-2)``). The jitted
+      step is compiled once per call of `tune` *and optimizer object* (optax
+      transformations are closures, hashed by identity): pass the same object to
+      several `tune` calls to reuse the compiled step.
     - `loss`: ``"iae"`` or ``"ise"`` of $\hat z - z$ (mean over signals, or `weights`);
       `quantile`: use this quantile over samples instead of the mean.
     - `region`: the disk to stay in (default: the design's region).
