@@ -139,6 +139,24 @@ def _matvec_last(M, v):
     return acc
 
 
+def _integrand(o, kinds):
+    """The metric integrands ``(R, b)`` of the stacked outputs ``o`` ``(K, b)`` (one row
+    per output for ``iae``/``ise``, one per metric for ``iae_l1``/``ise_l2``)."""
+    parts, off = [], 0
+    for kind, k in kinds:
+        ok = o[off : off + k]
+        off += k
+        if kind == "iae":
+            parts.append(jnp.abs(ok))
+        elif kind == "ise":
+            parts.append(ok * ok)
+        elif kind == "iae_l1":
+            parts.append(jnp.sum(jnp.abs(ok), axis=0, keepdims=True))
+        else:  # ise_l2
+            parts.append(jnp.sum(ok * ok, axis=0, keepdims=True))
+    return jnp.concatenate(parts, axis=0)
+
+
 #: Taylor degree and scaling threshold of `expm_last`: for ‖X‖₁ ≤ θ the remainder of the
 #: degree-m Taylor polynomial is ≤ θ^(m+1)/(m+1)! · e^θ ≈ 2e-17 (θ = 1, m = 18).
 _TAYLOR_DEGREE, _TAYLOR_THETA, _PS_BLOCK = 18, 1.0, 4
@@ -265,20 +283,7 @@ def _block_kernel(model, params, x0, h, Cstack, T, kinds, split, r, basis):
         return jnp.concatenate(parts, axis=0)[order]
 
     def integrand(w):  # (N, b) -> (R, b)
-        o = outputs(w)
-        parts, off = [], 0
-        for kind, k in kinds:
-            ok_ = o[off : off + k]
-            off += k
-            if kind == "iae":
-                parts.append(jnp.abs(ok_))
-            elif kind == "ise":
-                parts.append(ok_ * ok_)
-            elif kind == "iae_l1":
-                parts.append(jnp.sum(jnp.abs(ok_), axis=0, keepdims=True))
-            else:  # ise_l2
-                parts.append(jnp.sum(ok_ * ok_, axis=0, keepdims=True))
-        return jnp.concatenate(parts, axis=0)
+        return _integrand(outputs(w), kinds)
 
     def step(carry, _):
         w, acc = carry

@@ -84,7 +84,7 @@ from .._errors import InputError, ShapeError
 from .._small_linalg import solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal, Constant
-from ._batch import _check_metrics, _mesh_for, METRIC_KINDS
+from ._batch import _check_metrics, _integrand, _matvec_last, _mesh_for, METRIC_KINDS
 from ._reduction import (
     host_initial_checks,
     is_concrete,
@@ -565,30 +565,6 @@ def _etd_matrices(phis, h, rows, Pi):
     L2 = jnp.concatenate([Pi @ S(C2), S(F2), Pi @ S(F2)], axis=0)
     L3 = jnp.concatenate([S(F3), Pi @ S(F3)], axis=0)
     return E, L0, L1, L2, L3
-
-
-def _matvec_last(M, v):
-    """``Σ_j M[:, j, :] * v[j, :]`` as elementwise FMAs over the batch axis (``M`` per sample)."""
-    acc = M[:, 0, :] * v[0][None, :]
-    for j in range(1, v.shape[0]):
-        acc = acc + M[:, j, :] * v[j][None, :]
-    return acc
-
-
-def _integrand(o, kinds):
-    parts, off = [], 0
-    for kind, k in kinds:
-        ok = o[off : off + k]
-        off += k
-        if kind == "iae":
-            parts.append(jnp.abs(ok))
-        elif kind == "ise":
-            parts.append(ok * ok)
-        elif kind == "iae_l1":
-            parts.append(jnp.sum(jnp.abs(ok), axis=0, keepdims=True))
-        else:  # ise_l2
-            parts.append(jnp.sum(ok * ok, axis=0, keepdims=True))
-    return jnp.concatenate(parts, axis=0)
 
 
 @eqx.filter_jit
