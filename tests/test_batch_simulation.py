@@ -293,3 +293,56 @@ def test_expm_last_matches_scipy(rng):
     for k, M in enumerate(Ms):
         ref = scipy.linalg.expm(M)
         assert np.max(np.abs(got[:, :, k] - ref)) <= 1e-13 * max(1.0, np.max(np.abs(ref)))
+
+
+def model_scaled_E(p):
+    # E_k = diag(e_k, 1, 1, 0): every sample has its own E (no shared SVD split)
+    plant = fojax.DescriptorSystem(
+        jnp.diag(jnp.stack([p["e"], 1.0, 1.0, p["e4"]])),
+        jnp.asarray(ACL) + p["delta"] * jnp.asarray(DA),
+        jnp.asarray(B0),
+        jnp.asarray(C0),
+    )
+    return plant, (LTIObserver(jnp.asarray(AO), jnp.asarray(BY), p["xi0"]),)
+
+
+def test_per_sample_E_matches_scipy_and_rank_change_gives_nan(batch_result):
+    # E_k = diag(e_k, 1, 1, 0): dividing the first equation by e_k gives the plant with E
+    # and A's first row scaled by 1/e_k, which the independent SciPy reference uses.
+    params, x0, _, _ = batch_result
+    rng = np.random.default_rng(5)
+    e = rng.uniform(0.5, 2.0, B)
+    e4 = np.zeros(B)
+    e4[-1] = 1.0  # the last sample has rank E = 4, not 3: its metrics must be NaN
+    p = dict(params, e=e, e4=e4)
+    got = simulate_lti_batch(model_scaled_E, p, x0, TS, metrics=METRICS, chunk_size=B)
+    for k in range(B - 1):
+        ref = scipy_reference_scaled(params["delta"][k], params["xi0"][k], x0[k], e[k])
+        for name in METRICS:
+            np.testing.assert_allclose(np.asarray(got[name][k]), ref[name], rtol=1e-10)
+    for name in METRICS:
+        assert np.all(np.isnan(np.asarray(got[name][B - 1])))
+
+
+def scipy_reference_scaled(delta, xi0, x0, e):
+    """`scipy_reference` for E = diag(e, 1, 1, 0): the first row of A + δΔA divided by e."""
+    A = ACL + delta * DA
+    A[0] /= e
+    d, a = [0, 1, 2], [3]
+    K = -np.linalg.solve(A[np.ix_(a, a)], A[np.ix_(a, d)])
+    As = A[np.ix_(d, d)] + A[np.ix_(d, a)] @ K
+    Tx = np.zeros((4, 3))
+    Tx[d, :] = np.eye(3)
+    Tx[a, :] = K
+    Aj = np.block([[As, np.zeros((3, 2))], [BY @ C0 @ Tx, AO]])
+    h = TS[1] - TS[0]
+    Phi = scipy.linalg.expm(h * Aj)
+    w = np.concatenate([x0[:3], xi0])
+    ws = [w]
+    for _ in range(len(TS) - 1):
+        w = Phi @ w
+        ws.append(w)
+    ws = np.array(ws)
+    traj = np.hstack([ws[:, :3] @ Tx.T, ws[:, 3:]])
+    return host_metrics(traj, h)
+
