@@ -1,23 +1,26 @@
-"""Small helpers shared by the scaling benchmarks (`scaling.py`, `design_scaling.py`,
-`tuning_scaling.py`) and `make_readme.py`.
+"""Small helpers shared by the benchmark scripts (`reference_workload.py`, `time_varying.py`,
+`scaling.py`, `design_scaling.py`, `tuning_scaling.py`) and `make_readme.py`.
 
-Scripts call `limit_blas_threads` **before importing NumPy**: like `reference_workload.py`
-it sets ``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS`` to 1 unless the caller set them (the
+Scripts call `limit_blas_threads` **before importing NumPy**: it sets
+``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS`` to 1 unless the caller set them (the
 NumPy/SciPy peers' small BLAS calls are faster single-threaded on the 2-core reference
-machine; XLA uses its own thread pool).
+machine; XLA uses its own thread pool). The two studies with JAX in the main process also
+call `force_host_devices` (one JAX host device per core, read from ``--host-devices``)
+before importing JAX.
 
-Scripts also call `prefer_checkout`, which puts the repository root on ``sys.path``
-(right after ``benchmarks/``), so they measure the fojax of this checkout even when a
-non-editable copy is installed in site-packages (``machine_info`` records which
-``fojax`` was imported). Importing this module changes nothing.
+Scripts also call `prefer_checkout` before the first ``import fojax``: it puts the
+repository root on ``sys.path`` (right after ``benchmarks/``), so they measure the fojax of
+this checkout even when a non-editable copy is installed in site-packages
+(``machine_info`` records which ``fojax`` was imported). Importing this module changes
+nothing.
 
-Contents: the machine/versions/date record (`machine_info`, same fields as
-`reference_workload.machine_info` plus the cvxpy/solver/optax versions), the peak resident
-set size (`peak_rss_mib`), a repetition timer (`time_repeated`), result files
-(`write_results`: ``<name>_<stamp>.{md,json}`` and ``<name>_latest.{md,json}``) and
-`run_worker`, which runs one benchmark entry in a fresh Python process (cold JAX caches,
-a clean peak-RSS high-water mark, a hard timeout) and returns the JSON the entry printed.
-`reference_workload.py` keeps its own copies of the first helpers (unchanged).
+Contents: the machine/versions/date record (`machine_info`), the peak resident set size
+(`peak_rss_mib`), a repetition timer (`time_repeated`), the harness that times the peers of
+the two studies (`time_peer`, `print_timing`, `add_speedups`, `speedup_table`), result files
+(`result_payload`: the fields every JSON starts with; `write_results`:
+``<name>_<stamp>.{md,json}`` and ``<name>_latest.{md,json}``) and `run_worker`, which runs
+one benchmark entry in a fresh Python process (cold JAX caches, a clean peak-RSS high-water
+mark, a hard timeout) and returns the JSON the entry printed.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import json
 import os
 import platform
 import resource
+import statistics
 import subprocess
 import sys
 import time
@@ -93,6 +97,11 @@ VERSION_MODULES = (
 
 
 def _version(mod: str) -> str:
+    """The version of the module as imported (``__version__`` when it is imported already:
+    for fojax, the copy being measured), else of its installed distribution."""
+    v = getattr(sys.modules.get(mod), "__version__", None)
+    if isinstance(v, str):
+        return v
     try:
         import importlib.metadata
 
@@ -109,8 +118,8 @@ def load_average():
     return list(os.getloadavg()) if hasattr(os, "getloadavg") else None
 
 
-def machine_info() -> dict:
-    """Machine, library versions, git commit, date (UTC) and the load average now."""
+def machine_info(modules=VERSION_MODULES) -> dict:
+    """Machine, versions of `modules`, git commit, date (UTC) and the load average now."""
     cpu = platform.processor() or ""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -159,7 +168,7 @@ def machine_info() -> dict:
         "jax_devices": devices,
         "dtype": "float64",
         "blas_threads": {v: os.environ.get(v) for v in BLAS_VARS},
-        "versions": {m: _version(m) for m in VERSION_MODULES},
+        "versions": {m: _version(m) for m in modules},
         "git_commit": commit,
         "fojax_imported_from": fojax_path,
         "load_average_at_start": load_average(),
@@ -193,15 +202,19 @@ def reset_peak_rss() -> bool:
         return False
 
 
-def time_repeated(call, repeats: int, budget: float, after_first=None):
+def time_repeated(call, repeats: int, budget: float, after_first=None, first_counts: bool = False):
     """First call, then up to `repeats` timed calls, stopping once `budget` s are spent
-    (at least one repetition); `after_first()` runs untimed in between. Returns
+    (at least one repetition); `after_first()` runs untimed in between. With `first_counts`
+    (calls that compile nothing: the NumPy/SciPy peers of `reference_workload.py`) a first
+    call longer than `budget` is the single measurement, no repetition. Returns
     ``(result_of_first_call, first_s, [rep_s, ...])``."""
     t0 = time.perf_counter()
     out = call()
     first = time.perf_counter() - t0
     if after_first is not None:
         after_first()
+    if first_counts and first > budget:
+        return out, first, [first]
     times: list[float] = []
     spent = 0.0
     while len(times) < max(1, repeats) and (not times or spent < budget):
@@ -212,6 +225,90 @@ def time_repeated(call, repeats: int, budget: float, after_first=None):
     return out, first, times
 
 
+# ------------------------------------------------- the peers' harness of the two studies
+def print_timing(label: str, tag: str, first: float, times, width: int) -> float:
+    """Print one timed entry (``label [tag] first … median … (n reps)``); returns the median."""
+    med = statistics.median(times)
+    print(f"  {label:{width}s} [{tag}] first {first:9.3f} s  median {med:9.3f} s  ({len(times)} reps)")
+    return med
+
+
+def time_peer(rows, name: str, label: str, variants: dict, run, B: int, args, best_variant: dict, *,
+              loop_peer: bool, width: int, first_counts: bool = False):
+    """One peer at batch size `B` (`reference_workload.py`, `time_varying.py`): ``(row, out)``.
+
+    A Python-loop peer (`loop_peer`) is not run above ``args.loop_max_b``: its time is
+    extrapolated linearly from its largest measured B in `rows` (``(None, None)`` if there is
+    none) and the row is marked ``extrapolated``. Otherwise every variant (axis order) is
+    timed with `time_repeated` (``args.repeats``, ``args.budget``, `first_counts`) — above
+    ``args.variant_max_b`` only the one that was fastest at the largest B up to it, kept in
+    `best_variant` — and the fastest is reported; `out` is its result. ``run(fn)`` calls one
+    variant on the workload. The caller appends the row.
+    """
+    if loop_peer and B > args.loop_max_b:
+        base = [r for r in rows if r["method"] == name and not r["extrapolated"]]
+        if not base:
+            return None, None
+        b0 = base[-1]
+        t = b0["median_s"] * B / b0["B"]
+        print(f"  {label:{width}s} {t:10.3f} s  (EXTRAPOLATED from B = {b0['B']})")
+        row = dict(method=name, label=label, variant=b0["variant"], B=B, first_s=None, median_s=t, reps=0,
+                   all_s=[], extrapolated=True, extrapolated_from_B=b0["B"])
+        return row, None
+    if B > args.variant_max_b and name in best_variant:
+        vitems = [(best_variant[name], variants[best_variant[name]])]
+    else:
+        vitems = list(variants.items())
+    cand = []
+    for vname, fn in vitems:
+        out, first, times = time_repeated(lambda fn=fn: run(fn), args.repeats, args.budget,
+                                          first_counts=first_counts)
+        med = print_timing(label, f"{vname:11s}", first, times, width)
+        cand.append((med, vname, first, times, out))
+    med, vname, first, times, out = min(cand, key=lambda c: c[0])
+    if B <= args.variant_max_b and len(variants) > 1:
+        best_variant[name] = vname
+    row = dict(method=name, label=label, variant=vname, B=B, first_s=first, median_s=med, reps=len(times),
+               all_s=times, extrapolated=False, all_variants={c[1]: c[0] for c in cand})
+    return row, out
+
+
+def add_speedups(rows, fojax_methods: dict | None = None) -> None:
+    """For every peer row and each fojax method measured at the same B (`fojax_methods`:
+    method -> suffix, default ``{"fojax": ""}``): ``t_fojax_over_t_peer<suffix>`` and
+    ``fojax_speedup<suffix>`` (= t_peer / t_fojax)."""
+    fojax_methods = {"fojax": ""} if fojax_methods is None else fojax_methods
+    for r in rows:
+        if r["method"] in fojax_methods:
+            continue
+        for fm, suffix in fojax_methods.items():
+            f = [x for x in rows if x["method"] == fm and x["B"] == r["B"]]
+            if f:
+                r["t_fojax_over_t_peer" + suffix] = f[0]["median_s"] / r["median_s"]
+                r["fojax_speedup" + suffix] = r["median_s"] / f[0]["median_s"]
+
+
+def speedup_table(rows, cols) -> list[str]:
+    """Markdown section "fojax speed-up by B", one column per ``(peer, suffix, header)``."""
+    lines = [
+        "",
+        "## fojax speed-up (t_peer / t_fojax) by B",
+        "",
+        "| B | " + " | ".join(h for _, _, h in cols) + " |",
+        "|---:|" + "---:|" * len(cols),
+    ]
+    for B in sorted({r["B"] for r in rows}):
+        cells = []
+        for p, sfx, _ in cols:
+            r = [x for x in rows if x["method"] == p and x["B"] == B]
+            if r and ("fojax_speedup" + sfx) in r[0]:
+                cells.append(f"{r[0]['fojax_speedup' + sfx]:.3g}" + (" *extrap.*" if r[0]["extrapolated"] else ""))
+            else:
+                cells.append("—")
+        lines.append(f"| {B} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def rel_diff(m, ref) -> float:
     import numpy as np
 
@@ -220,7 +317,16 @@ def rel_diff(m, ref) -> float:
 
 
 def stamp_of(date: str) -> str:
-    return date.replace(":", "").replace("-", "")[:15]  # as reference_workload.py
+    return date.replace(":", "").replace("-", "")[:15]
+
+
+def result_payload(study: str, status: str, info: dict, args, **fields) -> dict:
+    """The head of every result JSON: ``study``, ``status``, ``machine`` (`info` with
+    ``load_average_at_end`` = now), ``settings`` (the command line; ``--worker`` left out,
+    paths as strings), then `fields` in order."""
+    settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if k != "worker"}
+    machine = dict(info, load_average_at_end=load_average())
+    return dict(study=study, status=status, machine=machine, settings=settings, **fields)
 
 
 def write_results(out: Path, name: str, payload: dict, md: str, echo: bool = False) -> Path:

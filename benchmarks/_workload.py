@@ -180,13 +180,18 @@ def reduce_index1(Acl: np.ndarray):
     return A_red, T
 
 
-def output_map(T: np.ndarray) -> np.ndarray:
-    """``C_out`` (6×7): rows 0–3 give $x$, rows 4–5 give $\\hat z - Lx$, from $\\bar x_d$."""
+def full_output_rows() -> np.ndarray:
+    """``(6, 8)`` map from the closed-loop state $\\bar x$ to $[x; \\hat z - Lx]$ (``C_out = C_full T``)."""
     C_full = np.zeros((6, N_FULL))
     C_full[:4, :4] = np.eye(4)
     C_full[4:, :4] = Q @ W - L
     C_full[4:, 4:6] = P
-    return C_full @ T
+    return C_full
+
+
+def output_map(T: np.ndarray) -> np.ndarray:
+    """``C_out`` (6×7): rows 0–3 give $x$, rows 4–5 give $\\hat z - Lx$, from $\\bar x_d$."""
+    return full_output_rows() @ T
 
 
 def nominal_finite_poles() -> np.ndarray:
@@ -222,6 +227,16 @@ class Workload:
         return self.delta.shape[0]
 
 
+def _initial_states(xi: np.ndarray, T: np.ndarray):
+    """``(x_raw, xd0, x0_cl)`` from the standard normals `xi` ``(B, 4)``: the drawn plant state,
+    the reduced initial state (plant x1..x3; observer states zeta, v start at 0) and the
+    consistent closed-loop one (x4 solved from the algebraic row)."""
+    x_raw = X0_NOMINAL * (1.0 + X0_SPREAD * xi)
+    xd0 = np.zeros((xi.shape[0], DIFF.size))
+    xd0[:, :3] = x_raw[:, :3]
+    return x_raw, xd0, xd0 @ T.T
+
+
 def make_workload(batch: int, seed: int = DEFAULT_SEED, check_stability: bool = True) -> Workload:
     """Draw `batch` samples of the reference workload from a NumPy Generator seed."""
     ss_delta, ss_xi = np.random.SeedSequence(seed).spawn(2)
@@ -233,10 +248,7 @@ def make_workload(batch: int, seed: int = DEFAULT_SEED, check_stability: bool = 
     T = T_b[0] if batch else reduce_index1(closed_loop_A(A))[1]
     if not np.allclose(T_b, T, rtol=0, atol=0):
         raise AssertionError("the algebraic map depends on the sample; C_out would be per-sample")
-    x_raw = X0_NOMINAL * (1.0 + X0_SPREAD * xi)
-    xd0 = np.zeros((batch, DIFF.size))
-    xd0[:, :3] = x_raw[:, :3]  # plant x1..x3; observer states zeta, v start at 0
-    x0_cl = xd0 @ T.T  # consistent: x4 solved from the algebraic row
+    x_raw, xd0, x0_cl = _initial_states(xi, T)
     assert np.allclose(x0_cl[:, :3], x_raw[:, :3]) and not x0_cl[:, 4:].any()
     resid = np.einsum("bij,bj->bi", A_cl[:, ALG, :], x0_cl)
     assert np.max(np.abs(resid), initial=0.0) < 1e-12, "x(0) is not consistent"
@@ -354,10 +366,7 @@ def make_tv_workload(batch: int, seed: int = DEFAULT_SEED) -> TimeVaryingWorkloa
     phase = np.random.default_rng(children[4]).uniform(0.0, 2 * np.pi, size=batch)
     fault = np.random.default_rng(children[5]).uniform(-FAULT_MAX, FAULT_MAX, size=(batch, 2))
     A_red0, dA_red, b_fault, T = _tv_reduction()
-    x_raw = X0_NOMINAL * (1.0 + X0_SPREAD * xi)
-    xd0 = np.zeros((batch, DIFF.size))
-    xd0[:, :3] = x_raw[:, :3]
-    x0_cl = xd0 @ T.T  # x4 solved from the algebraic row (the fault does not enter it)
+    _, xd0, x0_cl = _initial_states(xi, T)  # the fault does not enter the algebraic row
     return TimeVaryingWorkload(
         amplitude=amplitude,
         omega=omega,
@@ -372,15 +381,6 @@ def make_tv_workload(batch: int, seed: int = DEFAULT_SEED) -> TimeVaryingWorkloa
         C_out=output_map(T),
         ts=TS.copy(),
     )
-
-
-def full_output_rows() -> np.ndarray:
-    """``(6, 8)`` map from the closed-loop state $\\bar x$ to $[x; \\hat z - Lx]$ (``C_out = C_full T``)."""
-    C_full = np.zeros((6, N_FULL))
-    C_full[:4, :4] = np.eye(4)
-    C_full[4:, :4] = Q @ W - L
-    C_full[4:, 4:6] = P
-    return C_full
 
 
 def quadratic_stability_certificate(alpha: float = 0.5):

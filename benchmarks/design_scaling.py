@@ -271,12 +271,11 @@ def main(argv=None) -> int:
 
 
 def write(info, args, rows, stopped, status, echo=False):
-    info = dict(info, load_average_at_end=_common.load_average())
-    payload = dict(
-        study="design_scaling",
-        status=status,
-        machine=info,
-        settings=dict({k: v for k, v in vars(args).items() if k != "worker"}, out=str(args.out)),
+    payload = _common.result_payload(
+        "design_scaling",
+        status,
+        info,
+        args,
         problem=dict(
             plant="random stable index-1 (scaling.random_stable_index1), n_alg = max(1, n // 4)",
             m=N_INPUTS, p="max(1, n // 4)", q="max(1, n // 2)", q0="q", region="default (Disk(-2, 1))",

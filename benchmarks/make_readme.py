@@ -25,20 +25,15 @@ from pathlib import Path
 
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from _common import fmt  # noqa: E402
+
+
 START, END = "<!-- benchmarks:start -->", "<!-- benchmarks:end -->"
 _LABEL = {"results": "benchmarks/results"}  # how the results folder is named in the source lines
 STUDIES = ("reference_workload", "time_varying", "scaling", "design_scaling", "tuning_scaling")
 PEER_SHORT = {"solve_ivp": "(a) solve_ivp loop", "control": "(b) python-control loop",
               "rk4": "(c) NumPy RK4", "expm": "(d) expm + recurrence"}
-
-
-def fmt(x, spec=".3g") -> str:
-    if x is None:
-        return "—"
-    try:
-        return format(x, spec)
-    except (TypeError, ValueError):
-        return str(x)
 
 
 def load(results: Path, name: str) -> tuple[dict | None, str | None]:

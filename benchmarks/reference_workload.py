@@ -22,12 +22,8 @@ the per-sample time at the largest measured B and marked ``extrapolated`` everyw
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
-import platform
 import statistics
-import subprocess
 import sys
 import threading
 import time
@@ -36,33 +32,20 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+import _common  # noqa: E402
+
+
 # Single-threaded BLAS unless the caller says otherwise: on this 2-core machine the NumPy/SciPy
 # peers' tiny 7x7 BLAS/LAPACK calls are 2-10x *faster* with one OpenBLAS thread (threads only
 # contend), so this favours the peers. Must happen before NumPy is imported. XLA (fojax) uses
 # its own thread pool and is not affected.
-BLAS_THREADS = {v: os.environ.setdefault(v, "1") for v in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-
-
-def _host_devices_from_argv() -> int:
-    """``--host-devices N`` (default: the usable cores) read before JAX is imported."""
-    argv = sys.argv[1:]
-    for i, a in enumerate(argv):
-        if a.startswith("--host-devices="):
-            return int(a.split("=", 1)[1])
-        if a == "--host-devices" and i + 1 < len(argv):
-            return int(argv[i + 1])
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
+_common.limit_blas_threads()
+_common.prefer_checkout()  # before the first `import fojax`: measure this checkout's fojax
 # fojax spreads the samples over all JAX devices with jax.shard_map (one code path); on a CPU,
 # XLA exposes one device unless told otherwise, so the benchmark asks for one host device per
 # core (the standard XLA flag; must be set before JAX is imported). --host-devices 1 measures
 # fojax on one core.
-HOST_DEVICES = _host_devices_from_argv()
-if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (
-        os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={HOST_DEVICES}"
-    ).strip()
+HOST_DEVICES = _common.force_host_devices()
 
 import jax  # noqa: E402
 
@@ -82,6 +65,8 @@ SIZES = (1, 10, 100, 1_000, 10_000, 100_000)
 #: local error ~ (39.78e-3)^5 / 120 on the fastest mode (measured ~1e-10 on the metrics);
 #: python-control and fojax are exact discretisations like (d), up to rounding.
 TOLERANCES = {"solve_ivp": 1e-4, "control": 1e-10, "rk4": 1e-8, "expm": 1e-12, "fojax": 1e-8}
+#: The library versions recorded (and printed) for this study.
+VERSION_MODULES = ("numpy", "scipy", "control", "jax", "jaxlib", "equinox", "diffrax", "fojax")
 
 
 # ================================================================================ fojax
@@ -90,7 +75,12 @@ class FojaxUnavailable(RuntimeError):
 
 
 def _closed_loop_jnp(A_plant):
-    """The 8×8 closed-loop matrix from the printed gains, with jax.numpy (see `_workload`)."""
+    """The 8×8 closed-loop matrix from the printed gains, with jax.numpy (see `_workload`).
+
+    Deliberately a jax.numpy twin of `_workload.closed_loop_A`, not a call to it: it is
+    traced per sample inside fojax's timed kernel (the NumPy version assigns in place and
+    cannot be traced), and `_workload` stays NumPy only.
+    """
     g = {k: jnp.asarray(getattr(wlmod, k)) for k in "B C L N J F H S G M P Q E_PERP".split()}
     # w = [-E_perp B u; y] with u = zhat = P zeta + Q w: an algebraic loop in u, but
     # E_perp B = [0, 0] for this plant (checked here and in _workload), so w = [0; C] x.
@@ -106,13 +96,6 @@ def _closed_loop_jnp(A_plant):
             [g["M"] @ W, g["S"], g["G"]],
         ]
     )
-
-
-def _fojax_error_rows():
-    """``(2, 8)`` map from the closed-loop state to ``zhat - L x``."""
-    W = jnp.concatenate([jnp.zeros((1, 4)), jnp.asarray(wlmod.C)], axis=0)
-    QW_L = jnp.asarray(wlmod.Q) @ W - jnp.asarray(wlmod.L)
-    return jnp.concatenate([QW_L, jnp.asarray(wlmod.P), jnp.zeros((2, 2))], axis=1)
 
 
 def _fojax_model(Ak):
@@ -160,9 +143,9 @@ class FojaxRunner:
         self.E_cl = jnp.asarray(wlmod.E_CL)
         self.ts = jnp.asarray(wlmod.TS)
         self.dt = float(wlmod.DT_GRID)
-        self.Ce = _fojax_error_rows()
-        Cx = jnp.concatenate([jnp.eye(4), jnp.zeros((4, 4))], axis=1)
-        self.metrics_spec = {"x": ("iae_l1", Cx), "e": ("iae_l1", self.Ce)}
+        C_full = jnp.asarray(wlmod.full_output_rows())  # (6, 8): rows of x, then of zhat - L x
+        self.Ce = C_full[4:]
+        self.metrics_spec = {"x": ("iae_l1", C_full[:4]), "e": ("iae_l1", self.Ce)}
         self._jit_batch = jax.jit(self._batch_traced)
         self._metrics = jax.jit(self._metrics_from_xs)
         self._vmapped = jax.vmap(self._trajectory)
@@ -183,7 +166,7 @@ class FojaxRunner:
         plant = self.fojax.DescriptorSystem(self.E_cl, _closed_loop_jnp(Ak))
         return self.fojax.simulate(plant, x0, self.ts).xs  # (T, 8)
 
-    def _metrics_from_xs(self, xs):  # (..., T, 8) -> (..., 2)
+    def _metrics_from_xs(self, xs):  # (..., T, 8) -> (..., 2); jnp twin of _workload.metrics_from_outputs
         fx = jnp.sum(jnp.abs(xs[..., :4]), axis=-1)
         fe = jnp.sum(jnp.abs(xs @ self.Ce.T), axis=-1)
         f = jnp.stack([fx, fe], axis=-1)
@@ -240,83 +223,7 @@ def run_fojax(batch: wlmod.Workload, chunk: int = 4096, mode: str = "auto") -> n
     return np.asarray(jax.block_until_ready(runner(*fojax_inputs(batch))))
 
 
-# ================================================================================ helpers
-def rel_diff(m: np.ndarray, ref: np.ndarray) -> float:
-    return float(np.max(np.abs(m - ref) / np.abs(ref)))
-
-
-def machine_info() -> dict:
-    cpu = platform.processor() or ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                mem = f"{int(line.split()[1]) / 2**20:.1f} GiB"
-    except OSError:
-        pass
-    versions = {}
-    for mod in ("numpy", "scipy", "control", "jax", "jaxlib", "equinox", "diffrax", "fojax"):
-        try:
-            versions[mod] = __import__(mod).__version__
-        except Exception:  # noqa: BLE001
-            versions[mod] = "not installed"
-    try:
-        commit = subprocess.run(
-            ["git", "-C", str(HERE), "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=False,
-        ).stdout.strip()
-    except OSError:
-        commit = ""
-    return {
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "cpu": cpu,
-        "logical_cores": os.cpu_count(),
-        "cores_available": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "memory": mem,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "jax_backend": jax.default_backend(),
-        "jax_devices": jax.device_count(),
-        "dtype": "float64",
-        "blas_threads": BLAS_THREADS,
-        "versions": versions,
-        "git_commit": commit,
-        "load_average_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
-    }
-
-
-def time_repeated(call, repeats: int, budget: float, first_counts: bool = True):
-    """First call, then up to `repeats` timed calls (stopping once `budget` s are spent).
-
-    If the first call alone exceeds `budget` and `first_counts` (no compilation in it:
-    the NumPy/SciPy peers), no repetition is made and the first call is the (single)
-    measurement. Otherwise at least one repetition is timed. Returns
-    ``(result, first, times)``.
-    """
-    t0 = time.perf_counter()
-    out = call()
-    first = time.perf_counter() - t0
-    times: list[float] = []
-    if first > budget and first_counts:
-        return out, first, [first]
-    spent = 0.0
-    while len(times) < repeats and spent < budget:
-        t0 = time.perf_counter()
-        call()
-        times.append(time.perf_counter() - t0)
-        spent += times[-1]
-    return out, first, times
-
-
+# ================================================================================ watchdog
 HANG_NOTE = (
     "Known cause with jax/jaxlib 0.10.x on small CPUs: batched LAPACK kernels (LU via "
     "jnp.linalg.solve / expm under vmap) run jax::ParallelBatchMap on XLA's intra-op thread pool "
@@ -392,10 +299,10 @@ def agreement(check_b: int, which: list[str], fojax_fn, seed: int, watchdog) -> 
     for name in which:
         label, variants = peers.PEERS[name]
         for vname, fn in variants.items():
-            res[f"{name}:{vname}"] = rel_diff(fn(wl), ref)
+            res[f"{name}:{vname}"] = _common.rel_diff(fn(wl), ref)
     if fojax_fn is not None:
         with watchdog.watch(f"fojax agreement check (B = {check_b})"):
-            res["fojax"] = rel_diff(np.asarray(fojax_fn(*fojax_inputs(wl))), ref)
+            res["fojax"] = _common.rel_diff(np.asarray(fojax_fn(*fojax_inputs(wl))), ref)
     return res
 
 
@@ -454,7 +361,7 @@ def main(argv=None) -> int:
         ap.error("--repeats must be at least 1")
     sizes = sorted(set(args.sizes))
 
-    info = machine_info()
+    info = _common.machine_info(VERSION_MODULES)
     print(f"# reference workload ({info['date']}, {info['cpu']}, {info['cores_available']} cores)")
     poles = wlmod.nominal_finite_poles()
     print("nominal finite poles:", np.array2string(poles, precision=3, max_line_width=200))
@@ -499,80 +406,33 @@ def main(argv=None) -> int:
         print(f"\n## B = {B}")
         for name in args.peers:
             label, variants = peers.PEERS[name]
-            loop_peer = name in ("solve_ivp", "control")
-            if loop_peer and B > args.loop_max_b:
-                base = [r for r in rows if r["method"] == name and not r["extrapolated"]]
-                if not base:
-                    continue
-                b0 = base[-1]
-                t = b0["median_s"] * B / b0["B"]
-                rows.append(
-                    dict(
-                        method=name,
-                        label=label,
-                        variant=b0["variant"],
-                        B=B,
-                        first_s=None,
-                        median_s=t,
-                        reps=0,
-                        all_s=[],
-                        extrapolated=True,
-                        extrapolated_from_B=b0["B"],
-                        rel_diff_vs_expm=None,
-                    )
-                )
-                print(f"  {label:45s} {t:10.3f} s  (EXTRAPOLATED from B = {b0['B']})")
-                continue
-            if B > args.variant_max_b and name in best_variant:
-                vitems = [(best_variant[name], variants[best_variant[name]])]
-            else:
-                vitems = list(variants.items())
-            cand = []
-            for vname, fn in vitems:
-                out, first, times = time_repeated(lambda fn=fn: fn(wl), args.repeats, args.budget)
-                med = statistics.median(times)
-                cand.append((med, vname, first, times, out))
-                print(f"  {label:45s} [{vname:11s}] first {first:9.3f} s  median {med:9.3f} s  ({len(times)} reps)")
-            med, vname, first, times, out = min(cand, key=lambda c: c[0])
-            if B <= args.variant_max_b and len(variants) > 1:
-                best_variant[name] = vname
-            if name == "expm":
-                ref_B = out
-            rows.append(
-                dict(
-                    method=name,
-                    label=label,
-                    variant=vname,
-                    B=B,
-                    first_s=first,
-                    median_s=med,
-                    reps=len(times),
-                    all_s=times,
-                    extrapolated=False,
-                    all_variants={c[1]: c[0] for c in cand},
-                    _out=out,
-                )
+            row, out = _common.time_peer(
+                rows, name, label, variants, lambda fn: fn(wl), B, args, best_variant,
+                loop_peer=name in ("solve_ivp", "control"), width=45, first_counts=True,
             )
+            if row is None:
+                continue
+            if row["extrapolated"]:
+                row["rel_diff_vs_expm"] = None
+            else:
+                row["_out"] = out
+                if name == "expm":
+                    ref_B = out
+            rows.append(row)
         if fojax_fn is not None:
             xin = fojax_inputs(wl)
             jax.clear_caches()  # a cold start at every B: the first call compiles
             with watchdog.watch(f"fojax at B = {B}"):
                 compile_s = fojax_fn.prepare(*xin)  # AOT compile (jit mode), None otherwise
-                out, first, times = time_repeated(
-                    lambda: jax.block_until_ready(fojax_fn(*xin)),
-                    args.repeats,
-                    args.budget,
-                    first_counts=False,
+                out, first, times = _common.time_repeated(
+                    lambda: jax.block_until_ready(fojax_fn(*xin)), args.repeats, args.budget
                 )
             med = statistics.median(times)
             compile_note = "AOT lower+compile"
             if compile_s is None:  # eager modes: the first call traces and compiles
                 compile_s = max(first - med, 0.0)
                 compile_note = "first call - median"
-            print(
-                f"  {fojax_fn.label:45s} [compile {compile_s:6.2f} s] first {first:9.3f} s  "
-                f"median {med:9.3f} s  ({len(times)} reps)"
-            )
+            _common.print_timing(fojax_fn.label, f"compile {compile_s:6.2f} s", first, times, 45)
             rows.append(
                 dict(
                     method="fojax",
@@ -592,7 +452,7 @@ def main(argv=None) -> int:
         for r in rows:
             if r["B"] == B and "_out" in r:
                 out = r.pop("_out")
-                r["rel_diff_vs_expm"] = None if ref_B is None else rel_diff(out, ref_B)
+                r["rel_diff_vs_expm"] = None if ref_B is None else _common.rel_diff(out, ref_B)
                 if ref_B is not None:
                     tol = TOLERANCES[r["method"]]
                     if r["rel_diff_vs_expm"] > tol:
@@ -609,31 +469,20 @@ def write_results(state: dict, status: str, echo: bool = False) -> None:
     info, agree, rows, args = state["info"], state["agree"], state["rows"], state["args"]
     fojax_fn, fojax_msg, failed = state["fojax_fn"], state["fojax_msg"], state["failed"]
     rows = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
-    info = dict(info, load_average_at_end=os.getloadavg() if hasattr(os, "getloadavg") else None)
     for r in rows:
         r["samples_per_s"] = r["B"] / r["median_s"]
-        f = [x for x in rows if x["method"] == "fojax" and x["B"] == r["B"]]
-        if f and r["method"] != "fojax":
-            r["t_fojax_over_t_peer"] = f[0]["median_s"] / r["median_s"]
-            r["fojax_speedup"] = r["median_s"] / f[0]["median_s"]
+    _common.add_speedups(rows)
     fojax_note = ""
     if fojax_fn is not None:
         fojax_note = (f"fojax mode: {fojax_fn.mode} (requested {fojax_fn.requested_mode}), chunk {args.chunk}, "
                       f"{jax.device_count()} JAX host device(s) (jax.shard_map over the samples)")
         if fojax_fn.fallback_reason:
             fojax_note += f"; {fojax_fn.fallback_reason}"
-    md = render_markdown(info, agree, rows, fojax_msg, fojax_note, args, status)
-    if echo:
-        print("\n" + md)
-    args.out.mkdir(parents=True, exist_ok=True)
-    stamp = info["date"].replace(":", "").replace("-", "")[:15]
-    (args.out / f"reference_workload_{stamp}.md").write_text(md)
-    (args.out / "reference_workload_latest.md").write_text(md)
-    payload = dict(
-        study="reference_workload",
-        status=status,
-        machine=info,
-        settings=dict(vars(args), out=str(args.out)),
+    payload = _common.result_payload(
+        "reference_workload",
+        status,
+        info,
+        args,
         tolerances=TOLERANCES,
         agreement_check=dict(B=args.check_b, max_rel_diff_vs_expm=agree),
         fojax_unavailable=fojax_msg or None,
@@ -641,28 +490,17 @@ def write_results(state: dict, status: str, echo: bool = False) -> None:
         rows=rows,
         disagreements=failed,
     )
-    for name in (f"reference_workload_{stamp}.json", "reference_workload_latest.json"):
-        (args.out / name).write_text(json.dumps(payload, indent=2, default=float))
-    if echo:
-        print(f"written to {args.out}/reference_workload_{stamp}.{{md,json}}")
-
-
-def _fmt(x, spec):
-    return "—" if x is None else format(x, spec)
+    md = render_markdown(payload["machine"], agree, rows, fojax_msg, fojax_note, args, status)
+    _common.write_results(args.out, "reference_workload", payload, md, echo=echo)
 
 
 def render_markdown(info, agree, rows, fojax_msg, fojax_note, args, status) -> str:
-    v = info["versions"]
+    fmt = _common.fmt
     lines = [
         "# Reference workload (issue 7): thesis §4.1.3 observer-based control loop",
         "",
         f"- status: {status}",
-        f"- date: {info['date']}; git {info['git_commit']}",
-        f"- machine: {info['cpu']}, {info['cores_available']} cores available "
-        f"({info['logical_cores']} logical), {info['memory']}; {info['platform']}; "
-        f"load average at start {tuple(round(x, 2) for x in info['load_average_at_start'] or ())}, "
-        f"at end {tuple(round(x, 2) for x in info['load_average_at_end'] or ())}",
-        f"- Python {info['python']}; " + ", ".join(f"{k} {val}" for k, val in v.items()),
+        *_common.machine_lines(info),
         f"- float64; horizon [0, 10] s, 0.01 s grid (1001 points); seed {args.seed}; "
         f"median of up to {args.repeats} repetitions (budget {args.budget:.0f} s per entry) after a "
         "separately timed first call",
@@ -692,29 +530,14 @@ def render_markdown(info, agree, rows, fojax_msg, fojax_note, args, status) -> s
     for r in rows:
         med = f"{r['median_s']:.4g}" + (" *extrap.*" if r["extrapolated"] else "")
         lines.append(
-            f"| {r['B']} | {r['label']} | {r['variant']} | {_fmt(r.get('compile_s'), '.2f')} | "
-            f"{_fmt(r['first_s'], '.4g')} | {med} | {r['reps']} | {r['samples_per_s']:.4g} | "
-            f"{_fmt(r.get('rel_diff_vs_expm'), '.1e')} | {_fmt(r.get('t_fojax_over_t_peer'), '.3g')} | "
-            f"{_fmt(r.get('fojax_speedup'), '.3g')} |"
+            f"| {r['B']} | {r['label']} | {r['variant']} | {fmt(r.get('compile_s'), '.2f')} | "
+            f"{fmt(r['first_s'], '.4g')} | {med} | {r['reps']} | {r['samples_per_s']:.4g} | "
+            f"{fmt(r.get('rel_diff_vs_expm'), '.1e')} | {fmt(r.get('t_fojax_over_t_peer'), '.3g')} | "
+            f"{fmt(r.get('fojax_speedup'), '.3g')} |"
         )
     peer_names = [p for p in peers.PEERS if any(r["method"] == p for r in rows)]
     if any(r["method"] == "fojax" for r in rows):
-        lines += [
-            "",
-            "## fojax speed-up (t_peer / t_fojax) by B",
-            "",
-            "| B | " + " | ".join(peers.PEERS[p][0] for p in peer_names) + " |",
-            "|---:|" + "---:|" * len(peer_names),
-        ]
-        for B in sorted({r["B"] for r in rows}):
-            cells = []
-            for p in peer_names:
-                r = [x for x in rows if x["method"] == p and x["B"] == B]
-                if r and "fojax_speedup" in r[0]:
-                    cells.append(f"{r[0]['fojax_speedup']:.3g}" + (" *extrap.*" if r[0]["extrapolated"] else ""))
-                else:
-                    cells.append("—")
-            lines.append(f"| {B} | " + " | ".join(cells) + " |")
+        lines += _common.speedup_table(rows, [(p, "", peers.PEERS[p][0]) for p in peer_names])
     return "\n".join(lines) + "\n"
 
 

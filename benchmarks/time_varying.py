@@ -37,8 +37,8 @@ sys.path.insert(0, str(HERE))
 import _common  # noqa: E402
 
 
-BLAS_THREADS = _common.limit_blas_threads()  # before NumPy: favours the peers (see README)
-_common.prefer_checkout()
+_common.limit_blas_threads()  # before NumPy: favours the peers (see README)
+_common.prefer_checkout()  # before the first `import fojax`: measure this checkout's fojax
 HOST_DEVICES = _common.force_host_devices()
 
 import jax  # noqa: E402
@@ -217,7 +217,6 @@ def main(argv=None) -> int:
     sizes = sorted(set(args.sizes))
 
     info = _common.machine_info()
-    info["blas_threads"] = BLAS_THREADS
     print(f"# time-varying study ({info['date']}, {info['cpu']}, {info['cores_available']} cores)")
     P, worst = wlmod.quadratic_stability_certificate()
     print(
@@ -253,36 +252,13 @@ def main(argv=None) -> int:
         outs = {}
         for name in args.peers:
             label, variants = peers_tv.PEERS_TV[name]
-            if name == "solve_ivp" and B > args.loop_max_b:
-                base = [r for r in rows if r["method"] == name and not r["extrapolated"]]
-                if not base:
-                    continue
-                b0 = base[-1]
-                t = b0["median_s"] * B / b0["B"]
-                rows.append(
-                    dict(method=name, label=label, variant=b0["variant"], B=B, first_s=None, median_s=t,
-                         reps=0, all_s=[], extrapolated=True, extrapolated_from_B=b0["B"])
-                )
-                print(f"  {label:40s} {t:10.3f} s  (EXTRAPOLATED from B = {b0['B']})")
+            row, out = _common.time_peer(rows, name, label, variants, lambda fn: fn(wl), B, args, best_variant,
+                                         loop_peer=name == "solve_ivp", width=40)
+            if row is None:
                 continue
-            if B > args.variant_max_b and name in best_variant:
-                vitems = [(best_variant[name], variants[best_variant[name]])]
-            else:
-                vitems = list(variants.items())
-            cand = []
-            for vname, fn in vitems:
-                out, first, times = _common.time_repeated(lambda fn=fn: fn(wl), args.repeats, args.budget)
-                med = statistics.median(times)
-                cand.append((med, vname, first, times, out))
-                print(f"  {label:40s} [{vname:11s}] first {first:9.3f} s  median {med:9.3f} s  ({len(times)} reps)")
-            med, vname, first, times, out = min(cand, key=lambda c: c[0])
-            if B <= args.variant_max_b and len(variants) > 1:
-                best_variant[name] = vname
-            outs[name] = out
-            rows.append(
-                dict(method=name, label=label, variant=vname, B=B, first_s=first, median_s=med, reps=len(times),
-                     all_s=times, extrapolated=False, all_variants={c[1]: c[0] for c in cand})
-            )
+            if not row["extrapolated"]:
+                outs[name] = out
+            rows.append(row)
         for kind, sched in entries.items():
             jax.clear_caches()  # a cold start at every B: the first call compiles
             sub, st = sched["substeps"], sched["startup"]
@@ -293,7 +269,7 @@ def main(argv=None) -> int:
             compile_s = max(first - med, 0.0)
             method = "fojax" if kind == "uniform" else "fojax-startup"
             label = f"fojax.simulate_batch_exponential ({sched['label']})"
-            print(f"  {label:40s} [compile {compile_s:6.2f} s] first {first:9.3f} s  median {med:9.3f} s  ({len(times)} reps)")
+            _common.print_timing(label, f"compile {compile_s:6.2f} s", first, times, 40)
             row = dict(method=method, label=label, variant=f"chunk={args.chunk}", B=B, compile_s=compile_s,
                        compile_note="first call - median (caches cleared)", first_s=first, median_s=med,
                        reps=len(times), all_s=times, extrapolated=False, schedule=sched)
@@ -307,7 +283,8 @@ def main(argv=None) -> int:
     return 0
 
 
-FOJAX_METHODS = ("fojax", "fojax-startup")
+#: The timed fojax entries and the suffix of their speed-up fields in the peers' rows.
+FOJAX_METHODS = {"fojax": "", "fojax-startup": "_startup"}
 
 
 def _method_error(acc, row):
@@ -320,24 +297,15 @@ def _method_error(acc, row):
 def write_results(state: dict, status: str, echo: bool = False) -> None:
     info, acc, args = state["info"], state["acc"], state["args"]
     rows = [dict(r) for r in state["rows"]]
-    info = dict(info, load_average_at_end=_common.load_average())
     for r in rows:
         r["samples_per_s"] = r["B"] / r["median_s"]
         r["max_rel_error_vs_reference"] = _method_error(acc, r)
-        if r["method"] in FOJAX_METHODS:
-            continue
-        for fm in FOJAX_METHODS:
-            f = [x for x in rows if x["method"] == fm and x["B"] == r["B"]]
-            if f:
-                suffix = "" if fm == "fojax" else "_startup"
-                r["t_fojax_over_t_peer" + suffix] = f[0]["median_s"] / r["median_s"]
-                r["fojax_speedup" + suffix] = r["median_s"] / f[0]["median_s"]
-    md = render_markdown(info, acc, rows, args, status)
-    payload = dict(
-        study=NAME,
-        status=status,
-        machine=info,
-        settings=dict(vars(args), out=str(args.out)),
+    _common.add_speedups(rows, FOJAX_METHODS)
+    payload = _common.result_payload(
+        NAME,
+        status,
+        info,
+        args,
         workload=dict(
             delta="a_k sin(omega_k t + phi_k)",
             amplitude=[0.0, wlmod.TV_AMPLITUDE_MAX],
@@ -350,6 +318,7 @@ def write_results(state: dict, status: str, echo: bool = False) -> None:
         accuracy=dict(reference="solve_ivp DOP853 rtol 1e-12 atol 1e-14", samples=args.ref_b, **acc),
         rows=rows,
     )
+    md = render_markdown(payload["machine"], acc, rows, args, status)
     _common.write_results(args.out, NAME, payload, md, echo=echo)
 
 
@@ -410,23 +379,9 @@ def render_markdown(info, acc, rows, args, status) -> str:
     cols = [(p, sfx) for p in peer_names for sfx in ("", "_startup")
             if any(("fojax_speedup" + sfx) in r for r in rows if r["method"] == p)]
     if cols:
-        lines += [
-            "",
-            "## fojax speed-up (t_peer / t_fojax) by B",
-            "",
-            "| B | " + " | ".join(f"{peers_tv.PEERS_TV[p][0]} vs fojax {'start-up' if sfx else 'uniform'}"
-                                 for p, sfx in cols) + " |",
-            "|---:|" + "---:|" * len(cols),
-        ]
-        for B in sorted({r["B"] for r in rows}):
-            cells = []
-            for p, sfx in cols:
-                r = [x for x in rows if x["method"] == p and x["B"] == B]
-                if r and ("fojax_speedup" + sfx) in r[0]:
-                    cells.append(f"{r[0]['fojax_speedup' + sfx]:.3g}" + (" *extrap.*" if r[0]["extrapolated"] else ""))
-                else:
-                    cells.append("—")
-            lines.append(f"| {B} | " + " | ".join(cells) + " |")
+        lines += _common.speedup_table(
+            rows, [(p, sfx, f"{peers_tv.PEERS_TV[p][0]} vs fojax {'start-up' if sfx else 'uniform'}") for p, sfx in cols]
+        )
     return "\n".join(lines) + "\n"
 
 

@@ -176,11 +176,11 @@ def main(argv=None) -> int:
 
 
 def write(info, args, rows, status, echo=False):
-    payload = dict(
-        study="tuning_scaling",
-        status=status,
-        machine=dict(info, load_average_at_end=_common.load_average()),
-        settings=dict({k: v for k, v in vars(args).items() if k != "worker"}, out=str(args.out)),
+    payload = _common.result_payload(
+        "tuning_scaling",
+        status,
+        info,
+        args,
         setup="notebooks/monte_carlo_and_tuning.ipynb: example_3_3_7, generalized design in Disk(-2, 1), "
         "constant delta x constant faults, ts = linspace(0, 4, 81), optax.adam(0.3)",
         rows=rows,
