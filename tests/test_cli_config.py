@@ -111,8 +111,10 @@ def runs(tmp_path_factory):
     r["tmp"], r["bad"], r["study_env"] = tmp, bad, study_env
     yield r
     for v in r.values():
-        if isinstance(v, _Run) and v.proc.poll() is None:
-            v.proc.kill()
+        if isinstance(v, _Run):
+            if v.proc.poll() is None:  # not awaited by a test (e.g. a -k selection)
+                v.proc.kill()
+            v.proc.communicate()  # reap it and close its pipes (no ResourceWarning)
 
 
 @pytest.fixture(scope="module")
@@ -424,7 +426,7 @@ def test_a_signal_during_a_checkpoint_write_takes_effect_after_it(tmp_path):
     .npz and a .json that must agree), and raises KeyboardInterrupt right after."""
     import inspect
 
-    import fojax.tuning._tune as tune_module
+    import fojax.tuning._loop as tune_module
     from fojax.cli._commands import _Interrupts
 
     # the writer the CLI recognises is the one the tuning uses
@@ -433,18 +435,18 @@ def test_a_signal_during_a_checkpoint_write_takes_effect_after_it(tmp_path):
     # a stand-in with the same name and file: the signal arrives between its two writes
     src = (
         "import pathlib\n"
-        "def _save_checkpoint(path, kill, pause):\n"
+        "def save_checkpoint(path, kill, pause):\n"
         "    pathlib.Path(path + '.npz').write_text('1')\n"
         "    kill()\n"
         "    pause()\n"
         "    pathlib.Path(path + '.json').write_text('1')\n"
     )
     ns = {}
-    exec(compile(src, str(tmp_path / "tuning" / "_tune.py"), "exec"), ns)
+    exec(compile(src, str(tmp_path / "tuning" / "_loop.py"), "exec"), ns)
     path = str(tmp_path / "ck")
     written = False
     with _Interrupts() as interrupts, pytest.raises(KeyboardInterrupt):
-        ns["_save_checkpoint"](path, lambda: os.kill(os.getpid(), signal.SIGTERM), lambda: time.sleep(0.2))
+        ns["save_checkpoint"](path, lambda: os.kill(os.getpid(), signal.SIGTERM), lambda: time.sleep(0.2))
         written = os.path.exists(path + ".json")  # reached: the write was not interrupted
         for _ in range(500):  # the interruption follows at once
             time.sleep(0.01)

@@ -402,7 +402,7 @@ class _Interrupts:
     being written: then the interruption happens right after that write."""
 
     #: (function name, part of its file path) of writers that must not be interrupted
-    PAIRED_WRITERS = (("_save_checkpoint", "tuning"),)
+    PAIRED_WRITERS = (("save_checkpoint", "tuning"),)
 
     def __init__(self):
         self.signum = None

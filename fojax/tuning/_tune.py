@@ -67,7 +67,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import json
 import os
 from collections.abc import Callable
 
@@ -78,14 +77,16 @@ import numpy as np
 import optax
 import scipy.linalg
 from jax import lax
-from tqdm import tqdm
 
 from .._errors import InputError
 from ..design import Disk, FunctionalObserverDesign, pieces
 from ..design._functional import build_observer, verify_structure_design
 from ..design._gain_parameterization import contraction, disk_gain
 from ..design._parameterization import error_dynamics, observer_matrices
-from ..studies._runner import _atomic_write, SimConfig, Study, study_loss
+from ..studies._runner import SimConfig, Study, study_loss
+from ._loop import (
+    run_loop,
+)
 
 
 #: Number of traces of the jitted tuning step and of the held-out evaluation.
@@ -348,33 +349,6 @@ def _host_check(fx: _Fixed, params, region) -> tuple[bool, float, float]:
     return inside and float(margin) > 0, float(margin), float(np.max(eigs.real))
 
 
-def _save_checkpoint(path, params, opt_state, step, key, history):
-    leaves = jax.tree.leaves((params, opt_state))
-    arrays = {f"leaf{i}": np.asarray(x) for i, x in enumerate(leaves)}
-    arrays["key"] = np.asarray(key)
-    arrays["step"] = np.asarray(int(step))
-    _atomic_write(path + ".npz", lambda f: np.savez(f, **arrays))
-    meta = {"step": int(step), "history": history}
-    _atomic_write(path + ".json", lambda f: f.write(json.dumps(meta).encode()))
-
-
-def _load_checkpoint(path, params, opt_state):
-    with open(path + ".json") as f:
-        meta = json.load(f)
-    with np.load(path + ".npz") as data:
-        leaves = [jnp.asarray(data[f"leaf{i}"]) for i in range(len(jax.tree.leaves((params, opt_state))))]
-        key = jnp.asarray(data["key"])
-        npz_step = int(data["step"]) if "step" in data else meta["step"]
-    if npz_step != meta["step"]:
-        raise InputError(
-            f"checkpoint {path}: {path}.npz holds step {npz_step} but {path}.json step {meta['step']} "
-            "(the run was killed between the two writes); delete both files to restart the tuning."
-        )
-    treedef = jax.tree.structure((params, opt_state))
-    params, opt_state = jax.tree.unflatten(treedef, leaves)
-    return params, opt_state, meta["step"], key, meta["history"]
-
-
 def tune(
     design: FunctionalObserverDesign,
     train_study: Study,
@@ -444,44 +418,29 @@ def tune(
     key = jax.random.PRNGKey(0) if key is None else key
     cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps))
     w = None if weights is None else jnp.asarray(weights, dtype=jnp.float64)
-    history = {k: [] for k in ("step", "train_loss", "heldout_loss", "margin", "accepted", "backtracks",
-                               "max_real_eig")}
-    start = 0
     path = None if checkpoint is None else os.fspath(checkpoint)
-    if resume and path is not None and os.path.exists(path + ".json"):
-        params, opt_state, start, key, history = _load_checkpoint(path, params, opt_state)
 
     def heldout_loss(p):
-        if heldout is None:
-            return float("nan")
         return float(_evaluate(p, fx, heldout, loss, quantile, w, cfg))
 
     initial_heldout = (heldout_loss(initial_parameters(design, region, tune_Z=tune_Z,
                                                        parameterization=parameterization)[1])
                        if heldout else None)
-    for step in tqdm(range(start, steps), disable=quiet, desc="tune", unit="step"):
-        key, _ = jax.random.split(key)
-        value, cand, cand_state, margin, ok, nback = _step(
-            params, opt_state, fx, train_study, optimizer, loss, quantile, w, cfg, float(min_margin),
+
+    def step_fn(p, s):
+        value, cand, cand_state, _, ok, nback = _step(
+            p, s, fx, train_study, optimizer, loss, quantile, w, cfg, float(min_margin),
             int(max_backtracks), float(barrier),
         )
-        accepted = bool(ok)
-        if accepted:
-            accepted, margin_h, maxre = _host_check(fx, cand, region)
-        if accepted:
-            params = cand
-        else:
-            _, margin_h, maxre = _host_check(fx, params, region)
-        opt_state = cand_state
-        ho = heldout_loss(params) if (heldout is not None and (step + 1) % eval_every == 0) else float("nan")
-        rec = dict(step=step + 1, train_loss=float(value), heldout_loss=ho, margin=margin_h, accepted=accepted,
-                   backtracks=int(nback), max_real_eig=maxre)
-        for k, v in rec.items():
-            history[k].append(v)
-        if callback is not None:
-            callback(step + 1, rec)
-        if path is not None and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
-            _save_checkpoint(path, params, opt_state, step + 1, key, history)
+        return value, cand, cand_state, ok, nback
+
+    params, history = run_loop(
+        params, opt_state, key, steps=steps, step_fn=step_fn,
+        host_check=lambda p: _host_check(fx, p, region),
+        heldout_loss=heldout_loss if heldout is not None else None, eval_every=eval_every,
+        callback=callback, callback_params=False, path=path, resume=resume,
+        checkpoint_every=checkpoint_every, quiet=quiet, desc="tune",
+    )  # fmt: skip
     final_heldout = heldout_loss(params) if heldout is not None else None
     tuned = _verified_design(design, fx, params, region, dict(loss=loss, quantile=quantile, steps=steps,
                                                                tune_Z=tune_Z, parameterization=parameterization,

@@ -65,7 +65,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from tqdm import tqdm
 
 from .._errors import DesignVerificationError, InputError
 from ..design import TakagiSugenoObserverDesign
@@ -77,7 +76,8 @@ from ..design._verify import LMI_MARGIN, verify
 from ..observer import TakagiSugenoObserver
 from ..plant._takagi_sugeno import AbstractMembership
 from ..studies._runner import SimConfig, Study, study_loss
-from ._tune import _load_checkpoint, _save_checkpoint, TRACE_COUNTS, TuneResult
+from ._loop import run_loop
+from ._tune import TRACE_COUNTS, TuneResult
 
 
 _RULE_PARAMS = ("Y1", "Y2", "Y3", "J", "G")
@@ -345,41 +345,28 @@ def tune_takagi_sugeno(
     key = jax.random.PRNGKey(0) if key is None else key
     cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps), solver=solver)
     w = None if weights is None else jnp.asarray(weights, dtype=jnp.float64)
-    history = {k: [] for k in ("step", "train_loss", "heldout_loss", "margin", "accepted", "backtracks",
-                               "max_real_eig")}
-    start = 0
     path = None if checkpoint is None else os.fspath(checkpoint)
     initial = params
-    if resume and path is not None and os.path.exists(path + ".json"):
-        params, opt_state, start, key, history = _load_checkpoint(path, params, opt_state)
 
     def heldout_loss(p):
-        return float(_evaluate(p, fx, heldout, loss, quantile, w, cfg)) if heldout is not None else float("nan")
+        return float(_evaluate(p, fx, heldout, loss, quantile, w, cfg))
 
     initial_heldout = heldout_loss(initial) if heldout is not None else None
-    for step in tqdm(range(start, steps), disable=quiet, desc="tune T-S", unit="step"):
-        key, _ = jax.random.split(key)
+
+    def step_fn(p, s):
         value, cand, cand_state, _, ok, nback = _step(
-            params, opt_state, fx, train_study, optimizer, loss, quantile, w, cfg, float(min_margin),
+            p, s, fx, train_study, optimizer, loss, quantile, w, cfg, float(min_margin),
             int(max_backtracks), float(barrier),
         )
-        accepted = bool(ok)
-        if accepted:
-            accepted, margin_h, maxre = _host_check(fx, cand, region)
-        if accepted:
-            params = cand
-        else:
-            _, margin_h, maxre = _host_check(fx, params, region)
-        opt_state = cand_state
-        ho = heldout_loss(params) if (heldout is not None and (step + 1) % eval_every == 0) else float("nan")
-        rec = dict(step=step + 1, train_loss=float(value), heldout_loss=ho, margin=margin_h, accepted=accepted,
-                   backtracks=int(nback), max_real_eig=maxre)
-        for k, v in rec.items():
-            history[k].append(v)
-        if callback is not None:
-            callback(step + 1, dict(rec, params=params))
-        if path is not None and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
-            _save_checkpoint(path, params, opt_state, step + 1, key, history)
+        return value, cand, cand_state, ok, nback
+
+    params, history = run_loop(
+        params, opt_state, key, steps=steps, step_fn=step_fn,
+        host_check=lambda p: _host_check(fx, p, region),
+        heldout_loss=heldout_loss if heldout is not None else None, eval_every=eval_every,
+        callback=callback, callback_params=True, path=path, resume=resume,
+        checkpoint_every=checkpoint_every, quiet=quiet, desc="tune T-S",
+    )  # fmt: skip
     final_heldout = heldout_loss(params) if heldout is not None else None
     options = dict(loss=loss, quantile=quantile, steps=steps, tune_Z=tune_Z, barrier=barrier,
                    parameterization="takagi_sugeno_fixed_X")

@@ -1,0 +1,105 @@
+"""The optimizer loop shared by `fojax.tuning.tune` and `tune_takagi_sugeno`.
+
+One place for what every tuning run does around its jitted step: the host check of
+each candidate (a rejected iterate never replaces the parameters), the per-step
+history, held-out evaluation every `eval_every` steps, the user callback, the progress
+bar, and checkpoints (``path.npz`` + ``path.json``, each written atomically, both
+holding the step) with resume.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from .._errors import InputError
+from ..studies._runner import _atomic_write
+
+
+HISTORY_KEYS = ("step", "train_loss", "heldout_loss", "margin", "accepted", "backtracks", "max_real_eig")
+
+
+def save_checkpoint(path, params, opt_state, step, key, history):
+    leaves = jax.tree.leaves((params, opt_state))
+    arrays = {f"leaf{i}": np.asarray(x) for i, x in enumerate(leaves)}
+    arrays["key"] = np.asarray(key)
+    arrays["step"] = np.asarray(int(step))
+    _atomic_write(path + ".npz", lambda f: np.savez(f, **arrays))
+    meta = {"step": int(step), "history": history}
+    _atomic_write(path + ".json", lambda f: f.write(json.dumps(meta).encode()))
+
+
+def load_checkpoint(path, params, opt_state):
+    with open(path + ".json") as f:
+        meta = json.load(f)
+    with np.load(path + ".npz") as data:
+        leaves = [jnp.asarray(data[f"leaf{i}"]) for i in range(len(jax.tree.leaves((params, opt_state))))]
+        key = jnp.asarray(data["key"])
+        npz_step = int(data["step"]) if "step" in data else meta["step"]
+    if npz_step != meta["step"]:
+        raise InputError(
+            f"checkpoint {path}: {path}.npz holds step {npz_step} but {path}.json step {meta['step']} "
+            "(the run was killed between the two writes); delete both files to restart the tuning."
+        )
+    treedef = jax.tree.structure((params, opt_state))
+    params, opt_state = jax.tree.unflatten(treedef, leaves)
+    return params, opt_state, meta["step"], key, meta["history"]
+
+
+def run_loop(
+    params,
+    opt_state,
+    key,
+    *,
+    steps: int,
+    step_fn: Callable,
+    host_check: Callable,
+    heldout_loss: Callable | None,
+    eval_every: int,
+    callback: Callable | None,
+    callback_params: bool,
+    path: str | None,
+    resume: bool,
+    checkpoint_every: int,
+    quiet: bool,
+    desc: str,
+):
+    """Run steps ``start+1 .. steps`` and return ``(params, history)``.
+
+    `step_fn(params, opt_state) -> (value, candidate, new_opt_state, ok, backtracks)`
+    is the jitted step; `host_check(params) -> (inside, margin, max_real_eig)` the
+    float64 check on the host. With `resume` and an existing checkpoint at `path`, the
+    run continues from it (the result equals an uninterrupted run).
+    """
+    import os
+
+    history = {k: [] for k in HISTORY_KEYS}
+    start = 0
+    if resume and path is not None and os.path.exists(path + ".json"):
+        params, opt_state, start, key, history = load_checkpoint(path, params, opt_state)
+    for step in tqdm(range(start, steps), disable=quiet, desc=desc, unit="step"):
+        key, _ = jax.random.split(key)
+        value, cand, cand_state, ok, nback = step_fn(params, opt_state)
+        accepted = bool(ok)
+        if accepted:
+            accepted, margin_h, maxre = host_check(cand)
+        if accepted:
+            params = cand
+        else:
+            _, margin_h, maxre = host_check(params)
+        opt_state = cand_state
+        evaluate = heldout_loss is not None and (step + 1) % eval_every == 0
+        rec = dict(step=step + 1, train_loss=float(value), heldout_loss=heldout_loss(params) if evaluate else float("nan"),
+                   margin=margin_h, accepted=accepted, backtracks=int(nback), max_real_eig=maxre)
+        for k, v in rec.items():
+            history[k].append(v)
+        if callback is not None:
+            callback(step + 1, dict(rec, params=params) if callback_params else rec)
+        if path is not None and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
+            save_checkpoint(path, params, opt_state, step + 1, key, history)
+    return params, history
