@@ -100,10 +100,14 @@ def worker(spec: dict) -> dict:
     design, study = build(nu, nf)
     res["setup_s"] = time.perf_counter() - t0
 
+    # one optimizer object for every call: the jitted step is compiled per optimizer object
+    # (optax transformations are closures), so a new `optax.adam(...)` per call would retrace
+    opt = optax.adam(0.3)
+
     def run(steps):
         before = sum(tuning.TRACE_COUNTS.values())
         t0 = time.perf_counter()
-        out = tuning.tune(design, study, steps=steps, optimizer=optax.adam(0.3), method=spec["method"], quiet=True)
+        out = tuning.tune(design, study, steps=steps, optimizer=opt, method=spec["method"], quiet=True)
         t = time.perf_counter() - t0
         return t, sum(tuning.TRACE_COUNTS.values()) - before, out
 
