@@ -282,13 +282,15 @@ def test_independent_of_device_count_and_block(batch_result):
         np.testing.assert_array_equal(np.asarray(two[name]), out[name])
 
 
-def test_expm_last_matches_scipy(rng):
-    from fojax.simulation._batch import expm_last
+@pytest.mark.parametrize("size", [6, 14])  # unrolled column FMAs (N <= 10) and einsum products
+def test_expm_last_matches_scipy(rng, size):
+    from fojax.simulation._batch import _MM_UNROLL_MAX, expm_last
 
+    assert (size <= _MM_UNROLL_MAX) == (size == 6)
     # norms from 1e-3 to 40: 0 ... 7 squarings; non-normal matrices
-    Ms = [s * rng.standard_normal((6, 6)) + np.triu(5 * s * rng.standard_normal((6, 6)), 1)
+    Ms = [s * rng.standard_normal((size, size)) + np.triu(5 * s * rng.standard_normal((size, size)), 1)
           for s in (1e-3, 0.1, 1.0, 3.0, 8.0)]
-    Ms.append(np.zeros((6, 6)))
+    Ms.append(np.zeros((size, size)))
     got = np.asarray(expm_last(jnp.asarray(np.stack(Ms, axis=-1))))
     for k, M in enumerate(Ms):
         ref = scipy.linalg.expm(M)

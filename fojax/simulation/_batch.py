@@ -162,16 +162,27 @@ def _integrand(o, kinds):
 _TAYLOR_DEGREE, _TAYLOR_THETA, _PS_BLOCK = 18, 1.0, 4
 
 
+#: Largest matrix size for which `_mm_last` unrolls the product into column FMAs; above it
+#: the graph (``N²`` fused multiply–adds per product) compiles too slowly (measured with
+#: the unrolled form at every size: compile 18.5 s at N = 12, 43.6 s at N = 24, against
+#: 12.8 s and 25 s with einsum) and the batched einsum is used instead.
+_MM_UNROLL_MAX = 10
+
+
 def _mm_last(A, B):
     """Batch-last matrix product ``(N, K, b) × (K, M, b) → (N, M, b)``.
 
-    Written column by column as fused multiply–adds over the batch axis and fenced with
-    `jax.lax.optimization_barrier`: without the fence XLA fuses each product into its
-    consumers and recomputes it per use, and a batched ``einsum`` becomes a dot with
-    ``b`` tiny ``N × N`` matrices. Measured on the ``7 × 7`` reference loop, one
-    product per sample: einsum 450 ns, this 55 ns; the whole `expm_last` of 10,000
-    samples in blocks of 256: einsum 39 ms, this 11–20 ms, without the fence 100 ms.
+    For small matrices (``K, M ≤ _MM_UNROLL_MAX``): column by column as fused
+    multiply–adds over the batch axis, fenced with `jax.lax.optimization_barrier`.
+    Without the fence XLA fuses each product into its consumers and recomputes it per
+    use, and the batched ``einsum`` becomes a dot with ``b`` tiny ``N × N`` matrices.
+    Measured on the ``7 × 7`` reference loop, one product per sample: einsum 450 ns, this
+    55 ns; the whole `expm_last` of 10,000 samples in blocks of 256: einsum 39 ms, this
+    11–20 ms, without the fence 100 ms. Larger matrices use the einsum (see
+    `_MM_UNROLL_MAX`).
     """
+    if max(A.shape[1], B.shape[1]) > _MM_UNROLL_MAX:
+        return jnp.einsum("ijb,jkb->ikb", A, B)
     cols = []
     for k in range(B.shape[1]):
         acc = A[:, 0, :] * B[0, k][None, :]
