@@ -46,3 +46,27 @@ def _release_compiled_code():
     yield
     jax.clear_caches()
     gc.collect()
+
+
+#: Test modules that take minutes (subprocess studies, executed notebooks, tuning runs),
+#: longest first. pytest-xdist (``--dist loadfile``, two workers) hands out modules in
+#: collection order, so scheduling these first keeps one worker from finishing a long
+#: module alone at the end of the run (longest-processing-time-first).
+HEAVY_FIRST = (
+    "test_cli_config.py",
+    "test_notebook_monte_carlo.py",
+    "test_tuning_ts.py",
+    "test_simulation.py",
+    "test_tuning.py",
+    "test_notebook_quickstart.py",
+    "test_control.py",
+    "test_studies.py",
+    "test_notebook_control.py",
+    "test_notebook_observers.py",
+)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
+    order = {id(item): k for k, item in enumerate(items)}
+    items.sort(key=lambda it: (rank.get(it.path.name, len(rank)), order[id(it)]))
