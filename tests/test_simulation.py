@@ -375,7 +375,9 @@ def test_grad_exact_path_matches_finite_differences(plant413):
 
 
 def test_grad_diffrax_path_matches_finite_differences():
-    ts = ROBOT_TS
+    # the first 1.5 s of the robot run (reverse mode through the tight-tolerance adaptive
+    # solve over the whole 5 s took 150 s of the CI run; the check is the same)
+    ts = ROBOT_TS[:76]
     dt = ts[1] - ts[0]
     u = robot_input()
 
