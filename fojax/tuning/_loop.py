@@ -57,7 +57,8 @@ def run_loop(
     key,
     *,
     steps: int,
-    step_fn: Callable,
+    step: Callable,
+    step_args: tuple,
     host_check: Callable,
     heldout_loss: Callable | None,
     eval_every: int,
@@ -71,8 +72,8 @@ def run_loop(
 ):
     """Run steps ``start+1 .. steps`` and return ``(params, history)``.
 
-    `step_fn(params, opt_state) -> (value, candidate, new_opt_state, ok, backtracks)`
-    is the jitted step; `host_check(params) -> (inside, margin, max_real_eig)` the
+    `step(params, opt_state, *step_args) -> (value, candidate, new_opt_state, margin, ok,
+    backtracks)` is the jitted step; `host_check(params) -> (inside, margin, max_real_eig)` the
     float64 check on the host. With `resume` and an existing checkpoint at `path`, the
     run continues from it (the result equals an uninterrupted run).
     """
@@ -82,9 +83,9 @@ def run_loop(
     start = 0
     if resume and path is not None and os.path.exists(path + ".json"):
         params, opt_state, start, key, history = load_checkpoint(path, params, opt_state)
-    for step in tqdm(range(start, steps), disable=quiet, desc=desc, unit="step"):
+    for i in tqdm(range(start, steps), disable=quiet, desc=desc, unit="step"):
         key, _ = jax.random.split(key)
-        value, cand, cand_state, ok, nback = step_fn(params, opt_state)
+        value, cand, cand_state, _, ok, nback = step(params, opt_state, *step_args)
         accepted = bool(ok)
         if accepted:
             accepted, margin_h, maxre = host_check(cand)
@@ -93,13 +94,13 @@ def run_loop(
         else:
             _, margin_h, maxre = host_check(params)
         opt_state = cand_state
-        evaluate = heldout_loss is not None and (step + 1) % eval_every == 0
-        rec = dict(step=step + 1, train_loss=float(value), heldout_loss=heldout_loss(params) if evaluate else float("nan"),
+        evaluate = heldout_loss is not None and (i + 1) % eval_every == 0
+        rec = dict(step=i + 1, train_loss=float(value), heldout_loss=heldout_loss(params) if evaluate else float("nan"),
                    margin=margin_h, accepted=accepted, backtracks=int(nback), max_real_eig=maxre)
         for k, v in rec.items():
             history[k].append(v)
         if callback is not None:
-            callback(step + 1, dict(rec, params=params) if callback_params else rec)
-        if path is not None and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
-            save_checkpoint(path, params, opt_state, step + 1, key, history)
+            callback(i + 1, dict(rec, params=params) if callback_params else rec)
+        if path is not None and ((i + 1) % checkpoint_every == 0 or i + 1 == steps):
+            save_checkpoint(path, params, opt_state, i + 1, key, history)
     return params, history

@@ -353,15 +353,10 @@ def tune_takagi_sugeno(
 
     initial_heldout = heldout_loss(initial) if heldout is not None else None
 
-    def step_fn(p, s):
-        value, cand, cand_state, _, ok, nback = _step(
-            p, s, fx, train_study, optimizer, loss, quantile, w, cfg, float(min_margin),
-            int(max_backtracks), float(barrier),
-        )
-        return value, cand, cand_state, ok, nback
-
     params, history = run_loop(
-        params, opt_state, key, steps=steps, step_fn=step_fn,
+        params, opt_state, key, steps=steps, step=_step,
+        step_args=(fx, train_study, optimizer, loss, quantile, w, cfg, float(min_margin), int(max_backtracks),
+                   float(barrier)),
         host_check=lambda p: _host_check(fx, p, region),
         heldout_loss=heldout_loss if heldout is not None else None, eval_every=eval_every,
         callback=callback, callback_params=True, path=path, resume=resume,
