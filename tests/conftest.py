@@ -8,6 +8,22 @@ import os
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=4")
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+# One persistent XLA compilation cache for the whole run, shared by the xdist workers, the
+# notebook kernels and the CLI subprocesses (they inherit the environment): a program that
+# several modules or processes compile (after ``jax.clear_caches()`` below, or in a fresh
+# kernel) is compiled once. Created by the first process that loads this file (the xdist
+# controller, or the single process under ``-n 0``) and removed when that process exits.
+# Keys include the jax/jaxlib versions, the HLO and the device set, so a hit is always the
+# same executable.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    import atexit
+    import shutil
+    import tempfile
+
+    _JAX_CACHE = tempfile.mkdtemp(prefix="fojax-tests-jax-cache-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _JAX_CACHE
+    atexit.register(shutil.rmtree, _JAX_CACHE, True)
+
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
@@ -15,6 +31,8 @@ import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+# in case a plugin imported JAX before the environment variable above was set
+jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 
 
 @pytest.fixture
