@@ -70,7 +70,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import cvxpy as cp
 import numpy as np
 
 from .._dtype import require_x64
@@ -282,6 +281,7 @@ def _existence_checks(sys: DescriptorSystem, E, A, B, region: AbstractRegion):
 
 
 def _solve_dual_lmi(E, A, B, decay, margin, solver, reg):
+    import cvxpy as cp
     n, m = B.shape
     A_a = A + decay * E
     e = float(np.linalg.norm(E, 2)) or 1.0
@@ -321,6 +321,7 @@ def _solve_dual_lmi(E, A, B, decay, margin, solver, reg):
 
 
 def _solve_slow_lmi(As, Bs, region: AbstractRegion, margin, solver, reg):
+    import cvxpy as cp
     r, m = Bs.shape
     if r == 0:
         return (

@@ -32,7 +32,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-import cvxpy as cp
 import numpy as np
 
 from .._dtype import require_x64
@@ -146,6 +145,7 @@ def choose_Z(
     solver: str = _lmi.DEFAULT_SOLVER,
 ) -> tuple[np.ndarray, dict]:
     """Step 1: the free Z (see module docstring). Returns ``(Z, info)``."""
+    import cvxpy as cp
     pc = pieces(s)
     N1, N2, N3 = (np.asarray(x) for x in (pc.N1, pc.N2, pc.N3))
     k, q0 = N1.shape[0], s.q0
@@ -203,6 +203,7 @@ def solve_gains(
     Returns ``(X, Z, [𝕐_i], info)`` for one region, or ``([X_r], Z, [[𝕐_ri]], info)``
     for a tuple of regions; ``𝕐 = [[Y1, J], [Y2, G]]``.
     """
+    import cvxpy as cp
     multi = isinstance(region, tuple | list)
     regions = tuple(region) if multi else (region,)
     pc = pieces(s, xp=np)
@@ -293,6 +294,7 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
     With ``solver="auto"`` the order is: Clarabel (min-gain), Clarabel (feasibility),
     SCS (min-gain), SCS (feasibility). Only status ``optimal`` is ever accepted.
     """
+    import cvxpy as cp
     solvers = ("CLARABEL", "SCS") if _lmi.check_solver(solver) == "AUTO" else (solver,)
     attempts = [(sv, o) for sv in solvers for o in ("min-gain", "feasibility")]
     statuses = []

@@ -20,12 +20,16 @@ reached ``optimal`` — hence "auto".
 from __future__ import annotations
 
 import warnings
+from typing import TYPE_CHECKING
 
-import cvxpy as cp
 import numpy as np
 
 from .._errors import LMIInfeasibleError
 from ._regions import AbstractRegion
+
+
+if TYPE_CHECKING:  # cvxpy is imported where a problem is built: it takes ~1.3 s
+    import cvxpy as cp
 
 
 #: SCS settings: tighter than SCS's defaults (1e-4), see the module docstring.
@@ -40,6 +44,7 @@ def sym(M):
 
 def region_lmi(region: AbstractRegion, X, Phi):
     """Chilali–Gahinet matrix ``L⊗X + M⊗Φᵀ + Mᵀ⊗Φ`` with ``Φ = X𝔸`` (cvxpy expression)."""
+    import cvxpy as cp
     L, M = region.characteristic()
     out = cp.kron(L, X) + cp.kron(M, Phi.T) + cp.kron(M.T, Phi)
     return sym(out)
@@ -58,6 +63,7 @@ def check_solver(solver: str) -> str:
 
 def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_SOLVER) -> dict:
     """Solve; raise `LMIInfeasibleError` unless the status is ``optimal``."""
+    import cvxpy as cp
     solver = check_solver(solver)
     if solver == "AUTO":
         try:

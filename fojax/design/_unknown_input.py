@@ -90,7 +90,6 @@ from __future__ import annotations
 import dataclasses
 from typing import NamedTuple
 
-import cvxpy as cp
 import jax.numpy as jnp
 import numpy as np
 
@@ -677,6 +676,7 @@ def _solve_lmi(s, D, Z, region, *, margin, solver):
 
 
 def _region_lmi(A1, A2, S, region, margin, solver, name, hint, kappa=None):
+    import cvxpy as cp
     d = A1.shape[0]
     Si = np.linalg.inv(S)
     A1s, A2s = S @ A1 @ Si, A2 @ Si
