@@ -1,46 +1,55 @@
 """notebooks/control_and_ftc.ipynb executes (issue 4) and prints what Chapter 4 claims.
 
-The notebook is executed once, at module level (nbclient, kernel ``python3``); the tests
-read the numbers it prints.
+The notebook is executed once per module, in a fixture (nbclient, kernel ``python3``); the
+tests read the numbers it prints. (It used to run at import: pytest-xdist imports every
+test module in every worker to collect it, so each CI run executed it twice, untimed.)
 """
 
 import pathlib
 import re
+from typing import NamedTuple
 
 import nbclient
 import nbformat
+import pytest
 
 
 PATH = pathlib.Path(__file__).parents[1] / "notebooks" / "control_and_ftc.ipynb"
-NB = nbformat.read(PATH, as_version=4)
-nbclient.NotebookClient(
-    NB, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(PATH.parent)}}
-).execute()
-OUTPUT = "".join(
-    o.get("text", "") for c in NB.cells if c.cell_type == "code" for o in c.get("outputs", [])
-)
-FIGURES = sum(
-    "image/png" in o.get("data", {})
-    for c in NB.cells
-    if c.cell_type == "code"
-    for o in c.get("outputs", [])
-)
 
 
-def number(pattern: str) -> float:
-    m = re.search(pattern, OUTPUT)
+class Executed(NamedTuple):
+    nb: nbformat.NotebookNode
+    output: str
+    figures: int
+
+
+@pytest.fixture(scope="module")
+def executed() -> Executed:
+    nb = nbformat.read(PATH, as_version=4)
+    nbclient.NotebookClient(
+        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(PATH.parent)}}
+    ).execute()
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    output = "".join(o.get("text", "") for c in code for o in c.get("outputs", []))
+    figures = sum("image/png" in o.get("data", {}) for c in code for o in c.get("outputs", []))
+    return Executed(nb, output, figures)
+
+
+def number(output: str, pattern: str) -> float:
+    m = re.search(pattern, output)
     assert m, f"{pattern!r} not in the notebook output"
     return float(m.group(1))
 
 
-def test_runs_and_draws_the_figures():
+def test_runs_and_draws_the_figures(executed):
+    nb, figures = executed.nb, executed.figures
     assert not any(
         o.get("output_type") == "error"
-        for c in NB.cells
+        for c in nb.cells
         if c.cell_type == "code"
         for o in c.get("outputs", [])
     )
-    assert FIGURES >= 6
+    assert figures >= 6
     for fig in (
         "4.2",
         "4.3",
@@ -55,18 +64,20 @@ def test_runs_and_draws_the_figures():
         "4.14",
         "4.15",
     ):
-        assert f"Fig. {fig} " in "".join(c.source for c in NB.cells)
+        assert f"Fig. {fig} " in "".join(c.source for c in nb.cells)
 
 
-def test_separation_and_printed_poles():
-    gaps = [float(g) for g in re.findall(r"separation gap ([0-9.e+-]+)", OUTPUT)]
+def test_separation_and_printed_poles(executed):
+    output = executed.output
+    gaps = [float(g) for g in re.findall(r"separation gap ([0-9.e+-]+)", output)]
     assert len(gaps) == 2 and max(gaps) < 1e-8
-    assert "printed gains, loop poles:    [-39.781, -4.477, -2.211, -2.000, -2.000" in OUTPUT
+    assert "printed gains, loop poles:    [-39.781, -4.477, -2.211, -2.000, -2.000" in output
 
 
-def test_fault_tolerance_numbers():
-    assert number(r"FTC: max\|x\| on \[13, 15\] s = ([0-9.e+-]+)") < 1e-4
-    assert number(r"not FT = ([0-9.e+-]+)") > 0.05
-    assert number(r"fojax  : max ‖x − x_d‖ on \[11, 15\] s = ([0-9.e+-]+)") <= 1e-3
-    assert number(r"fojax  : f̂\(15\) − f = .*?\|x\(15\)\| = ([0-9.e+-]+)") < 1e-6
-    assert number(r"max \|ẑ − Lx\| for t ≥ h: ([0-9.e+-]+)") < 1e-8
+def test_fault_tolerance_numbers(executed):
+    output = executed.output
+    assert number(output, r"FTC: max\|x\| on \[13, 15\] s = ([0-9.e+-]+)") < 1e-4
+    assert number(output, r"not FT = ([0-9.e+-]+)") > 0.05
+    assert number(output, r"fojax  : max ‖x − x_d‖ on \[11, 15\] s = ([0-9.e+-]+)") <= 1e-3
+    assert number(output, r"fojax  : f̂\(15\) − f = .*?\|x\(15\)\| = ([0-9.e+-]+)") < 1e-6
+    assert number(output, r"max \|ẑ − Lx\| for t ≥ h: ([0-9.e+-]+)") < 1e-8
