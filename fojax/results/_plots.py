@@ -157,10 +157,16 @@ def plot_estimates(
             ax.plot(ts, med[:, i], color=c, lw=1.2, ls="--", label=f"{name} median")
         ax.set_ylabel(labels[i])
         ax.grid(alpha=0.3)
-    axes[0].set_title(title)
-    axes[0].legend(loc="best", fontsize=7)
     axes[-1].set_xlabel("t [s]")
-    fig.tight_layout()
+    # one legend for all panels, between the title and the first panel (inside a panel it
+    # hid the curves it explains)
+    handles, names = axes[0].get_legend_handles_labels()
+    ncol = min(len(names), 4)
+    rows = -(-len(names) // ncol)
+    fig.suptitle(title)
+    fig.legend(handles, names, loc="upper center", bbox_to_anchor=(0.5, 0.955), ncol=ncol, fontsize=7,
+               frameon=False)
+    fig.tight_layout(rect=(0, 0, 1, 0.95 - 0.032 * rows))
     return _save(fig, path, overwrite)
 
 
