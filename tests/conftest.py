@@ -66,21 +66,29 @@ def _release_compiled_code():
     gc.collect()
 
 
-#: Test modules that take minutes (subprocess studies, executed notebooks, tuning runs),
-#: longest first. pytest-xdist (``--dist loadfile``, two workers) hands out modules in
-#: collection order, so scheduling these first keeps one worker from finishing a long
-#: module alone at the end of the run (longest-processing-time-first).
+#: Test modules by the time they take in a CI run, longest first (measured 2026-11-21 with
+#: ``--durations=0``; the executed notebooks and the CLI module spend most of it in
+#: subprocesses). pytest-xdist (``--dist loadfile``, two workers) hands out whole modules in
+#: collection order — ``--no-loadscope-reorder`` in pyproject.toml, otherwise it reorders them
+#: by their number of tests and the one-test notebook modules ran last, alone — so this
+#: order is longest-processing-time-first scheduling.
 HEAVY_FIRST = (
-    "test_cli_config.py",
-    "test_notebook_monte_carlo.py",
-    "test_tuning_ts.py",
     "test_simulation.py",
-    "test_tuning.py",
-    "test_notebook_quickstart.py",
-    "test_control.py",
+    "test_cli_config.py",
+    "test_tuning_ts.py",
     "test_studies.py",
-    "test_notebook_control.py",
+    "test_notebook_quickstart.py",
+    "test_tuning.py",
+    "test_implicit_solver.py",
+    "test_notebook_monte_carlo.py",
+    "test_exponential.py",
+    "test_batch_simulation.py",
     "test_notebook_observers.py",
+    "test_control.py",
+    "test_ts_uio.py",
+    "test_benchmark_workload.py",
+    "test_design.py",
+    "test_notebook_control.py",
 )
 
 
