@@ -172,6 +172,11 @@ def input413(with_input):
     return fojax.Step(jnp.asarray(STEP_AMP), STEP_T) + fojax.Sine(jnp.asarray(SINE_AMP), SINE_OMEGA)
 
 
+def zero_input413():
+    """u = 0 with the step + sine's structure: a diffrax solve compiled for it is reused."""
+    return jax.tree.map(jnp.zeros_like, input413(True))
+
+
 @pytest.fixture(scope="module")
 def plant413():
     return fojax.DescriptorSystem(E413, ACL413, B413, C413)
@@ -225,9 +230,7 @@ def test_consistent_initial_condition_keeps_slow_part(plant413):
 def test_thesis_413_against_scipy(plant413, refs413, method, with_input):
     u = input413(with_input)
     if method == "diffrax" and not with_input:
-        # zero input with the same structure as the step + sine: the compiled diffrax solve
-        # is reused
-        u = jax.tree.map(jnp.zeros_like, input413(True))
+        u = zero_input413()
     sol = fojax.simulate(plant413, X0_413, TS, u, method=method)
     assert sol.method == method
     assert rel_err(sol.xs, refs413[with_input]) <= 1e-6
@@ -248,7 +251,7 @@ def test_auto_picks_exact_then_falls_back(plant413, refs413):
     # structure and a grid of the same length: the diffrax solve compiled for §4.1.3 above
     # is reused.)
     ts = TS + 0.004 * np.sin(np.pi * TS / 5.0) ** 2
-    sol = fojax.simulate(plant413, X0_413, ts, jax.tree.map(jnp.zeros_like, input413(True)))
+    sol = fojax.simulate(plant413, X0_413, ts, zero_input413())
     assert sol.method == "diffrax"
     d, _, rhs, full = hand_reduced(E413, ACL413, B413)
     xd = scipy_trajectory(lambda t, x: rhs(x, np.zeros(2)), X0_413[d], ts)
