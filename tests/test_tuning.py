@@ -67,9 +67,9 @@ def test_stein_certificate_matches_scipy_and_detects_the_disk(setup, rng):
             assert not (np.all(np.isfinite(P)) and np.linalg.eigvalsh(P)[0] > 0)
 
 
-#: one optimizer object for the module: the jitted tuning step is keyed on it, so the tests
-#: below reuse one compilation (a new ``optax.adam(0.1)`` per call would compile again)
-ADAM = optax.adam(0.1)
+#: the jitted tuning step is keyed on the optimizer object: the tests below ask
+#: `shared_optimizer` for the same configuration each time and so share one compilation
+ADAM = tuning.shared_optimizer("adam", learning_rate=0.1)
 
 
 def test_tuning_improves_heldout_iae_and_stays_certified(setup):
@@ -82,9 +82,9 @@ def test_tuning_improves_heldout_iae_and_stays_certified(setup):
     reduction = 1 - res.final_heldout / res.initial_heldout
     print(f"held-out mean IAE: LMI {res.initial_heldout:.4f} → tuned {res.final_heldout:.4f} "
           f"({100 * reduction:.1f} % lower)")
-    # The issue asks for 30 %. The direct parameterization (Z and all gains free, Stein
-    # barrier + rejection) reaches about 24 % after 80 steps on 256 training samples (see the
-    # notebook); this short run (30 steps, measured 15 %) must reach 10 % (the fixed-certificate
+    # The issue asks for 30 %. The notebook's run (60 steps, 256 training and 1,024 held-out
+    # samples) reaches 19 %, and its last cell measures why 30 % is out of reach on this
+    # benchmark. This short run (30 steps, measured 15 %) must reach 10 % (the fixed-certificate
     # "disk" parameterization reached 8 % with Z fixed).
     assert reduction > 0.10
     rep = res.design.report
@@ -99,7 +99,9 @@ def test_tuning_improves_heldout_iae_and_stays_certified(setup):
 def test_resume_from_checkpoint_equals_uninterrupted(setup, tmp_path):
     # the same study, optimizer and settings as above: the compiled step is reused
     _, d, train, _ = setup
-    opts = dict(optimizer=ADAM, method="exact")
+    # asked for anew: the same configuration gives the same object, hence the same compiled step
+    opts = dict(optimizer=tuning.shared_optimizer("adam", learning_rate=0.1), method="exact")
+    assert opts["optimizer"] is ADAM
     before = tuning.TRACE_COUNTS["tune_step"]
     full = tuning.tune(d, train, steps=4, **opts)
     path = tmp_path / "ckpt"
@@ -122,3 +124,21 @@ def test_non_disk_region_is_refused(setup):
     _, d, _, _ = setup
     with pytest.raises(fojax.InputError, match="disk regions only"):
         tuning.initial_parameters(d, fojax.design.HalfPlane(0.5))
+
+
+def test_shared_optimizer_is_one_object_per_configuration_and_refuses_bad_input():
+    a = tuning.shared_optimizer("adam", learning_rate=0.1)
+    assert tuning.shared_optimizer(learning_rate=0.1, name="adam") is a
+    assert tuning.shared_optimizer("adam", learning_rate=0.2) is not a
+    assert tuning.shared_optimizer("sgd", learning_rate=0.1) is not a
+    # the same transformation as optax's: one update from the same state agrees
+    p = {"w": jnp.array([1.0, -2.0])}
+    g = {"w": jnp.array([0.3, 0.5])}
+    ours, _ = a.update(g, a.init(p), p)
+    ref = optax.adam(0.1)
+    theirs, _ = ref.update(g, ref.init(p), p)
+    np.testing.assert_array_equal(ours["w"], theirs["w"])
+    with pytest.raises(fojax.InputError, match="no optimizer named 'adamm'"):
+        tuning.shared_optimizer("adamm", learning_rate=0.1)
+    with pytest.raises(fojax.InputError, match="must be hashable"):
+        tuning.shared_optimizer("adam", learning_rate=[0.1])

@@ -558,8 +558,6 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
     tuning_rows, tuning_note = [], "Tuning: not available in this fojax version."
     tuning = _tuning_module()
     if tuning is not None and n_steps > 0:
-        import optax
-
         from ..design import Disk
         from ..results import plot_tuning_curve
 
@@ -581,7 +579,7 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
             with out.step(f"tuning '{nm}': {what} on {train.num_samples} training "
                           "samples (compiling the gradient first)"):
                 tr = tuning.tune(designs[nm], train, heldout=heldout_small, steps=n_steps,
-                                 optimizer=optax.adam(tspec.learning_rate),
+                                 optimizer=tuning.shared_optimizer("adam", learning_rate=tspec.learning_rate),
                                  eval_every=max(1, n_steps // 10),
                                  checkpoint=checkpoint, resume=resumed, quiet=out.quiet)
             tuned_name = f"{nm}-tuned"

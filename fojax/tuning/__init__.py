@@ -1,5 +1,6 @@
 """Gradient tuning of observer gains over Monte Carlo studies (optax), certified at every iterate."""
 
+from ._optimizer import shared_optimizer as shared_optimizer
 from ._tune import (
     initial_parameters as initial_parameters,
     observer_from_parameters as observer_from_parameters,

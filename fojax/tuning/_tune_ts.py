@@ -77,6 +77,7 @@ from ..observer import TakagiSugenoObserver
 from ..plant._takagi_sugeno import AbstractMembership
 from ..studies._runner import SimConfig, Study, study_loss
 from ._loop import run_loop
+from ._optimizer import shared_optimizer
 from ._tune import TRACE_COUNTS, TuneResult
 
 
@@ -305,7 +306,9 @@ def tune_takagi_sugeno(
       `fojax.studies.parameter_uncertainty`).
     - `heldout`: a study of samples never used for training (its loss is reported).
     - `steps`: total number of optimizer steps (including those of a resumed run).
-    - `optimizer`: an optax transformation (default ``optax.adam(1e-2)``).
+    - `optimizer`: an optax transformation (default
+      ``shared_optimizer("adam", learning_rate=1e-2)``; see `fojax.tuning.tune` on reusing
+      the compiled step).
     - `loss`: ``"iae"`` or ``"ise"`` of $\hat z - z$ (mean over signals, or `weights`);
       `quantile`: use this quantile over samples instead of the mean.
     - `region`: the region to stay in (default: the design's region); the design's $X$
@@ -340,7 +343,7 @@ def tune_takagi_sugeno(
             f"the study has {train_study.num_signals} signals but the observer estimates "
             f"{design.observer.output_size}; build the study with the design's L."
         )
-    optimizer = optax.adam(1e-2) if optimizer is None else optimizer
+    optimizer = shared_optimizer("adam", learning_rate=1e-2) if optimizer is None else optimizer
     opt_state = optimizer.init(params)
     key = jax.random.PRNGKey(0) if key is None else key
     cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps), solver=solver)
