@@ -21,6 +21,30 @@ from .._errors import InputError
 from ..studies._runner import _atomic_write
 
 
+def backtracked_update(params, updates, margin_fn, min_margin, n_back):
+    """The optimizer update, halved until the candidate is valid (traceable).
+
+    The candidates ``params + 0.5**k · updates``, ``k = 0..n_back``, are evaluated at once
+    (vmap); the first with ``margin_fn(candidate) > min_margin`` is taken. When none is
+    valid the parameters stay (scale 0).
+
+    **Returns:** ``(new_params, margin, accepted, backtracks)``: the margin of the taken
+    candidate (of the full step when none was valid) and the number of halvings.
+    """
+    scales = 0.5 ** jnp.arange(n_back + 1, dtype=jnp.float64)
+
+    def margin_at(sc):
+        return margin_fn(jax.tree.map(lambda p, u: p + sc * u, params, updates))
+
+    margins = jax.vmap(margin_at)(scales)
+    ok = (margins > min_margin) & jnp.isfinite(margins)
+    first = jnp.argmax(ok)
+    any_ok = jnp.any(ok)
+    sc = jnp.where(any_ok, scales[first], 0.0)
+    new_params = jax.tree.map(lambda p, u: p + sc * u, params, updates)
+    return new_params, jnp.where(any_ok, margins[first], margins[0]), any_ok, first
+
+
 HISTORY_KEYS = ("step", "train_loss", "heldout_loss", "margin", "accepted", "backtracks", "max_real_eig")
 
 

@@ -76,7 +76,7 @@ from ..design._verify import LMI_MARGIN, verify
 from ..observer import TakagiSugenoObserver
 from ..plant._takagi_sugeno import AbstractMembership
 from ..studies._runner import SimConfig, Study, study_loss
-from ._loop import run_loop
+from ._loop import backtracked_update, run_loop
 from ._optimizer import shared_optimizer
 from ._tune import TRACE_COUNTS, TuneResult
 
@@ -214,19 +214,9 @@ def _step(params, opt_state, fx, study, optimizer, loss, quantile, weights, cfg,
     TRACE_COUNTS["tune_ts_step"] += 1
     value, grads = eqx.filter_value_and_grad(_loss_fn)(params, fx, study, loss, quantile, weights, cfg, barrier)
     updates, new_state = optimizer.update(grads, opt_state, params)
-    scales = 0.5 ** jnp.arange(n_back + 1, dtype=jnp.float64)
-
-    def margin_at(sc):
-        cand = jax.tree.map(lambda p, u: p + sc * u, params, updates)
-        return _margin_and_barrier(fx, cand)[0]
-
-    margins = jax.vmap(margin_at)(scales)
-    ok = (margins > min_margin) & jnp.isfinite(margins)
-    first = jnp.argmax(ok)
-    any_ok = jnp.any(ok)
-    sc = jnp.where(any_ok, scales[first], 0.0)
-    new_params = jax.tree.map(lambda p, u: p + sc * u, params, updates)
-    return value, new_params, new_state, jnp.where(any_ok, margins[first], margins[0]), any_ok, first
+    new_params, margin, accepted, backtracks = backtracked_update(
+        params, updates, lambda cand: _margin_and_barrier(fx, cand)[0], min_margin, n_back)
+    return value, new_params, new_state, margin, accepted, backtracks
 
 
 @eqx.filter_jit
