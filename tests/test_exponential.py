@@ -15,68 +15,31 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.integrate
+from closed_loop_413 import (  # the §4.1.3 loop shared with test_batch_simulation.py
+    ACL,
+    AO,
+    B0,
+    BY,
+    C0,
+    DA,
+    E,
+    LTIObserver,
+    ME,
+    METRICS_NP,
+    MX,
+    X0,
+)
 
 import fojax
-from fojax.observer import AbstractObserver, LinearObserverMatrices
 from fojax.simulation import simulate_batch_exponential, simulate_lti_batch
 from fojax.simulation._exponential import _host_plan, _setup_chunk, TRACE_COUNTS
 from fojax.studies import FaultyPlant
 
 
-E = np.diag([1.0, 1.0, 1.0, 0.0])
-A0 = np.array(
-    [[-3.0, 2.0, 1.0, 1.0], [1.0, -2.0, 1.0, -2.0], [3.0, 0.0, 1.0, -0.5], [-1.0, -2.0, 0.0, 1.0]]
-)
-B0 = np.array([[1.0, 0.0], [0.5, -1.0], [0.0, 1.0], [0.0, 0.0]])
-C0 = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 0, 1.0]])
-L0 = np.array([[-8.95, -26.07, 12.1, -4.85], [1.71, 1.31, -3.51, -0.16]])
-ACL = A0 + B0 @ L0
-DA = np.zeros((4, 4))
-DA[0, 2] = DA[1, 1] = 1.0
 FA = np.array([[0.3], [0.0], [-0.2], [0.5]])  # row 4: the fault enters the algebraic equation
-AO = np.array([[-2.0, 0.5], [0.0, -3.0]])
-BY = np.array([[1.0, 0.0, 0.2], [0.0, 1.0, -0.1]])
-X0 = np.array([16.0, -1.0, 3.0, 7.0])  # x4 inconsistent: projected (slow part kept)
 TS = np.linspace(0.0, 2.0, 51)  # grid 0.04 s
 B = 5
-
-# joint vector [x (4); xi (2)]
-MX = np.hstack([np.eye(4), np.zeros((4, 2))])
-ME = np.hstack([C0[:2], -np.eye(2)])  # y_{1,2} - xi
-METRICS_NP = {
-    "iae_x": ("iae", MX),
-    "ise_e": ("ise", ME),
-    "l1": ("iae_l1", MX),
-    "l2": ("ise_l2", np.eye(6)),
-}
 METRICS = {k: (kind, jnp.asarray(C)) for k, (kind, C) in METRICS_NP.items()}
-
-
-class LTIObserver(AbstractObserver):
-    A: jax.Array
-    By: jax.Array
-    xi0: jax.Array
-
-    @property
-    def state_size(self):
-        return 2
-
-    @property
-    def output_size(self):
-        return 2
-
-    def vector_field(self, t, xi, u, y):
-        return self.A @ xi + self.By @ y
-
-    def output(self, t, xi, u, y):
-        return xi
-
-    def initial_state(self):
-        return self.xi0
-
-    def linear_matrices(self):
-        z = jnp.zeros
-        return LinearObserverMatrices(self.A, z((2, 2)), self.By, jnp.eye(2), z((2, 2)), z((2, 3)))
 
 
 def _observer(p):
