@@ -89,10 +89,11 @@ def runs(tmp_path_factory):
         bad[key] = p
     radius0 = tmp / "radius0.toml"
     radius0.write_text(dumps(_mutate(("observer", 0, "region", "disk", "radius"), 0.0)))
-    # The studies share a persistent JAX compilation cache: the later ones (second run,
-    # interrupted run, resumed run) then skip the minutes of compiling the first one pays.
-    study_env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(tmp / "jax-cache"),
-                     JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    # The study subprocesses inherit the test run's persistent JAX compilation cache
+    # (conftest.py) and write every program to it, however short its compilation: the later
+    # studies (second run, interrupted run, resumed run) then skip the minutes of compiling
+    # the first one pays.
+    study_env = dict(os.environ, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
     r = {
         "check": _Run("check", *example_names()),
         "design": _Run("design", *example_names(), "--out", tmp / "runs"),
