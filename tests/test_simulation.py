@@ -13,6 +13,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
+
+# Thesis example 4.1.3 (closed loop u = Lx, eigenvalues -1.70 ± 1.99i, -39.78), from
+# tests/closed_loop_413.py; X0_413 is inconsistent: x4 must equal x1 + 2 x2 = 14.
+from closed_loop_413 import (
+    ACL as ACL413,
+    B0 as B413,
+    C0 as C413,
+    E as E413,
+    X0 as X0_413,
+)
 from scipy.integrate import solve_ivp
 
 import fojax
@@ -21,17 +31,6 @@ from fojax.simulation._simulate import TRACE_COUNTS
 
 
 # --------------------------------------------------------------------------- models
-
-# Thesis example 4.1.3 (closed loop u = Lx, eigenvalues -1.70 ± 1.99i, -39.78).
-E413 = np.diag([1.0, 1.0, 1.0, 0.0])
-A413 = np.array(
-    [[-3.0, 2.0, 1.0, 1.0], [1.0, -2.0, 1.0, -2.0], [3.0, 0.0, 1.0, -0.5], [-1.0, -2.0, 0.0, 1.0]]
-)
-B413 = np.array([[1.0, 0.0], [0.5, -1.0], [0.0, 1.0], [0.0, 0.0]])
-C413 = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 0, 1.0]])
-L413 = np.array([[-8.95, -26.07, 12.1, -4.85], [1.71, 1.31, -3.51, -0.16]])
-ACL413 = A413 + B413 @ L413
-X0_413 = np.array([16.0, -1.0, 3.0, 7.0])  # inconsistent: x4 must equal x1 + 2 x2 = 14
 
 # Thesis example of section 3.1 (finite-time observer): a stiff closed loop with a
 # pole near -275. The thesis prints "A - BL"; its poles belong to A + BL.
