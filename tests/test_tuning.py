@@ -142,3 +142,40 @@ def test_shared_optimizer_is_one_object_per_configuration_and_refuses_bad_input(
         tuning.shared_optimizer("adamm", learning_rate=0.1)
     with pytest.raises(fojax.InputError, match="must be hashable"):
         tuning.shared_optimizer("adam", learning_rate=[0.1])
+
+
+def _gain_penalty(obs, p):  # a user term: the size of the output-injection gain F
+    return GAIN_WEIGHT * jnp.sum(obs.F**2)
+
+
+GAIN_WEIGHT = 0.05
+
+
+def test_extra_loss_is_part_of_the_objective_and_changes_the_result(setup):
+    _, d, train, _ = setup
+    opts = dict(steps=5, optimizer=ADAM, method="exact")
+    plain = tuning.tune(d, train, **opts)  # the module's compiled step (no user term)
+    pen = tuning.tune(d, train, extra_loss=_gain_penalty, **opts)
+    # step 0 is evaluated at the LMI design: the objectives differ by the term, computed here
+    # from the design's own F in NumPy
+    F0 = np.asarray(d.observer.F)
+    np.testing.assert_allclose(pen.history["train_loss"][0] - plain.history["train_loss"][0],
+                               GAIN_WEIGHT * np.sum(F0**2), rtol=1e-10)
+    # its gradient acts: after 5 steps the penalized run has the smaller gain, and a valid design
+    normF = [float(np.linalg.norm(np.asarray(r.design.observer.F))) for r in (plain, pen)]
+    assert normF[1] < normF[0] and normF[1] < np.linalg.norm(F0)
+    assert pen.design.report.passed and pen.design.report.relative_residual <= 1e-8
+    assert pen.design.solver["tuning"]["extra_loss"] == "_gain_penalty"
+
+
+@pytest.mark.parametrize("bad, match", [
+    (3.0, "must be a function"),
+    (lambda obs, p: obs.F, "must return a real scalar"),
+    (lambda obs, p: jnp.inf * jnp.sum(obs.F), "must be finite"),
+])
+def test_extra_loss_is_checked_before_compiling(setup, bad, match):
+    _, d, train, _ = setup
+    before = tuning.TRACE_COUNTS["tune_step"]
+    with pytest.raises(fojax.InputError, match=match):
+        tuning.tune(d, train, steps=1, optimizer=ADAM, extra_loss=bad)
+    assert tuning.TRACE_COUNTS["tune_step"] == before

@@ -227,3 +227,24 @@ def test_common_lmi_margin_for_non_disk_regions():
         signs.add(bool(ref > 0))
     assert signs == {True, False}  # admissible and inadmissible points were both compared
     assert float(_margin_and_barrier(fx, params)[0]) > 0  # the design itself is admissible
+
+
+G_WEIGHT = 0.1
+
+
+def _g_penalty(obs, p):  # a user term on the per-rule generalized-state gains G_i
+    return G_WEIGHT * jnp.sum(p["G"] ** 2)
+
+
+def test_extra_loss_is_part_of_the_ts_objective(setup, run):
+    des, train, _ = setup
+    opts = dict(steps=2, optimizer=OPT, barrier=BARRIER, solver=SOLVER)
+    plain = tune_takagi_sugeno(des, train, **opts)  # the step compiled by `run`
+    pen = tune_takagi_sugeno(des, train, extra_loss=_g_penalty, **opts)
+    # step 0 is evaluated at the LMI design: the objectives differ by the term (NumPy, design's G)
+    np.testing.assert_allclose(pen.history["train_loss"][0] - plain.history["train_loss"][0],
+                               G_WEIGHT * np.sum(np.asarray(des.params["G"]) ** 2), rtol=1e-10)
+    # its gradient acts: the penalized run ends with the smaller G
+    normG = [float(np.linalg.norm(np.asarray(r.params["G"]))) for r in (plain, pen)]
+    assert normG[1] < normG[0]
+    assert pen.design.solver["tuning"]["extra_loss"] == "_g_penalty"

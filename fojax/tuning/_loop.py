@@ -21,6 +21,22 @@ from .._errors import InputError
 from ..studies._runner import _atomic_write
 
 
+def check_extra_loss(extra_loss, observer, design_params) -> None:
+    """Evaluate a user's ``extra_loss(observer, design_params)`` once on the starting
+    iterate (host) and refuse anything but a callable returning a finite real scalar."""
+    if extra_loss is None:
+        return
+    if not callable(extra_loss):
+        raise InputError(f"extra_loss must be a function (observer, design_params) -> scalar; got "
+                         f"{type(extra_loss).__name__}.")
+    value = jnp.asarray(extra_loss(observer, design_params))
+    if value.shape != () or not jnp.issubdtype(value.dtype, jnp.floating):
+        raise InputError(f"extra_loss must return a real scalar; at the starting design it returned shape "
+                         f"{value.shape}, dtype {value.dtype}. Reduce it (e.g. jnp.sum) to one number.")
+    if not bool(jnp.isfinite(value)):
+        raise InputError(f"extra_loss is {float(value)} at the starting design; it must be finite there.")
+
+
 def backtracked_update(params, updates, margin_fn, min_margin, n_back):
     """The optimizer update, halved until the candidate is valid (traceable).
 

@@ -53,7 +53,7 @@ Only ``kind="generalized"`` and ``"proportional"`` designs are tunable (the PI
 constraint $S = -Y_2N_3 = 0$ is not preserved by either map).
 
 **One jitted step.** Loss (batched mean or quantile of IAE/ISE over the training
-study), gradient and the optax update (with the backtracking candidates) form one
+study, plus the user's `extra_loss` terms), gradient and the optax update (with the backtracking candidates) form one
 `equinox.filter_jit` function, compiled once (`TRACE_COUNTS["tune_step"]`).
 
 **Checkpoints.** ``checkpoint=path`` writes, every `checkpoint_every` steps, the
@@ -84,7 +84,7 @@ from ..design._functional import build_observer, verify_structure_design
 from ..design._gain_parameterization import contraction, disk_gain
 from ..design._parameterization import error_dynamics, observer_matrices
 from ..studies._runner import SimConfig, Study, study_loss
-from ._loop import backtracked_update, run_loop
+from ._loop import backtracked_update, check_extra_loss, run_loop
 from ._optimizer import shared_optimizer
 
 
@@ -182,6 +182,11 @@ def free_parameters_to_design_params(fx: _Fixed, params) -> tuple[dict, jax.Arra
     Z, Y, margin = _gain(fx, params)
     out = dict(_split(fx, Y), Z=Z, Y3=params["Y3"])
     return out, margin
+
+
+def _observer_and_design_params(fx: _Fixed, params):
+    obs, _ = observer_from_parameters(fx, params)
+    return obs, free_parameters_to_design_params(fx, params)[0]
 
 
 def _margin(fx: _Fixed, params):
@@ -305,19 +310,23 @@ class TuneResult:
     final_heldout: float | None
 
 
-def _loss_fn(params, fx, study, loss, quantile, weights, cfg, barrier=0.0):
+def _loss_fn(params, fx, study, loss, quantile, weights, cfg, barrier=0.0, extra_loss=None):
     obs, _ = observer_from_parameters(fx, params)
     value = study_loss(study, obs, loss=loss, quantile=quantile, weights=weights, cfg=cfg)
     if fx.mode == "direct" and barrier:
         P, _ = _direct_margin(fx, params)
         value = value + barrier * jnp.log(jnp.trace(P))
+    if extra_loss is not None:
+        value = value + extra_loss(obs, free_parameters_to_design_params(fx, params)[0])
     return value
 
 
 @eqx.filter_jit
-def _step(params, opt_state, fx, study, optimizer, loss, quantile, weights, cfg, min_margin, n_back, barrier):
+def _step(params, opt_state, fx, study, optimizer, loss, quantile, weights, cfg, min_margin, n_back, barrier,
+          extra_loss):
     TRACE_COUNTS["tune_step"] += 1
-    value, grads = eqx.filter_value_and_grad(_loss_fn)(params, fx, study, loss, quantile, weights, cfg, barrier)
+    value, grads = eqx.filter_value_and_grad(_loss_fn)(params, fx, study, loss, quantile, weights, cfg, barrier,
+                                                       extra_loss)
     updates, new_state = optimizer.update(grads, opt_state, params)
     new_params, margin, accepted, backtracks = backtracked_update(
         params, updates, lambda cand: _margin(fx, cand), min_margin, n_back)
@@ -348,6 +357,7 @@ def tune(
     loss: str = "iae",
     quantile: float | None = None,
     weights=None,
+    extra_loss: Callable | None = None,
     region: Disk | None = None,
     parameterization: str = "direct",
     tune_Z: bool | None = None,
@@ -385,7 +395,13 @@ def tune(
       calls, to reuse the compiled step.
     - `loss`: ``"iae"`` or ``"ise"`` of $\hat z - z$ (mean over signals, or `weights`);
       `quantile`: use this quantile over samples instead of the mean.
-    - `region`: the disk to stay in (default: the design's region).
+    - `extra_loss`: user terms added to the training loss, ``extra_loss(observer,
+      design_params) -> scalar``: `observer` is the iterate's observer (the thesis's
+      matrices by name, e.g. ``observer.F``), `design_params` the dict ``Z, Y1, Y2, Y3,
+      J, G``. A pure JAX function (traced and differentiated with the loss; the step
+      compiles once per function object). Example: ``lambda obs, p: 1e-3 *
+      jnp.sum(obs.F ** 2)`` penalizes the output-injection gain. The training loss in the
+      history includes it (and the barrier); the held-out loss is the study loss alone.
     - `parameterization`: ``"direct"`` (default) or ``"disk"`` (module docstring).
     - `tune_Z`: move ``Z`` too (default: yes for ``"direct"``, no for ``"disk"``).
     - `barrier`: weight of ``log tr P`` in the ``"direct"`` loss.
@@ -403,6 +419,7 @@ def tune(
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
     region = design.region if region is None else region
     fx, params = initial_parameters(design, region, tune_Z=tune_Z, parameterization=parameterization)
+    check_extra_loss(extra_loss, *_observer_and_design_params(fx, params))
     optimizer = shared_optimizer("adam", learning_rate=1e-2) if optimizer is None else optimizer
     opt_state = optimizer.init(params)
     key = jax.random.PRNGKey(0) if key is None else key
@@ -420,7 +437,7 @@ def tune(
     params, history = run_loop(
         params, opt_state, key, steps=steps, step=_step,
         step_args=(fx, train_study, optimizer, loss, quantile, w, cfg, float(min_margin), int(max_backtracks),
-                   float(barrier)),
+                   float(barrier), extra_loss),
         host_check=lambda p: _host_check(fx, p, region),
         heldout_loss=heldout_loss if heldout is not None else None, eval_every=eval_every,
         callback=callback, callback_params=False, path=path, resume=resume,
@@ -429,9 +446,14 @@ def tune(
     final_heldout = heldout_loss(params) if heldout is not None else None
     tuned = _verified_design(design, fx, params, region, dict(loss=loss, quantile=quantile, steps=steps,
                                                                tune_Z=tune_Z, parameterization=parameterization,
-                                                               barrier=barrier))
+                                                               barrier=barrier, extra_loss=_name(extra_loss)))
     return TuneResult(design=tuned, params=params, history=history, initial_heldout=initial_heldout,
                       final_heldout=final_heldout)
+
+
+def _name(fn) -> str | None:
+    """A readable name of a user function, for the design's record of the tuning options."""
+    return None if fn is None else getattr(fn, "__qualname__", type(fn).__name__)
 
 
 def _verified_design(design, fx, params, region, options) -> FunctionalObserverDesign:

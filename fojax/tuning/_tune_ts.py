@@ -29,7 +29,7 @@ guarantees of `design_ts_observer`. Any region the T-S design accepts works (dis
 half-planes, sectors, intersections: the characteristic matrices $L_R, M_R$ are used).
 
 **Loss, barrier, acceptance.** The loss is the batched mean (or `quantile`) of the
-IAE/ISE of $\hat z - z$ over the training study (`fojax.studies.study_loss`: any plant,
+IAE/ISE of $\hat z - z$ over the training study (plus the user's `extra_loss` terms) (`fojax.studies.study_loss`: any plant,
 e.g. the nonlinear robot arm with physical-parameter uncertainty, simulated with the
 observer driven by the plant's measured output), plus
 $-\texttt{barrier}\sum_i\big(\log\det(-\mathcal R_i/\|X\|) + \log\det(-\mathcal L_i/\|X\|)\big)$,
@@ -76,9 +76,9 @@ from ..design._verify import LMI_MARGIN, verify
 from ..observer import TakagiSugenoObserver
 from ..plant._takagi_sugeno import AbstractMembership
 from ..studies._runner import SimConfig, Study, study_loss
-from ._loop import backtracked_update, run_loop
+from ._loop import backtracked_update, check_extra_loss, run_loop
 from ._optimizer import shared_optimizer
-from ._tune import TRACE_COUNTS, TuneResult
+from ._tune import _name, TRACE_COUNTS, TuneResult
 
 
 _RULE_PARAMS = ("Y1", "Y2", "Y3", "J", "G")
@@ -200,19 +200,23 @@ def initial_ts_parameters(design: TakagiSugenoObserverDesign, region: AbstractRe
     return fx, p
 
 
-def _loss_fn(params, fx, study, loss, quantile, weights, cfg, barrier):
+def _loss_fn(params, fx, study, loss, quantile, weights, cfg, barrier, extra_loss=None):
     obs = ts_observer_from_parameters(fx, params)
     value = study_loss(study, obs, loss=loss, quantile=quantile, weights=weights, cfg=cfg)
     if barrier:
         _, logdet = _margin_and_barrier(fx, params)
         value = value - barrier * logdet
+    if extra_loss is not None:
+        value = value + extra_loss(obs, _full_params(fx, params))
     return value
 
 
 @eqx.filter_jit
-def _step(params, opt_state, fx, study, optimizer, loss, quantile, weights, cfg, min_margin, n_back, barrier):
+def _step(params, opt_state, fx, study, optimizer, loss, quantile, weights, cfg, min_margin, n_back, barrier,
+          extra_loss):
     TRACE_COUNTS["tune_ts_step"] += 1
-    value, grads = eqx.filter_value_and_grad(_loss_fn)(params, fx, study, loss, quantile, weights, cfg, barrier)
+    value, grads = eqx.filter_value_and_grad(_loss_fn)(params, fx, study, loss, quantile, weights, cfg, barrier,
+                                                       extra_loss)
     updates, new_state = optimizer.update(grads, opt_state, params)
     new_params, margin, accepted, backtracks = backtracked_update(
         params, updates, lambda cand: _margin_and_barrier(fx, cand)[0], min_margin, n_back)
@@ -263,6 +267,7 @@ def tune_takagi_sugeno(
     loss: str = "iae",
     quantile: float | None = None,
     weights=None,
+    extra_loss: Callable | None = None,
     region: AbstractRegion | None = None,
     tune_Z: bool = True,
     barrier: float = 1e-4,
@@ -301,6 +306,10 @@ def tune_takagi_sugeno(
       the compiled step).
     - `loss`: ``"iae"`` or ``"ise"`` of $\hat z - z$ (mean over signals, or `weights`);
       `quantile`: use this quantile over samples instead of the mean.
+    - `extra_loss`: user terms added to the training loss, ``extra_loss(observer,
+      design_params) -> scalar`` (`observer`: the iterate's `TakagiSugenoObserver`;
+      `design_params`: ``Z, Y1, Y2, Y3, J, G`` with their rule axis); see
+      `fojax.tuning.tune`.
     - `region`: the region to stay in (default: the design's region); the design's $X$
       must certify it.
     - `tune_Z`: move the common ``Z`` too (default ``True``).
@@ -333,6 +342,7 @@ def tune_takagi_sugeno(
             f"the study has {train_study.num_signals} signals but the observer estimates "
             f"{design.observer.output_size}; build the study with the design's L."
         )
+    check_extra_loss(extra_loss, ts_observer_from_parameters(fx, params), _full_params(fx, params))
     optimizer = shared_optimizer("adam", learning_rate=1e-2) if optimizer is None else optimizer
     opt_state = optimizer.init(params)
     key = jax.random.PRNGKey(0) if key is None else key
@@ -349,7 +359,7 @@ def tune_takagi_sugeno(
     params, history = run_loop(
         params, opt_state, key, steps=steps, step=_step,
         step_args=(fx, train_study, optimizer, loss, quantile, w, cfg, float(min_margin), int(max_backtracks),
-                   float(barrier)),
+                   float(barrier), extra_loss),
         host_check=lambda p: _host_check(fx, p, region),
         heldout_loss=heldout_loss if heldout is not None else None, eval_every=eval_every,
         callback=callback, callback_params=True, path=path, resume=resume,
@@ -357,7 +367,7 @@ def tune_takagi_sugeno(
     )  # fmt: skip
     final_heldout = heldout_loss(params) if heldout is not None else None
     options = dict(loss=loss, quantile=quantile, steps=steps, tune_Z=tune_Z, barrier=barrier,
-                   parameterization="takagi_sugeno_fixed_X")
+                   parameterization="takagi_sugeno_fixed_X", extra_loss=_name(extra_loss))
     tuned = _verified_design(design, fx, params, region, options)
     return TuneResult(design=tuned, params=params, history=history, initial_heldout=initial_heldout,
                       final_heldout=final_heldout)
