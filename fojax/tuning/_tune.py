@@ -402,6 +402,7 @@ def tune(
       compiles once per function object). Example: ``lambda obs, p: 1e-3 *
       jnp.sum(obs.F ** 2)`` penalizes the output-injection gain. The training loss in the
       history includes it (and the barrier); the held-out loss is the study loss alone.
+      A checkpoint does not store it: pass the same function when resuming.
     - `parameterization`: ``"direct"`` (default) or ``"disk"`` (module docstring).
     - `tune_Z`: move ``Z`` too (default: yes for ``"direct"``, no for ``"disk"``).
     - `barrier`: weight of ``log tr P`` in the ``"direct"`` loss.
