@@ -53,8 +53,9 @@ Only ``kind="generalized"`` and ``"proportional"`` designs are tunable (the PI
 constraint $S = -Y_2N_3 = 0$ is not preserved by either map).
 
 **One jitted step.** Loss (batched mean or quantile of IAE/ISE over the training
-study, plus the user's `extra_loss` terms), gradient and the optax update (with the backtracking candidates) form one
-`equinox.filter_jit` function, compiled once (`TRACE_COUNTS["tune_step"]`).
+study, plus the user's `extra_loss` terms), gradient and the optax update (with the
+backtracking candidates) form one `equinox.filter_jit` function, compiled once
+(`TRACE_COUNTS["tune_step"]`).
 
 **Checkpoints.** ``checkpoint=path`` writes, every `checkpoint_every` steps, the
 parameters, the optimizer state, the step, the PRNG key and the history (``path.npz`` +
@@ -403,6 +404,7 @@ def tune(
       jnp.sum(obs.F ** 2)`` penalizes the output-injection gain. The training loss in the
       history includes it (and the barrier); the held-out loss is the study loss alone.
       A checkpoint does not store it: pass the same function when resuming.
+    - `region`: the disk to stay in (default: the design's region).
     - `parameterization`: ``"direct"`` (default) or ``"disk"`` (module docstring).
     - `tune_Z`: move ``Z`` too (default: yes for ``"direct"``, no for ``"disk"``).
     - `barrier`: weight of ``log tr P`` in the ``"direct"`` loss.

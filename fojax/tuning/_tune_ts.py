@@ -29,9 +29,9 @@ guarantees of `design_ts_observer`. Any region the T-S design accepts works (dis
 half-planes, sectors, intersections: the characteristic matrices $L_R, M_R$ are used).
 
 **Loss, barrier, acceptance.** The loss is the batched mean (or `quantile`) of the
-IAE/ISE of $\hat z - z$ over the training study (plus the user's `extra_loss` terms) (`fojax.studies.study_loss`: any plant,
+IAE/ISE of $\hat z - z$ over the training study (`fojax.studies.study_loss`: any plant,
 e.g. the nonlinear robot arm with physical-parameter uncertainty, simulated with the
-observer driven by the plant's measured output), plus
+observer driven by the plant's measured output), plus the user's `extra_loss` terms, plus
 $-\texttt{barrier}\sum_i\big(\log\det(-\mathcal R_i/\|X\|) + \log\det(-\mathcal L_i/\|X\|)\big)$,
 $\mathcal R_i$, $\mathcal L_i$ the region and Lyapunov LMI matrices (finite inside,
 $+\infty$ at the boundary). A step whose candidate violates the margin is *backtracked*
