@@ -24,8 +24,6 @@ from ..studies._runner import _atomic_write
 def check_extra_loss(extra_loss, observer, design_params) -> None:
     """Evaluate a user's ``extra_loss(observer, design_params)`` once on the starting
     iterate (host) and refuse anything but a callable returning a finite real scalar."""
-    if extra_loss is None:
-        return
     if not callable(extra_loss):
         raise InputError(f"extra_loss must be a function (observer, design_params) -> scalar; got "
                          f"{type(extra_loss).__name__}.")

@@ -186,8 +186,9 @@ def free_parameters_to_design_params(fx: _Fixed, params) -> tuple[dict, jax.Arra
 
 
 def _observer_and_design_params(fx: _Fixed, params):
-    obs, _ = observer_from_parameters(fx, params)
-    return obs, free_parameters_to_design_params(fx, params)[0]
+    """``(observer, {Z, Y1, Y2, Y3, J, G}, margin)`` for the tuning parameters (traceable)."""
+    p, margin = free_parameters_to_design_params(fx, params)
+    return build_observer(fx.structure, observer_matrices(fx.structure, **p), kind=fx.kind), p, margin
 
 
 def _margin(fx: _Fixed, params):
@@ -196,9 +197,8 @@ def _margin(fx: _Fixed, params):
 
 def observer_from_parameters(fx: _Fixed, params):
     """The observer for the tuning parameters (traceable), and the margin."""
-    p, margin = free_parameters_to_design_params(fx, params)
-    mats = observer_matrices(fx.structure, **p)
-    return build_observer(fx.structure, mats, kind=fx.kind), margin
+    obs, _, margin = _observer_and_design_params(fx, params)
+    return obs, margin
 
 
 def _inverse_contraction(Lc: np.ndarray) -> np.ndarray:
@@ -312,13 +312,13 @@ class TuneResult:
 
 
 def _loss_fn(params, fx, study, loss, quantile, weights, cfg, barrier=0.0, extra_loss=None):
-    obs, _ = observer_from_parameters(fx, params)
+    obs, design_params, _ = _observer_and_design_params(fx, params)
     value = study_loss(study, obs, loss=loss, quantile=quantile, weights=weights, cfg=cfg)
     if fx.mode == "direct" and barrier:
         P, _ = _direct_margin(fx, params)
         value = value + barrier * jnp.log(jnp.trace(P))
     if extra_loss is not None:
-        value = value + extra_loss(obs, free_parameters_to_design_params(fx, params)[0])
+        value = value + extra_loss(obs, design_params)
     return value
 
 
@@ -422,7 +422,8 @@ def tune(
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
     region = design.region if region is None else region
     fx, params = initial_parameters(design, region, tune_Z=tune_Z, parameterization=parameterization)
-    check_extra_loss(extra_loss, *_observer_and_design_params(fx, params))
+    if extra_loss is not None:
+        check_extra_loss(extra_loss, *_observer_and_design_params(fx, params)[:2])
     optimizer = shared_optimizer("adam", learning_rate=1e-2) if optimizer is None else optimizer
     opt_state = optimizer.init(params)
     key = jax.random.PRNGKey(0) if key is None else key

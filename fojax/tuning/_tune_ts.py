@@ -342,7 +342,8 @@ def tune_takagi_sugeno(
             f"the study has {train_study.num_signals} signals but the observer estimates "
             f"{design.observer.output_size}; build the study with the design's L."
         )
-    check_extra_loss(extra_loss, ts_observer_from_parameters(fx, params), _full_params(fx, params))
+    if extra_loss is not None:
+        check_extra_loss(extra_loss, ts_observer_from_parameters(fx, params), _full_params(fx, params))
     optimizer = shared_optimizer("adam", learning_rate=1e-2) if optimizer is None else optimizer
     opt_state = optimizer.init(params)
     key = jax.random.PRNGKey(0) if key is None else key
