@@ -608,6 +608,7 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
             figures[f"Tuning curve of '{nm}'"] = plot_tuning_curve(
                 folder / f"tuning-{nm}.png", h["step"], h["train_loss"],
                 held if np.isfinite(held).any() else None, ylabel="IAE loss",
+                heldout_before=tr.initial_heldout, heldout_after=tr.final_heldout,
                 title=f"Tuning '{nm}': training and held-out loss", overwrite=ow)
             tuning_rows.append([nm, n_steps, float(tr.initial_heldout), float(tr.final_heldout)])
             out.say(f"  held-out training-type loss {tr.initial_heldout:.4g} -> {tr.final_heldout:.4g}; "
