@@ -78,9 +78,9 @@ def _clip(poly: np.ndarray, a: np.ndarray, b: float) -> np.ndarray:
     return np.asarray(out).reshape(-1, 2)
 
 
-def _part_halfspaces(part, box: float, center: tuple[float, float]) -> list[tuple[np.ndarray, float]]:
-    """Half-spaces ``a · p <= b`` whose intersection is `part` (a disk is approximated by its
-    circumscribed-free inscribed polygon of `_DISK_VERTICES` sides)."""
+def _part_halfspaces(part) -> list[tuple[np.ndarray, float]]:
+    """Half-spaces ``a · p <= b`` whose intersection is `part` (a disk: its inscribed
+    regular polygon of `_DISK_VERTICES` sides)."""
     from ..design import Disk, HalfPlane, Sector
 
     if isinstance(part, Disk):
@@ -107,7 +107,7 @@ def _region_polygon(region, box: float, center=(0.0, 0.0)) -> np.ndarray:
     poly = np.array([[cx - box, cy - box], [cx + box, cy - box], [cx + box, cy + box], [cx - box, cy + box]])
     parts = region.parts if isinstance(region, Intersection) else (region,)
     for part in parts:
-        for a, b in _part_halfspaces(part, box, center):
+        for a, b in _part_halfspaces(part):
             poly = _clip(poly, a, b)
     return poly
 
@@ -169,7 +169,8 @@ def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
     # --- the window: every pole, the origin, the region if bounded, else its boundary anchors
     pts = [complex(0.0)] + list(allp)
     parts = () if region is None else (region.parts if isinstance(region, Intersection) else (region,))
-    far = 1e3 * max(scale, *(abs(getattr(p, "center", 0.0)) + getattr(p, "radius", 0.0) for p in parts), 1.0)
+    far = 1e3 * max(scale, 1.0, *(abs(getattr(p, "center", 0.0)) + getattr(p, "radius", 0.0)
+                                  + getattr(p, "decay", 0.0) for p in parts))
     poly = _region_polygon(region, far) if region is not None else np.zeros((0, 2))
     bounded = poly.size and np.max(np.abs(poly)) < 0.5 * far
     if region is not None and bounded:
