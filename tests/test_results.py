@@ -327,7 +327,11 @@ def test_error_band_legend_is_readable_below_the_panels():
     fig = _estimates_figure(ts, truth, est, truth_label="zero error")
     labels, fontsize = _legend_checks(fig, fig.axes)
     assert fontsize >= 10  # Matplotlib's normal size (the legend was 7 pt)
-    assert labels == ["zero error"] + [f"{nm} {w}" for nm in est for w in ("5–95 % band", "median")]
+    assert labels == ["zero error"] + [f"{nm}: median and 5–95 % band" for nm in est]
+    # what each entry names is drawn in every panel: the truth line, each observer's band and median
+    for ax in fig.axes:
+        drawn = {a.get_label() for a in ax.lines + ax.collections}
+        assert drawn == {"zero error"} | {f"{nm} {w}" for nm in est for w in ("5–95 % band", "median")}
     lowest_axes = min(ax.get_window_extent().y0 for ax in fig.axes)
     leg = fig.legends[0].get_window_extent()
     assert leg.y1 <= lowest_axes and lowest_axes - leg.y1 < 0.15 * fig.bbox.height  # just below

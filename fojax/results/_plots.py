@@ -332,13 +332,20 @@ def _estimates_figure(ts, truth, estimates, *, labels=None, band_label="5–95 %
     fig = _figure(size, layout="constrained")
     axes = fig.subplots(q, 1, sharex=True, squeeze=False)[:, 0]
     colors = ["tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown"]
+    handles, names = [], []
     for i, ax in enumerate(axes):
-        ax.plot(ts, truth[:, i], color="k", lw=1.5, label=truth_label)
+        (truth_line,) = ax.plot(ts, truth[:, i], color="k", lw=1.5, label=truth_label)
+        if i == 0:
+            handles.append(truth_line)
+            names.append(truth_label)
         for j, (name, (lo, med, hi)) in enumerate(estimates.items()):
             lo, med, hi = (_as_2d(f"estimates[{name!r}]", a, len(ts)) for a in (lo, med, hi))
             c = colors[j % len(colors)]
-            ax.fill_between(ts, lo[:, i], hi[:, i], color=c, alpha=0.25, label=f"{name} {band_label}")
-            ax.plot(ts, med[:, i], color=c, lw=1.2, ls="--", label=f"{name} median")
+            band = ax.fill_between(ts, lo[:, i], hi[:, i], color=c, alpha=0.25, label=f"{name} {band_label}")
+            (line,) = ax.plot(ts, med[:, i], color=c, lw=1.2, ls="--", label=f"{name} median")
+            if i == 0:  # one legend entry per observer: its band with its median drawn on it
+                handles.append((band, line))
+                names.append(f"{name}: median and {band_label}")
         ax.set_ylabel(labels[i])
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("t [s]")
@@ -346,8 +353,7 @@ def _estimates_figure(ts, truth, estimates, *, labels=None, band_label="5–95 %
     # One legend for all panels, in normal type, directly below the panels (the layout
     # reserves its room): inside a panel it hid the curves it explains, and a tiny legend
     # under the title was hard to read and far from the data.
-    handles, names = axes[0].get_legend_handles_labels()
-    ncol = min(len(names), 2 if max((len(n) for n in names), default=0) > 28 else 3)
+    ncol = min(len(names), 2 if max((len(n) for n in names), default=0) > 24 else 4)
     fig.legend(handles, names, loc="outside lower center", ncol=max(ncol, 1), frameon=False)
     return fig
 
