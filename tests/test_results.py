@@ -355,3 +355,39 @@ def test_tuning_curve_marks_the_heldout_loss_before_and_after():
     assert set(legend) == {lab for lab in by_label if not lab.startswith("_")}
     y0, y1 = ax.get_ylim()
     assert y0 < 1.4 and 2.5 * 1.01 < y1  # both markers inside the frame
+
+
+def test_pole_plot_of_a_region_class_fojax_does_not_know():
+    # a user's own region (an ellipse): shaded from its margin, named in the legend, equal axes
+    from fojax.design._regions import AbstractRegion
+
+    class Ellipse(AbstractRegion):
+        def characteristic(self):
+            raise NotImplementedError
+
+        def margin(self, eigs):
+            s = np.asarray(eigs)
+            return 1.0 - ((s.real + 3.0) / 2.0) ** 2 - s.imag**2
+
+        def describe(self):
+            return "ellipse"
+
+        def tightened(self, fraction):
+            return self
+
+        def target(self):
+            return -3.0 + 0j
+
+        def to_dict(self):
+            return {}
+
+    fig = _poles_figure(POLES, Ellipse())
+    labels, _ = _legend_checks(fig, fig.axes)
+    ax = fig.axes[0]
+    assert "region: ellipse" in labels and ax.get_aspect() == 1.0
+    [filled, outline] = ax.collections[:2]
+    assert filled.get_paths() and outline.get_paths()
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    verts = np.concatenate([p.vertices for p in outline.get_paths()])
+    assert verts[:, 0].min() > -5.01 and verts[:, 0].max() < -0.99 and np.abs(verts[:, 1]).max() < 1.01
+    assert x0 < -5.0 and -1.0 < x1 and y0 < -1.0 and 1.0 < y1  # all of it in view

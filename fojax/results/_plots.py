@@ -156,7 +156,7 @@ def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
                   title: str = "Observer error poles and design region", size=DEFAULT_SIZE):
     from matplotlib.patches import Polygon
 
-    from ..design import Disk, HalfPlane, Intersection
+    from ..design import Disk, HalfPlane, Intersection, Sector
 
     eigs = np.atleast_1d(np.asarray(eigenvalues, dtype=complex)).ravel()
     pp = (np.zeros(0, complex) if plant_poles is None
@@ -171,7 +171,8 @@ def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
     parts = () if region is None else (region.parts if isinstance(region, Intersection) else (region,))
     far = 1e3 * max(scale, 1.0, *(abs(getattr(p, "center", 0.0)) + getattr(p, "radius", 0.0)
                                   + getattr(p, "decay", 0.0) for p in parts))
-    poly = _region_polygon(region, far) if region is not None else np.zeros((0, 2))
+    exact = all(isinstance(p, Disk | HalfPlane | Sector) for p in parts)  # else: a user's own region
+    poly = _region_polygon(region, far) if region is not None and exact else np.zeros((0, 2))
     bounded = poly.size and np.max(np.abs(poly)) < 0.5 * far
     if region is not None and bounded:
         pts += [complex(x, y) for x, y in poly[:: max(1, len(poly) // 90)]]
@@ -185,6 +186,14 @@ def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
         if len(pts) == 1 or max(abs(z) for z in pts) == 0:
             pts += [complex(-1.0, 0.0)]
         pts += [complex(min(z.real for z in pts), 0.0)]
+    if region is not None and not exact:  # a user's region: in view if a coarse scan finds it bounded
+        re, im = np.array([z.real for z in pts]), np.abs([z.imag for z in pts])
+        c, h = 0.5 * (re.min() + re.max()), 3.0 * max(re.max() - re.min(), 2 * im.max(), 1.0)
+        X, Y = np.meshgrid(np.linspace(c - h, c + h, 241), np.linspace(-h, h, 241))
+        inside = np.asarray(region.margin(X + 1j * Y), dtype=float) > 0
+        border = inside[0].any() or inside[-1].any() or inside[:, 0].any() or inside[:, -1].any()
+        if inside.any() and not border:
+            pts += [complex(X[inside].min(), Y[inside].max()), complex(X[inside].max(), Y[inside].min())]
     re = np.array([z.real for z in pts])
     im = np.abs(np.array([z.imag for z in pts]))
     xmin, xmax, ymax = re.min(), re.max(), im.max()
@@ -195,15 +204,24 @@ def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
     fig = _figure(size, layout="constrained")
     ax = fig.add_subplot(1, 1, 1)
     if region is not None:
+        face = (0.17, 0.63, 0.17, 0.25)
         if poly.size:  # the region itself: shaded, with its boundary as a solid line
-            ax.add_patch(Polygon(poly, closed=True, facecolor=(0.17, 0.63, 0.17, 0.25),
+            ax.add_patch(Polygon(poly, closed=True, facecolor=face,
                                  edgecolor="darkgreen", lw=2.0, label=f"region: {region.describe()}",
                                  zorder=1))
+        elif not exact:  # a region class fojax does not know: its margin > 0 on a grid
+            xc, half = 0.5 * (xlim[0] + xlim[1]), 3.0 * max(xlim[1] - xlim[0], ylim[1] - ylim[0])
+            X, Y = np.meshgrid(np.linspace(xc - half, xc + half, 900), np.linspace(-half, half, 900))
+            M = np.asarray(region.margin(X + 1j * Y), dtype=float)
+            ax.contourf(X, Y, M, levels=[0.0, np.inf], colors=[face], zorder=1)
+            ax.contour(X, Y, M, levels=[0.0], colors=["darkgreen"], linewidths=2.0, zorder=1)
+            ax.fill([], [], facecolor=face, edgecolor="darkgreen", lw=2.0,
+                    label=f"region: {region.describe()}")  # its legend entry (draws nothing)
         else:
             ax.plot([], [], " ", label=f"region: {region.describe()} (empty)")
         if len(parts) > 1:  # an intersection: where each constraint's boundary runs
             styles = ["--", "-.", ":", (0, (5, 2, 1, 2))]
-            for k, part in enumerate(parts):
+            for k, part in enumerate(p for p in parts if isinstance(p, Disk | HalfPlane | Sector)):
                 xs, ys, label = _part_boundary(part, far)
                 ax.plot(xs, ys, color="tab:green", lw=1.0, ls=styles[k % len(styles)], label=label, zorder=1)
     ax.axvline(0.0, color="k", lw=0.8, zorder=0.5)
