@@ -318,6 +318,9 @@ def test_pole_plot_shows_multiplicities():
     assert len(ax.lines[-1].get_xdata()) == 3
     assert sorted(t.get_text() for t in ax.texts) == ["×3"]
     assert not ax.patches and ax.get_aspect() == 1.0
+    # the tolerance follows the poles' scale: slow poles a factor 2 apart are two markers
+    ax = _poles_figure([-1e-6, -2e-6], Disk(-1.5e-6, 1e-6)).axes[0]
+    assert len(ax.lines[-1].get_xdata()) == 2 and not ax.texts
 
 
 def test_error_band_legend_is_readable_below_the_panels():

@@ -55,9 +55,9 @@ def _as_2d(name, a, T=None):
 # beyond their defining parameters, and the polygon is checked against `region.margin` in
 # the tests.
 POLE_MULTIPLICITY_RTOL = 1e-3
-"""Poles closer than this fraction of the poles' scale (the largest modulus, at least 1)
-are drawn as one marker annotated with their multiplicity ("×2"): at any readable plot
-size they would be one dot."""
+"""Poles closer than this fraction of the poles' scale (the largest modulus of the poles
+drawn) are one marker annotated with their multiplicity ("×2"): at any readable plot size
+they would be one dot."""
 
 _DISK_VERTICES = 720
 
@@ -163,7 +163,8 @@ def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
           else np.atleast_1d(np.asarray(plant_poles, dtype=complex)).ravel())
     allp = np.concatenate([eigs, pp])
     allp = allp[np.isfinite(allp)]
-    scale = max(1.0, float(np.max(np.abs(allp))) if allp.size else 1.0)
+    scale = float(np.max(np.abs(allp))) if allp.size else 0.0
+    scale = scale if scale > 0 else 1.0
     tol = POLE_MULTIPLICITY_RTOL * scale
 
     # --- the window: every pole, the origin, the region if bounded, else its boundary anchors
@@ -197,7 +198,8 @@ def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
     re = np.array([z.real for z in pts])
     im = np.abs(np.array([z.imag for z in pts]))
     xmin, xmax, ymax = re.min(), re.max(), im.max()
-    span = max(xmax - xmin, 2 * ymax, 1e-12 * scale, 1e-300)
+    span = max(xmax - xmin, 2 * ymax)
+    span = span if span > 0 else scale  # every point at the origin
     pad = 0.12 * span
     xlim, ylim = (xmin - pad, xmax + pad), (-(ymax + pad), ymax + pad)
 
@@ -299,8 +301,7 @@ def plot_poles(
     - `title`, `size` (pixels), `overwrite`.
 
     Poles closer to each other than `POLE_MULTIPLICITY_RTOL` (1e-3) times the largest
-    pole modulus (at least 1) are one marker annotated "×k" (a double pole is not a
-    single dot).
+    pole modulus are one marker annotated "×k" (a double pole is not a single dot).
 
     **Returns:** the PNG path.
     """
