@@ -1,18 +1,24 @@
-"""Write the "Benchmarks" section of README.md from the benchmark results (issue 7, item 5).
+"""Write the benchmark tables from the shipped result files (issues 7 and 17).
 
-Reads ``benchmarks/results/<study>_latest.json`` for the studies ``reference_workload``,
-``time_varying``, ``scaling``, ``design_scaling`` and ``tuning_scaling`` (whichever exist)
-and replaces the text between ``<!-- benchmarks:start -->`` and ``<!-- benchmarks:end -->``
-in README.md with Markdown tables: fojax vs each peer at each B with the speed-ups, the
-time-varying study with accuracies, time vs state dimension, design time vs n, tuning
-step vs B, and lines that say where fojax is slower. Nothing else in the README changes.
+Every ``benchmarks/results/<name>_latest.json`` present (these files are tracked in git;
+the dated ones are not) is rendered as Markdown tables by the renderer registered for
+``<name>`` in `RENDER` (reference workload, time-varying study, scaling, design scaling,
+tuning scaling); a ``*_latest.json`` without a renderer is shown as a generic table of its
+``rows`` when it has them, else listed with a note. Renderers with no shipped file are
+listed as "no shipped result yet". The tables replace the text between
+``<!-- benchmarks:start -->`` and ``<!-- benchmarks:end -->`` of ``benchmarks/README.md``;
+the same markers in the top-level ``README.md`` get a short list of the shipped result
+files with a link to the tables. Nothing else in either file changes.
 
 Every number is copied from a JSON file; each table names its file, the date and the
-machine it was measured on. Nothing is typed by hand; a study whose file is missing is
-listed as such, one whose JSON has unexpected keys is skipped with a note.
+machine it was measured on. Nothing is typed by hand; a file whose JSON has unexpected
+keys is skipped with a note.
 
-    python benchmarks/make_readme.py                 # update README.md
-    python benchmarks/make_readme.py --stdout        # print the section only
+    python benchmarks/make_readme.py                 # update benchmarks/README.md and README.md
+    python benchmarks/make_readme.py --stdout        # print the tables only
+
+To add a benchmark: write ``results/<name>_latest.json`` from its script and add
+``"<name>": render_function`` to `RENDER` (a function ``(data, name) -> (lines, caveats)``).
 """
 
 from __future__ import annotations
@@ -30,8 +36,8 @@ from _common import fmt  # noqa: E402
 
 
 START, END = "<!-- benchmarks:start -->", "<!-- benchmarks:end -->"
-_LABEL = {"results": "benchmarks/results"}  # how the results folder is named in the source lines
-STUDIES = ("reference_workload", "time_varying", "scaling", "design_scaling", "tuning_scaling")
+# how the results folder is named in the source lines, and its link from benchmarks/README.md
+_LABEL = {"results": "benchmarks/results", "link": "results"}
 PEER_SHORT = {"solve_ivp": "(a) solve_ivp loop", "control": "(b) python-control loop",
               "rk4": "(c) NumPy RK4", "expm": "(d) expm + recurrence"}
 
@@ -55,7 +61,8 @@ def source_line(d: dict, name: str) -> str:
     status = str(d.get("status", "?"))
     if status != "complete":
         status = f"**{status[:160]}{'…' if len(status) > 160 else ''}**"
-    return (f"*Source: `{_LABEL['results']}/{name}_latest.json`, measured {m.get('date', '?')} "
+    return (f"*Source: [`{_LABEL['results']}/{name}_latest.json`]({_LABEL['link']}/{name}_latest.json), "
+            f"measured {m.get('date', '?')} "
             f"(git {m.get('git_commit', '?')}) on {m.get('cpu', '?')}, {m.get('cores_available', '?')} cores, "
             f"{m.get('memory', '?')}{load_txt}; {vers}; status: {status}.*")
 
@@ -265,52 +272,106 @@ def _schema_note(name: str, d: dict) -> list[str]:
             f"(top level: {keys}); skipped — update `benchmarks/make_readme.py`.*"]
 
 
+def generic(d: dict, name: str) -> tuple[list[str], list[str]]:
+    """Any result file with ``rows``, a list of flat dicts: one column per scalar key, in
+    the order of first appearance (for a new benchmark before it has its own renderer)."""
+    rows = d.get("rows") if isinstance(d, dict) else None
+    if not (isinstance(rows, list) and rows and all(isinstance(r, dict) for r in rows)):
+        return _schema_note(name, d), []
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k, v in r.items() if k not in keys and (v is None or isinstance(v, str | int | float))]
+    def cell(v):
+        return "—" if v is None else fmt(v, ".4g") if isinstance(v, float) else str(v)
+
+    out = [f"### {name.replace('_', ' ')}", "", source_line(d, name), "",
+           "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    for r in rows:
+        out.append("| " + " | ".join(cell(r.get(k)) for k in keys) + " |")
+    return out, []
+
+
+# The renderer of each benchmark, by the <name> of its results/<name>_latest.json.
 RENDER = {"reference_workload": reference_workload, "time_varying": time_varying, "scaling": scaling,
           "design_scaling": design_scaling, "tuning_scaling": tuning_scaling}
+STUDIES = tuple(RENDER)  # the order of the tables
 
 
-def render(results: Path) -> str:
+def shipped(results: Path) -> list[str]:
+    """Names of the ``<name>_latest.json`` files in `results`: registered ones in `RENDER`
+    order, then the others alphabetically."""
+    found = sorted(p.name[: -len("_latest.json")] for p in Path(results).glob("*_latest.json"))
+    return [n for n in RENDER if n in found] + [n for n in found if n not in RENDER]
+
+
+def _set_label(results: Path) -> None:
     try:
         _LABEL["results"] = str(Path(results).resolve().relative_to(HERE.parent))
     except ValueError:
         _LABEL["results"] = str(results)
+    try:
+        _LABEL["link"] = str(Path(results).resolve().relative_to(HERE))
+    except ValueError:
+        _LABEL["link"] = _LABEL["results"]
+
+
+def render(results: Path) -> str:
+    """The tables of every shipped result file (the section of ``benchmarks/README.md``)."""
+    _set_label(results)
     parts: list[str] = []
     honest: list[str] = []
-    missing: list[str] = []
-    for name in STUDIES:
+    for name in shipped(results):
         d, err = load(results, name)
         if err:
             parts += [err, ""]
             continue
-        if d is None:
-            missing.append(name)
-            continue
         try:
-            lines, h = RENDER[name](d, name)
+            lines, h = RENDER.get(name, generic)(d, name)
         except (KeyError, TypeError, ValueError, AttributeError) as e:  # a schema we did not foresee
             lines, h = _schema_note(name, d) + [f"*({type(e).__name__}: {e})*"], []
         parts += lines + [""]
         honest += h
     head = [
-        "Generated by `python benchmarks/make_readme.py` from the JSON files in `benchmarks/results/`; "
-        "every number below is copied from those files (see each table's source line for the date and "
-        "machine). Re-run the scripts (see [benchmarks/README.md](benchmarks/README.md)) and this command "
-        "to refresh. Timings on a shared or loaded machine are noisy.",
+        "Generated by `python benchmarks/make_readme.py` from the result files shipped in "
+        "`benchmarks/results/` (`*_latest.json`, tracked in git); every number below is copied from "
+        "those files (see each table's source line for the date and machine). Re-run a script "
+        "(see above) and this command to refresh. Timings on a shared or loaded machine are noisy.",
         "",
     ]
     if not parts:
-        head.append("No benchmark results yet. Run `python benchmarks/make_readme.py` after the benchmarks.")
+        head.append("No benchmark result is shipped in this version yet.")
+        head.append("")
     tail = []
     if honest:
         tail += ["**Where fojax is not faster, and other caveats** (from the same files):", ""] + [f"- {h}" for h in honest] + [""]
+    missing = [n for n in RENDER if n not in shipped(results)]
     if missing:
-        tail.append("Not measured yet (no `_latest.json`): " + ", ".join(f"`{m}`" for m in missing) + ".")
+        tail.append("No shipped result yet (no `results/<name>_latest.json`): "
+                    + ", ".join(f"`{m}`" for m in missing) + ".")
     return "\n".join(head + parts + tail).rstrip() + "\n"
+
+
+def render_summary(results: Path) -> str:
+    """The short section of the top-level README: which result files are shipped, with links."""
+    names = shipped(results)
+    if not names:
+        return ("No benchmark result files are shipped in this version yet; run the scripts to "
+                "measure on your machine (see [benchmarks/README.md](benchmarks/README.md)).\n")
+    lines = ["Shipped results (tables in [benchmarks/README.md](benchmarks/README.md#results)):", ""]
+    for name in names:
+        d, err = load(results, name)
+        m = (d or {}).get("machine", {}) or {} if isinstance(d, dict) else {}
+        when = f", measured {m.get('date', '?')} on {m.get('cpu', '?')}" if d else " (unreadable)"
+        lines.append(f"- [`{name}`](benchmarks/results/{name}_latest.json){when}")
+    return "\n".join(lines) + "\n"
 
 
 def update_readme(readme: Path, section: str) -> None:
     text = readme.read_text()
-    i, j = text.find(START), text.find(END)
+    # the markers on lines of their own (a sentence may quote them)
+    m_start = re.search(rf"^{re.escape(START)}$", text, flags=re.M)
+    m_end = re.search(rf"^{re.escape(END)}$", text, flags=re.M)
+    i, j = (m_start.start() if m_start else -1), (m_end.start() if m_end else -1)
     if i < 0 or j < i:
         raise SystemExit(f"{readme}: markers {START} ... {END} not found; add them to the Benchmarks section.")
     readme.write_text(text[: i + len(START)] + "\n" + section + text[j:])
@@ -319,15 +380,18 @@ def update_readme(readme: Path, section: str) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--results", type=Path, default=HERE / "results", help="folder of the *_latest.json files")
-    ap.add_argument("--readme", type=Path, default=HERE.parent / "README.md")
-    ap.add_argument("--stdout", action="store_true", help="print the section instead of writing README.md")
+    ap.add_argument("--tables", type=Path, default=HERE / "README.md", help="file that gets the tables")
+    ap.add_argument("--readme", type=Path, default=HERE.parent / "README.md",
+                    help="file that gets the list of shipped results")
+    ap.add_argument("--stdout", action="store_true", help="print the tables instead of writing the files")
     args = ap.parse_args(argv)
     section = render(args.results)
     if args.stdout:
         print(section)
     else:
-        update_readme(args.readme, section)
-        print(f"updated the Benchmarks section of {args.readme}")
+        update_readme(args.tables, section)
+        update_readme(args.readme, render_summary(args.results))
+        print(f"updated the benchmark sections of {args.tables} and {args.readme}")
     return 0
 
 

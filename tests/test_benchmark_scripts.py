@@ -174,7 +174,66 @@ def test_make_readme_only_touches_the_marked_section(tmp_path):
         make_readme.update_readme(readme, "x")
 
 
-def test_repository_readme_has_the_markers():
+def test_repository_readmes_have_the_markers():
     text = (ROOT / "README.md").read_text()
     i, j = text.find(make_readme.START), text.find(make_readme.END)
     assert 0 <= i < j and "## Benchmarks" in text[:i]
+    text = (ROOT / "benchmarks" / "README.md").read_text()
+    i, j = text.find("\n" + make_readme.START + "\n"), text.find("\n" + make_readme.END + "\n")
+    assert 0 <= i < j and "## Results" in text[:i]
+
+
+def test_readmes_cite_only_shipped_result_files():
+    # issue 17: the README cited benchmarks/results/*.json files that were not in the
+    # repository. Every results/<name>_latest.json a README names must exist.
+    import re
+
+    for readme in (ROOT / "README.md", ROOT / "benchmarks" / "README.md"):
+        section = readme.read_text().split(make_readme.START + "\n", 1)[-1].split(make_readme.END)[0]
+        for name in re.findall(r"results/(\w+_latest\.json)", section):
+            assert (ROOT / "benchmarks" / "results" / name).exists(), (readme, name)
+
+
+def test_make_readme_renders_what_is_shipped_and_any_new_benchmark(tmp_path):
+    empty = tmp_path / "none"
+    empty.mkdir()
+    assert "No benchmark result is shipped" in make_readme.render(empty)
+    assert "No benchmark result files are shipped" in make_readme.render_summary(empty)
+    # a benchmark without a renderer of its own (e.g. a new study_latest.json) gets a table of its rows
+    _write(tmp_path, "study", {"status": "complete", "machine": MACHINE,
+                               "rows": [{"B": 64, "command": "fojax study", "wall_s": 12.3456},
+                                        {"B": 256, "command": "fojax study", "wall_s": 40.5}]})
+    _write(tmp_path, "tuning_scaling", {"status": "complete", "machine": MACHINE, "settings": {"extra_steps": 5},
+                                        "rows": [{"B": 8, "t_cold_s": 29.5, "per_step_s": 0.138,
+                                                  "compile_s": 29.4, "retraced_on_warm_calls": False,
+                                                  "status": "ok"}]})
+    text = make_readme.render(tmp_path)
+    assert text.index("One gradient-tuning step") < text.index("### study")  # registered first
+    assert "| B | command | wall_s |" in text and "| 64 | fojax study | 12.35 |" in text
+    assert "| 8 | 29.5 | 0.138 | 29.4 | no | ok |" in text
+    assert "`reference_workload`" in text.split("No shipped result yet")[1]
+    assert "`tuning_scaling`" not in text.split("No shipped result yet")[1]
+    summary = make_readme.render_summary(tmp_path)
+    assert "(benchmarks/results/study_latest.json)" in summary and "2031-01-02" in summary
+    assert "reference_workload" not in summary
+    # the markers quoted in a sentence are not the section
+    readme = tmp_path / "R.md"
+    quoted = f"text `{make_readme.START}` quoted\n"
+    readme.write_text(quoted + make_readme.START + "\nold\n" + make_readme.END + "\n")
+    make_readme.update_readme(readme, "new\n")
+    assert readme.read_text() == quoted + make_readme.START + "\nnew\n" + make_readme.END + "\n"
+
+
+def test_latest_results_are_tracked_and_the_rest_ignored():
+    import shutil
+    import subprocess
+
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+
+    def ignored(path):
+        return subprocess.run(["git", "check-ignore", "--no-index", "-q", path], cwd=ROOT).returncode == 0
+
+    assert not ignored("benchmarks/results/study_latest.json")
+    assert ignored("benchmarks/results/study_2031-01-02.json")
+    assert ignored("benchmarks/results/study_latest.md")

@@ -22,3 +22,77 @@ def test_help_and_bad_command():
     assert r.returncode == 0 and "demo" in r.stdout and "64-bit" in r.stdout
     r = subprocess.run([sys.executable, "-m", "fojax.cli", "nonsense"], capture_output=True, text=True)
     assert r.returncode != 0 and "invalid choice" in r.stderr
+
+
+# ------------------------------------------------------------ CLI niceties (issue 17)
+# Oracles: importlib.metadata for the version, the example TOML files read with tomllib for
+# the descriptions, and the ConfigError messages of each bad file.
+
+
+def test_version_prints_the_installed_version(capsys):
+    import importlib.metadata
+
+    import pytest
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"fojax {importlib.metadata.version('fojax')}"
+
+
+def test_plain_fojax_prints_the_commands_and_does_not_run_the_demo(capsys):
+    assert main([]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: fojax")
+    for command in ("demo", "check", "design", "study", "examples"):
+        assert f"\n    {command}" in out  # the command list of the help
+    assert "fojax demo: thesis example" not in out  # what the demo prints first
+
+
+def test_help_documents_fojax_debug(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    assert "FOJAX_DEBUG=1" in " ".join(capsys.readouterr().out.split())
+
+
+def test_examples_lists_one_line_description_per_example(capsys):
+    import tomllib
+
+    from fojax.config import example_names, example_path
+
+    assert main(["examples"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    for name in example_names():
+        with open(example_path(name), "rb") as f:
+            description = tomllib.load(f)["description"]
+        assert description
+        [line] = [ln for ln in lines if ln.split() and ln.split()[0] == name]
+        assert line.split(None, 1)[1] == description
+
+
+def test_check_checks_every_file_and_reports_each_bad_one(tmp_path, capsys, monkeypatch):
+    import pytest
+
+    import fojax
+
+    bad_syntax = tmp_path / "bad_syntax.toml"
+    bad_syntax.write_text("[model\n")
+    bad_key = tmp_path / "bad_key.toml"
+    bad_key.write_text("[model]\nE = [[1.0]]\nA = [[-1.0]]\nB = [[1.0]]\nC = [[1.0]]\n")  # no L
+    missing = tmp_path / "missing.toml"
+    code = main(["check", str(bad_syntax), "example_3_1_3", str(bad_key), str(missing)])
+    out, err = capsys.readouterr()
+    assert code == 2  # an error, reported after every file was checked
+    assert out.count("fojax check: ") == 1 and "fojax check: example_3_1_3" in out
+    err_lines = err.strip().splitlines()
+    assert len(err_lines) == 3
+    for line, path, what in zip(err_lines, (bad_syntax, bad_key, missing),
+                                ("not valid TOML", "'L'", "does not exist")):
+        assert line.startswith(f"fojax: error: {path}: ") and what in line
+    # all good: exit 0; FOJAX_DEBUG=1: the full exception instead of the one line
+    assert main(["check", "example_3_1_3", "--quiet"]) == 0
+    monkeypatch.setenv("FOJAX_DEBUG", "1")
+    with pytest.raises(fojax.ConfigError, match="not valid TOML"):
+        main(["check", str(bad_syntax), "example_3_1_3"])

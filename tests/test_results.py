@@ -223,3 +223,174 @@ def test_write_metrics_json_and_exact_npz(tmp_path):
         assert float(data["PO/mean_IAE"]) == iae.mean()
     with pytest.raises(FileExistsError):
         write_metrics(tmp_path, {"a": 1.0})
+
+
+# ------------------------------------------------------------------ figures by their artists
+# Oracles: each region's own pointwise test `region.margin` (the shaded polygon must agree
+# with it), the eigenvalues given (markers and multiplicities counted by hand), and the
+# pixel boxes Matplotlib reports after drawing.
+from matplotlib.path import Path as _MplPath  # noqa: E402
+
+from fojax.results._plots import _estimates_figure, _poles_figure, _tuning_figure  # noqa: E402
+
+
+POLES = np.array([-2.0, -2.0 + 1e-9, -1.5 + 0.5j, -1.5 - 0.5j, -2.5])  # a double pole at -2
+PLANT = np.array([1.79, -4.4 + 1.72j, -4.4 - 1.72j])
+REGIONS = {
+    "disk": Disk(-2.0, 1.0),
+    "halfplane": HalfPlane(1.0),
+    "sector": Sector(0.6),
+    "intersection": Disk(-3.0, 2.0) & HalfPlane(1.5) & Sector(0.7),
+    "unbounded-intersection": HalfPlane(1.0) & Sector(0.5),
+}
+
+
+def _boxes_disjoint(a, b):
+    return a.x1 <= b.x0 or b.x1 <= a.x0 or a.y1 <= b.y0 or b.y1 <= a.y0
+
+
+def _legend_checks(fig, axes):
+    """The legend is inside the figure, overlaps no axes' data area, and uses normal type."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    [leg] = fig.legends
+    box = leg.get_window_extent(renderer)
+    W, H = fig.bbox.width, fig.bbox.height
+    assert 0 <= box.x0 and box.x1 <= W and 0 <= box.y0 and box.y1 <= H
+    for ax in axes:
+        assert _boxes_disjoint(box, ax.get_window_extent(renderer))
+    return [t.get_text() for t in leg.get_texts()], min(t.get_fontsize() for t in leg.get_texts())
+
+
+@pytest.mark.parametrize("kind", list(REGIONS))
+def test_pole_plot_equal_axes_region_drawn_and_everything_in_view(kind):
+    region = REGIONS[kind]
+    fig = _poles_figure(POLES, region, plant_poles=PLANT)
+    labels, fontsize = _legend_checks(fig, fig.axes)
+    ax = fig.axes[0]
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    box = ax.get_window_extent()
+    # equal axes: one unit is as many pixels along Re as along Im
+    assert ax.get_aspect() == 1.0
+    assert (x1 - x0) / box.width == pytest.approx((y1 - y0) / box.height, rel=1e-3)
+    # every pole is in view with a margin
+    allp = np.concatenate([POLES, PLANT])
+    pad = 0.02 * (x1 - x0)
+    assert np.all((allp.real > x0 + pad) & (allp.real < x1 - pad) & (abs(allp.imag) < y1 - pad))
+    # the shaded polygon is the region: agrees with region.margin on a grid of the view
+    [patch] = ax.patches
+    path = _MplPath(patch.get_xy())
+    X, Y = np.meshgrid(np.linspace(x0, x1, 61), np.linspace(y0, y1, 47))
+    s = (X + 1j * Y).ravel()
+    m = region.margin(s)
+    inside = path.contains_points(np.column_stack([s.real, s.imag]))
+    clear = np.abs(m) > 0.02 * (x1 - x0)  # away from the boundary (the disk is a 720-gon)
+    assert np.array_equal(inside[clear], m[clear] > 0)
+    assert inside.any() and (~inside).any()  # region and its outside both visible
+    verts = patch.get_xy()
+    if np.max(np.abs(verts)) < 100:  # a bounded region: all of it in view
+        assert verts[:, 0].min() >= x0 and verts[:, 0].max() <= x1
+        assert verts[:, 1].min() >= y0 and verts[:, 1].max() <= y1
+    else:  # unbounded: where each boundary meets the real axis is in view
+        for part in getattr(region, "parts", (region,)):
+            edge = -part.decay if isinstance(part, HalfPlane) else 0.0
+            assert x0 < edge < x1
+    # the legend names exactly what is drawn
+    drawn = {a.get_label() for a in ax.lines + ax.patches if not a.get_label().startswith("_")}
+    assert set(labels) == drawn
+    assert f"region: {region.describe()}" in labels and fontsize >= 9
+    parts = getattr(region, "parts", ())
+    assert sum(lab.startswith(("disk:", "decay:", "damping")) for lab in labels) == len(parts)
+
+
+def test_pole_plot_shows_multiplicities():
+    fig = _poles_figure(POLES, Disk(-2.0, 1.0), plant_poles=PLANT)
+    ax = fig.axes[0]
+    [observer] = [ln for ln in ax.lines if ln.get_label().startswith("observer error poles")]
+    xs, ys = observer.get_data()
+    assert len(xs) == 4  # 5 eigenvalues, the double one at -2 drawn once ...
+    notes = [t for t in ax.texts if t.get_text().startswith("×")]
+    assert [t.get_text() for t in notes] == ["×2"]  # ... and marked ×2 there
+    assert notes[0].xy == pytest.approx((-2.0, 0.0), abs=1e-8)
+    # a triple pole and distinct poles 0.05 apart (1 % of the scale) stay as they are
+    fig = _poles_figure([-1.0, -1.0, -1.0 + 1e-7, -3.0, -3.05], None)
+    ax = fig.axes[0]
+    assert len(ax.lines[-1].get_xdata()) == 3
+    assert sorted(t.get_text() for t in ax.texts) == ["×3"]
+    assert not ax.patches and ax.get_aspect() == 1.0
+    # the tolerance follows the poles' scale: slow poles a factor 2 apart are two markers
+    ax = _poles_figure([-1e-6, -2e-6], Disk(-1.5e-6, 1e-6)).axes[0]
+    assert len(ax.lines[-1].get_xdata()) == 2 and not ax.texts
+
+
+def test_error_band_legend_is_readable_below_the_panels():
+    ts = np.linspace(0, 5, 100)
+    truth = np.zeros((100, 3))
+    est = {nm: (truth - k, truth, truth + k) for nm, k in (("PO", 1.0), ("FGDO", 0.5), ("FGDO-tuned", 0.3))}
+    fig = _estimates_figure(ts, truth, est, truth_label="zero error")
+    labels, fontsize = _legend_checks(fig, fig.axes)
+    assert fontsize >= 10  # Matplotlib's normal size (the legend was 7 pt)
+    assert labels == ["zero error"] + [f"{nm}: median and 5–95 % band" for nm in est]
+    # what each entry names is drawn in every panel: the truth line, each observer's band and median
+    for ax in fig.axes:
+        drawn = {a.get_label() for a in ax.lines + ax.collections}
+        assert drawn == {"zero error"} | {f"{nm} {w}" for nm in est for w in ("5–95 % band", "median")}
+    lowest_axes = min(ax.get_window_extent().y0 for ax in fig.axes)
+    leg = fig.legends[0].get_window_extent()
+    assert leg.y1 <= lowest_axes and lowest_axes - leg.y1 < 0.15 * fig.bbox.height  # just below
+
+
+def test_tuning_curve_marks_the_heldout_loss_before_and_after():
+    steps = np.arange(1, 11)
+    held = np.full(10, np.nan)
+    held[4::5] = [2.0, 1.5]
+    fig = _tuning_figure(steps, 3.0 / steps, held, heldout_before=2.5, heldout_after=1.4)
+    ax = fig.axes[0]
+    by_label = {ln.get_label(): ln for ln in ax.lines}
+    before = next(ln for lab, ln in by_label.items() if lab.startswith("held-out before tuning"))
+    after = next(ln for lab, ln in by_label.items() if lab.startswith("held-out after tuning"))
+    assert list(before.get_xydata()[0]) == [0.0, 2.5]
+    assert list(after.get_xydata()[0]) == [10.0, 1.4]
+    assert "(-44.0 %)" in after.get_label()
+    # the held-out curve starts at the design before tuning and skips unevaluated steps
+    assert by_label["held-out loss"].get_xydata().tolist() == [[0.0, 2.5], [5.0, 2.0], [10.0, 1.5]]
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert set(legend) == {lab for lab in by_label if not lab.startswith("_")}
+    y0, y1 = ax.get_ylim()
+    assert y0 < 1.4 and 2.5 * 1.01 < y1  # both markers inside the frame
+
+
+def test_pole_plot_of_a_region_class_fojax_does_not_know():
+    # a user's own region (an ellipse): shaded from its margin, named in the legend, equal axes
+    from fojax.design._regions import AbstractRegion
+
+    class Ellipse(AbstractRegion):
+        def characteristic(self):
+            raise NotImplementedError
+
+        def margin(self, eigs):
+            s = np.asarray(eigs)
+            return 1.0 - ((s.real + 3.0) / 2.0) ** 2 - s.imag**2
+
+        def describe(self):
+            return "ellipse"
+
+        def tightened(self, fraction):
+            return self
+
+        def target(self):
+            return -3.0 + 0j
+
+        def to_dict(self):
+            return {}
+
+    fig = _poles_figure(POLES, Ellipse())
+    labels, _ = _legend_checks(fig, fig.axes)
+    ax = fig.axes[0]
+    assert "region: ellipse" in labels and ax.get_aspect() == 1.0
+    [filled, outline] = ax.collections[:2]
+    assert filled.get_paths() and outline.get_paths()
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    verts = np.concatenate([p.vertices for p in outline.get_paths()])
+    assert verts[:, 0].min() > -5.01 and verts[:, 0].max() < -0.99 and np.abs(verts[:, 1]).max() < 1.01
+    assert x0 < -5.0 and -1.0 < x1 and y0 < -1.0 and 1.0 < y1  # all of it in view

@@ -57,11 +57,27 @@ def _load(path):
 
 
 def examples(quiet: bool = False) -> int:
-    """List the shipped example configs."""
+    """List the shipped example configs: name and one-line description (the file's own
+    ``description``), then the folder that holds them."""
+    import tomllib
+
     from ..config import example_names, example_path
 
-    for n in example_names():
-        print(f"{n:<16} {example_path(n)}")
+    names = example_names()
+    width = max((len(n) for n in names), default=0)
+    for n in names:
+        path = example_path(n)
+        try:
+            with open(path, "rb") as f:
+                text = str(tomllib.load(f).get("description", "")).strip()
+        except (OSError, tomllib.TOMLDecodeError) as err:  # a broken shipped file is a bug: say so
+            text = f"(cannot read the file: {type(err).__name__})"
+        print(f"{n:<{width}}  {text.splitlines()[0] if text else '(no description)'}")
+    if names:
+        print(f"\nfiles: {example_path(names[0]).parent}/<name>.toml")
+    if not quiet:
+        print("use one by name (`fojax check example_3_3_7`, `fojax design example_4_1_3`) or copy "
+              "its file to start your own model (format: docs/config.md).")
     return 0
 
 
@@ -592,6 +608,7 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
             figures[f"Tuning curve of '{nm}'"] = plot_tuning_curve(
                 folder / f"tuning-{nm}.png", h["step"], h["train_loss"],
                 held if np.isfinite(held).any() else None, ylabel="IAE loss",
+                heldout_before=tr.initial_heldout, heldout_after=tr.final_heldout,
                 title=f"Tuning '{nm}': training and held-out loss", overwrite=ow)
             tuning_rows.append([nm, n_steps, float(tr.initial_heldout), float(tr.final_heldout)])
             out.say(f"  held-out training-type loss {tr.initial_heldout:.4g} -> {tr.final_heldout:.4g}; "

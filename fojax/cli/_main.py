@@ -22,7 +22,7 @@ The command enables 64-bit JAX for its own process (fojax computes in float64).
 EPILOG = """\
 examples:
   fojax demo                            analyse, design and simulate thesis example 4.1.3
-  fojax examples                        list the shipped example configs and their paths
+  fojax examples                        list the shipped example configs, one line each
   fojax check example_3_3_7             structure report of a shipped example
   fojax check my_model.toml             ... or of your own model file
   fojax design my_model.toml            design + verify the [[observer]]s, save them in a
@@ -33,8 +33,10 @@ examples:
                                         with fojax study --resume <its folder>)
 
 exit codes: 0 success; 1 a design failed verification; 2 error (one-line reason on
-stderr); 3 command not available in this installation; 130/143 study interrupted by
-SIGINT/SIGTERM (resumable).
+stderr; `fojax check a b c` checks every file and reports each bad one); 3 command not
+available in this installation; 130/143 study interrupted by SIGINT/SIGTERM (resumable).
+environment: FOJAX_DEBUG=1 prints the full Python traceback instead of the one-line
+reason (attach it to bug reports).
 Python: fojax.config.load_config, fojax.results.save_design / load_design.
 """
 
@@ -97,11 +99,59 @@ def demo(quiet: bool = False) -> int:
     return 0 if ok else 1
 
 
+def _version() -> str:
+    import importlib.metadata
+
+    try:
+        return importlib.metadata.version("fojax")
+    except importlib.metadata.PackageNotFoundError:  # running from a source tree, not installed
+        return "unknown (not installed)"
+
+
+def _debug() -> bool:
+    import os
+
+    return os.environ.get("FOJAX_DEBUG", "") not in ("", "0")
+
+
+def _error_line(err: BaseException, path: str | None = None) -> str:
+    """The one-line reason printed for a failed command (``path`` is named if the message
+    does not name it already)."""
+    from fojax import FojaxError
+
+    kind = "error" if isinstance(err, FojaxError | FileExistsError) else f"unexpected {type(err).__name__}"
+    msg = " ".join(str(err).split("\n")[0].split()) if str(err) else ""
+    if path is not None and path not in msg:
+        msg = f"{path}: {msg}"
+    return f"fojax: {kind}: {msg}"
+
+
+def _check_all(configs: list[str], quiet: bool) -> int:
+    """`fojax check a b c`: every file is checked; each bad one gets its one-line reason
+    on stderr, and the exit code is 2 if any failed (after all were checked)."""
+    from . import _commands
+
+    status = 0
+    for config in configs:
+        try:
+            status = max(status, _commands.check(config, quiet=quiet))
+        except _commands._Unavailable:
+            raise
+        except Exception as err:
+            if _debug():  # full traceback for bug reports
+                raise
+            print(_error_line(err, config), file=sys.stderr, flush=True)
+            status = 2
+    return status
+
+
 def main(argv: list[str] | None = None) -> int:
     raw = argparse.RawDescriptionHelpFormatter
     parser = argparse.ArgumentParser(
         prog="fojax", description=DESCRIPTION, epilog=EPILOG, formatter_class=raw
     )
+    parser.add_argument("--version", action="version", version=f"fojax {_version()}",
+                        help="print the installed fojax version and exit")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     # `--quiet` is accepted after the command too (default SUPPRESS keeps the global value)
     quiet = argparse.ArgumentParser(add_help=False)
@@ -176,7 +226,10 @@ def main(argv: list[str] | None = None) -> int:
                    "regenerates are replaced (CONFIG, --samples, --horizon, --steps, if given, must "
                    "match the first run)")
     args = parser.parse_args(argv)
-    command = args.command or "demo"
+    if args.command is None:  # plain `fojax`: what it can do, not a 20-second demo
+        parser.print_help()
+        return 0
+    command = args.command
     from . import _commands
 
     try:
@@ -191,36 +244,24 @@ def main(argv: list[str] | None = None) -> int:
                                    steps=args.steps, resume=args.resume, quiet=args.quiet)
         _enable_x64()
         configs = [_commands.resolve_config(c) for c in args.config]
+        if command == "check":
+            return _check_all(configs, args.quiet)
         if command == "design" and args.name is not None and len(configs) > 1:
             parser.error("--name needs a single CONFIG (each config gets its own folder)")
         status = 0
         for config in configs:
-            if command == "check":
-                status = max(status, _commands.check(config, quiet=args.quiet))
-            else:
-                status = max(status, _commands.design(
-                    config, args.out, name=args.name, overwrite=args.overwrite, quiet=args.quiet
-                ))
+            status = max(status, _commands.design(
+                config, args.out, name=args.name, overwrite=args.overwrite, quiet=args.quiet
+            ))
         return status
     except _commands._Unavailable as err:
         print(f"fojax: {err}", file=sys.stderr)
         return 3
     except Exception as err:  # one-line reason, non-zero exit
-        import os
-
-        if os.environ.get("FOJAX_DEBUG"):  # full traceback for bug reports
+        if _debug():  # FOJAX_DEBUG=1: full traceback for bug reports
             raise
-        from fojax import FojaxError
-
-        if isinstance(err, FojaxError | FileExistsError):
-            kind = "error"
-        else:
-            kind = f"unexpected {type(err).__name__}"
-        msg = " ".join(str(err).split("\n")[0].split()) if str(err) else ""
-        print(f"fojax: {kind}: {msg}", file=sys.stderr)
+        print(_error_line(err), file=sys.stderr)
         return 2
-    parser.print_help()
-    return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

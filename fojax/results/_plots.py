@@ -21,12 +21,12 @@ DEFAULT_SIZE = (800, 600)
 _DPI = 100
 
 
-def _figure(size):
+def _figure(size, *, layout: str | None = None):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     w, h = size
-    fig = Figure(figsize=(w / _DPI, h / _DPI), dpi=_DPI)
+    fig = Figure(figsize=(w / _DPI, h / _DPI), dpi=_DPI, layout=layout)
     FigureCanvasAgg(fig)
     return fig
 
@@ -46,6 +46,234 @@ def _as_2d(name, a, T=None):
     return a
 
 
+# ------------------------------------------------------------------ pole plots
+# Every region of fojax.design is convex (disk, half-plane, sector with damping > 0, and
+# their intersections), so it is drawn as a convex polygon: each part is clipped to a large
+# box around the plot, and an intersection is the polygon of one part clipped by the others
+# (Sutherland-Hodgman). The box is far larger than any window the plot shows, so its edges
+# are never visible; the maths of the regions (fojax.design._regions) is not duplicated
+# beyond their defining parameters, and the polygon is checked against `region.margin` in
+# the tests.
+POLE_MULTIPLICITY_RTOL = 1e-3
+"""Poles closer than this fraction of the poles' scale (the largest modulus of the poles
+drawn) are one marker annotated with their multiplicity ("×2"): at any readable plot size
+they would be one dot."""
+
+_DISK_VERTICES = 720
+
+
+def _clip(poly: np.ndarray, a: np.ndarray, b: float) -> np.ndarray:
+    """The part of the convex polygon `poly` ((k, 2) vertices) where ``a · p <= b``."""
+    if len(poly) == 0:
+        return poly
+    out = []
+    vals = poly @ a - b
+    for i in range(len(poly)):
+        p, q = poly[i], poly[(i + 1) % len(poly)]
+        vp, vq = vals[i], vals[(i + 1) % len(poly)]
+        if vp <= 0:
+            out.append(p)
+        if (vp < 0 < vq) or (vq < 0 < vp):
+            out.append(p + (q - p) * (vp / (vp - vq)))
+    return np.asarray(out).reshape(-1, 2)
+
+
+def _part_halfspaces(part) -> list[tuple[np.ndarray, float]]:
+    """Half-spaces ``a · p <= b`` whose intersection is `part` (a disk: its inscribed
+    regular polygon of `_DISK_VERTICES` sides)."""
+    from ..design import Disk, HalfPlane, Sector
+
+    if isinstance(part, Disk):
+        phi = np.linspace(0.0, 2 * np.pi, _DISK_VERTICES, endpoint=False) + np.pi / _DISK_VERTICES
+        # the polygon through the circle's points at angles phi: edge normals at angles phi
+        r = part.radius * np.cos(np.pi / _DISK_VERTICES)
+        return [(np.array([np.cos(t), np.sin(t)]), part.center * np.cos(t) + r) for t in phi]
+    if isinstance(part, HalfPlane):
+        return [(np.array([1.0, 0.0]), -part.decay)]
+    if isinstance(part, Sector):
+        th = np.arccos(part.damping)
+        # -Re(s) sin θ - |Im s| cos θ >= 0  <=>  x sin θ ± y cos θ <= 0
+        return [(np.array([np.sin(th), np.cos(th)]), 0.0), (np.array([np.sin(th), -np.cos(th)]), 0.0)]
+    raise TypeError(f"cannot draw a region of type {type(part).__name__}")
+
+
+def _region_polygon(region, box: float, center=(0.0, 0.0)) -> np.ndarray:
+    """The region (a part or an intersection) clipped to the square of half-width `box`
+    around `center`, as the ``(k, 2)`` vertices of a convex polygon (empty if the region
+    does not meet the square)."""
+    from ..design import Intersection
+
+    cx, cy = center
+    poly = np.array([[cx - box, cy - box], [cx + box, cy - box], [cx + box, cy + box], [cx - box, cy + box]])
+    parts = region.parts if isinstance(region, Intersection) else (region,)
+    for part in parts:
+        for a, b in _part_halfspaces(part):
+            poly = _clip(poly, a, b)
+    return poly
+
+
+def _part_boundary(part, far: float):
+    """``(xs, ys, label)`` of the boundary of one region part, drawn out to distance `far`."""
+    from ..design import Disk, HalfPlane, Sector
+
+    if isinstance(part, Disk):
+        t = np.linspace(0, 2 * np.pi, 361)
+        return (part.center + part.radius * np.cos(t), part.radius * np.sin(t),
+                f"disk: |s − ({part.center:g})| < {part.radius:g}")
+    if isinstance(part, HalfPlane):
+        return (np.array([-part.decay, -part.decay]), np.array([-far, far]),
+                f"decay: Re s < {-part.decay:g}")
+    if isinstance(part, Sector):
+        th = np.arccos(part.damping)
+        x, y = -far * np.cos(th), far * np.sin(th)
+        return (np.array([x, 0.0, x]), np.array([y, 0.0, -y]),
+                f"damping ≥ {part.damping:g} (sector, ±{np.degrees(th):.1f}°)")
+    raise TypeError(f"cannot draw a region of type {type(part).__name__}")
+
+
+def _clusters(points: np.ndarray, tol: float) -> list[np.ndarray]:
+    """Indices of points within `tol` of each other (single linkage)."""
+    n = len(points)
+    parent = list(range(n))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(n):
+        for j in range(i + 1, n):
+            if abs(points[i] - points[j]) <= tol:
+                parent[find(i)] = find(j)
+    groups: dict[int, list[int]] = {}
+    for i in range(n):
+        groups.setdefault(find(i), []).append(i)
+    return [np.asarray(g) for g in groups.values()]
+
+
+def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
+                  title: str = "Observer error poles and design region", size=DEFAULT_SIZE):
+    from matplotlib.patches import Polygon
+
+    from ..design import Disk, HalfPlane, Intersection, Sector
+
+    eigs = np.atleast_1d(np.asarray(eigenvalues, dtype=complex)).ravel()
+    pp = (np.zeros(0, complex) if plant_poles is None
+          else np.atleast_1d(np.asarray(plant_poles, dtype=complex)).ravel())
+    allp = np.concatenate([eigs, pp])
+    allp = allp[np.isfinite(allp)]
+    scale = float(np.max(np.abs(allp))) if allp.size else 0.0
+    scale = scale if scale > 0 else 1.0
+    tol = POLE_MULTIPLICITY_RTOL * scale
+
+    # --- the window: every pole, the origin, the region if bounded, else its boundary anchors
+    pts = [complex(0.0)] + list(allp)
+    parts = () if region is None else (region.parts if isinstance(region, Intersection) else (region,))
+    far = 1e3 * max(scale, 1.0, *(abs(getattr(p, "center", 0.0)) + getattr(p, "radius", 0.0)
+                                  + getattr(p, "decay", 0.0) for p in parts))
+    exact = all(isinstance(p, Disk | HalfPlane | Sector) for p in parts)  # else: a user's own region
+    poly = _region_polygon(region, far) if region is not None and exact else np.zeros((0, 2))
+    bounded = poly.size and np.max(np.abs(poly)) < 0.5 * far
+    if region is not None and bounded:
+        pts += [complex(x, y) for x, y in poly[:: max(1, len(poly) // 90)]]
+        pts += [complex(poly[:, 0].min(), 0.0), complex(poly[:, 0].max(), 0.0)]
+    elif region is not None:
+        for p in parts:  # unbounded: show each boundary where it meets the real axis
+            if isinstance(p, HalfPlane):
+                pts += [complex(-p.decay, 0.0), complex(-p.decay - max(1.0, p.decay), 0.0)]
+            elif isinstance(p, Disk):
+                pts += [complex(p.center - p.radius, -p.radius), complex(p.center + p.radius, p.radius)]
+        if len(pts) == 1 or max(abs(z) for z in pts) == 0:
+            pts += [complex(-1.0, 0.0)]
+        pts += [complex(min(z.real for z in pts), 0.0)]
+    if region is not None and not exact:  # a user's region: in view if a coarse scan finds it bounded
+        re, im = np.array([z.real for z in pts]), np.abs([z.imag for z in pts])
+        c, h = 0.5 * (re.min() + re.max()), 3.0 * max(re.max() - re.min(), 2 * im.max(), 1.0)
+        X, Y = np.meshgrid(np.linspace(c - h, c + h, 241), np.linspace(-h, h, 241))
+        inside = np.asarray(region.margin(X + 1j * Y), dtype=float) > 0
+        border = inside[0].any() or inside[-1].any() or inside[:, 0].any() or inside[:, -1].any()
+        if inside.any() and not border:
+            pts += [complex(X[inside].min(), Y[inside].max()), complex(X[inside].max(), Y[inside].min())]
+    re = np.array([z.real for z in pts])
+    im = np.abs(np.array([z.imag for z in pts]))
+    xmin, xmax, ymax = re.min(), re.max(), im.max()
+    span = max(xmax - xmin, 2 * ymax)
+    span = span if span > 0 else scale  # every point at the origin
+    pad = 0.12 * span
+    xlim, ylim = (xmin - pad, xmax + pad), (-(ymax + pad), ymax + pad)
+
+    fig = _figure(size, layout="constrained")
+    ax = fig.add_subplot(1, 1, 1)
+    if region is not None:
+        face = (0.17, 0.63, 0.17, 0.25)
+        if poly.size:  # the region itself: shaded, with its boundary as a solid line
+            ax.add_patch(Polygon(poly, closed=True, facecolor=face,
+                                 edgecolor="darkgreen", lw=2.0, label=f"region: {region.describe()}",
+                                 zorder=1))
+        elif not exact:  # a region class fojax does not know: its margin > 0 on a grid
+            xc, half = 0.5 * (xlim[0] + xlim[1]), 3.0 * max(xlim[1] - xlim[0], ylim[1] - ylim[0])
+            X, Y = np.meshgrid(np.linspace(xc - half, xc + half, 900), np.linspace(-half, half, 900))
+            M = np.asarray(region.margin(X + 1j * Y), dtype=float)
+            ax.contourf(X, Y, M, levels=[0.0, np.inf], colors=[face], zorder=1)
+            ax.contour(X, Y, M, levels=[0.0], colors=["darkgreen"], linewidths=2.0, zorder=1)
+            ax.fill([], [], facecolor=face, edgecolor="darkgreen", lw=2.0,
+                    label=f"region: {region.describe()}")  # its legend entry (draws nothing)
+        else:
+            ax.plot([], [], " ", label=f"region: {region.describe()} (empty)")
+        if len(parts) > 1:  # an intersection: where each constraint's boundary runs
+            styles = ["--", "-.", ":", (0, (5, 2, 1, 2))]
+            for k, part in enumerate(p for p in parts if isinstance(p, Disk | HalfPlane | Sector)):
+                xs, ys, label = _part_boundary(part, far)
+                ax.plot(xs, ys, color="tab:green", lw=1.0, ls=styles[k % len(styles)], label=label, zorder=1)
+    ax.axvline(0.0, color="k", lw=0.8, zorder=0.5)
+    ax.axhline(0.0, color="k", lw=0.5, zorder=0.5)
+
+    def _markers(z, fmt, color, ms, label, **kw):
+        groups = _clusters(z, tol)
+        pos = np.array([z[g].mean() for g in groups]) if groups else np.zeros(0, complex)
+        mult = np.array([len(g) for g in groups], dtype=int)
+        if pos.size:
+            ax.plot(pos.real, pos.imag, fmt, color=color, ms=ms, ls="none",
+                    label=label + (f" (×k: k poles within {tol:.1g})" if (mult > 1).any() else ""),
+                    zorder=3, **kw)
+        for zz, m in zip(pos, mult):
+            if m > 1:
+                ax.annotate(f"×{m}", (zz.real, zz.imag), xytext=(6, 6), textcoords="offset points",
+                            color=color, fontsize=10, fontweight="bold", zorder=4, gid="pole-multiplicity")
+        return pos, mult
+
+    if pp.size:
+        _markers(pp, "x", "tab:red", 9, "plant poles", mew=2)
+    _markers(eigs, "o", "tab:blue", 7, "observer error poles", mfc="none", mew=1.8)
+    ax.set_xlim(*xlim)
+    ax.set_ylim(*ylim)
+    ax.set_xlabel("Re s")
+    ax.set_ylabel("Im s")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    handles, labels = ax.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=1 if len(labels) > 3 else 2, fontsize=9,
+               frameon=False)
+    # Equal axes (a disk is a circle, a sector's rays have their true angle) without
+    # wasting the figure: widen the shorter direction of the window to the shape of the
+    # axes box the layout gives, then fix the aspect (the limits only ever grow, so
+    # everything chosen above stays visible).
+    fig.canvas.draw()
+    bbox = ax.get_window_extent()
+    (x0, x1), (y0, y1) = xlim, ylim
+    want = bbox.width / max(bbox.height, 1.0)  # data width / data height at equal scales
+    if (x1 - x0) / (y1 - y0) < want:
+        half = 0.5 * want * (y1 - y0)
+        xc = 0.5 * (x0 + x1)
+        ax.set_xlim(xc - half, xc + half)
+    else:
+        half = 0.5 * (x1 - x0) / want
+        ax.set_ylim(-half, half)
+    ax.set_aspect("equal", adjustable="box")
+    return fig
+
+
 def plot_poles(
     path,
     eigenvalues,
@@ -56,60 +284,28 @@ def plot_poles(
     size: tuple[int, int] = DEFAULT_SIZE,
     overwrite: bool = False,
 ) -> pathlib.Path:
-    """Eigenvalues in the complex plane with the design region shaded.
+    """Eigenvalues in the complex plane with the design region shaded, on equal axes (a
+    disk is drawn as a circle, a damping sector with its true angle).
 
     **Arguments:**
 
     - `path`: PNG file to write.
     - `eigenvalues`: error-dynamics eigenvalues (e.g. ``design.report.eigenvalues``).
-    - `region`: a `fojax.Disk`, `HalfPlane`, `Sector` or intersection; its interior
-      (where `region.margin > 0`) is shaded and its boundary drawn, so every region
-      type, intersections included, is drawn exactly.
+    - `region`: a `fojax.Disk`, `HalfPlane`, `Sector` or intersection. The region is
+      shaded (an intersection: the intersection itself) and the boundary of every part
+      drawn (circle, vertical line, the two rays of a sector), each named in the legend.
+      The window holds every pole and the whole region when it is bounded; for an
+      unbounded region it shows the poles, the origin and where each boundary meets the
+      real axis.
     - `plant_poles`: optional finite poles of the plant (drawn as crosses).
     - `title`, `size` (pixels), `overwrite`.
 
+    Poles closer to each other than `POLE_MULTIPLICITY_RTOL` (1e-3) times the largest
+    pole modulus are one marker annotated "×k" (a double pole is not a single dot).
+
     **Returns:** the PNG path.
     """
-    eigs = np.atleast_1d(np.asarray(eigenvalues, dtype=complex))
-    pts = [eigs]
-    if plant_poles is not None:
-        pts.append(np.atleast_1d(np.asarray(plant_poles, dtype=complex)))
-    allp = np.concatenate(pts) if pts else np.zeros(0, complex)
-    re = list(allp.real) + [0.0]
-    im = list(allp.imag) + [0.0]
-    from ..design import Disk, Intersection
-
-    parts = region.parts if isinstance(region, Intersection) else (region,) if region else ()
-    for p in parts:
-        if isinstance(p, Disk):
-            re += [p.center - p.radius, p.center + p.radius]
-            im += [-p.radius, p.radius]
-    xmin, xmax = min(re), max(re)
-    span = max(xmax - xmin, max(abs(v) for v in im) * 2, 1.0)
-    xmin, xmax = xmin - 0.15 * span, xmax + 0.15 * span
-    ymax = max(max(abs(v) for v in im), 0.5 * (xmax - xmin) * size[1] / size[0]) * 1.1
-    fig = _figure(size)
-    ax = fig.add_subplot(1, 1, 1)
-    if region is not None:
-        X, Y = np.meshgrid(np.linspace(xmin, xmax, 400), np.linspace(-ymax, ymax, 300))
-        M = np.asarray(region.margin(X + 1j * Y), dtype=float)
-        ax.contourf(X, Y, M, levels=[0.0, np.inf], colors=["tab:green"], alpha=0.25)
-        ax.contour(X, Y, M, levels=[0.0], colors=["tab:green"], linewidths=1.5)
-        ax.plot([], [], color="tab:green", lw=6, alpha=0.4, label=f"region: {region.describe()}")
-    ax.axvline(0.0, color="k", lw=0.8)
-    ax.axhline(0.0, color="k", lw=0.5)
-    if plant_poles is not None:
-        pp = np.atleast_1d(np.asarray(plant_poles, dtype=complex))
-        ax.plot(pp.real, pp.imag, "x", color="tab:red", ms=9, mew=2, label="plant poles")
-    ax.plot(eigs.real, eigs.imag, "o", color="tab:blue", ms=7, label="observer error poles")
-    ax.set_xlim(xmin, xmax)
-    ax.set_ylim(-ymax, ymax)
-    ax.set_xlabel("Re s")
-    ax.set_ylabel("Im s")
-    ax.set_title(title)
-    ax.legend(loc="best", fontsize=8)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
+    fig = _poles_figure(eigenvalues, region, plant_poles=plant_poles, title=title, size=size)
     return _save(fig, path, overwrite)
 
 
@@ -141,33 +337,44 @@ def plot_estimates(
 
     **Returns:** the PNG path.
     """
+    fig = _estimates_figure(ts, truth, estimates, labels=labels, band_label=band_label,
+                            truth_label=truth_label, title=title, size=size)
+    return _save(fig, path, overwrite)
+
+
+def _estimates_figure(ts, truth, estimates, *, labels=None, band_label="5–95 % band", truth_label="truth",
+                      title="Estimates vs truth (Monte Carlo)", size=DEFAULT_SIZE):
     ts = np.asarray(ts, dtype=float)
     truth = _as_2d("truth", truth, len(ts))
     q = truth.shape[1]
     labels = list(labels) if labels is not None else [f"z{i + 1}" for i in range(q)]
-    fig = _figure(size)
+    fig = _figure(size, layout="constrained")
     axes = fig.subplots(q, 1, sharex=True, squeeze=False)[:, 0]
     colors = ["tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown"]
+    handles, names = [], []
     for i, ax in enumerate(axes):
-        ax.plot(ts, truth[:, i], color="k", lw=1.5, label=truth_label)
+        (truth_line,) = ax.plot(ts, truth[:, i], color="k", lw=1.5, label=truth_label)
+        if i == 0:
+            handles.append(truth_line)
+            names.append(truth_label)
         for j, (name, (lo, med, hi)) in enumerate(estimates.items()):
             lo, med, hi = (_as_2d(f"estimates[{name!r}]", a, len(ts)) for a in (lo, med, hi))
             c = colors[j % len(colors)]
-            ax.fill_between(ts, lo[:, i], hi[:, i], color=c, alpha=0.25, label=f"{name} {band_label}")
-            ax.plot(ts, med[:, i], color=c, lw=1.2, ls="--", label=f"{name} median")
+            band = ax.fill_between(ts, lo[:, i], hi[:, i], color=c, alpha=0.25, label=f"{name} {band_label}")
+            (line,) = ax.plot(ts, med[:, i], color=c, lw=1.2, ls="--", label=f"{name} median")
+            if i == 0:  # one legend entry per observer: its band with its median drawn on it
+                handles.append((band, line))
+                names.append(f"{name}: median and {band_label}")
         ax.set_ylabel(labels[i])
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("t [s]")
-    # one legend for all panels, between the title and the first panel (inside a panel it
-    # hid the curves it explains)
-    handles, names = axes[0].get_legend_handles_labels()
-    ncol = min(len(names), 4)
-    rows = -(-len(names) // ncol)
     fig.suptitle(title)
-    fig.legend(handles, names, loc="upper center", bbox_to_anchor=(0.5, 0.955), ncol=ncol, fontsize=7,
-               frameon=False)
-    fig.tight_layout(rect=(0, 0, 1, 0.95 - 0.032 * rows))
-    return _save(fig, path, overwrite)
+    # One legend for all panels, in normal type, directly below the panels (the layout
+    # reserves its room): inside a panel it hid the curves it explains, and a tiny legend
+    # under the title was hard to read and far from the data.
+    ncol = min(len(names), 2 if max((len(n) for n in names), default=0) > 24 else 4)
+    fig.legend(handles, names, loc="outside lower center", ncol=max(ncol, 1), frameon=False)
+    return fig
 
 
 def plot_error_distributions(
@@ -224,6 +431,8 @@ def plot_tuning_curve(
     train,
     heldout=None,
     *,
+    heldout_before: float | None = None,
+    heldout_after: float | None = None,
     ylabel: str = "loss",
     title: str = "Tuning curve",
     log: bool = True,
@@ -236,28 +445,61 @@ def plot_tuning_curve(
 
     - `path`: PNG file to write.
     - `steps`: ``(k,)`` step numbers.
-    - `train`: ``(k,)`` training loss; `heldout`: optional ``(k,)`` held-out loss.
+    - `train`: ``(k,)`` training loss; `heldout`: optional ``(k,)`` held-out loss (``nan``
+      where it was not evaluated).
+    - `heldout_before`: the held-out loss of the starting design (before tuning, e.g.
+      `TuneResult.initial_heldout`): a marked point at step 0, which starts the held-out
+      curve, and a dotted reference line across the plot.
+    - `heldout_after`: the held-out loss of the returned design (`TuneResult.final_heldout`):
+      a marked point at the last step.
     - `ylabel`, `title`, `log` (logarithmic y axis when all values are positive),
       `size` (pixels), `overwrite`.
 
     **Returns:** the PNG path.
     """
+    fig = _tuning_figure(steps, train, heldout, heldout_before=heldout_before,
+                         heldout_after=heldout_after, ylabel=ylabel, title=title, log=log, size=size)
+    return _save(fig, path, overwrite)
+
+
+def _tuning_figure(steps, train, heldout=None, *, heldout_before=None, heldout_after=None, ylabel="loss",
+                   title="Tuning curve", log=True, size=DEFAULT_SIZE):
     steps = np.asarray(steps, dtype=float)
     train = np.asarray(train, dtype=float)
-    fig = _figure(size)
+    fig = _figure(size, layout="constrained")
     ax = fig.add_subplot(1, 1, 1)
-    ax.plot(steps, train, "-o", ms=3, label="train")
-    vals = [train]
+    ax.plot(steps, train, "-o", ms=3, color="tab:blue", label="training loss")
+    vals = [train[np.isfinite(train)]]
+    hs, hv = np.zeros(0), np.zeros(0)
     if heldout is not None:
         heldout = np.asarray(heldout, dtype=float)
-        ax.plot(steps, heldout, "-s", ms=3, label="held-out")
-        vals.append(heldout)
+        ok = np.isfinite(heldout)
+        hs, hv = steps[ok], heldout[ok]
+    if heldout_before is not None and np.isfinite(heldout_before):
+        hs, hv = np.concatenate([[0.0], hs]), np.concatenate([[float(heldout_before)], hv])
+    if hs.size:
+        ax.plot(hs, hv, "-s", ms=3, color="tab:orange", label="held-out loss")
+        vals.append(hv)
+    last = float(steps[-1]) if steps.size else 0.0
+    if heldout_before is not None and np.isfinite(heldout_before):
+        b = float(heldout_before)
+        ax.axhline(b, color="tab:orange", lw=0.8, ls=":")
+        ax.plot([0.0], [b], "D", ms=8, color="tab:orange", mec="k", ls="none",
+                label=f"held-out before tuning (step 0): {b:.4g}", zorder=3)
+    if heldout_after is not None and np.isfinite(heldout_after):
+        a = float(heldout_after)
+        ax.plot([last], [a], "*", ms=14, color="tab:red", mec="k", ls="none",
+                label=f"held-out after tuning (step {last:g}): {a:.4g}"
+                + (f" ({100.0 * (a - float(heldout_before)) / float(heldout_before):+.1f} %)"
+                   if heldout_before not in (None, 0.0) and np.isfinite(heldout_before) else ""),
+                zorder=3)
+        vals.append(np.array([a]))
     if log and all(np.all(v > 0) for v in vals):
         ax.set_yscale("log")
+    ax.margins(x=0.03, y=0.08)  # the step-0 and last-step markers are not cut by the frame
     ax.set_xlabel("step")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.legend(loc="best")
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    return _save(fig, path, overwrite)
+    return fig
