@@ -89,9 +89,11 @@ def suggest_name(name, fallback: str = "name") -> str:
     """A valid name close to `name` (invalid characters replaced by ``_``), for messages
     and for names derived from file names."""
     s = re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).lstrip("._-").rstrip(".")[:MAX_NAME_LENGTH].rstrip(".")
-    if not s or name_problem(s) is not None:
-        s = fallback if name_problem(s + "_") is not None else s + "_"
-    return s
+    if not s:
+        return fallback
+    if name_problem(s) is not None:  # a device name: CON -> CON_
+        s = s[: MAX_NAME_LENGTH - 1] + "_"
+    return s if name_problem(s) is None else fallback
 
 
 # --------------------------------------------------------------------------- results folders
@@ -216,7 +218,7 @@ def _owner(path: pathlib.Path) -> _Folder | None:
             if owner is None or len(f.real.parts) > len(owner.real.parts):
                 owner = f
     for f in folders:
-        built_from = lexical.parts[: len(f.lexical.parts)] == f.lexical.parts and lexical != f.lexical
+        built_from = lexical.parts[: len(f.lexical.parts)] == f.lexical.parts  # the folder itself too
         if built_from and (owner is None or not owner.real.is_relative_to(f.real)):
             raise UnsafePathError(path, f.lexical, real)
     return owner

@@ -413,12 +413,14 @@ def _open_design_file(path):
     if not head.startswith(b"PK"):
         raise InputError(f"{path} is not a fojax design file: it is {_what_file(head, path)}; {_EXPECTED}.")
     try:
-        return np.load(path, allow_pickle=False)
+        with zipfile.ZipFile(path) as z:  # np.load leaks its file on a damaged archive
+            z.namelist()
     except (ValueError, OSError, zipfile.BadZipFile) as err:
         raise InputError(
             f"{path} is not a readable fojax design file ({type(err).__name__}: {err}; a damaged or "
             f"truncated archive?); {_EXPECTED}."
         ) from None
+    return np.load(path, allow_pickle=False)
 
 
 def _metadata(data, path) -> dict:
