@@ -171,10 +171,12 @@ def _remove_previous_run(folder: pathlib.Path) -> dict:
     return {"removed": removed, "kept_changed": kept, "manifest": True}
 
 
-def register_results_folder(folder, *, replace_previous_run: bool = False) -> dict:
+def register_results_folder(folder, *, replace_previous_run: bool = False, continue_run: bool = False) -> dict:
     """Make `folder` a results folder of this process (writes are confined to it and
     recorded in its manifest). With `replace_previous_run`, the files of the previous run
-    recorded in its manifest are removed first (those changed since are kept).
+    recorded in its manifest are removed first (those changed since are kept). With
+    `continue_run` (``fojax study --resume``), the files already in its manifest stay
+    listed and this process's writes are added.
 
     **Returns:** ``{"removed": [...], "kept_changed": [...], "manifest": bool}``: what was
     done to the previous run's files (``manifest`` False: the folder had no manifest, so
@@ -195,6 +197,9 @@ def register_results_folder(folder, *, replace_previous_run: bool = False) -> di
         }
         if cleanup["manifest"]:
             manifest["replaced_previous_run"] = {k: cleanup[k] for k in ("removed", "kept_changed")}
+        previous = read_manifest(lexical) if continue_run else None
+        if previous is not None:
+            manifest = {**previous, "continued": [*previous.get("continued", []), _timestamp()]}
         _folders[lexical] = _Folder(lexical, lexical.resolve(), manifest)
     return cleanup
 
@@ -256,8 +261,8 @@ def _fsync_dir(directory) -> None:
             os.close(fd)
 
 
-def _write(path: pathlib.Path, data, *, overwrite: bool) -> str:
-    """Write atomically; returns the temporary file's SHA-256 (of what was written)."""
+def _write(path: pathlib.Path, data, *, overwrite: bool, digest: bool = False) -> str | None:
+    """Write atomically; returns the SHA-256 of what was written if `digest`."""
     if not overwrite and path.exists():
         raise FileExistsError(_exists_message(path))
     directory = path.parent if str(path.parent) else pathlib.Path(".")
@@ -278,7 +283,7 @@ def _write(path: pathlib.Path, data, *, overwrite: bool) -> str:
                 f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        digest = _sha256_file(tmp)
+        sha = _sha256_file(tmp) if digest else None
         if overwrite:
             os.replace(tmp, path)
         else:
@@ -294,7 +299,7 @@ def _write(path: pathlib.Path, data, *, overwrite: bool) -> str:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
     _fsync_dir(directory)
-    return digest
+    return sha
 
 
 def atomic_write(path, data: bytes | Callable, *, overwrite: bool = False) -> pathlib.Path:
@@ -315,7 +320,7 @@ def atomic_write(path, data: bytes | Callable, *, overwrite: bool = False) -> pa
     """
     path = pathlib.Path(path)
     owner = _owner(path)
-    digest = _write(path, data, overwrite=overwrite)
+    digest = _write(path, data, overwrite=overwrite, digest=owner is not None)
     if owner is not None:
         _record(owner, path, digest, path.stat().st_size)
     return path

@@ -348,3 +348,16 @@ def test_load_design_of_a_config_file_says_what_it_is(tmp_path):
             with pytest.raises(fojax.InputError, match=what) as info:
                 fn(path)
             assert "load_design reads the .npz files written by fojax.results.save_design or `fojax design`" in str(info.value)
+
+
+def test_a_continued_run_keeps_the_manifest_of_the_first(tmp_path):
+    from fojax._io import register_results_folder
+
+    folder = new_results_folder(tmp_path, name="run")
+    atomic_write_text(folder / "a.txt", "first")
+    register_results_folder(folder, continue_run=True)  # as `fojax study --resume` does
+    atomic_write_text(folder / "b.txt", "second")
+    with pytest.raises(fojax.UnsafePathError):
+        atomic_write_text(folder / ".." / "c.txt", "x")
+    manifest = json.loads((folder / "fojax-manifest.json").read_text())
+    assert sorted(manifest["files"]) == ["a.txt", "b.txt"] and len(manifest["continued"]) == 1

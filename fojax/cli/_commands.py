@@ -462,6 +462,9 @@ def _resume_folder(folder, config_path, out_dir, given: dict):
     cfg = load_config(saved_config)
     # the first run's config path and name (a config without `name` is named after its file)
     cfg = dataclasses.replace(cfg, path=opts["config"], name=opts["name"])
+    from .._io import register_results_folder
+
+    register_results_folder(folder, continue_run=True)  # writes confined to it, added to its manifest
     return folder, opts["config"], cfg
 
 
