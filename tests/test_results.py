@@ -231,7 +231,7 @@ def test_write_metrics_json_and_exact_npz(tmp_path):
 
 
 @pytest.mark.skipif(os.name != "posix", reason="POSIX permission bits")
-@pytest.mark.parametrize("umask", [0o022, 0o027, 0o077])
+@pytest.mark.parametrize("umask", [0o022, 0o027, 0o077], ids=["022", "027", "077"])
 def test_files_get_the_mode_the_umask_gives(tmp_path, umask):
     from fojax.studies._runner import _atomic_write
 
