@@ -201,6 +201,8 @@ def register_results_folder(folder, *, replace_previous_run: bool = False, conti
         if previous is not None:
             manifest = {**previous, "continued": [*previous.get("continued", []), _timestamp()]}
         _folders[lexical] = _Folder(lexical, lexical.resolve(), manifest)
+        if cleanup["manifest"]:  # the folder's manifest no longer lists removed files
+            _write(lexical / MANIFEST, (json.dumps(manifest, indent=1) + "\n").encode("utf-8"), overwrite=True)
     return cleanup
 
 

@@ -313,6 +313,7 @@ def test_overwrite_replaces_the_previous_run_and_keeps_the_users_files(tmp_path)
     assert new_results_folder(tmp_path, name="run", overwrite=True) == folder
     # the previous run's unchanged files are gone; the user's notes and edit stay
     assert sorted(p.name for p in folder.iterdir()) == ["c.txt", "fojax-manifest.json", "notes.txt"]
+    assert json.loads((folder / "fojax-manifest.json").read_text())["files"] == {}  # before any new write
     atomic_write_text(folder / "a.txt", "second a")
     manifest = json.loads((folder / "fojax-manifest.json").read_text())
     assert list(manifest["files"]) == ["a.txt"]
