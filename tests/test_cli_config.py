@@ -483,7 +483,7 @@ def _tiny(tmp_path, observers, file="tiny.toml", **top):
     return p
 
 
-def _main(*args):
+def _design_main(*args):
     import contextlib
     import io
 
@@ -503,7 +503,7 @@ def _umask():
 def partly_failing(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("partly")
     cfg = _tiny(tmp, [{"name": "bad", **BAD_Q0}, {"name": "good"}, {"name": "also_bad", **BAD_Q0}])
-    code, out, err = _main("design", cfg, "--out", tmp / "runs", "--name", "run")
+    code, out, err = _design_main("design", cfg, "--out", tmp / "runs", "--name", "run")
     return code, out, err, tmp / "runs" / "run", cfg
 
 
@@ -543,7 +543,7 @@ def test_design_designs_every_observer_and_reports_each_failure(partly_failing):
 
 
 def test_a_design_where_every_observer_fails_still_explains_why(tmp_path):
-    code, out, err = _main("--quiet", "design", _tiny(tmp_path, [{"name": "bad", **BAD_Q0}]),
+    code, out, err = _design_main("--quiet", "design", _tiny(tmp_path, [{"name": "bad", **BAD_Q0}]),
                            "--out", tmp_path, "--name", "run")
     assert code == 1 and out == ""
     assert err.startswith("fojax: observer 'bad': RankConditionError: observer order fails: q0 = 3")
@@ -567,7 +567,7 @@ def test_a_bug_during_design_still_leaves_a_report(tmp_path, monkeypatch):
 
     monkeypatch.setattr(fojax.design, "design_functional_observer", buggy)
     cfg = _tiny(tmp_path, [{"name": "one"}, {"name": "two"}, {"name": "three"}])
-    code, out, err = _main("design", cfg, "--out", tmp_path, "--name", "run")
+    code, out, err = _design_main("design", cfg, "--out", tmp_path, "--name", "run")
     assert code == 2 and err == "fojax: unexpected ZeroDivisionError: a bug\n"  # bugs still propagate
     folder = tmp_path / "run"
     summary = json.loads((folder / "designs.json").read_text())
@@ -581,15 +581,15 @@ def test_names_from_config_or_command_line_never_write_outside_the_folder(tmp_pa
         return sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*"))
 
     cfg = _tiny(tmp_path, [{"name": "../../../obs_escaped"}])
-    code, out, err = _main("design", cfg, "--out", tmp_path / "trav2" / "a" / "b")
+    code, out, err = _design_main("design", cfg, "--out", tmp_path / "trav2" / "a" / "b")
     assert code == 2 and out == ""
     assert err.startswith(f"fojax: error: {cfg}: [observer[0].name] '../../../obs_escaped' cannot be used: "
                           "it contains a path separator")
     cfg2 = _tiny(tmp_path, [{"name": "ok"}], file="slash.toml", name="a/b")
-    code, _, err = _main("design", cfg2, "--out", tmp_path / "out")
+    code, _, err = _design_main("design", cfg2, "--out", tmp_path / "out")
     assert code == 2 and f"{cfg2}: [name] 'a/b' cannot be used" in err
     ok = _tiny(tmp_path, [{"name": "ok"}], file="ok.toml")
-    code, _, err = _main("design", ok, "--out", tmp_path / "out", "--name", "../../x")
+    code, _, err = _design_main("design", ok, "--out", tmp_path / "out", "--name", "../../x")
     assert code == 2
     assert err.startswith("fojax: error: --name '../../x' cannot be used: it contains a path separator")
     assert "e.g. --name x" in err
@@ -598,11 +598,11 @@ def test_names_from_config_or_command_line_never_write_outside_the_folder(tmp_pa
 
 def test_overwrite_replaces_the_previous_run_in_the_folder(tmp_path):
     first = _tiny(tmp_path, [{"name": "keep"}, {"name": "dropped"}], file="first.toml")
-    assert _main("--quiet", "design", first, "--out", tmp_path, "--name", "run")[0] == 0
+    assert _design_main("--quiet", "design", first, "--out", tmp_path, "--name", "run")[0] == 0
     folder = tmp_path / "run"
     (folder / "my-notes.md").write_text("mine")
     second = _tiny(tmp_path, [{"name": "keep", "region": {"decay": 0.5}}], file="second.toml")
-    code, out, _ = _main("design", second, "--out", tmp_path, "--name", "run", "--overwrite")
+    code, out, _ = _design_main("design", second, "--out", tmp_path, "--name", "run", "--overwrite")
     assert code == 0
     assert "--overwrite: removed the 7 file(s) of the previous run" in out
     # only the new run's files and the user's note: nothing of 'dropped' remains
