@@ -39,6 +39,7 @@ from ._errors import (
     RegionError as RegionError,
     ShapeError as ShapeError,
     StabilizabilityError as StabilizabilityError,
+    UnsafePathError as UnsafePathError,
 )
 from .analysis import (
     admissibility_certificate as admissibility_certificate,

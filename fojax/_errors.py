@@ -175,3 +175,22 @@ class ConfigError(InputError):
         self.key = key
         where = f"{file}: " if file else ""
         super().__init__(f"{where}[{key}] {message}")
+
+
+class UnsafePathError(InputError):
+    """A file would be written outside the results folder its path was built from
+    (a name holding ``..`` or a path separator, or a symlink leading out of the folder).
+
+    Attributes `path` (as given), `folder` (the results folder) and `resolved` (where the
+    file would have landed).
+    """
+
+    def __init__(self, path: Any, folder: Any, resolved: Any):
+        self.path = path
+        self.folder = folder
+        self.resolved = resolved
+        super().__init__(
+            f"refusing to write {path}: it resolves to {resolved}, outside the results folder "
+            f"{folder}; fojax never writes outside the folder you chose. Use a plain file name "
+            "(letters, digits, '.', '_', '-') for every name that becomes a file."
+        )

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from test_config import _mutate, dumps, MALFORMED
 
+from fojax import FojaxError, HalfPlane
 from fojax.cli._main import main
 from fojax.config import example_names, example_path
 from fojax.design import TakagiSugenoObserverDesign
@@ -462,3 +463,163 @@ def test_a_signal_during_a_checkpoint_write_takes_effect_after_it(tmp_path):
             time.sleep(0.01)
         pytest.fail("not interrupted")
     assert {s: signal.getsignal(s) for s in before} == before  # restored
+
+
+# ---------------------------------------------------------------- fojax design: every observer, files
+# In process (no subprocess, no JAX compilation): a 2-state index-1 model whose designs take
+# ~0.1 s. Oracles: each observer's design called directly (the same failure type and
+# message), and the folder's listing against the files the run must write.
+TINY = {
+    "name": "tiny",
+    "model": {"E": [[1.0, 0.0], [0.0, 0.0]], "A": [[-1.0, 1.0], [1.0, -2.0]], "B": [[1.0], [0.0]],
+              "C": [[1.0, 0.0]], "L": [[0.0, 1.0]]},
+}
+BAD_Q0 = {"q0": 3}  # larger than the largest useful order 2: RankConditionError
+
+
+def _tiny(tmp_path, observers, file="tiny.toml", **top):
+    p = tmp_path / file
+    p.write_text(dumps({**TINY, **top, "observer": observers}))
+    return p
+
+
+def _design_main(*args):
+    import contextlib
+    import io
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main([str(a) for a in args])
+    return code, out.getvalue(), err.getvalue()
+
+
+def _umask():
+    old = os.umask(0)
+    os.umask(old)
+    return old
+
+
+@pytest.fixture(scope="module")
+def partly_failing(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("partly")
+    cfg = _tiny(tmp, [{"name": "bad", **BAD_Q0}, {"name": "good"}, {"name": "also_bad", **BAD_Q0}])
+    code, out, err = _design_main("design", cfg, "--out", tmp / "runs", "--name", "run")
+    return code, out, err, tmp / "runs" / "run", cfg
+
+
+def test_design_designs_every_observer_and_reports_each_failure(partly_failing):
+    from fojax.config import load_config
+    from fojax.design import design_functional_observer
+
+    code, out, err, folder, cfg = partly_failing
+    assert code == 1  # `--help`: 1 = an observer could not be designed
+    # the oracle: the failure of a direct call
+    c = load_config(cfg)
+    with pytest.raises(FojaxError) as direct:
+        design_functional_observer(c.system(), c.L, q0=3)
+    kind, first_line = type(direct.value).__name__, str(direct.value).split("\n")[0]
+    assert kind == "RankConditionError"
+    for nm in ("bad", "also_bad"):
+        assert f"fojax: observer '{nm}': {kind}: {first_line}\n" in err
+    assert "2 of 3 observer(s)" in err and "could not be designed (bad, also_bad)" in err
+    # the good observer (after a failing one) is designed, saved, plotted and verified
+    assert sorted(p.name for p in folder.iterdir()) == [
+        "config.toml", "designs.json", "fojax-manifest.json", "good.npz", "poles-good.png", "report.md"]
+    assert load_design(folder / "good.npz").report.passed
+    summary = json.loads((folder / "designs.json").read_text())
+    assert summary["status"] == "complete"
+    assert [(d["name"], d["status"]) for d in summary["designs"]] == [
+        ("bad", "failed"), ("good", "verified"), ("also_bad", "failed")]
+    assert summary["designs"][0]["error"] == kind and summary["designs"][0]["message"] == str(direct.value)
+    report = (folder / "report.md").read_text()
+    assert "1 of 3 observer(s) designed and verified" in report
+    assert "2 could not be designed: bad, also_bad (see 'Failed designs')" in report
+    assert f"| bad | generalized | - | - | disk centred at -2 with radius 1 | nan | nan | FAILED ({kind}) |" in report
+    assert f"## Failed designs\n\n- **bad**: `{kind}`: " in report and "- **also_bad**: `" in report
+    assert "![Error poles of 'good'](poles-good.png)" in report
+    # files have the permissions the umask gives (not 0600)
+    for p in folder.iterdir():
+        assert os.stat(p).st_mode & 0o777 == 0o666 & ~_umask(), p.name
+
+
+def test_a_design_where_every_observer_fails_still_explains_why(tmp_path):
+    code, out, err = _design_main("--quiet", "design", _tiny(tmp_path, [{"name": "bad", **BAD_Q0}]),
+                           "--out", tmp_path, "--name", "run")
+    assert code == 1 and out == ""
+    assert err.startswith("fojax: observer 'bad': RankConditionError: observer order fails: q0 = 3")
+    folder = tmp_path / "run"
+    assert sorted(p.name for p in folder.iterdir()) == ["config.toml", "designs.json", "fojax-manifest.json", "report.md"]
+    assert "0 of 1 observer(s) designed and verified" in (folder / "report.md").read_text()
+    assert json.loads((folder / "designs.json").read_text())["designs"][0]["status"] == "failed"
+
+
+def test_a_bug_during_design_still_leaves_a_report(tmp_path, monkeypatch):
+    import fojax.design
+
+    real = fojax.design.design_functional_observer
+    calls = []
+
+    def buggy(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise ZeroDivisionError("a bug")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fojax.design, "design_functional_observer", buggy)
+    cfg = _tiny(tmp_path, [{"name": "one"}, {"name": "two"}, {"name": "three"}])
+    code, out, err = _design_main("design", cfg, "--out", tmp_path, "--name", "run")
+    assert code == 2 and err == "fojax: unexpected ZeroDivisionError: a bug\n"  # bugs still propagate
+    folder = tmp_path / "run"
+    summary = json.loads((folder / "designs.json").read_text())
+    assert summary["status"] == "aborted" and summary["aborted"] == {"error": "ZeroDivisionError", "message": "a bug"}
+    assert [d["name"] for d in summary["designs"]] == ["one"]
+    assert "The run was ABORTED by ZeroDivisionError: a bug" in (folder / "report.md").read_text()
+
+
+def test_names_from_config_or_command_line_never_write_outside_the_folder(tmp_path):
+    def listing():
+        return sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*"))
+
+    cfg = _tiny(tmp_path, [{"name": "../../../obs_escaped"}])
+    code, out, err = _design_main("design", cfg, "--out", tmp_path / "trav2" / "a" / "b")
+    assert code == 2 and out == ""
+    assert err.startswith(f"fojax: error: {cfg}: [observer[0].name] '../../../obs_escaped' cannot be used: "
+                          "it contains a path separator")
+    cfg2 = _tiny(tmp_path, [{"name": "ok"}], file="slash.toml", name="a/b")
+    code, _, err = _design_main("design", cfg2, "--out", tmp_path / "out")
+    assert code == 2 and f"{cfg2}: [name] 'a/b' cannot be used" in err
+    ok = _tiny(tmp_path, [{"name": "ok"}], file="ok.toml")
+    code, _, err = _design_main("design", ok, "--out", tmp_path / "out", "--name", "../../x")
+    assert code == 2
+    assert err.startswith("fojax: error: --name '../../x' cannot be used: it contains a path separator")
+    assert "e.g. --name x" in err
+    assert listing() == ["ok.toml", "slash.toml", "tiny.toml"]  # nothing created, not even --out
+
+
+def test_overwrite_replaces_the_previous_run_in_the_folder(tmp_path):
+    first = _tiny(tmp_path, [{"name": "keep"}, {"name": "dropped"}], file="first.toml")
+    assert _design_main("--quiet", "design", first, "--out", tmp_path, "--name", "run")[0] == 0
+    folder = tmp_path / "run"
+    (folder / "my-notes.md").write_text("mine")
+    second = _tiny(tmp_path, [{"name": "keep", "region": {"decay": 0.5}}], file="second.toml")
+    code, out, _ = _design_main("design", second, "--out", tmp_path, "--name", "run", "--overwrite")
+    assert code == 0
+    assert "--overwrite: removed the 7 file(s) of the previous run" in out
+    # only the new run's files and the user's note: nothing of 'dropped' remains
+    assert sorted(p.name for p in folder.iterdir()) == [
+        "config.toml", "designs.json", "fojax-manifest.json", "keep.npz", "my-notes.md", "poles-keep.png",
+        "report.md"]
+    assert (folder / "config.toml").read_bytes() == second.read_bytes()
+    assert load_design(folder / "keep.npz").region == HalfPlane(0.5)
+    manifest = json.loads((folder / "fojax-manifest.json").read_text())
+    assert sorted(manifest["files"]) == sorted(p.name for p in folder.iterdir()
+                                               if p.name not in ("my-notes.md", "fojax-manifest.json"))
+    assert (folder / "my-notes.md").read_text() == "mine"
+
+
+def test_design_help_documents_exit_codes_and_overwrite(capsys):
+    with pytest.raises(SystemExit):
+        main(["design", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "fojax-manifest.json) are removed first, except any you changed since" in text
+    assert "the others are still designed and saved, and the exit code is 1" in text

@@ -258,3 +258,62 @@ def test_documented_example_config_is_valid(tmp_path, doc):
     p.write_text(block)
     cfg = load_config(p)
     assert cfg.E.shape == (3, 3) and cfg.L.shape == (1, 3) and cfg.observers
+
+
+# Names become file and folder names (<observer>.npz, design-<name>-<time>/): the oracle is
+# the rule itself (portable single path component), checked on hand-picked escapes.
+BAD_NAMES = [
+    ("../../../obs_escaped", r"path separator.*e\.g\. 'obs_escaped'"),
+    ("a/b", r"path separator"),
+    ("..", r"starts with '\.'"),
+    (".hidden", r"starts with '\.'"),
+    ("-rf", r"starts with '-'"),
+    ("", r"it is empty"),
+    ("two words", r"contains ' '"),
+    ("naïve", r"contains 'ï'"),
+    ("x" * 65, r"65 characters \(at most 64\)"),
+    ("CON", r"Windows device name"),
+    ("nul.tar", r"Windows device name"),
+    ("ends.", r"ends with '\.'"),
+]
+
+
+@pytest.mark.parametrize("value,what", BAD_NAMES, ids=[repr(b[0])[:12] for b in BAD_NAMES])
+def test_names_that_become_files_are_validated(tmp_path, value, what):
+    for path, key in ((("observer", 0, "name"), "observer[0].name"), (("name",), "name")):
+        p = write(tmp_path, _mutate(path, value))
+        with pytest.raises(fojax.ConfigError, match=what) as info:
+            load_config(p)
+        assert info.value.key == key and info.value.file == str(p)
+        assert f"[{key}] {value!r} cannot be used" in str(info.value)
+        assert "letters, digits" in str(info.value)  # the rule, with a valid example
+
+
+def test_valid_names_and_the_default_model_name(tmp_path):
+    d = base()
+    d["name"] = "Plant_2.v1-a"
+    d["observer"] = [{"name": n} for n in ("PO", "FGDO-1", "_x", "a.b", "9")]
+    cfg = load_config(write(tmp_path, d))
+    assert cfg.name == "Plant_2.v1-a" and [o.name for o in cfg.observers] == ["PO", "FGDO-1", "_x", "a.b", "9"]
+    del d["name"]  # the file name, made portable
+    assert load_config(write(tmp_path, d, "my model (v2).toml")).name == "my_model_v2_"
+    assert load_config(write(tmp_path, d, "..toml")).name == "model"
+    assert load_config(write(tmp_path, d, "con.toml")).name == "con_"
+    from fojax._io import name_problem
+
+    assert name_problem("a\\b") == "it contains a path separator ('/' or '\\')"
+
+
+@pytest.mark.parametrize("names,what", [
+    (["po", "po"], r"\[observer\[1\]\.name\] 'po' is the name of observer\[0\] too"),
+    (["po", "PO"], r"\[observer\[1\]\.name\] 'PO' clashes with observer\[0\] 'po': its design PO\.npz would be the same file as its design po\.npz"),
+    (["po", "po-tuned"], r"'po-tuned' clashes with observer\[0\] 'po': its design po-tuned\.npz .* tuned design po-tuned\.npz"),
+    (["tuning-x", "x"], r"'x' clashes with observer\[0\] 'tuning-x': its tuning checkpoint tuning-x\.npz"),
+    (["Study"], r"'Study' is reserved: `fojax study` writes study\.npz"),
+    (["ok", "metrics"], r"\[observer\[1\]\.name\] 'metrics' is reserved"),
+])
+def test_observer_names_must_give_distinct_files(tmp_path, names, what):
+    d = base()
+    d["observer"] = [{"name": n} for n in names]
+    with pytest.raises(fojax.ConfigError, match=what):
+        load_config(write(tmp_path, d))

@@ -394,3 +394,142 @@ def test_pole_plot_of_a_region_class_fojax_does_not_know():
     verts = np.concatenate([p.vertices for p in outline.get_paths()])
     assert verts[:, 0].min() > -5.01 and verts[:, 0].max() < -0.99 and np.abs(verts[:, 1]).max() < 1.01
     assert x0 < -5.0 and -1.0 < x1 and y0 < -1.0 and 1.0 < y1  # all of it in view
+
+
+# ---------------------------------------------------------------- files: modes, folder, manifest
+# Oracles: the POSIX rule (a new file gets 0o666 & ~umask), pathlib's resolution of where a
+# path lands, and hashlib's SHA-256 of the bytes read back.
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX permission bits")
+@pytest.mark.parametrize("umask", [0o022, 0o027, 0o077], ids=["022", "027", "077"])
+def test_files_get_the_mode_the_umask_gives(tmp_path, umask):
+    from fojax.studies._runner import _atomic_write
+
+    old = os.umask(umask)
+    try:
+        folder = new_results_folder(tmp_path, name="run")
+        paths = [atomic_write_text(folder / "a.txt", "x"), atomic_write_text(tmp_path / "b.txt", "y")]
+        paths.append(atomic_write_text(folder / "a.txt", "z", overwrite=True))  # replaced: same rule
+        _atomic_write(str(folder / "c.json"), lambda f: f.write(b"{}"))  # study results, checkpoints
+        paths += [folder / "c.json", folder / "fojax-manifest.json"]
+    finally:
+        os.umask(old)
+    for p in paths:
+        assert os.stat(p).st_mode & 0o777 == 0o666 & ~umask, p
+    assert os.stat(folder).st_mode & 0o777 == 0o777 & ~umask
+
+
+def test_nothing_is_written_outside_a_results_folder(tmp_path, design):
+    from fojax.studies._runner import _atomic_write
+
+    folder = new_results_folder(tmp_path / "out", name="run")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (folder / "link").symlink_to(elsewhere, target_is_directory=True)
+    attempts = [
+        lambda: atomic_write_text(folder / "../../escaped.txt", "x"),
+        lambda: atomic_write_text(folder / "sub" / ".." / ".." / "escaped.txt", "x"),
+        lambda: save_design(design, folder / "../escaped.npz"),
+        lambda: plot_tuning_curve(folder / "../escaped.png", [0, 1], [2.0, 1.0]),
+        lambda: write_report(folder, title="t", filename="../escaped.md"),
+        lambda: write_metrics(folder, {"a": 1.0}, name="../escaped"),
+        lambda: _atomic_write(str(folder / "../escaped"), lambda f: f.write(b"x")),
+        lambda: atomic_write_text(folder / "link" / "escaped.txt", "x"),  # a symlink out of it
+        lambda: atomic_write_text(folder / ".", "x"),
+    ]
+    for attempt in attempts:
+        with pytest.raises(fojax.UnsafePathError, match=r"outside the results folder .*run") as info:
+            attempt()
+        assert not info.value.resolved.is_relative_to(folder.resolve()) or info.value.resolved == folder.resolve()
+    found = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*"))
+    assert found == ["elsewhere", "out", "out/run", "out/run/link"]
+    # inside the folder (also through a subfolder) and outside any results folder: fine
+    (folder / "sub").mkdir()
+    assert atomic_write_text(folder / "sub" / ".." / "in.txt", "x").read_text() == "x"
+    assert atomic_write_text(elsewhere / "free.txt", "x").read_text() == "x"
+    for bad in ("../x", "a/b", ".hidden", ""):
+        with pytest.raises(fojax.InputError, match=r"results folder name \(--name\) .* cannot be used"):
+            new_results_folder(tmp_path, name=bad)
+    with pytest.raises(fojax.InputError, match="results folder prefix"):
+        new_results_folder(tmp_path, prefix="../up")
+    assert not (tmp_path / "x").exists() and not (tmp_path.parent / "x").exists()
+
+
+def test_manifest_lists_every_file_written_with_its_hash(tmp_path, design):
+    import hashlib
+
+    folder = new_results_folder(tmp_path)
+    written = [
+        save_design(design, folder / "obs.npz"),
+        plot_tuning_curve(folder / "tune.png", [0, 1], [2.0, 1.0]),
+        *write_metrics(folder, {"a": np.arange(3.0)}),
+        write_report(folder, title="t"),
+    ]
+    (folder / "notes.txt").write_text("mine")  # not written by fojax: not listed
+    manifest = json.loads((folder / "fojax-manifest.json").read_text())
+    assert manifest["format"] == "fojax-manifest"
+    assert sorted(manifest["files"]) == sorted(p.name for p in written)
+    for p in written:
+        data = p.read_bytes()
+        assert manifest["files"][p.name] == {"sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)}
+
+
+def test_overwrite_replaces_the_previous_run_and_keeps_the_users_files(tmp_path):
+    folder = new_results_folder(tmp_path, name="run")
+    for n in ("a.txt", "b.txt", "c.txt"):
+        atomic_write_text(folder / n, f"first {n}")
+    (folder / "notes.txt").write_text("my notes")  # the user's
+    (folder / "c.txt").write_text("edited by the user")  # changed since fojax wrote it
+    assert new_results_folder(tmp_path, name="run", overwrite=True) == folder
+    # the previous run's unchanged files are gone; the user's notes and edit stay
+    assert sorted(p.name for p in folder.iterdir()) == ["c.txt", "fojax-manifest.json", "notes.txt"]
+    assert json.loads((folder / "fojax-manifest.json").read_text())["files"] == {}  # before any new write
+    atomic_write_text(folder / "a.txt", "second a")
+    manifest = json.loads((folder / "fojax-manifest.json").read_text())
+    assert list(manifest["files"]) == ["a.txt"]
+    assert manifest["replaced_previous_run"] == {"removed": ["a.txt", "b.txt"], "kept_changed": ["c.txt"]}
+    assert (folder / "notes.txt").read_text() == "my notes"
+    assert (folder / "c.txt").read_text() == "edited by the user"
+    # a manifest edited to point outside the folder never deletes there
+    outside = tmp_path / "precious.txt"
+    outside.write_text("keep")
+    m = json.loads((folder / "fojax-manifest.json").read_text())
+    m["files"]["../precious.txt"] = {"sha256": "x", "bytes": 4}
+    m["files"][str(outside)] = {"sha256": "x", "bytes": 4}
+    (folder / "fojax-manifest.json").write_text(json.dumps(m))
+    new_results_folder(tmp_path, name="run", overwrite=True)
+    assert outside.read_text() == "keep" and not (folder / "a.txt").exists()
+
+
+def test_load_design_of_a_config_file_says_what_it_is(tmp_path):
+    from fojax.config import example_path
+
+    for path, what in [
+        (example_path("example_4_1_3"), r"is not a fojax design file: it is a text file \(a TOML config\?\)"),
+        (tmp_path / "a.npy", r"it is a single NumPy array \(\.npy\)"),
+        (tmp_path / "junk.npz", r"it is a binary file that is not a \.npz archive"),
+        (tmp_path / "empty.npz", r"it is empty"),
+        (tmp_path / "truncated.npz", r"not a readable fojax design file .*damaged or truncated"),
+    ]:
+        np.save(tmp_path / "a.npy", np.zeros(2))
+        (tmp_path / "junk.npz").write_bytes(b"\x00\xff" * 10)
+        (tmp_path / "empty.npz").write_bytes(b"")
+        (tmp_path / "truncated.npz").write_bytes(b"PK\x03\x04" + b"\x00" * 10)
+        for fn in (load_design, read_design_metadata):
+            with pytest.raises(fojax.InputError, match=what) as info:
+                fn(path)
+            assert "load_design reads the .npz files written by fojax.results.save_design or `fojax design`" in str(info.value)
+
+
+def test_a_continued_run_keeps_the_manifest_of_the_first(tmp_path):
+    from fojax._io import register_results_folder
+
+    folder = new_results_folder(tmp_path, name="run")
+    atomic_write_text(folder / "a.txt", "first")
+    register_results_folder(folder, continue_run=True)  # as `fojax study --resume` does
+    atomic_write_text(folder / "b.txt", "second")
+    with pytest.raises(fojax.UnsafePathError):
+        atomic_write_text(folder / ".." / "c.txt", "x")
+    manifest = json.loads((folder / "fojax-manifest.json").read_text())
+    assert sorted(manifest["files"]) == ["a.txt", "b.txt"] and len(manifest["continued"]) == 1

@@ -121,6 +121,10 @@ def check(config_path: str, quiet: bool = False) -> int:
     return 0
 
 
+def _one_line(err: BaseException) -> str:
+    return " ".join(str(err).split("\n")[0].split())
+
+
 def design(
     config_path: str,
     out_dir: str | None = None,
@@ -135,8 +139,21 @@ def design(
     functional observer (`fojax.design.design_ts_observer`: one common $T$, per-rule
     gains, a common certificate for all rules); otherwise
     `fojax.design.design_functional_observer` on the (fault-augmented) system.
+
+    Every observer is designed even when another one fails: a design that raises a
+    `fojax.FojaxError` (existence condition, LMI infeasible, verification failed) is
+    reported by name on stderr (``fojax: observer 'po': LMIInfeasibleError: ...``), in
+    ``report.md`` and in ``designs.json`` (``status``, ``error``, ``message``); the others
+    are saved and plotted as usual. Any other exception (a bug) or an interrupt stops the
+    run, after writing a report that says so. ``report.md`` and ``designs.json`` are
+    always written.
+
+    **Returns:** 0 if every observer was designed and verified, 1 otherwise.
     """
-    from .._errors import ConfigError
+    import sys
+
+    from .._errors import ConfigError, FojaxError, InputError
+    from .._io import folder_manifest, name_problem, NAME_RULE, suggest_name
     from ..design import design_functional_observer, design_ts_observer
     from ..results import (
         atomic_write_json,
@@ -147,6 +164,12 @@ def design(
     )
     from ..results._io import atomic_write_bytes
 
+    if name is not None and name_problem(name) is not None:  # before any work
+        raise InputError(
+            f"--name {name!r} cannot be used: {name_problem(name)}. The {NAME_RULE}; e.g. "
+            f"--name {suggest_name(name, 'run1')}. (--out may be any path: the results folder "
+            "is created inside it.)"
+        )
     out = _Progress(quiet)
     cfg = _load(config_path)
     if cfg.is_takagi_sugeno and cfg.has_faults:
@@ -168,6 +191,11 @@ def design(
         overwrite=overwrite,
     )
     out.say(f"fojax design: {cfg.name} -> results folder {folder}")
+    replaced = (folder_manifest(folder) or {}).get("replaced_previous_run")
+    if replaced:
+        out.say(f"  --overwrite: removed the {len(replaced['removed'])} file(s) of the previous run"
+                + (f"; kept {', '.join(replaced['kept_changed'])} (changed since that run wrote them)"
+                   if replaced["kept_changed"] else ""))
     atomic_write_bytes(folder / "config.toml", pathlib.Path(config_path).read_bytes(), overwrite=overwrite)
     if cfg.has_faults:
         out.say(f"  designing for the fault-augmented system ({sys_.n} states), functional {L.shape[0]} x {L.shape[1]}")
@@ -176,64 +204,105 @@ def design(
                 "a common T and per-rule gains, error poles of every rule (and every convex "
                 "combination) in the region")
     design_fn = design_ts_observer if cfg.is_takagi_sugeno else design_functional_observer
-    rows, figures, files, summary = [], {}, {}, []
-    all_passed = True
-    for spec in observers:
-        with out.step(
-            f"designing observer '{spec.name}' ({spec.kind}, error poles in "
-            f"{spec.region.describe()}): structure checks, LMI solve, float64 verification"
-        ):
-            d = design_fn(
-                sys_, L, kind=spec.kind, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1
+    rows, figures, files, summary, failed = [], {}, {}, [], {}
+
+    def finish(aborted: BaseException | None = None) -> pathlib.Path:
+        """designs.json and report.md of what was done (also when the run is aborted)."""
+        n_ok = sum(1 for e in summary if e["status"] == "verified")
+        verdict = (f"{n_ok} of {len(observers)} observer(s) designed and verified in float64 "
+                   "(design-condition residuals, eigenvalues in the region, LMI re-check at the "
+                   "certificate)")
+        if failed:
+            verdict += f"; {len(failed)} could not be designed: {', '.join(failed)} (see 'Failed designs')"
+        if aborted is not None:
+            verdict += (f". The run was ABORTED by {type(aborted).__name__}: {_one_line(aborted)}; "
+                        f"observers not listed below were not designed")
+        atomic_write_json(folder / "designs.json", {
+            "config": str(config_path), "status": "aborted" if aborted is not None else "complete",
+            **({"aborted": {"error": type(aborted).__name__, "message": str(aborted)}} if aborted is not None else {}),
+            "designs": summary,
+        }, overwrite=overwrite)
+        files["verification summary"] = folder / "designs.json"
+        files["the config file used"] = folder / "config.toml"
+        headers = ["observer", "kind", "q0", "q1", "region", "max Re(eig)", "relative residual", "verified"]
+        sections = {"Failed designs": "\n\n".join(
+            f"- **{nm}**: `{err_type}`: {msg}" for nm, (err_type, msg) in failed.items())} if failed else {}
+        return write_report(
+            folder,
+            title=f"fojax design: {cfg.name}",
+            summary=(cfg.description or "") + f"\n\nConfig: `{config_path}`. {verdict}.",
+            tables={"Designs": (headers, rows)},
+            figures=figures,
+            files=files,
+            sections=sections,
+            overwrite=overwrite,
+        )
+
+    try:
+        for spec in observers:
+            try:
+                with out.step(
+                    f"designing observer '{spec.name}' ({spec.kind}, error poles in "
+                    f"{spec.region.describe()}): structure checks, LMI solve, float64 verification"
+                ):
+                    d = design_fn(
+                        sys_, L, kind=spec.kind, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1
+                    )
+            except FojaxError as err:  # this observer failed; design the others
+                kind = type(err).__name__
+                print(f"fojax: observer '{spec.name}': {kind}: {_one_line(err)}", file=sys.stderr, flush=True)
+                failed[spec.name] = (kind, " ".join(str(err).split()))
+                rows.append([spec.name, spec.kind, "-", "-", spec.region.describe(), float("nan"),
+                             float("nan"), f"FAILED ({kind})"])
+                summary.append({"name": spec.name, "kind": spec.kind, "status": "failed",
+                                "region": spec.region.describe(), "error": kind, "message": str(err)})
+                continue
+            out.say(f"  {d}")
+            path = save_design(
+                d,
+                folder / f"{spec.name}.npz",
+                overwrite=overwrite,
+                metadata={"config": str(config_path), "config_name": cfg.name, "observer": spec.name},
             )
-        out.say(f"  {d}")
-        path = save_design(
-            d,
-            folder / f"{spec.name}.npz",
-            overwrite=overwrite,
-            metadata={"config": str(config_path), "config_name": cfg.name, "observer": spec.name},
-        )
-        png = plot_poles(
-            folder / f"poles-{spec.name}.png",
-            d.report.eigenvalues,
-            d.region,
-            title=f"{cfg.name}: error poles of '{spec.name}' ({spec.kind})",
-            overwrite=overwrite,
-        )
-        all_passed &= bool(d.report.passed)
-        eig = np.asarray(d.report.eigenvalues)
-        rows.append(
-            [spec.name, spec.kind, d.observer.q0, d.observer.q1, d.region.describe(),
-             float(np.max(eig.real)) if eig.size else float("nan"),
-             float(d.report.relative_residual), d.report.passed]
-        )
-        figures[f"Error poles of '{spec.name}'"] = png
-        files[f"design of '{spec.name}' (fojax.results.load_design)"] = path
-        summary.append({"name": spec.name, "file": path.name, **d.report.to_dict(),
-                        "kind": spec.kind, "q0": d.observer.q0, "q1": d.observer.q1})
-        out.say(f"  saved {path}")
-    atomic_write_json(folder / "designs.json", {"config": str(config_path), "designs": summary}, overwrite=overwrite)
-    files["verification summary"] = folder / "designs.json"
-    files["the config file used"] = folder / "config.toml"
-    headers = ["observer", "kind", "q0", "q1", "region", "max Re(eig)", "relative residual", "verified"]
-    report = write_report(
-        folder,
-        title=f"fojax design: {cfg.name}",
-        summary=(cfg.description or "") + f"\n\nConfig: `{config_path}`. Every design below was "
-        "verified in float64 (design-condition residuals, eigenvalues in the region, LMI "
-        "re-check at the certificate).",
-        tables={"Designs": (headers, rows)},
-        figures=figures,
-        files=files,
-        overwrite=overwrite,
-    )
+            png = plot_poles(
+                folder / f"poles-{spec.name}.png",
+                d.report.eigenvalues,
+                d.region,
+                title=f"{cfg.name}: error poles of '{spec.name}' ({spec.kind})",
+                overwrite=overwrite,
+            )
+            eig = np.asarray(d.report.eigenvalues)
+            rows.append(
+                [spec.name, spec.kind, d.observer.q0, d.observer.q1, d.region.describe(),
+                 float(np.max(eig.real)) if eig.size else float("nan"),
+                 float(d.report.relative_residual), d.report.passed]
+            )
+            figures[f"Error poles of '{spec.name}'"] = png
+            files[f"design of '{spec.name}' (fojax.results.load_design)"] = path
+            summary.append({"name": spec.name, "file": path.name,
+                            "status": "verified" if d.report.passed else "not verified",
+                            **d.report.to_dict(), "kind": spec.kind, "q0": d.observer.q0, "q1": d.observer.q1})
+            out.say(f"  saved {path}")
+    except BaseException as err:  # a bug or an interrupt: say so in the folder, then stop
+        import contextlib
+
+        with contextlib.suppress(Exception):
+            finish(aborted=err)
+        raise
+    report = finish()
     width = max([len("observer")] + [len(r[0]) for r in rows])
     out.say("")
     out.say(f"{'observer':<{width}}  kind          q0  q1  max Re(eig)  verified")
     for r in rows:
-        out.say(f"{r[0]:<{width}}  {r[1]:<12}  {r[2]:>2}  {r[3]:>2}  {r[5]:>11.4g}  {'yes' if r[7] else 'NO'}")
+        verified = r[7] if isinstance(r[7], str) else ("yes" if r[7] else "NO")
+        out.say(f"{r[0]:<{width}}  {r[1]:<12}  {r[2]:>2}  {r[3]:>2}  {r[5]:>11.4g}  {verified}")
     out.say(f"\nresults: {folder} (report: {report.name})")
-    return 0 if all_passed else 1
+    if failed:
+        print(f"fojax: {len(failed)} of {len(observers)} observer(s) of {config_path} could not be designed "
+              f"({', '.join(failed)}); the others are saved in {folder}, the reasons are in its report.md.",
+              file=sys.stderr, flush=True)
+    all_ok = not failed and all(e["status"] == "verified" for e in summary)
+    return 0 if all_ok else 1
 
 
 def _default_region():
@@ -409,6 +478,9 @@ def _resume_folder(folder, config_path, out_dir, given: dict):
     cfg = load_config(saved_config)
     # the first run's config path and name (a config without `name` is named after its file)
     cfg = dataclasses.replace(cfg, path=opts["config"], name=opts["name"])
+    from .._io import register_results_folder
+
+    register_results_folder(folder, continue_run=True)  # writes confined to it, added to its manifest
     return folder, opts["config"], cfg
 
 

@@ -32,9 +32,14 @@ examples:
   fojax study my_model.toml             Monte Carlo study + tuning (Ctrl-C: stop; continue
                                         with fojax study --resume <its folder>)
 
-exit codes: 0 success; 1 a design failed verification; 2 error (one-line reason on
-stderr; `fojax check a b c` checks every file and reports each bad one); 3 command not
-available in this installation; 130/143 study interrupted by SIGINT/SIGTERM (resumable).
+exit codes: 0 success; 1 an observer could not be designed or failed verification
+(the others are still designed and saved; each failure is named on stderr and in the
+report); 2 error (one-line reason on stderr; `fojax check a b c` checks every file and
+reports each bad one); 3 command not available in this installation; 130/143 study
+interrupted by SIGINT/SIGTERM (resumable).
+files: fojax writes only inside the results folder (names in a config and --name must
+be plain file names: letters, digits, '.', '_', '-'), atomically, with the permissions
+your umask gives, and lists what it wrote in the folder's fojax-manifest.json.
 environment: FOJAX_DEBUG=1 prints the full Python traceback instead of the one-line
 reason (attach it to bug reports).
 Python: fojax.config.load_config, fojax.results.save_design / load_design.
@@ -188,7 +193,10 @@ def main(argv: list[str] | None = None) -> int:
         help="design, verify and save the observers requested in CONFIG",
         description="Design every [[observer]] of CONFIG by LMI, verify it in float64, and "
         "save it (fojax.results.load_design reads it back bit-exactly) with a pole plot and a "
-        "Markdown report into a NEW results folder: an earlier folder is never reused.",
+        "Markdown report into a NEW results folder: an earlier folder is never reused. An "
+        "observer that cannot be designed (existence condition, LMI infeasible, verification) "
+        "is reported by name on stderr, in report.md and in designs.json; the others are still "
+        "designed and saved, and the exit code is 1.",
         epilog="example: fojax design example_4_1_3 --out runs\n"
         "         python -c \"import fojax.results as r; print(r.load_design('runs/<folder>/generalized.npz'))\"",
         formatter_class=raw,
@@ -198,9 +206,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", metavar="DIR", default=None,
                    help="parent directory of the results folder (default: ./fojax-results)")
     p.add_argument("--name", metavar="NAME", default=None,
-                   help="results folder name (default: design-<model name>-<UTC timestamp>)")
+                   help="results folder name, a plain file name (letters, digits, '.', '_', '-'; "
+                   "default: design-<model name>-<UTC timestamp>)")
     p.add_argument("--overwrite", action="store_true",
-                   help="allow writing into an existing --name folder (files are replaced)")
+                   help="replace the previous fojax run in an existing --name folder: the files "
+                   "it wrote (listed in its fojax-manifest.json) are removed first, except any you "
+                   "changed since; files fojax did not write stay untouched")
     p = sub.add_parser(
         "study",
         parents=[quiet],

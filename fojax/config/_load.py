@@ -70,6 +70,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import ConfigError, RegionError
+from .._io import name_problem, NAME_RULE, suggest_name
 
 
 KINDS = ("generalized", "PI", "proportional")
@@ -302,6 +303,17 @@ class _V:
             raise self.err(key, f"expected one of {', '.join(map(repr, choices))}, got {value!r}.{hint}")
         return value
 
+    def file_name(self, key, value, fallback: str) -> str:
+        """A string that becomes a file or folder name (`fojax._io.NAME_RULE`)."""
+        value = self.string(key, value)
+        problem = name_problem(value)
+        if problem is not None:
+            raise self.err(
+                key, f"{value!r} cannot be used: {problem}. The {NAME_RULE}; e.g. "
+                f"{suggest_name(value, fallback)!r}."
+            )
+        return value
+
     def boolean(self, key, value) -> bool:
         if not isinstance(value, bool):
             raise self.err(key, f"expected true or false, got {value!r} ({_typename(value)}).")
@@ -399,7 +411,10 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
     """
     v = _V(file)
     v.table("", data, _TOP, required=("model",))
-    name = v.string("name", data["name"]) if "name" in data else pathlib.Path(file).stem
+    # the model name names the results folders (design-<name>-<time>, study-<name>-<time>);
+    # without one, the file name, made portable
+    name = (v.file_name("name", data["name"], "my_model") if "name" in data
+            else suggest_name(pathlib.Path(file).stem, "model"))
     description = v.string("description", data["description"]) if "description" in data else ""
     ts_raw = data.get("takagi_sugeno")
     model = v.table("model", data["model"], _MODEL, required=_MODEL_REQUIRED)
@@ -530,12 +545,9 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
             q1 = v.number(_join(key, "q1"), o["q1"], integer=True, nonneg=True)
             if kind == "proportional" and q1 != 0:
                 raise v.err(_join(key, "q1"), f"is {q1}; a proportional observer has q1 = 0.")
-        oname = v.string(_join(key, "name"), o["name"]) if "name" in o else f"{kind}-{i + 1}"
+        oname = v.file_name(_join(key, "name"), o["name"], f"observer_{i + 1}") if "name" in o else f"{kind}-{i + 1}"
         observers.append(ObserverSpec(oname, kind, region, R, q0, q1))
-    names = [o.name for o in observers]
-    for i, nm in enumerate(names):
-        if nm in names[:i]:
-            raise v.err(f"observer[{i}].name", f"'{nm}' is used by an earlier observer; names must be unique.")
+    _check_observer_names(v, [o.name for o in observers])
 
     study = None
     if "study" in data:
@@ -568,6 +580,39 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
         dA=dA, profile=profile, takagi_sugeno=ts, observers=tuple(observers), study=study,
         tuning=tuning, raw=data,
     )
+
+
+#: Files `fojax study` writes beside the observers' ``<name>.npz`` (an observer of that name
+#: would share the file).
+_STUDY_STEMS = ("study", "metrics")
+
+
+def _check_observer_names(v: _V, names: list[str]) -> None:
+    """Every observer gets its own files: ``<name>.npz`` and ``poles-<name>.png``
+    (`fojax design`), ``<name>-tuned.npz`` and ``tuning-<name>.npz/.json/.png``
+    (`fojax study`). Refuse names whose files coincide, also on case-insensitive file
+    systems (macOS, Windows), where ``PO.npz`` and ``po.npz`` are one file."""
+    owner: dict[str, tuple[int, str]] = {}  # file stem (lower case) -> (observer, which file)
+    for i, nm in enumerate(names):
+        key = f"observer[{i}].name"
+        if nm in names[:i]:
+            raise v.err(key, f"'{nm}' is the name of observer[{names.index(nm)}] too; names must be "
+                        f"unique (each observer is saved as <name>.npz).")
+        if nm.lower() in _STUDY_STEMS:
+            raise v.err(key, f"'{nm}' is reserved: `fojax study` writes {nm.lower()}.npz itself. "
+                        f"Choose another name, e.g. '{nm}_obs'.")
+        files = ((nm, f"its design {nm}.npz"), (f"{nm}-tuned", f"its tuned design {nm}-tuned.npz"),
+                 (f"tuning-{nm}", f"its tuning checkpoint tuning-{nm}.npz"))
+        for stem, what in files:
+            if stem.lower() in owner:
+                j, other = owner[stem.lower()]
+                raise v.err(
+                    key, f"'{nm}' clashes with observer[{j}] '{names[j]}': {what} would be the same "
+                    f"file as {other} of '{names[j]}' (file names compare ignoring case on macOS and "
+                    "Windows). Rename one of them."
+                )
+        for stem, what in files:
+            owner[stem.lower()] = (i, what)
 
 
 def _missing(v: _V, key: str):

@@ -37,29 +37,44 @@ Array entries of a `FunctionalObserverDesign` are named ``observer/N`` …
 outputs. Files of format 1 (functional designs only, no ``design_class``) still load.
 
 **Atomic, never clobbering.** Every file is written to a temporary file in the
-target directory and then moved into place (`os.replace`, or a hard link when
-overwriting is not allowed, so that a concurrent writer cannot be clobbered either).
-An existing file is never replaced unless ``overwrite=True``: `FileExistsError`
-names it and says how to proceed.
+target directory, flushed to disk and then moved into place (`os.replace`, or a hard
+link when overwriting is not allowed, so that a concurrent writer cannot be clobbered
+either), with the mode the user's umask gives (``0o666 & ~umask``). An existing file is
+never replaced unless ``overwrite=True``: `FileExistsError` names it and says how to
+proceed. (The one writer is `fojax._io.atomic_write`.)
 
 **Results folders.** `new_results_folder` creates ``<root>/<prefix>-YYYYmmdd-HHMMSS``
 (with a ``-2``, ``-3``, … suffix if that name is taken) and never reuses a folder;
-with an explicit `name`, an existing folder is refused unless ``overwrite=True``.
+with an explicit `name`, an existing non-empty folder is refused unless
+``overwrite=True``. Names are single portable file-name components (`NAME_RULE`).
+A path built from a results folder must resolve inside it (`fojax.UnsafePathError`
+otherwise, nothing written), and every file written in it is recorded in its manifest
+``fojax-manifest.json`` (relative path, SHA-256, size). ``overwrite=True`` first removes
+the files the previous run recorded there (a file changed since it was written is
+kept, and so is every file fojax did not write), so the folder then holds the new
+run's files only, beside the user's own.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import datetime as _dt
 import io
 import json
-import os
 import pathlib
-import tempfile
+import zipfile
 from typing import Any
 
 import numpy as np
+
+from .._io import (
+    atomic_write as _atomic_write,
+    MANIFEST as MANIFEST,
+    name_problem,
+    NAME_RULE,
+    register_results_folder,
+    suggest_name,
+)
 
 
 FORMAT = "fojax-design"
@@ -88,15 +103,8 @@ def _timestamp() -> str:
 # --------------------------------------------------------------------------- atomic writes
 
 
-def _exists_message(path: pathlib.Path) -> str:
-    return (
-        f"{path} already exists; fojax never overwrites earlier results silently. "
-        "Choose another path, delete the file, or pass overwrite=True (CLI: --overwrite)."
-    )
-
-
 def atomic_write_bytes(path, data: bytes, *, overwrite: bool = False) -> pathlib.Path:
-    """Write `data` to `path` atomically (temporary file in the same directory, then rename).
+    """Write `data` to `path` atomically (temporary file in the same directory, fsync, rename).
 
     **Arguments:**
 
@@ -107,34 +115,12 @@ def atomic_write_bytes(path, data: bytes, *, overwrite: bool = False) -> pathlib
       place, which fails if the name exists).
 
     **Returns:** the destination as a `pathlib.Path`.
+
+    The file gets the mode the umask gives (``0o666 & ~umask``). A path built from a
+    results folder of `new_results_folder` must resolve inside it (`fojax.UnsafePathError`
+    otherwise), and the file is recorded in the folder's manifest (module docstring).
     """
-    path = pathlib.Path(path)
-    if not overwrite and path.exists():
-        raise FileExistsError(_exists_message(path))
-    directory = path.parent if str(path.parent) else pathlib.Path(".")
-    if not directory.is_dir():
-        raise FileNotFoundError(f"directory {directory} does not exist; create it first.")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        if overwrite:
-            os.replace(tmp, path)
-        else:
-            try:
-                os.link(tmp, path)
-            except FileExistsError:
-                raise FileExistsError(_exists_message(path)) from None
-            except OSError:  # file systems without hard links: best effort
-                if path.exists():
-                    raise FileExistsError(_exists_message(path)) from None
-                os.replace(tmp, path)
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-    return path
+    return _atomic_write(path, bytes(data), overwrite=overwrite)
 
 
 def atomic_write_text(path, text: str, *, overwrite: bool = False) -> pathlib.Path:
@@ -390,15 +376,58 @@ def save_design(design, path, *, overwrite: bool = False, metadata: dict | None 
 
 def read_design_metadata(path) -> dict:
     """The JSON metadata of a saved design (no arrays are rebuilt)."""
-    with np.load(pathlib.Path(path), allow_pickle=False) as data:
+    with _open_design_file(path) as data:
         return _metadata(data, path)
+
+
+_EXPECTED = (
+    "load_design reads the .npz files written by fojax.results.save_design or `fojax design` "
+    "(<observer>.npz in its results folder)"
+)
+
+
+def _what_file(head: bytes, path: pathlib.Path) -> str:
+    if head.startswith(b"\x93NUMPY"):
+        return "a single NumPy array (.npy), not a design archive"
+    if not head:
+        return "empty"
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError:
+        return "a binary file that is not a .npz archive"
+    if path.suffix.lower() == ".toml" or head.lstrip().startswith((b"[", b"name", b"#")):
+        return "a text file (a TOML config?), not a .npz archive"
+    return "a text file, not a .npz archive"
+
+
+def _open_design_file(path):
+    """`np.load` of a design file (no pickles), with a clear `InputError` for anything
+    that is not a ``.npz`` archive."""
+    from .._errors import InputError
+
+    path = pathlib.Path(path)
+    if path.is_dir():
+        raise InputError(f"{path} is a folder; {_EXPECTED}.")
+    with open(path, "rb") as f:  # FileNotFoundError names the missing file
+        head = f.read(64)
+    if not head.startswith(b"PK"):
+        raise InputError(f"{path} is not a fojax design file: it is {_what_file(head, path)}; {_EXPECTED}.")
+    try:
+        with zipfile.ZipFile(path) as z:  # np.load leaks its file on a damaged archive
+            z.namelist()
+    except (ValueError, OSError, zipfile.BadZipFile) as err:
+        raise InputError(
+            f"{path} is not a readable fojax design file ({type(err).__name__}: {err}; a damaged or "
+            f"truncated archive?); {_EXPECTED}."
+        ) from None
+    return np.load(path, allow_pickle=False)
 
 
 def _metadata(data, path) -> dict:
     from .._errors import InputError
 
     if "__metadata__" not in data.files:
-        raise InputError(f"{path} is not a fojax design file (no __metadata__ entry).")
+        raise InputError(f"{path} is not a fojax design file (no __metadata__ entry); {_EXPECTED}.")
     meta = json.loads(str(data["__metadata__"][()]))
     if meta.get("format") != FORMAT:
         raise InputError(f"{path} is not a fojax design file (format {meta.get('format')!r}).")
@@ -578,15 +607,16 @@ def load_design(path, *, membership=None):
     finite-time and fault-estimator designs: in the `solver` of each inner
     `FunctionalObserverDesign`).
 
-    **Raises:** `fojax.InputError` for a file that is not a fojax design, has a newer
-    format, or holds a design class this version does not know.
+    **Raises:** `fojax.InputError` for a file that is not a fojax design (a config file,
+    any other file or archive), has a newer format, or holds a design class this version
+    does not know.
     """
     from .._dtype import require_x64
     from .._errors import InputError
 
     require_x64("load_design")
     path = pathlib.Path(path)
-    with np.load(path, allow_pickle=False) as data:
+    with _open_design_file(path) as data:
         meta = _metadata(data, path)
         arrays = {k: np.array(data[k]) for k in data.files if k != "__metadata__"}
     name = meta.get("design_class", "FunctionalObserverDesign")  # format 1: functional only
@@ -612,6 +642,17 @@ def load_design(path, *, membership=None):
 # --------------------------------------------------------------------------- folders
 
 
+def _check_name(what: str, value) -> None:
+    from .._errors import InputError
+
+    problem = name_problem(value)
+    if problem is not None:
+        raise InputError(
+            f"{what} {value!r} cannot be used: {problem}. The {NAME_RULE}; e.g. "
+            f"{suggest_name(value, 'run1')!r}."
+        )
+
+
 def new_results_folder(
     root=".", *, prefix: str = "fojax", name: str | None = None, overwrite: bool = False
 ) -> pathlib.Path:
@@ -619,30 +660,44 @@ def new_results_folder(
 
     **Arguments:**
 
-    - `root`: parent directory (created if missing).
+    - `root`: parent directory (any path; created if missing).
     - `prefix`: the folder is ``<root>/<prefix>-YYYYmmdd-HHMMSS`` (UTC), with ``-2``,
       ``-3``, … appended if that name exists already: an earlier run is never reused.
     - `name`: an explicit folder name instead of the timestamp. If it exists and is not
-      empty, `FileExistsError` unless ``overwrite=True`` (then files in it may be
-      replaced, nothing is deleted).
+      empty, `FileExistsError` unless ``overwrite=True``.
+    - `overwrite`: reuse an existing `name` folder for a new run. The files the previous
+      fojax run wrote there (listed in its manifest ``fojax-manifest.json``) are removed
+      first, except those changed since they were written; files fojax did not write stay.
+      A folder without a manifest (written by fojax < this version) keeps every file;
+      files of the new run replace those of the same name.
 
-    **Returns:** the created folder.
+    `prefix` and `name` must be single portable file-name components (`NAME_RULE`;
+    `fojax.InputError` otherwise), so the folder is always inside `root`.
+
+    **Returns:** the created folder. Files written into it through paths built from it are
+    confined to it and recorded in its manifest (module docstring).
     """
+    _check_name("results folder prefix", prefix)
+    if name is not None:
+        _check_name("results folder name (--name)", name)
     root = pathlib.Path(root)
     root.mkdir(parents=True, exist_ok=True)
     if name is not None:
         folder = root / name
+        reuse = False
         try:
             folder.mkdir()
         except FileExistsError:
             if not folder.is_dir():
                 raise FileExistsError(f"{folder} exists and is not a folder.") from None
-            if any(folder.iterdir()) and not overwrite:
+            reuse = any(folder.iterdir())
+            if reuse and not overwrite:
                 raise FileExistsError(
                     f"results folder {folder} already exists and is not empty; fojax never reuses "
                     "an earlier run's folder. Choose another name, or pass overwrite=True "
-                    "(CLI: --overwrite) to write into it."
+                    "(CLI: --overwrite) to replace the previous run in it."
                 ) from None
+        register_results_folder(folder, replace_previous_run=reuse)
         return folder
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%d-%H%M%S")
     base = f"{prefix}-{stamp}"
@@ -650,9 +705,10 @@ def new_results_folder(
         folder = root / (base if i == 1 else f"{base}-{i}")
         try:
             folder.mkdir()  # atomic: fails if it exists
-            return folder
         except FileExistsError:
             continue
+        register_results_folder(folder)
+        return folder
     raise FileExistsError(f"could not create a new results folder under {root}")  # pragma: no cover
 
 

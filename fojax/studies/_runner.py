@@ -35,7 +35,6 @@ import dataclasses
 import json
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -311,18 +310,11 @@ class StudyResult:
 
 
 def _atomic_write(path: str, write) -> None:
-    d = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=os.path.basename(path))
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Replace `path` atomically with what ``write(f)`` writes (the one writer,
+    `fojax._io.atomic_write`: umask permissions, confined to and recorded in a results folder)."""
+    from .._io import atomic_write
+
+    atomic_write(path, write, overwrite=True)
 
 
 def run_study(
