@@ -304,6 +304,11 @@ def test_sample_plan_runs_any_count_and_reads_back_the_simulated_samples():
         assert arrays["fault_onset"][i] == plant.fault.onset and arrays["fault_rise"][i] == 0.0
         assert np.array_equal(arrays["delta"][i], plant.base.delta.value)
         assert np.array_equal(arrays["x0"][i], x0)
+        # the state the simulation starts from: E x0 kept, the algebraic rows (5, 6 of §3.3.7,
+        # where E is zero) satisfied at t0 (u(0) = sin 0 = 0, f(0) = 0 before the onset)
+        xc = arrays["x0_consistent"][i]
+        Ad = cfg.A + arrays["delta"][i, 0] * cfg.dA[0]
+        assert np.array_equal(xc[:4], x0[:4]) and np.abs(Ad[4:] @ xc).max() < 1e-12
     # the fault-augmented training set: its faults are the constant last states of x0
     plan = plan_samples(cfg, 64, 2.0, 0)
     train = make_training_study(cfg, 1, plan, 2.0, 0.5)

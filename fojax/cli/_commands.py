@@ -591,6 +591,8 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                 "x0": "plant initial state per sample as given (N, n); the simulation projects it onto "
                       "the algebraic constraints. For the fault-augmented training set the last nf "
                       "entries are the constant faults",
+                "x0_consistent": "the plant state the simulation starts from: x0 projected onto the "
+                                 "algebraic constraints (fojax.consistent_initial_condition) (N, n)",
                 "delta": "constant uncertainty δ per sample (N, k)",
                 "fault_amplitude": "fault vector after the onset (N, nf)",
                 "fault_onset": "onset time [s] (N,)", "fault_rise": "rise time [s] (N,), 0: a step",

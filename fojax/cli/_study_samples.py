@@ -212,7 +212,9 @@ def describe_samples(study, cfg, observers: dict) -> dict:
     """Per-sample arrays of what `study` simulates (read back from the study itself).
 
     **Returns:** a dict of NumPy arrays: ``ts``, ``u`` ``(T, m)`` (shared input),
-    ``x0`` ``(N, n)`` (given plant initial state per sample), ``delta`` ``(N, k)``
+    ``x0`` ``(N, n)`` (given plant initial state per sample), ``x0_consistent``
+    (the state the simulation starts from: `x0` projected onto the algebraic constraints
+    by `fojax.consistent_initial_condition`), ``delta`` ``(N, k)``
     (constant δ), ``fault_amplitude`` ``(N, nf)``, ``fault_onset``, ``fault_rise``
     ``(N,)``, ``fault_index`` ``(N,)`` (the active fault, ``-1`` none; for the augmented
     training study the faults are the last ``nf`` entries of ``x0``, present from
@@ -228,8 +230,8 @@ def describe_samples(study, cfg, observers: dict) -> dict:
     k = np.arange(N)
     iu, jf = jnp.asarray(k // study.num_scenarios), jnp.asarray(k % study.num_scenarios)
     # one compiled call (eager vmap dispatches, and compiles, every primitive separately)
-    (plants, x0s), u = _read_back(study, iu, jf)
-    out = {"ts": np.asarray(study.ts), "u": np.asarray(u), "x0": np.asarray(x0s)}
+    (plants, x0s, x0c), u = _read_back(study, iu, jf)
+    out = {"ts": np.asarray(study.ts), "u": np.asarray(u), "x0": np.asarray(x0s), "x0_consistent": np.asarray(x0c)}
     base = plants
     if isinstance(plants, FaultyPlant):
         f = plants.fault
@@ -259,9 +261,16 @@ def _read_back(study, iu, jf):
     import equinox as eqx
     import jax
 
+    from ..simulation import consistent_initial_condition
+
     @eqx.filter_jit
     def read(study, iu, jf):
-        return jax.vmap(study.sample)(iu, jf), jax.vmap(study.u)(study.ts)
+        def one(i, j):
+            plant, x0 = study.sample(i, j)
+            x0c, _ = consistent_initial_condition(plant, x0, t0=study.ts[0], u=study.u)
+            return plant, x0, x0c
+
+        return jax.vmap(one)(iu, jf), jax.vmap(study.u)(study.ts)
 
     return read(study, iu, jf)
 
