@@ -340,7 +340,8 @@ def test_study_runs_and_records_the_requested_samples_and_shows_peak_and_settlin
     assert np.array_equal(m["mean_peak/FGDO"], m["peak/FGDO"].mean(axis=0))
     assert m["samples"] == 5 and m["samples_requested"] == 5 and m["settle_tol"] == 0.05
     st = _npz(folder / "study.npz")
-    assert st["metric:iae"].shape == (3, 5, 1, 5)  # (observer, draw, 1, signal): 5 samples run
+    assert st["metric:iae"].shape == (3, 5, 5) and np.array_equal(st["metric:peak"][1], m["peak/FGDO"])
+    assert json.loads((folder / "study.json").read_text())["axes"]["iae"] == ["observer", "sample", "signal"]
     report = (folder / "report.md").read_text()
     for caption in ("## Mean IAE", "## Mean peak |e| over the samples",
                     "## Mean settling time [s] (|e| ≤ 0.05 from then on)", "## Metrics", "## Samples"):

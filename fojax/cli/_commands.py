@@ -615,9 +615,21 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         res = studies.run_study(st, [d.observer for d in designs.values()], observer_names=names,
                                 quantiles=(0.05, 0.5, 0.95), quiet=out.quiet, solver=diffrax.Tsit5(),
                                 settle_tol=ss.SETTLE_TOL)
+    flat = ss.flat_metrics(res)  # {metric: (observer, sample, signal)}
+    # the samples are joint draws along one axis (the Study's fault axis has size 1): save
+    # them as such, not as "uncertainty" x "fault"
+    res.metrics.update(flat)
+    res.axes.update({m: ("observer", "sample", "signal") for m in ("iae", "ise", "itae", "peak", "settling_time")})
+    res.axes["success"] = ("sample",)
+    res.attrs["samples"] = plan.breakdown
     res.save(folder / "study")
     signals = list(res.coords["signal"])
-    flat = ss.flat_metrics(res)  # {metric: (observer, sample, signal)}
+    failed = int((~flat["success"].astype(bool)).sum())
+    failed_note = (f" WARNING: the simulation failed (solver did not reach the horizon) in {failed} of "
+                   f"{st.num_samples} samples; their metrics are not meaningful (metrics.npz 'success')."
+                   if failed else "")
+    if failed:
+        out.say(failed_note.strip())
     per_sample = {nm: flat["iae"][k].sum(axis=1) for k, nm in enumerate(names)}
     mean_settle = {nm: ss.mean_settling(flat["settling_time"][k], T) for k, nm in enumerate(names)}
     write_metrics(folder, {
@@ -666,7 +678,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
     rep = write_report(
         folder, title=f"fojax study: {cfg.name}",
         summary=f"{cfg.description}\n\nStructure: {report.verdict}\n\nSamples: {plan.message} "
-        f"Horizon {T} s, seed {spec.seed}. " + tuning_note,
+        f"Horizon {T} s, seed {spec.seed}. " + tuning_note + failed_note,
         tables=tables, figures=figures, files=files, overwrite=ow,
         sections={
             "Metrics": settle_words,
@@ -696,9 +708,11 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         out.say(f"{'observer':<{w}}  " + "  ".join(f"{h:>10}" for h in headers[1:]))
         for r in rows:
             out.say(f"{label(r[0]):<{w}}  " + "  ".join(f"{_cell(v):>10}" for v in r[1:]))
-        if any(isinstance(v, str) and v.startswith("≥") for r in rows for v in r[1:]):
-            out.say("(≥t(k/N): k of the N samples never settle, counted as the horizon; n:a→b/N: never-"
-                    "settled samples before -> after tuning)")
+        cells = [v for r in rows for v in r[1:] if isinstance(v, str)]
+        if any(v.startswith("≥") for v in cells):
+            out.say("(≥t(k/N): k of the N samples never settle, counted as the horizon"
+                    + ("; n:a→b/N: never-settled samples before -> after tuning)" if any(
+                        v.startswith("never:") for v in cells) else ")"))
     for row in tuning_rows:
         out.say(f"tuning '{row[0]}': study IAE total {row[4]:.4g} (LMI) -> {row[5]:.4g} (tuned), "
                 f"{row[6]:+.1f} %; sum of mean peaks {row[7]:.4g} -> {row[8]:.4g}, {row[9]:+.1f} %")
