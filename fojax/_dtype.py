@@ -43,16 +43,17 @@ def as_float_array(name: str, x, ndim: int | None = None, *, check_finite: bool 
     Tracers (inside jit/vmap/grad) are passed through after a dtype and rank check;
     finiteness of traced values cannot be checked at trace time.
     """
-    from ._errors import Float64RequiredError, NonFiniteError, ShapeError
+    from ._errors import Float64RequiredError, InputError, NonFiniteError, ShapeError
 
-    require_x64(f"building {name}")
     if _is_tracer(x) or isinstance(x, jax.Array):
         dt = x.dtype
     else:
         x = np.asarray(x)
         dt = x.dtype
     if dt.kind == "c":
-        raise Float64RequiredError(f"{name} is complex ({dt}); fojax models are real.")
+        # before the x64 check: complex data is wrong whatever the precision
+        raise InputError(_complex_message(name, x, dt))
+    require_x64(f"building {name}")
     if dt.kind == "f" and dt.itemsize < 8:
         raise Float64RequiredError(
             f"{name} has dtype {dt}; fojax refuses lower-precision inputs because results "
@@ -73,6 +74,21 @@ def as_float_array(name: str, x, ndim: int | None = None, *, check_finite: bool 
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
             raise NonFiniteError(name, int(bad.sum()), idx)
     return arr
+
+
+def _complex_message(name: str, x, dt) -> str:
+    """What to do with complex data (descriptor matrices, signals and states are real)."""
+    imag = ""
+    if not _is_tracer(x):
+        a = np.asarray(x)
+        if a.size:
+            imag = f", largest |imaginary part| {float(np.max(np.abs(a.imag))):.3g}"
+    return (
+        f"{name} is complex ({dt}{imag}); the matrices, signals and states of a descriptor "
+        "system E x' = A x + B u, y = C x are real. If the imaginary parts are round-off, pass "
+        f"np.real({name}); a system with complex coefficients must be written in real form "
+        "(x = xr + i xi gives real matrices [[Re M, -Im M], [Im M, Re M]])."
+    )
 
 
 def as_matrix(name: str, x, rows: int | None = None, cols: int | None = None, hint: str = ""):

@@ -203,6 +203,11 @@ MALFORMED = [
     (("uncertainty",), {"dA": [[[1.0, 0.0], [0.0, 1.0]]]}, "uncertainty.dA", r"expected \(k, 4, 4\)"),
     (("uncertainty",), {"dA": [[[0.0] * 4] * 4], "profile": {"kind": "gauss"}}, "uncertainty.profile.kind", r"one of 'constant', 'uniform', 'sine'"),
     (("uncertainty",), {"dA": [[[0.0] * 4] * 4], "profile": {"kind": "sine", "amplitude": 0.1}}, "uncertainty.profile.omega", r"missing required key 'omega'"),
+    # the matrix of the wrong size is named, whichever it is (E used to set n and A was blamed)
+    (("model", "E"), np.eye(5).tolist(), "model.E", r"has shape \(5, 5\), expected \(4, 4\) \(E must be square, n x n with n = 4 from A, B, C and L\)"),
+    (("model", "E"), np.eye(4)[:3].tolist(), "model.E", r"has shape \(3, 4\), expected \(4, 4\)"),
+    (("model", "A"), np.eye(3).tolist(), "model.A", r"has shape \(3, 3\), expected \(4, 4\) \(n = 4 from E, B, C and L\)"),
+    (("model", "B"), [[1.0]] * 5, "model.B", r"has shape \(5, 1\), expected \(4, m\) \(one row per state, n = 4 from E, A, C and L\)"),
 ]
 
 
@@ -244,6 +249,19 @@ def test_file_level_errors(tmp_path):
         load_config(p)
     p.write_text("[model]\nE = [[1.0, true], [0.0, 1.0]]\nA = [[1.0]]\nB = [[1.0]]\nC = [[1.0]]\nL = [[1.0]]\n")
     with pytest.raises(fojax.ConfigError, match=r"\[model\.E\].*is True \(boolean\)"):
+        load_config(p)
+
+
+def test_model_keys_outside_the_model_table(tmp_path):
+    model = "E = [[1.0]]\nA = [[-1.0]]\nB = [[1.0]]\nC = [[1.0]]\nL = [[1.0]]\n"
+    p = tmp_path / "noheader.toml"
+    p.write_text("name = 'x'\n" + model)  # the [model] header forgotten (was: "unknown key 'E'")
+    with pytest.raises(fojax.ConfigError, match=r"\[model\] missing \[model\] table: E, A, B, C, L are at the "
+                       r"top level\. Put them under a \[model\] table \(a line `\[model\]` above E\)"):
+        load_config(p)
+    p.write_text("E = [[1.0]]\n[model]\n" + model.split("\n", 1)[1])  # the header one line too low
+    with pytest.raises(fojax.ConfigError, match=r"\[E\] E is at the top level of the file, outside the \[model\] "
+                       r"table.*Move them below the \[model\] header"):
         load_config(p)
 
 

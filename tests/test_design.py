@@ -832,15 +832,54 @@ def test_shape_and_argument_errors(sys413):
         design_functional_observer(sys413, L413[:, :3])
     with pytest.raises(fojax.ShapeError, match="R has shape"):
         design_functional_observer(sys413, L413, R=np.ones((2, 3)))
-    with pytest.raises(ValueError, match="kind must be one of"):
+    with pytest.raises(fojax.InputError, match="kind must be one of 'generalized', 'PI', 'proportional'"):
         design_functional_observer(sys413, L413, kind="PID")
-    with pytest.raises(ValueError, match="proportional observer has q1 = 0"):
+    with pytest.raises(fojax.InputError, match="proportional observer has q1 = 0 .*got q1 = 2"):
         design_functional_observer(sys413, L413, kind="proportional", q1=2)
     with pytest.raises(TypeError, match="DescriptorSystem"):
         design_functional_observer((E413, A413), L413)
 
 
+@pytest.mark.parametrize("kind,closest", [("generalised", "generalized"), ("pi", "PI"), ("Proportional", "proportional")])
+def test_misspelt_kind_is_a_typed_error_with_the_closest_kind(sys413, kind, closest):
+    from fojax.design import design_fault_estimator, design_finite_time_observer
+
+    what = rf"kind must be one of 'generalized', 'PI', 'proportional' .*got '{kind}'\. Did you mean '{closest}'\?"
+    for design in (
+        lambda: design_functional_observer(sys413, L413, kind=kind),
+        lambda: design_finite_time_observer(sys413, L413, h=1.0, kind=kind),
+        lambda: design_fault_estimator(sys413, L413, Fa=np.eye(4)[:, :1], kind=kind),
+    ):
+        with pytest.raises(fojax.InputError, match=what):
+            design()
+
+
 # ====================================================================== 5. verification
+
+
+@pytest.mark.parametrize("center,radius", [(-1.0, 1e-9), (-3.0, 2.0)])
+def test_verify_margin_sign_and_wording_tiny_and_normal_disks(center, radius):
+    """Oracle: the margin of a 1x1 error matrix [λ] in Disk(c, r) is r - |λ - c| by hand
+    (> 0 inside, < 0 outside); a tiny disk must not be failed for being tiny (1e-9 radius
+    with an absolute 1e-9 margin could never pass), and a point inside is never called
+    outside."""
+    region = Disk(center, radius)
+    inside = center + 0.2 * radius  # margin 0.8 r
+    rep = verify({}, 1.0, np.array([[inside]]), region)
+    assert rep.passed and np.isclose(rep.region_margin, 0.8 * radius, rtol=1e-6, atol=0)
+    assert "(> 0 inside, < 0 outside)" in str(rep)
+    outside = center + 1.25 * radius  # margin -0.25 r
+    with pytest.raises(fojax.DesignVerificationError,
+                       match=rf"eigenvalue \S+ is outside the region \(disk centred at "
+                             rf"{center:g} with radius {radius:g}\) by {0.25 * radius:.3e}") as ei:
+        verify({}, 1.0, np.array([[outside]]), region)
+    assert ei.value.report.region_margin < 0
+    # inside, but by less than the required margin: said as such, never "outside"
+    barely = center + radius - 1e-4 * min(radius, 1e-9)
+    with pytest.raises(fojax.DesignVerificationError, match=r"is inside the region .* by only .* less than "
+                                                            r"the required margin") as ei:
+        verify({}, 1.0, np.array([[barely]]), region)
+    assert "outside" not in str(ei.value) and ei.value.report.region_margin > 0
 
 
 def test_verify_flags_a_perturbed_design(designs413):

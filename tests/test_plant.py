@@ -53,6 +53,17 @@ def test_float32_inputs_are_refused_with_how_to_fix():
         fojax.DescriptorSystem(E2, np.asarray(A2, dtype=np.float32))
 
 
+def test_complex_inputs_are_refused_as_complex_not_as_precision():
+    # complex data is not a precision problem: its own message, saying what to do
+    A = np.asarray(A2, dtype=complex) + 0.5j * np.eye(2)
+    with pytest.raises(fojax.InputError, match=r"A is complex \(complex128, largest \|imaginary part\| "
+                       r"0\.5\);.* are real\..*np\.real\(A\).*\[\[Re M, -Im M\], \[Im M, Re M\]\]") as info:
+        fojax.DescriptorSystem(E2, A)
+    assert not isinstance(info.value, fojax.Float64RequiredError)
+    with pytest.raises(fojax.InputError, match=r"^E is complex \(complex64"):
+        fojax.DescriptorSystem(np.eye(2, dtype=np.complex64), A2)
+
+
 def test_32_bit_jax_is_refused_without_changing_global_config():
     code = (
         "import jax, fojax\n"

@@ -342,13 +342,19 @@ def study(
 ) -> int:
     """``fojax study``: structure check, LMI designs, Monte Carlo study, figures and report.
 
-    Default config: the §3.3.7 benchmark (`fojax/examples/example_3_3_7.toml`). The
-    samples are ``N_u`` uncertainty draws (``[uncertainty] profile = uniform``) times
-    ``N_f`` fault scenarios (4 when ``[faults]`` is given: one random fault with a random
-    onset each), ``N_u N_f ≈ [study] samples``.
+    Default config: the §3.3.7 benchmark (`fojax/examples/example_3_3_7.toml`). Each
+    sample is one joint draw of every random element of the model (a constant δ for
+    ``[uncertainty] profile = uniform``, a fault scenario for ``[faults]``: one random
+    fault stepping in at a random onset), so exactly ``--samples`` samples are run; a
+    model without random elements is one deterministic run (said before running, and
+    recorded). See `fojax.cli._study_samples`.
 
-    The results folder holds the config (``config.toml``) and the effective options
-    (``study-options.json``: samples, horizon, steps, seed, dt, learning rate). With
+    The results folder holds the config (``config.toml``), the effective options
+    (``study-options.json``: samples requested and run with their breakdown, horizon,
+    steps, seed, dt, learning rate), the samples themselves (``study-samples.npz`` /
+    ``.json``: per sample fault, onset, magnitude, δ, initial states; the input), the
+    per-sample metrics (``metrics.npz`` / ``.json``: IAE, ISE, ITAE, peak |e|, settling
+    time) and the report. With
     `resume` (a folder of an interrupted study) that folder is reused: its config and
     options are read back (a different CONFIG or option is refused), the designs saved in
     it are loaded (bit-identical, so the tuning checkpoint ``tuning-<name>`` refers to
@@ -394,6 +400,9 @@ def study(
             )
     options = {"samples": n_samples, "horizon": T, "steps": n_steps, "seed": spec.seed,
                "dt": spec.dt, "learning_rate": tspec.learning_rate}
+    from ._study_samples import plan_samples
+
+    plan = plan_samples(cfg, n_samples, T, spec.seed)
     if resume is not None:
         changed = [k for k, v in options.items() if opts.get(k) != v]
         if changed:
@@ -412,11 +421,14 @@ def study(
         atomic_write_json(folder / STUDY_OPTIONS, {
             "command": "fojax study", "config": str(path), "name": cfg.name,
             "config_sha256": hashlib.sha256(config_bytes).hexdigest(), **options,
+            # `samples` is the requested number; what is run, and why:
+            "samples_run": plan.run, "sample_plan": plan.to_dict(),
             "fojax_version": fojax_version(),
         })
+    out.say(f"samples: {plan.message}")
     with _Interrupts() as interrupts:
         try:
-            return _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps,
+            return _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps,
                           resumed=resume is not None)
         except KeyboardInterrupt:
             import sys
@@ -541,15 +553,12 @@ class _Interrupts:
         _thread.interrupt_main(self.signum)
 
 
-def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resumed: bool) -> int:
-    """The body of `study` (after the results folder is set up)."""
-    import jax
-    import jax.numpy as jnp
-
+def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bool) -> int:
+    """The body of `study` (after the results folder is set up); `plan` is the
+    `fojax.cli._study_samples.SamplePlan` announced and recorded by `study`."""
     from .. import studies
     from ..analysis import structure_report
     from ..design import design_functional_observer
-    from ..plant import Sine
     from ..results import (
         plot_error_distributions,
         plot_estimates,
@@ -558,6 +567,8 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
         write_metrics,
         write_report,
     )
+    from ..results._io import atomic_write_json, atomic_write_npz
+    from . import _study_samples as ss
 
     ow = resumed  # a resumed run replaces the files it regenerates
     report = structure_report(cfg.system(), cfg.L)
@@ -584,81 +595,38 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
                                                            d.report.eigenvalues, d.region, overwrite=ow)
         out.say(f"  verification {'PASSED' if d.report.passed else 'FAILED'}")
 
-    # the Monte Carlo study (and a separately drawn training study for the tuning)
-    n_f = 4 if cfg.has_faults else 1
-    n_u = max(1, n_samples // n_f)
-
-    def make_study(seed, n_u, n_f):
-        k_u, k_f = jax.random.split(jax.random.PRNGKey(seed))
-        plant = cfg.plant()
-        uncertainty, scenarios, prefix = (), (), ("plant",)
-        if cfg.has_faults:
-            nf = (cfg.Fa if cfg.Fa is not None else cfg.Fs).shape[1]
-            plant = studies.FaultyPlant(plant, cfg.Fa, cfg.Fs, fault=studies.FaultProfile(jnp.zeros(nf)))
-            scenarios = (studies.fault_scenarios(k_f, n_f, nf, magnitude=(0.5, 1.5),
-                                                 onset=(0.1 * T, 0.4 * T)),)
-            prefix = ("plant", "base")
-        if cfg.dA is not None and (cfg.profile or {}).get("kind") == "uniform":
-            b = float(cfg.profile["bound"])
-            uncertainty = (studies.constant_delta(k_u, n_u, cfg.dA.shape[0], bounds=(-b, b),
-                                                  path=prefix + ("delta",)),)
-        x0 = jnp.asarray(cfg.x0) if cfg.x0 is not None else jnp.full((cfg.n,), 0.5)
-        ts = jnp.arange(0.0, T + 0.5 * spec.dt, spec.dt)
-        u = Sine(jnp.ones(cfg.B.shape[-1]), 1.0)
-        return studies.Study(plant, x0, ts, cfg.L, u, uncertainty=uncertainty, scenarios=scenarios,
-                             fault_targets=cfg.has_faults and cfg.estimate_faults)
-
-    def make_training_study(seed, n_u, n_f):
-        """The study the gradient tuning runs on. For a fault-augmented LTI model with a
-        uniform (constant) δ it is the *augmented* system (faults as constant states with
-        random values from t = 0) on a [0, min(T, 4)] s grid of 0.05 s: linear and
-        time-invariant, so simulated by exact stepping, whose gradient is cheap; otherwise
-        the study itself (diffrax; much slower to differentiate)."""
-        profile = (cfg.profile or {}).get("kind")
-        if not (cfg.has_faults and not cfg.ramp and profile in (None, "uniform")):
-            return make_study(seed, n_u, n_f)
-        from ..plant import Constant, UncertainDescriptorSystem
-
-        k_u, k_f = jax.random.split(jax.random.PRNGKey(seed))
-        aug = cfg.design_system()
-        nf = aug.n - cfg.n
-        x0 = jnp.asarray(cfg.x0) if cfg.x0 is not None else jnp.full((cfg.n,), 0.5)
-        x0 = jnp.concatenate([x0, jnp.zeros(nf)])
-        uncertainty, plant = (), aug
-        if cfg.dA is not None:
-            k = cfg.dA.shape[0]
-            dA = np.zeros((k, aug.n, aug.n))
-            dA[:, : cfg.n, : cfg.n] = cfg.dA
-            plant = UncertainDescriptorSystem(aug, dA=dA, delta=Constant(jnp.zeros(k)))
-            if profile == "uniform":
-                b = float(cfg.profile["bound"])
-                uncertainty = (studies.constant_delta(k_u, n_u, k, bounds=(-b, b)),)
-        # the error is linear in the fault: many fault directions, few δ values
-        scenarios = (studies.constant_faults(k_f, max(n_f, 32), x0, nf, magnitude=(0.5, 1.5)),)
-        h = max(spec.dt, 0.05)
-        ts_train = jnp.arange(0.0, min(T, 4.0) + 0.5 * h, h)
-        u = Sine(jnp.ones(cfg.B.shape[-1]), 1.0)
-        return studies.Study(plant, x0, ts_train, cfg.design_L(), u, uncertainty=uncertainty,
-                             scenarios=scenarios)
-
-    st = make_study(spec.seed, n_u, n_f)
+    # the Monte Carlo study (and separately drawn training studies for the tuning)
+    st = ss.make_study(cfg, spec.seed, plan.run, T, spec.dt)
+    assert st.num_samples == plan.run, (st.num_samples, plan.run)
     ts = st.ts
-    tuning_rows, tuning_note = [], "Tuning: not available in this fojax version."
+    sample_sets = {"evaluation": st}
+    tuning_rows, tuned_pairs, tuning_note = [], {}, "Tuning: not available in this fojax version."
     tuning = _tuning_module()
     if tuning is not None and n_steps > 0:
         from ..design import Disk
         from ..results import plot_tuning_curve
 
-        train = make_training_study(spec.seed + 1, max(1, n_u // 4), n_f)
-        heldout_small = make_training_study(spec.seed + 2, max(1, n_u // 4), n_f)
+        train = ss.make_training_study(cfg, spec.seed + 1, plan, T, spec.dt)
+        heldout_small = ss.make_training_study(cfg, spec.seed + 2, plan, T, spec.dt)
         tunable = [nm for nm, d in designs.items() if d.kind == "generalized" and isinstance(d.region, Disk)]
-        tuning_note = ("Tuning: no generalized observer with a disk region to tune."
-                       if not tunable else
-                       f"Tuning: {', '.join(tunable)} tuned for {n_steps} Adam steps (learning rate "
-                       f"{tspec.learning_rate}) on {train.num_samples} training samples drawn with seed "
-                       f"{spec.seed + 1} (held-out curve: {heldout_small.num_samples} samples, seed "
-                       f"{spec.seed + 2}); the comparison table uses the {st.num_samples} samples of the "
-                       "study, never seen in training.")
+        if not tunable:
+            tuning_note = "Tuning: no generalized observer with a disk region to tune."
+        elif plan.deterministic:
+            tuning_note = (
+                f"Tuning: {', '.join(tunable)} tuned for {n_steps} Adam steps (learning rate "
+                f"{tspec.learning_rate}). The model has no random element, so the training run, the "
+                "tuning's held-out curve and the comparison below are the same single simulation: "
+                "the comparison is on the training data, nothing is held out.")
+        else:
+            tuning_note = (
+                f"Tuning: {', '.join(tunable)} tuned for {n_steps} Adam steps (learning rate "
+                f"{tspec.learning_rate}) on {train.num_samples} training samples ({plan.training_breakdown}) "
+                f"drawn with seed {spec.seed + 1} (held-out curve: {heldout_small.num_samples} samples, seed "
+                f"{spec.seed + 2}); the comparison tables use the {st.num_samples} samples of the study, "
+                f"drawn with seed {spec.seed}: other random keys than the training draws.")
+        if tunable:
+            sample_sets["training"] = train
+            sample_sets["training_heldout_curve"] = heldout_small
         for nm in tunable:
             checkpoint = folder / f"tuning-{nm}"
             done = _checkpoint_step(checkpoint) if resumed else None
@@ -672,6 +640,7 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
                                  checkpoint=checkpoint, resume=resumed, quiet=out.quiet)
             tuned_name = f"{nm}-tuned"
             designs[tuned_name] = tr.design
+            tuned_pairs[tuned_name] = nm
             files[f"design of '{tuned_name}'"] = save_design(
                 tr.design, folder / f"{tuned_name}.npz", overwrite=ow,
                 metadata={"config": path, "observer": tuned_name})
@@ -681,10 +650,46 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
                 folder / f"tuning-{nm}.png", h["step"], h["train_loss"],
                 held if np.isfinite(held).any() else None, ylabel="IAE loss",
                 heldout_before=tr.initial_heldout, heldout_after=tr.final_heldout,
-                title=f"Tuning '{nm}': training and held-out loss", overwrite=ow)
+                title=f"Tuning '{nm}': training and held-out loss" if not plan.deterministic else
+                f"Tuning '{nm}' (deterministic model: one run, nothing held out)", overwrite=ow)
             tuning_rows.append([nm, n_steps, float(tr.initial_heldout), float(tr.final_heldout)])
-            out.say(f"  held-out training-type loss {tr.initial_heldout:.4g} -> {tr.final_heldout:.4g}; "
+            out.say(f"  {'training-run' if plan.deterministic else 'held-out training-type'} loss "
+                    f"{tr.initial_heldout:.4g} -> {tr.final_heldout:.4g}; "
                     f"verification {'PASSED' if tr.design.report.passed else 'FAILED'}")
+
+    # what every sample set simulates, per sample (before the long run: nothing is lost if
+    # it is interrupted)
+    sample_arrays, sample_words, sample_meta = {}, [], {}
+    for set_name, study_ in sample_sets.items():
+        arrays = ss.describe_samples(study_, cfg, {nm: d.observer for nm, d in designs.items()}
+                                     if set_name == "evaluation" else {})
+        summary = ss.summarize_samples(arrays)
+        sample_arrays.update({f"{set_name}/{k}": v for k, v in arrays.items()})
+        sample_meta[set_name] = {"summary": summary, "arrays": {k: list(v.shape) for k, v in arrays.items()}}
+        sample_words.append(ss.describe_in_words(summary, set_name.replace("_", " ")))
+    files["the samples (per sample: fault, onset, magnitude, δ, initial states; the input)"] = atomic_write_npz(
+        folder / "study-samples.npz", sample_arrays, overwrite=ow)
+    files["what study-samples.npz holds, with the distributions and seeds"] = atomic_write_json(
+        folder / "study-samples.json", {
+            "plan": plan.to_dict(), "sets": sample_meta,
+            "keys": {"evaluation": f"jax.random.split(PRNGKey({spec.seed})) -> (delta key, fault key)",
+                     "training": f"PRNGKey({spec.seed + 1}), split the same way",
+                     "training_heldout_curve": f"PRNGKey({spec.seed + 2}), split the same way"},
+            "arrays": {
+                "ts": "time grid (T,)", "u": "input on the grid (T, m), the same for every sample",
+                "x0": "plant initial state per sample as given (N, n); the simulation projects it onto "
+                      "the algebraic constraints. For the fault-augmented training set the last nf "
+                      "entries are the constant faults",
+                "x0_consistent": "the plant state the simulation starts from: x0 projected onto the "
+                                 "algebraic constraints (fojax.consistent_initial_condition) (N, n)",
+                "delta": "constant uncertainty δ per sample (N, k)",
+                "fault_amplitude": "fault vector after the onset (N, nf)",
+                "fault_onset": "onset time [s] (N,)", "fault_rise": "rise time [s] (N,), 0: a step",
+                "fault_index": "the active fault (0-based; -1: none or several) (N,)",
+                "observer_x0/<name>": "the observer's initial state (the same for every sample)",
+            },
+        }, overwrite=ow)
+
     names = list(designs)
     with out.step(f"Monte Carlo study: {st.num_samples} samples x {len(names)} observers, "
                   f"{len(ts)} time steps (compiling first: this takes a while)"):
@@ -697,17 +702,36 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
         import diffrax
 
         res = studies.run_study(st, [d.observer for d in designs.values()], observer_names=names,
-                                quantiles=(0.05, 0.5, 0.95), quiet=out.quiet, solver=diffrax.Tsit5())
+                                quantiles=(0.05, 0.5, 0.95), quiet=out.quiet, solver=diffrax.Tsit5(),
+                                settle_tol=ss.SETTLE_TOL)
+    flat = ss.flat_metrics(res)  # {metric: (observer, sample, signal)}
+    # the samples are joint draws along one axis (the Study's fault axis has size 1): save
+    # them as such, not as "uncertainty" x "fault"
+    res.metrics.update(flat)
+    res.axes.update({m: ("observer", "sample", "signal") for m in ("iae", "ise", "itae", "peak", "settling_time")})
+    res.axes["success"] = ("sample",)
+    res.attrs["samples"] = plan.breakdown
     res.save(folder / "study")
-    iae = np.asarray(res.metrics["iae"])  # (observer, uncertainty, fault, signal)
     signals = list(res.coords["signal"])
-    per_sample = {nm: iae[k].reshape(-1, iae.shape[-1]).sum(axis=1) for k, nm in enumerate(names)}
-    flat = {nm: iae[k].reshape(-1, iae.shape[-1]) for k, nm in enumerate(names)}
+    failed = int((~flat["success"].astype(bool)).sum())
+    failed_note = (f" WARNING: the simulation failed (solver did not reach the horizon) in {failed} of "
+                   f"{st.num_samples} samples; their metrics are not meaningful (metrics.npz 'success')."
+                   if failed else "")
+    if failed:
+        out.say(failed_note.strip())
+    per_sample = {nm: flat["iae"][k].sum(axis=1) for k, nm in enumerate(names)}
+    mean_settle = {nm: ss.mean_settling(flat["settling_time"][k], T) for k, nm in enumerate(names)}
     write_metrics(folder, {
         "signals": ",".join(signals),
         "samples": st.num_samples,
-        "iae": flat,
-        "mean_iae": {nm: v.mean(axis=0) for nm, v in flat.items()},
+        "samples_requested": plan.requested,
+        "settle_tol": ss.SETTLE_TOL,
+        **{m: {nm: flat[m][k] for k, nm in enumerate(names)} for m in ("iae", "ise", "itae", "peak", "settling_time")},
+        "mean_iae": {nm: flat["iae"][k].mean(axis=0) for k, nm in enumerate(names)},
+        "mean_peak": {nm: flat["peak"][k].mean(axis=0) for k, nm in enumerate(names)},
+        "mean_settling_time": {nm: v[0] for nm, v in mean_settle.items()},
+        "never_settled": {nm: v[1] for nm, v in mean_settle.items()},
+        "success": flat["success"],
     }, overwrite=ow)
     q = np.asarray(res.metrics["quantiles"])  # (observer, quantile, time, signal)
     figures["Estimation error, Monte Carlo 5-95 % band and median"] = plot_estimates(
@@ -718,33 +742,78 @@ def _study(out, cfg, path, folder, spec, tspec, n_samples, T, n_steps, *, resume
     )
     figures["IAE per sample (sum over signals)"] = plot_error_distributions(
         folder / "iae.png", per_sample, ylabel="IAE (sum over signals)", overwrite=ow)
-    rows = [[nm] + [float(v) for v in flat[nm].mean(axis=0)] + [float(per_sample[nm].mean())]
-            for nm in names]
-    headers = ["observer"] + [f"IAE {s}" for s in signals] + ["IAE total"]
-    for row in tuning_rows:  # the study's own samples (never seen in training): LMI vs tuned
+    tables = ss.metric_tables(flat, names, signals, T, tuned_pairs)
+    for row in tuning_rows:  # LMI vs tuned on the study's samples
+        base, tuned = names.index(row[0]), names.index(f"{row[0]}-tuned")
         before, after = float(per_sample[row[0]].mean()), float(per_sample[f"{row[0]}-tuned"].mean())
-        row += [before, after, 100.0 * (after - before) / before]
+        pb, pa = (float(flat["peak"][i].mean(axis=0).sum()) for i in (base, tuned))
+        row += [before, after, 100.0 * (after - before) / before, pb, pa, 100.0 * (pa - pb) / pb]
+    where = ("the single deterministic run (also the training run)" if plan.deterministic and tuning_rows
+             else "the single deterministic run" if plan.deterministic
+             else f"the {st.num_samples} samples of the study")
+    if tuning_rows:
+        tables["Tuning"] = (["observer", "steps", "held-out loss before" if not plan.deterministic else
+                             "training loss before", "after", "study IAE total, LMI", "tuned", "change %",
+                             "sum of mean peaks, LMI", "tuned", "change %"], tuning_rows)
+    settle_words = (
+        f"IAE is ∫|e| dt (trapezoidal rule on the {spec.dt:g} s grid), peak is max_t |e(t)|, and the "
+        f"settling time is the first grid time after which |e| ≤ {ss.SETTLE_TOL:g} (absolute, in the "
+        "signal's units) for good, measured from t = 0 (0 if |e| never exceeds it). A sample whose error "
+        "still exceeds it at the horizon never settles: it counts as the horizon and the cell says "
+        "'≥ ... (k/N never)'. Each table is the mean over " + where + "; a 'change' row compares a "
+        "tuned observer with the LMI design it was tuned from, metric by metric (a lower IAE can come "
+        "with a larger peak); where samples never settle, the settling change gives their number before → "
+        "after instead (the means are then only bounds).")
     rep = write_report(
         folder, title=f"fojax study: {cfg.name}",
-        summary=f"{cfg.description}\n\nStructure: {report.verdict}\n\n{st.num_samples} samples "
-        f"({st.num_uncertainty} uncertainty draws x {st.num_scenarios} fault scenarios), horizon {T} s, "
-        f"seed {spec.seed}. " + tuning_note,
-        tables={"Mean IAE over the samples": (headers, rows),
-                **({"Tuning": (["observer", "steps", "held-out loss before", "after",
-                                "study IAE total, LMI", "tuned", "change %"], tuning_rows)}
-                   if tuning_rows else {})},
-        figures=figures, files=files, overwrite=ow,
+        summary=f"{cfg.description}\n\nStructure: {report.verdict}\n\nSamples: {plan.message} "
+        f"Horizon {T} s, seed {spec.seed}. " + tuning_note + failed_note,
+        tables=tables, figures=figures, files=files, overwrite=ow,
+        sections={
+            "Metrics": settle_words,
+            "Samples": "\n".join(
+                ["Random in each sample (drawn jointly, one draw per sample):" if plan.random else
+                 "Nothing is random in this model: one deterministic simulation."]
+                + [f"- {r}" for r in plan.random]
+                + ["", "The same in every sample:"] + [f"- {f}" for f in plan.fixed]
+                + ["", "Drawn values (ranges over the samples; every value is in study-samples.npz):"]
+                + sample_words
+                + ["", f"Keys: evaluation samples from PRNGKey({spec.seed}), training from PRNGKey("
+                   f"{spec.seed + 1}), the tuning's held-out curve from PRNGKey({spec.seed + 2}); each key is "
+                   "split into a δ key and a fault key. " + (
+                       "The model being deterministic, these are all the same run." if plan.deterministic
+                       else "The evaluation samples are therefore other draws than the training samples.")]),
+        },
     )
-    w = max(len("observer"), *(len(n) for n in names))
-    out.say("")
-    out.say(f"{'observer':<{w}}  " + "  ".join(f"{s:>9}" for s in signals) + "      total   (mean IAE)")
-    for r in rows:
-        out.say(f"{r[0]:<{w}}  " + "  ".join(f"{v:9.4g}" for v in r[1:-1]) + f"  {r[-1]:9.4g}")
+    def label(first: str) -> str:  # "change of X-tuned vs X" -> "  change vs X"
+        return f"  change vs {first.rsplit(' vs ', 1)[1]}" if first.startswith("change of ") else first
+
+    for caption, (headers, rows) in tables.items():
+        if caption == "Tuning":
+            continue
+        w = max(len("observer"), *(len(label(r[0])) for r in rows))
+        out.say("")
+        out.say(f"{caption}:")
+        out.say(f"{'observer':<{w}}  " + "  ".join(f"{h:>10}" for h in headers[1:]))
+        for r in rows:
+            out.say(f"{label(r[0]):<{w}}  " + "  ".join(f"{_cell(v):>10}" for v in r[1:]))
+        cells = [v for r in rows for v in r[1:] if isinstance(v, str)]
+        if any(v.startswith("≥") for v in cells):
+            out.say("(≥t(k/N): k of the N samples never settle, counted as the horizon"
+                    + ("; n:a→b/N: never-settled samples before -> after tuning)" if any(
+                        v.startswith("never:") for v in cells) else ")"))
     for row in tuning_rows:
         out.say(f"tuning '{row[0]}': study IAE total {row[4]:.4g} (LMI) -> {row[5]:.4g} (tuned), "
-                f"{row[6]:+.1f} %")
+                f"{row[6]:+.1f} %; sum of mean peaks {row[7]:.4g} -> {row[8]:.4g}, {row[9]:+.1f} %")
     out.say(f"\nresults: {folder} (report: {rep.name})")
     return 0 if all(d.report.passed for d in designs.values()) else 1
+
+
+def _cell(v) -> str:
+    """A console table cell: numbers to 4 significant digits, strings shortened."""
+    if isinstance(v, str):
+        return v.replace(" never)", ")").replace("never: ", "n:").replace(" ", "")
+    return f"{v:.4g}"
 
 
 def _saved_design(path, spec):

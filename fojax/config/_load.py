@@ -410,6 +410,7 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
     **Returns:** a `Config`. **Raises:** `fojax.ConfigError`.
     """
     v = _V(file)
+    _check_model_header(v, data)
     v.table("", data, _TOP, required=("model",))
     # the model name names the results folders (design-<name>-<time>, study-<name>-<time>);
     # without one, the file name, made portable
@@ -420,29 +421,33 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
     model = v.table("model", data["model"], _MODEL, required=_MODEL_REQUIRED)
 
     E = v.array("model.E", model["E"], 2, "a square matrix")
-    n = E.shape[0]
-    v.shape("model.E", E, (n, n), "E must be square, n x n")
     if ts_raw is None:
         A = v.array("model.A", model["A"], 2, "an n x n matrix")
-        v.shape("model.A", A, (n, n), f"n = {n} from E")
         B = v.array("model.B", model["B"], 2, "an n x m matrix")
     else:
         A = v.array("model.A", model["A"], 3, "a list of n x n rule matrices (Takagi-Sugeno)")
-        if A.shape[1:] != (n, n):
-            raise v.err("model.A", f"has shape {A.shape}, expected (k, {n}, {n}) (one n x n matrix per rule, n = {n} from E).")
         B = v.array("model.B", model["B"], (2, 3), "an n x m matrix or one per rule")
+    C = v.array("model.C", model["C"], 2, "a p x n matrix")
+    L = v.array("model.L", model["L"], 2, "a q x n matrix")
+    # n: the number of states most of E, A, B, C, L agree on, so that the error names
+    # the matrix that is wrong (not A when E has the wrong size)
+    n, src = _state_count(E=E, A=A, B=B, C=C, L=L)
+    v.shape("model.E", E, (n, n), f"E must be square, n x n with n = {n} from {src('E')}")
+    if ts_raw is None:
+        v.shape("model.A", A, (n, n), f"n = {n} from {src('A')}")
+    else:
+        if A.shape[1:] != (n, n):
+            raise v.err("model.A", f"has shape {A.shape}, expected (k, {n}, {n}) (one n x n matrix per rule, n = {n} from {src('A')}).")
         if B.ndim == 3 and B.shape[0] != A.shape[0]:
             raise v.err("model.B", f"has {B.shape[0]} rule matrices but model.A has {A.shape[0]}.")
     if B.shape[-2] != n:
-        raise v.err("model.B", f"has shape {B.shape}, expected ({n}, m) (one row per state, n = {n} from E).")
+        raise v.err("model.B", f"has shape {B.shape}, expected ({n}, m) (one row per state, n = {n} from {src('B')}).")
     m = B.shape[-1]
-    C = v.array("model.C", model["C"], 2, "a p x n matrix")
     if C.shape[1] != n:
-        raise v.err("model.C", f"has shape {C.shape}, expected (p, {n}) (one column per state, n = {n} from E).")
+        raise v.err("model.C", f"has shape {C.shape}, expected (p, {n}) (one column per state, n = {n} from {src('C')}).")
     p = C.shape[0]
-    L = v.array("model.L", model["L"], 2, "a q x n matrix")
     if L.shape[1] != n:
-        raise v.err("model.L", f"has shape {L.shape}, expected (q, {n}) (one column per state, n = {n} from E).")
+        raise v.err("model.L", f"has shape {L.shape}, expected (q, {n}) (one column per state, n = {n} from {src('L')}).")
     feedback = None
     if "feedback" in model:
         feedback = v.array("model.feedback", model["feedback"], 2, "an m x n matrix")
@@ -613,6 +618,56 @@ def _check_observer_names(v: _V, names: list[str]) -> None:
                 )
         for stem, what in files:
             owner[stem.lower()] = (i, what)
+
+
+def _check_model_header(v: _V, data) -> None:
+    """Model keys (E, A, ...) at the top level: the ``[model]`` header is missing or
+    placed after them (TOML puts every key before the first header at the top level)."""
+    if not isinstance(data, dict):
+        return
+    stray = [k for k in data if k in _MODEL]
+    if not stray:
+        return
+    keys = ", ".join(stray)
+    if "model" in data:
+        raise v.err(
+            stray[0],
+            f"{keys} {'is' if len(stray) == 1 else 'are'} at the top level of the file, outside the "
+            "[model] table: TOML puts every key above the first [table] header at the top level. "
+            "Move them below the [model] header.",
+        )
+    raise v.err(
+        "model",
+        f"missing [model] table: {keys} {'is' if len(stray) == 1 else 'are'} at the top level. Put "
+        "them under a [model] table (a line `[model]` above E).",
+    )
+
+
+def _state_count(**mats) -> tuple[int, Any]:
+    """``(n, source)``: the state count most model matrices agree on (E rows and columns,
+    A rows and columns, B rows, C and L columns; E wins a tie), and ``source(name)``, the
+    names of the other matrices that give it (for error messages)."""
+    votes = {
+        "E": (mats["E"].shape[0], mats["E"].shape[1]),
+        "A": tuple(mats["A"].shape[-2:]),
+        "B": (mats["B"].shape[-2],),
+        "C": (mats["C"].shape[1],),
+        "L": (mats["L"].shape[1],),
+    }
+    count: dict[int, int] = {}
+    for vals in votes.values():
+        for x in vals:
+            count[x] = count.get(x, 0) + 1
+    best = max(count.values())
+    n = votes["E"][0] if count[votes["E"][0]] == best else max(count, key=count.get)
+
+    def source(name: str) -> str:
+        others = [k for k, vals in votes.items() if k != name and n in vals]
+        if not others:
+            return "the other model matrices"
+        return (", ".join(others[:-1]) + " and " + others[-1]) if len(others) > 1 else others[0]
+
+    return n, source
 
 
 def _missing(v: _V, key: str):

@@ -82,6 +82,7 @@ from .._linalg import null_space, rank
 from ..analysis import finite_poles, is_impulse_free, is_regular, is_stabilizable
 from ..design import _lmi
 from ..design._regions import AbstractRegion, as_region, HalfPlane, Intersection
+from ..design._verify import margin_failure, required_margin
 from ..plant import DescriptorSystem
 
 
@@ -356,7 +357,7 @@ def _place_slow(As, Bs, region: AbstractRegion):
     target = region.target().real
     for spread in (0.5, 0.25, 0.1, 0.02):
         poles = target * (1.0 + spread * np.linspace(-1.0, 1.0, r)) if r > 1 else np.array([target])
-        if region.contains(poles, tol=POLE_MARGIN):
+        if region.contains(poles, tol=required_margin(region, POLE_MARGIN)):
             break
     else:  # pragma: no cover - target() is inside every fojax region
         raise DesignVerificationError(f"no target poles inside {region.describe()}")
@@ -385,11 +386,9 @@ def _verify(sys, L, region, method, cert) -> tuple[np.ndarray, float, dict]:
             )
     margin = float(np.min(region.margin(poles))) if poles.size else np.inf
     checks["region_margin"] = margin
-    if not margin > POLE_MARGIN:
+    if not margin > required_margin(region, POLE_MARGIN):
         worst = poles[np.argmin(region.margin(poles))]
-        failures.append(
-            f"finite pole {worst:.6g} is outside {region.describe()} (margin {margin:.3e})"
-        )
+        failures.append(margin_failure("finite pole", worst, margin, required_margin(region, POLE_MARGIN), region))
     if method == "dual-lmi":
         P = cert["P"]
         e = float(np.linalg.norm(E, 2)) or 1.0

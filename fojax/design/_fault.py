@@ -10,7 +10,7 @@ import numpy as np
 from .._errors import ShapeError
 from ..plant._descriptor import augment_faults, check_functional, DescriptorSystem
 from . import _lmi
-from ._functional import design_functional_observer, FunctionalObserverDesign
+from ._functional import check_kind, design_functional_observer, FunctionalObserverDesign
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +74,7 @@ def design_fault_estimator(
     **Returns:** a `FaultEstimatorDesign`; `split(estimates)` gives ``(ẑ, f̂)``.
     """
     L = np.asarray(check_functional(sys, L))
+    check_kind(kind)
     aug = augment_faults(sys, Fa=Fa, Fs=Fs, ramp=ramp)
     nf = (aug.n - sys.n) // (2 if ramp else 1)
     q = L.shape[0]

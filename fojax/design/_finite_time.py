@@ -23,6 +23,7 @@ from ._conditions import check_detectability, unobservable_modes
 from ._functional import (
     _as_system,
     build_observer,
+    check_kind,
     FunctionalObserverDesign,
     prepare_structure,
     solve_gains,
@@ -200,6 +201,7 @@ def design_finite_time_observer(
     observers, violating Lemma 6), `LMIInfeasibleError`, `DesignVerificationError`
     (including an ill-conditioned reconstruction, ``rcond < 1e-8``).
     """
+    check_kind(kind)
     kw = dict(h=h, regions=regions, kind=kind, q1=q1, margin=margin, solver=solver,
               method=method, seed=seed)
     if R is not None or q0 is not None:

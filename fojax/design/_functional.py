@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from .._dtype import require_x64
-from .._errors import LMIInfeasibleError, RankConditionError, ShapeError
+from .._errors import InputError, LMIInfeasibleError, RankConditionError, ShapeError
 from .._linalg import left_null_space
 from ..observer._generalized import GeneralizedFunctionalObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
@@ -63,6 +63,24 @@ KINDS = ("generalized", "PI", "proportional")
 #: LMIs target the region shrunk by this fraction (`AbstractRegion.tightened`), so that the
 #: returned eigenvalues keep a margin inside the requested region.
 TIGHTEN = 0.05
+
+
+def check_kind(kind) -> str:
+    """`kind` if it is one of `KINDS`, else `InputError` listing them and the closest one."""
+    if kind in KINDS:
+        return kind
+    import difflib
+
+    close = difflib.get_close_matches(str(kind), KINDS, n=1, cutoff=0.4) or difflib.get_close_matches(
+        str(kind).lower(), [k.lower() for k in KINDS], n=1, cutoff=0.4)
+    hint = ""
+    if close:
+        best = next(k for k in KINDS if k.lower() == close[0].lower())
+        hint = f" Did you mean {best!r}?"
+    raise InputError(
+        f"kind must be one of {', '.join(map(repr, KINDS))} (the observer "
+        f"structure); got {kind!r}.{hint}"
+    )
 
 
 class StructureDesignMixin:
@@ -413,13 +431,13 @@ def design_functional_observer(
     change), `LMIInfeasibleError` (solver status other than ``optimal``),
     `DesignVerificationError` (a float64 check failed).
     """
+    check_kind(kind)
     sys = _as_system(sys)
-    if kind not in KINDS:
-        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
     region = as_region(region if region is not None else Disk(-2.0, 1.0))
     if kind == "proportional":
         if q1 not in (None, 0):
-            raise ValueError("a proportional observer has q1 = 0")
+            raise InputError(f"a proportional observer has q1 = 0 (no integral part); got q1 = {q1}. "
+                             "Omit q1, or use kind='PI' or 'generalized'.")
         q1 = 0
     s = prepare_structure(sys, L, R=R, q0=q0, q1=0, region=region)
     if q1 is None:

@@ -50,6 +50,11 @@ class AbstractRegion(eqx.Module):
     def target(self) -> complex:
         """A well-inside point (used to place modes fixed by the structure)."""
 
+    def size(self) -> float:
+        """A length scale of the region (``inf`` if unbounded): verification asks for
+        margins small against it (`fojax.design._verify.required_margin`)."""
+        return math.inf
+
     def contains(self, eigs, tol: float = 0.0) -> bool:
         eigs = np.atleast_1d(np.asarray(eigs))
         return bool(eigs.size == 0 or np.min(self.margin(eigs)) > tol)
@@ -98,6 +103,9 @@ class Disk(AbstractRegion):
 
     def margin(self, eigs):
         return self.radius - np.abs(np.asarray(eigs) - self.center)
+
+    def size(self):
+        return self.radius
 
     def describe(self):
         return f"disk centred at {self.center:g} with radius {self.radius:g}"
@@ -202,6 +210,9 @@ class Intersection(AbstractRegion):
 
     def margin(self, eigs):
         return np.min(np.stack([p.margin(eigs) for p in self.parts]), axis=0)
+
+    def size(self):
+        return min(p.size() for p in self.parts)
 
     def describe(self):
         return " and ".join(p.describe() for p in self.parts)

@@ -52,6 +52,7 @@ from .._errors import (
     DesignVerificationError,
     FunctionalObservabilityError,
     ImpulseObservabilityError,
+    InputError,
 )
 from .._linalg import left_null_space, rank, row_space
 from ..observer._takagi_sugeno import TakagiSugenoObserver
@@ -59,7 +60,7 @@ from ..plant._descriptor import check_functional
 from ..plant._takagi_sugeno import TakagiSugenoSystem
 from . import _lmi
 from ._functional import (
-    KINDS,
+    check_kind,
     prepare_structure,
     solve_gains,
     split_Y,
@@ -213,12 +214,12 @@ def design_ts_observer(
             "plant use fojax.design.design_functional_observer."
         )
     require_x64("observer design")
-    if kind not in KINDS:
-        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    check_kind(kind)
     region = as_region(region if region is not None else Disk(-2.0, 1.0))
     if kind == "proportional":
         if q1 not in (None, 0):
-            raise ValueError("a proportional observer has q1 = 0")
+            raise InputError(f"a proportional observer has q1 = 0 (no integral part); got q1 = {q1}. "
+                             "Omit q1, or use kind='PI' or 'generalized'.")
         q1 = 0
     E, A, B, C = (np.asarray(x, float) for x in (ts_sys.E, ts_sys.A, ts_sys.B, ts_sys.C))
     L = np.asarray(check_functional(ts_sys, L))

@@ -12,10 +12,35 @@ from ._regions import AbstractRegion
 
 #: Residuals of the design conditions must be below this, relative to the data's scale.
 RESIDUAL_RTOL = 1e-8
-#: Eigenvalues must be inside the region by at least this (absolute) margin.
+#: Eigenvalues must be inside the region by at least this (absolute) margin, or by
+#: 1e-3 of the region's size when that is smaller (`required_margin`).
 EIG_MARGIN = 1e-9
 #: The region LMI re-evaluated in float64 must have max eigenvalue below -LMI_MARGIN·‖X‖.
 LMI_MARGIN = 1e-10
+
+
+def required_margin(region: AbstractRegion, margin: float = EIG_MARGIN) -> float:
+    """The margin eigenvalues must keep inside `region`: `margin`, or 1e-3 of the
+    region's size (`AbstractRegion.size`, e.g. a disk's radius) for tiny regions, which
+    an absolute 1e-9 would make impossible to satisfy."""
+    return float(min(margin, 1e-3 * region.size()))
+
+
+def margin_failure(what: str, worst, margin: float, required: float, region: AbstractRegion) -> str | None:
+    """The failure message for the region check (``None`` if it passes).
+
+    The margin is signed: ``> 0`` inside the region, ``< 0`` outside. A point inside by
+    less than `required` is reported as inside, with both numbers.
+    """
+    if margin > required:
+        return None
+    where = f"the region ({region.describe()})"
+    if not np.isfinite(margin):
+        return f"{what} {worst} has no finite margin to {where}"
+    if margin <= 0:
+        return f"{what} {worst:.6g} is outside {where} by {-margin:.3e}"
+    return (f"{what} {worst:.6g} is inside {where} by only {margin:.3e}, less than the required "
+            f"margin {required:.1e}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,7 +78,7 @@ class VerificationReport:
             "  condition residuals: "
             + ", ".join(f"{k}={v:.2e}" for k, v in self.residuals.items())
             + f" (relative {self.relative_residual:.2e}, tolerance {RESIDUAL_RTOL:.0e})",
-            f"  eigenvalues in {self.region}: margin {self.region_margin:.3e}",
+            f"  eigenvalues in {self.region}: margin {self.region_margin:.3e} (> 0 inside, < 0 outside)",
         ]
         if self.lmi_max_eig is not None:
             lines.append(
@@ -115,11 +140,10 @@ def verify(
     failures = []
     if not np.isfinite(rel) or rel > rtol:
         failures.append(f"design-condition residual {rel:.2e} exceeds {rtol:.0e} (relative)")
-    if not margin > EIG_MARGIN:
-        worst = eigs[np.argmin(region.margin(eigs))] if eigs.size else None
-        failures.append(
-            f"eigenvalue {worst:.6g} is outside the region ({region.describe()}), margin {margin:.3e}"
-        )
+    worst = eigs[np.argmin(region.margin(eigs))] if eigs.size else None
+    failure = margin_failure("eigenvalue", worst, margin, required_margin(region), region)
+    if failure is not None:
+        failures.append(failure)
     lmi_max = xmin = None
     if X is not None:
         X = 0.5 * (X + X.T)
