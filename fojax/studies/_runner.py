@@ -50,6 +50,8 @@ from .._errors import InputError, ShapeError
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
+from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, run_batched
+from ._exact import exact_problem
 from ._families import Family
 from ._wrappers import FaultyPlant
 
@@ -381,6 +383,11 @@ def run_study(
         raise ShapeError("observer_names", len(observers), len(names))
     cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps),
                     settle_tol=float(settle_tol), solver=solver)
+    keep = len(quantiles) > 0
+    if method in ("auto", "exact"):
+        prepared, _reason = exact_problem(study, observers, settle_tol, keep)
+        if prepared is not None:
+            return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices)
     mesh, batch_sh, rep_sh = _mesh(devices)
     ndev = mesh.devices.size
     B = study.num_samples
@@ -393,7 +400,6 @@ def run_study(
     jf = np.concatenate([jf, np.zeros(pad, dtype=jf.dtype)])
     study_r = _replicate(study, rep_sh)
     obs_r = _replicate(observers, rep_sh)
-    keep = len(quantiles) > 0
     mets, errs, oks = [], [], []
     for c in tqdm(range(n_chunks), disable=quiet, desc="study", unit="chunk"):
         sl = slice(c * chunk, (c + 1) * chunk)
@@ -427,7 +433,47 @@ def run_study(
     }
     attrs = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "solver"}
     attrs.update(solver=type(solver).__name__ if solver is not None else "default", chunk_size=chunk,
-                 num_chunks=n_chunks, num_devices=int(ndev))
+                 num_chunks=n_chunks, num_devices=int(ndev), engine="vmap-simulate")
+    return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=attrs)
+
+
+def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices) -> StudyResult:
+    """`run_study` on the batch-last exact kernel (`fojax.studies._exact`)."""
+    problem, basis, idx = prepared
+    B = study.num_samples
+    keep = problem.keep
+    # trajectories for the quantile bands are (T, K) per sample: smaller chunks bound memory
+    default = DEFAULT_CHUNK // 2 if keep else DEFAULT_CHUNK
+    chunk = min(B, default) if chunk_size is None else int(chunk_size)
+    out = run_batched(problem, idx, study.ts, chunk_size=chunk, block=DEFAULT_BLOCK, devices=devices, basis=basis)
+    if keep:
+        (mets, ok), traj = out
+    else:
+        mets, ok = out
+    mets, ok = np.asarray(mets), np.asarray(ok)  # (5, K, B), (B,)
+    Nu, Nf, q, n_obs = study.num_uncertainty, study.num_scenarios, study.num_signals, len(names)
+    metrics = {}
+    for k, name in enumerate(METRICS):
+        v = mets[k].reshape(n_obs, q, Nu, Nf)
+        metrics[name] = np.ascontiguousarray(np.transpose(v, (0, 2, 3, 1)))
+    metrics["success"] = ok.reshape(Nu, Nf)
+    axes = {name: ("observer", "uncertainty", "fault", "signal") for name in METRICS}
+    axes["success"] = ("uncertainty", "fault")
+    if keep:
+        E = np.asarray(traj).reshape(traj.shape[0], n_obs, q, B)  # (T, obs, q, B)
+        qs = np.quantile(E, np.asarray(quantiles), axis=-1)  # (nq, T, obs, q)
+        metrics["quantiles"] = np.ascontiguousarray(np.transpose(qs, (2, 0, 1, 3)))
+        axes["quantiles"] = ("observer", "quantile", "time", "signal")
+    coords = {
+        "observer": names,
+        "signal": study.signal_names,
+        "quantile": np.asarray(quantiles, dtype=float),
+        "time": np.asarray(study.ts),
+    }
+    attrs = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "solver"}
+    D = len(list(jax.local_devices() if devices is None else devices))
+    attrs.update(method="exact", solver="none (exact matrix-exponential stepping)", chunk_size=chunk,
+                 num_chunks=-(-B // chunk), num_devices=D, engine="exact-batch")
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=attrs)
 
 
