@@ -9,6 +9,11 @@ family substituted. The flat batch of ``N_u N_f`` index pairs is simulated with
 numbers (a new key, new observer gains) reuse the compiled code; only a new
 *structure* (types, shapes, chunk size, options) compiles again (`TRACE_COUNTS`).
 
+**Exact engine.** LTI studies with known signals (see `run_study`'s `method`) do not
+take this path: they run on the batch-last exact kernel shared with
+`fojax.simulation.simulate_lti_batch` (`fojax.studies._exact`), which streams chunks,
+pads and shards with the same kernel code (`fojax.simulation._batch.run_batched`).
+
 **Chunks and devices (one code path).** The index batch is cut into chunks of a fixed
 size (the last one padded with copies of sample 0, whose results are dropped, so the
 shape never changes), and every chunk is placed on a 1-d `jax.sharding.Mesh` over
@@ -359,10 +364,22 @@ def run_study(
     - `quantiles`: levels of the time-wise error quantiles (``()``: none; then the
       per-chunk errors are not kept on the host).
     - `settle_tol`: tolerance of the settling time.
-    - `method`, `rtol`, `atol`, `max_steps`, `solver`: passed to `fojax.simulate`
-      (``throw=False``; failed samples are flagged in ``metrics["success"]``). For
-      non-stiff studies an explicit solver (``diffrax.Tsit5()``) compiles and runs much
-      faster than the default implicit one.
+    - `method`: ``"auto"`` or ``"exact"``: when every sample is an LTI loop driven by
+      known signals (plant `DescriptorSystem` or `UncertainDescriptorSystem` with a
+      constant δ, possibly in a `FaultyPlant` with `FaultProfile` step/ramp faults at any
+      onset; LTI observers; uniform grid; input zero, constant, step, ramp, sine,
+      piecewise constant or sums of them), the study runs on the exact batch-last
+      matrix-exponential kernel of `fojax.simulation.simulate_lti_batch`
+      (`fojax.studies._exact`; ``attrs["engine"] == "exact-batch"``, the metrics
+      accumulated inside the time loop, no trajectory stored unless quantile bands are
+      asked for). Otherwise (time-varying δ(t), nonlinear or Takagi–Sugeno plants,
+      noise, other signals) every sample runs `fojax.simulate` under `jax.vmap`
+      (``attrs["engine"] == "vmap-simulate"``; ``"exact"`` then needs an LTI plant
+      as in `fojax.simulate`), as does ``method="diffrax"``.
+    - `rtol`, `atol`, `max_steps`, `solver`: passed to `fojax.simulate` on the
+      ``"vmap-simulate"`` engine (``throw=False``; failed samples are flagged in
+      ``metrics["success"]``). For non-stiff studies an explicit solver
+      (``diffrax.Tsit5()``) compiles and runs much faster than the default implicit one.
     - `quiet`: no progress bar.
 
     **Returns:** a `StudyResult`.
