@@ -174,8 +174,9 @@ def test_413_loop_matches_simulate():
     ts = jnp.linspace(0.0, 2.0, 101)
     study = S.Study(plant, X413, ts, C0[:2], None,
                     uncertainty=(S.constant_delta(jax.random.PRNGKey(2), 5, 1, bounds=(-0.5, 0.5)),))
-    res = S.run_study(study, obs, quantiles=(), quiet=True, chunk_size=2)  # 3 chunks, padded
-    assert res.attrs["engine"] == "exact-batch" and res.attrs["num_chunks"] == 3
+    one = jax.devices()[:1]
+    res = S.run_study(study, obs, quantiles=(), quiet=True, chunk_size=2, devices=one)  # 3 chunks, padded
+    assert res.attrs["engine"] == "exact-batch" and res.attrs["num_chunks"] == 3 and res.attrs["chunk_size"] == 2
     assert "quantiles" not in res.metrics
     assert res.metrics["success"].all()
     for i in range(5):

@@ -483,7 +483,8 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
     batch axis ``B``), streamed in fixed-size chunks (the last one padded with copies of
     the last sample; one compilation serves every chunk and every ``B``) and spread over
     `devices`. ``ts`` must be a concrete uniform grid. Returns the problem's reduction
-    with the batch as the last axis ``B`` (NumPy-free: JAX arrays, concatenated)."""
+    with the batch as the last axis ``B`` (JAX arrays), and the layout used (chunk size
+    after rounding to ``block × devices``, number of chunks, devices, block)."""
     T, h, ts = _step_size(ts)
     Bn = jax.tree.leaves(p)[0].shape[0]
     mesh = _mesh_for(devices)
@@ -502,7 +503,8 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
         pc = jax.tree.map(lambda a, i=i: lax.slice_in_dim(a, i * bc, (i + 1) * bc), p)
         outs.append(_chunk_core(problem, pc, jnp.asarray(min(Bn - i * bc, bc)), h, ts, block, basis, mesh))
     out = outs[0] if n_chunks == 1 else jax.tree.map(lambda *a: jnp.concatenate(a, axis=-1), *outs)
-    return jax.tree.map(lambda a: a[..., :Bn], out)
+    return jax.tree.map(lambda a: a[..., :Bn], out), dict(chunk_size=bc, num_chunks=n_chunks, num_devices=D,
+                                                          block=block)
 
 
 def _check_metrics(metrics, size):

@@ -462,7 +462,8 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
     # trajectories for the quantile bands are (T, K) per sample: smaller chunks bound memory
     default = DEFAULT_CHUNK // 2 if keep else DEFAULT_CHUNK
     chunk = min(B, default) if chunk_size is None else int(chunk_size)
-    out = run_batched(problem, idx, study.ts, chunk_size=chunk, block=DEFAULT_BLOCK, devices=devices, basis=basis)
+    out, layout = run_batched(problem, idx, study.ts, chunk_size=chunk, block=DEFAULT_BLOCK, devices=devices,
+                              basis=basis)
     if keep:
         (mets, ok), traj = out
     else:
@@ -488,9 +489,8 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
         "time": np.asarray(study.ts),
     }
     attrs = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "solver"}
-    D = len(list(jax.local_devices() if devices is None else devices))
-    attrs.update(method="exact", solver="none (exact matrix-exponential stepping)", chunk_size=chunk,
-                 num_chunks=-(-B // chunk), num_devices=D, engine="exact-batch")
+    attrs.update(method="exact", solver="none (exact matrix-exponential stepping)", chunk_size=layout["chunk_size"],
+                 num_chunks=layout["num_chunks"], num_devices=layout["num_devices"], engine="exact-batch")
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=attrs)
 
 
