@@ -192,3 +192,38 @@ def test_studies_that_do_not_qualify_keep_the_former_path(ex337):
     assert prepared is None and "not LTI" in reason
     uneven = S.Study(plant, x0, jnp.array([0.0, 0.1, 0.3]), ex.L_aug, None, signal_names=SIGNALS)
     assert _exact.exact_problem(uneven, observers, 0.05, False)[1] == "the grid is not uniform"
+
+
+def test_study_loss_runs_exact_kernel_and_its_gradient_matches_finite_differences(ex337):
+    # study_loss (what tune differentiates) on the exact kernel, reverse mode through it
+    import equinox as eqx
+
+    from fojax.tuning import initial_parameters, observer_from_parameters
+
+    ex, _, plant, x0 = ex337
+    d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
+    k1, k2 = jax.random.split(jax.random.PRNGKey(7))
+    study = S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, fojax.Sine(jnp.array([1.0, 0.5]), 1.0),
+                    uncertainty=(S.constant_delta(k1, 2, 1, bounds=(-0.3, 0.3)),),
+                    scenarios=(S.constant_faults(k2, 2, x0, 3),), signal_names=SIGNALS)
+    fx, params = initial_parameters(d, parameterization="disk")
+    cfg = S.SimConfig(method="exact")
+
+    def f(p, st):
+        obs, _ = observer_from_parameters(fx, p)
+        return S.study_loss(st, obs, cfg=cfg)
+
+    before = _exact.TRACE_COUNTS["study_loss_exact"]
+    vg = eqx.filter_jit(jax.value_and_grad(f))
+    value, g = vg(params, study)
+    assert _exact.TRACE_COUNTS["study_loss_exact"] == before + 1
+    # the value equals the mean over samples of the former path's per-sample IAE
+    obs0, _ = observer_from_parameters(fx, params)
+    per = [np.mean(reference(study, (obs0,), i, j, method="exact")[0][0]["iae"]) for i in range(2) for j in range(2)]
+    assert np.isclose(float(value), np.mean(per), rtol=1e-10)
+    eps = 1e-5
+    for name in ("Theta", "Y3"):
+        idx = tuple(int(i) for i in np.unravel_index(np.argmax(np.abs(g[name])), g[name].shape))
+        e = jnp.zeros_like(params[name]).at[idx].set(eps)
+        fd = (vg({**params, name: params[name] + e}, study)[0] - vg({**params, name: params[name] - e}, study)[0]) / (2 * eps)
+        assert abs(float(g[name][idx]) - float(fd)) <= 1e-5 * abs(float(fd)), (name, float(g[name][idx]), float(fd))

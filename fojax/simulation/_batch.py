@@ -40,7 +40,7 @@ from jaxtyping import Array, Float
 
 from .._dtype import as_float_array
 from .._errors import InputError, ShapeError
-from .._small_linalg import solve_small
+from .._small_linalg import expm_small, solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant
 from ._reduction import (
@@ -335,7 +335,13 @@ class _ModelProblem(eqx.Module):
         return jnp.where(ok[None, :], out, jnp.nan)
 
 
-def _block_kernel(problem, p, h, ts, basis):
+def _expm_vmapped_last(M):
+    """`expm_small` per sample of a batch-last stack (reverse-differentiable, fixed-length
+    squaring scan), for the differentiable use of `_block_kernel`."""
+    return jnp.moveaxis(jax.vmap(expm_small)(jnp.moveaxis(M, -1, 0)), 0, -1)
+
+
+def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False):
     r"""One block of samples (leading axis ``b`` of every leaf of ``p``): the problem's
     reduction, batch last.
 
@@ -348,7 +354,15 @@ def _block_kernel(problem, p, h, ts, basis):
 
     Jumps of the exogenous state at ``t_j`` (between grid points ``t_{k-1} < t_j ≤ t_k``)
     enter exactly: ``w_k = Φ w_{k-1} + e^{\mathcal A (t_k - t_j)} Δw_j``.
+
+    With `differentiable` the exponentials come from `expm_small` (a fixed-length
+    squaring scan) instead of `expm_last` (a data-dependent loop), so the whole block is
+    reverse-differentiable (``jax.grad``); the time loop is the same `jax.lax.scan`.
     """
+    expm = _expm_vmapped_last if differentiable else expm_last
+    # the unrolled FMA matvec is fastest to run but its graph (N² ops, twice under
+    # reverse mode) compiles slowly; the differentiable path uses the batched einsum
+    matvec = (lambda M, v: jnp.einsum("ijb,jb->ib", M, v)) if differentiable else _matvec_last  # noqa: E731
     T = ts.shape[0]
 
     def per_sample(pk):
@@ -371,7 +385,7 @@ def _block_kernel(problem, p, h, ts, basis):
 
     Aj, w0, G, scale, ok, jumps = jax.vmap(per_sample)(p)  # (b,N,N), (b,N), (b,·,N), (b,·), (b,)
     K = scale.shape[1] if basis is None else len(basis[0]) + G.shape[1]
-    Phi = expm_last(jnp.moveaxis(h * Aj, 0, -1))  # (N, N, b)
+    Phi = expm(jnp.moveaxis(h * Aj, 0, -1))  # (N, N, b)
     G = jnp.moveaxis(G, 0, -1)  # (K or K-ρ, N, b)
     scale = scale.T
     w0 = w0.T  # (N, b)
@@ -382,8 +396,8 @@ def _block_kernel(problem, p, h, ts, basis):
         valid = (kon >= 1) & (kon <= T - 1) & jnp.isfinite(jt)
         tau = jnp.where(valid, ts[jnp.clip(kon, 0, T - 1)] - jnp.where(valid, jt, 0.0), 0.0)
         Mj = tau[:, :, None, None] * Aj[:, None]  # (b, J, N, N)
-        Psi = expm_last(jnp.moveaxis(Mj.reshape((b_ * J,) + Aj.shape[1:]), 0, -1))
-        jv = _matvec_last(Psi, jnp.moveaxis(dW.reshape(b_ * J, -1), 0, -1))  # (N, b J)
+        Psi = expm(jnp.moveaxis(Mj.reshape((b_ * J,) + Aj.shape[1:]), 0, -1))
+        jv = matvec(Psi, jnp.moveaxis(dW.reshape(b_ * J, -1), 0, -1))  # (N, b J)
         jv = jnp.moveaxis(jv.reshape(jv.shape[0], b_, J), 2, 0)  # (J, N, b)
         jv = jnp.where(valid.T[:, None, :], jv, 0.0)
         kon = jnp.where(valid, kon, -1).T  # (J, b)
@@ -394,17 +408,17 @@ def _block_kernel(problem, p, h, ts, basis):
 
     def outputs(w):
         if basis is None:
-            return _matvec_last(G, w)
+            return matvec(G, w)
         o = w[: len(ind)] * scale
         if dep:
-            o = jnp.concatenate([o, _matvec_last(G, w)], axis=0)
+            o = jnp.concatenate([o, matvec(G, w)], axis=0)
         if np.array_equal(order, np.arange(K)):
             return o
         return jnp.concatenate([o[i : i + 1] for i in order], axis=0)  # static permutation, no gather
 
     def step(carry, k):
         w, acc = carry
-        w = _matvec_last(Phi, w)
+        w = matvec(Phi, w)
         if jumps is not None:
             for j in range(jv.shape[0]):
                 w = w + jnp.where(kon[j] == k, 1.0, 0.0)[None, :] * jv[j]

@@ -21,6 +21,8 @@ definitions as `error_metrics` (trapezoidal rule on the grid).
 
 from __future__ import annotations
 
+import collections
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -28,7 +30,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ..plant import Constant, PiecewiseConstant, Ramp, Sine, Stack, Step, SumSignal, Zero
-from ..simulation._batch import _output_basis, Exogenous, joint_matrices
+from ..simulation._batch import _block_kernel, _output_basis, Exogenous, joint_matrices
 from ..simulation._reduction import (
     check_index1_host,
     is_concrete,
@@ -139,7 +141,7 @@ class StudyProblem(eqx.Module):
     split: SVDSplit
     E0: Array
     settle_tol: Array
-    r: int = eqx.field(static=True)
+    r: int | None = eqx.field(static=True)
     keep: bool = eqx.field(static=True, default=False)
 
     def joint(self, p):
@@ -255,3 +257,43 @@ def exact_problem(study, observers, settle_tol: float, keep: bool):
     basis = _output_basis(np.asarray(G0))
     basis = None if basis is None else (basis[0], jnp.asarray(basis[1]))
     return (problem, basis, (jnp.asarray(iu), jnp.asarray(jf))), None
+
+
+#: Traces of the differentiable exact study loss (tests prove `study_loss` takes it).
+TRACE_COUNTS: collections.Counter = collections.Counter()
+
+
+def traced_qualifies(study, observers) -> bool:
+    """Whether `study_loss` can use the exact kernel: decided from types only (works on a
+    traced study inside `jax.jit` / `jax.grad`); a traced grid is assumed uniform, as
+    `fojax.simulate`'s ``"auto"`` does."""
+    if not all(o.linear_matrices() is not None for o in observers):
+        return False
+    plant0, _ = study.sample(0, 0)
+    base, _, _, fault = _unwrap(plant0)
+    if lti_matrices(base) is None:
+        return False
+    if not exactly_generated(study.u) or (fault is not None and not exactly_generated(fault)):
+        return False
+    if is_concrete(study.ts):
+        t = np.asarray(study.ts)
+        T = t.shape[0]
+        h = (t[-1] - t[0]) / (T - 1)
+        return bool(h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL)
+    return True
+
+
+def sample_metrics_traced(study, observers, settle_tol):
+    """Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of every sample, exactly and
+    reverse-differentiably (one block of all samples, `expm_small`, the masked full-size
+    slow coordinates so that nothing needs ``rank E`` on the host). Traceable."""
+    TRACE_COUNTS["study_loss_exact"] += 1
+    E0 = _unwrap(study.sample(0, 0)[0])[0].E
+    split = svd_split(E0)
+    problem = StudyProblem(study, tuple(observers), split, E0, jnp.asarray(settle_tol, dtype=jnp.float64), None)
+    k = jnp.arange(study.num_samples)
+    idx = (k // study.num_scenarios, k % study.num_scenarios)
+    ts = study.ts
+    h = (ts[-1] - ts[0]) / (ts.shape[0] - 1)
+    mets, ok = _block_kernel(problem, idx, h, ts, None, differentiable=True)
+    return mets, ok

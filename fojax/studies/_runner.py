@@ -56,7 +56,7 @@ from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
 from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, run_batched
-from ._exact import exact_problem
+from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
 from ._families import Family
 from ._wrappers import FaultyPlant
 
@@ -504,8 +504,13 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     """
     if loss not in ("iae", "ise"):
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
-    iu, jf = (jnp.asarray(a) for a in _indices(study))
     w = jnp.full((study.num_signals,), 1.0 / study.num_signals) if weights is None else jnp.asarray(weights)
+    if cfg.method in ("auto", "exact") and traced_qualifies(study, (observer,)):
+        # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
+        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol)
+        per = w @ mets[METRICS.index(loss)]  # (B,)
+        return jnp.mean(per) if quantile is None else jnp.quantile(per, quantile)
+    iu, jf = (jnp.asarray(a) for a in _indices(study))
 
     def one(i, j):
         (e,), _ = sample_errors(study, (observer,), i, j, cfg)
