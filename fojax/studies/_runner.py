@@ -501,6 +501,12 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     Per sample: the (weighted) mean over signals of the IAE or ISE of $\hat z - z$; then
     the mean over samples, or the `quantile` (e.g. 0.9) of the per-sample values.
     Traceable (use inside `jax.jit` / `jax.grad`).
+
+    With ``cfg.method`` ``"auto"`` or ``"exact"`` and a study of LTI samples with known
+    signals (the types `run_study`'s exact engine accepts; a traced grid is assumed
+    uniform), every sample runs on the exact batch-last kernel in one reverse-differentiable
+    block (`fojax.studies._exact.sample_metrics_traced`); otherwise each sample runs
+    `fojax.simulate` under `jax.vmap`.
     """
     if loss not in ("iae", "ise"):
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
