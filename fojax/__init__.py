@@ -18,6 +18,8 @@ from . import (
     plant as plant,
     results as results,
     simulation as simulation,
+    studies as studies,
+    tuning as tuning,
 )
 from ._errors import (
     AlgebraicLoopError as AlgebraicLoopError,
@@ -140,6 +142,8 @@ from .simulation import (
     simulate_batch_exponential as simulate_batch_exponential,
     Solution as Solution,
 )
+from .studies import run_study as run_study, Study as Study, StudyResult as StudyResult
+from .tuning import tune as tune
 
 
 __version__ = importlib.metadata.version("fojax")

@@ -9,6 +9,11 @@ family substituted. The flat batch of ``N_u N_f`` index pairs is simulated with
 numbers (a new key, new observer gains) reuse the compiled code; only a new
 *structure* (types, shapes, chunk size, options) compiles again (`TRACE_COUNTS`).
 
+**Exact engine.** LTI studies with known signals (see `run_study`'s `method`) do not
+take this path: they run on the batch-last exact kernel shared with
+`fojax.simulation.simulate_lti_batch` (`fojax.studies._exact`), which streams chunks,
+pads and shards with the same kernel code (`fojax.simulation._batch.run_batched`).
+
 **Chunks and devices (one code path).** The index batch is cut into chunks of a fixed
 size (the last one padded with copies of sample 0, whose results are dropped, so the
 shape never changes), and every chunk is placed on a 1-d `jax.sharding.Mesh` over
@@ -49,6 +54,8 @@ from .._errors import InputError, ShapeError
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
+from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, run_batched
+from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
 from ._families import Family
 from ._wrappers import FaultyPlant
 
@@ -349,10 +356,22 @@ def run_study(
     - `quantiles`: levels of the time-wise error quantiles (``()``: none; then the
       per-chunk errors are not kept on the host).
     - `settle_tol`: tolerance of the settling time.
-    - `method`, `rtol`, `atol`, `max_steps`, `solver`: passed to `fojax.simulate`
-      (``throw=False``; failed samples are flagged in ``metrics["success"]``). For
-      non-stiff studies an explicit solver (``diffrax.Tsit5()``) compiles and runs much
-      faster than the default implicit one.
+    - `method`: ``"auto"`` or ``"exact"``: when every sample is an LTI loop driven by
+      known signals (plant `DescriptorSystem` or `UncertainDescriptorSystem` with a
+      constant δ, possibly in a `FaultyPlant` with `FaultProfile` step/ramp faults at any
+      onset; LTI observers; uniform grid; input zero, constant, step, ramp, sine,
+      piecewise constant or sums of them), the study runs on the exact batch-last
+      matrix-exponential kernel of `fojax.simulation.simulate_lti_batch`
+      (`fojax.studies._exact`; ``attrs["engine"] == "exact-batch"``, the metrics
+      accumulated inside the time loop, no trajectory stored unless quantile bands are
+      asked for). Otherwise (time-varying δ(t), nonlinear or Takagi–Sugeno plants,
+      noise, other signals) every sample runs `fojax.simulate` under `jax.vmap`
+      (``attrs["engine"] == "vmap-simulate"``; ``"exact"`` then needs an LTI plant
+      as in `fojax.simulate`), as does ``method="diffrax"``.
+    - `rtol`, `atol`, `max_steps`, `solver`: passed to `fojax.simulate` on the
+      ``"vmap-simulate"`` engine (``throw=False``; failed samples are flagged in
+      ``metrics["success"]``). For non-stiff studies an explicit solver
+      (``diffrax.Tsit5()``) compiles and runs much faster than the default implicit one.
     - `quiet`: no progress bar.
 
     **Returns:** a `StudyResult`.
@@ -373,6 +392,11 @@ def run_study(
         raise ShapeError("observer_names", len(observers), len(names))
     cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps),
                     settle_tol=float(settle_tol), solver=solver)
+    keep = len(quantiles) > 0
+    if method in ("auto", "exact"):
+        prepared, _reason = exact_problem(study, observers, settle_tol, keep)
+        if prepared is not None:
+            return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices)
     mesh, batch_sh, rep_sh = _mesh(devices)
     ndev = mesh.devices.size
     B = study.num_samples
@@ -385,7 +409,6 @@ def run_study(
     jf = np.concatenate([jf, np.zeros(pad, dtype=jf.dtype)])
     study_r = _replicate(study, rep_sh)
     obs_r = _replicate(observers, rep_sh)
-    keep = len(quantiles) > 0
     mets, errs, oks = [], [], []
     for c in tqdm(range(n_chunks), disable=quiet, desc="study", unit="chunk"):
         sl = slice(c * chunk, (c + 1) * chunk)
@@ -419,7 +442,47 @@ def run_study(
     }
     attrs = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "solver"}
     attrs.update(solver=type(solver).__name__ if solver is not None else "default", chunk_size=chunk,
-                 num_chunks=n_chunks, num_devices=int(ndev))
+                 num_chunks=n_chunks, num_devices=int(ndev), engine="vmap-simulate")
+    return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=attrs)
+
+
+def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices) -> StudyResult:
+    """`run_study` on the batch-last exact kernel (`fojax.studies._exact`)."""
+    problem, basis, idx = prepared
+    B = study.num_samples
+    keep = problem.keep
+    # trajectories for the quantile bands are (T, K) per sample: smaller chunks bound memory
+    default = DEFAULT_CHUNK // 2 if keep else DEFAULT_CHUNK
+    chunk = min(B, default) if chunk_size is None else int(chunk_size)
+    out, layout = run_batched(problem, idx, study.ts, chunk_size=chunk, block=DEFAULT_BLOCK, devices=devices,
+                              basis=basis)
+    if keep:
+        (mets, ok), traj = out
+    else:
+        mets, ok = out
+    mets, ok = np.asarray(mets), np.asarray(ok)  # (5, K, B), (B,)
+    Nu, Nf, q, n_obs = study.num_uncertainty, study.num_scenarios, study.num_signals, len(names)
+    metrics = {}
+    for k, name in enumerate(METRICS):
+        v = mets[k].reshape(n_obs, q, Nu, Nf)
+        metrics[name] = np.ascontiguousarray(np.transpose(v, (0, 2, 3, 1)))
+    metrics["success"] = ok.reshape(Nu, Nf)
+    axes = {name: ("observer", "uncertainty", "fault", "signal") for name in METRICS}
+    axes["success"] = ("uncertainty", "fault")
+    if keep:
+        E = np.asarray(traj).reshape(traj.shape[0], n_obs, q, B)  # (T, obs, q, B)
+        qs = np.quantile(E, np.asarray(quantiles), axis=-1)  # (nq, T, obs, q)
+        metrics["quantiles"] = np.ascontiguousarray(np.transpose(qs, (2, 0, 1, 3)))
+        axes["quantiles"] = ("observer", "quantile", "time", "signal")
+    coords = {
+        "observer": names,
+        "signal": study.signal_names,
+        "quantile": np.asarray(quantiles, dtype=float),
+        "time": np.asarray(study.ts),
+    }
+    attrs = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "solver"}
+    attrs.update(method="exact", solver="none (exact matrix-exponential stepping)", chunk_size=layout["chunk_size"],
+                 num_chunks=layout["num_chunks"], num_devices=layout["num_devices"], engine="exact-batch")
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=attrs)
 
 
@@ -430,11 +493,22 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     Per sample: the (weighted) mean over signals of the IAE or ISE of $\hat z - z$; then
     the mean over samples, or the `quantile` (e.g. 0.9) of the per-sample values.
     Traceable (use inside `jax.jit` / `jax.grad`).
+
+    With ``cfg.method`` ``"auto"`` or ``"exact"`` and a study of LTI samples with known
+    signals (the types `run_study`'s exact engine accepts; a traced grid is assumed
+    uniform), every sample runs on the exact batch-last kernel in one reverse-differentiable
+    block (`fojax.studies._exact.sample_metrics_traced`); otherwise each sample runs
+    `fojax.simulate` under `jax.vmap`.
     """
     if loss not in ("iae", "ise"):
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
-    iu, jf = (jnp.asarray(a) for a in _indices(study))
     w = jnp.full((study.num_signals,), 1.0 / study.num_signals) if weights is None else jnp.asarray(weights)
+    if cfg.method in ("auto", "exact") and traced_qualifies(study, (observer,)):
+        # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
+        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol)
+        per = w @ mets[METRICS.index(loss)]  # (B,)
+        return jnp.mean(per) if quantile is None else jnp.quantile(per, quantile)
+    iu, jf = (jnp.asarray(a) for a in _indices(study))
 
     def one(i, j):
         (e,), _ = sample_errors(study, (observer,), i, j, cfg)

@@ -1,0 +1,236 @@
+"""Issue 13: the product path on the default §3.3.7 study — `fojax.run_study` vs a SciPy/NumPy peer.
+
+The study (what `fojax study` tunes and studies on the built-in example, in its exact
+LTI form): the fault-augmented §3.3.7 plant (n = 9, rank E = 7) with a constant δ per
+sample (uniform in [-0.3, 0.3]) × constant faults (`constant_faults`, magnitudes in
+[0.5, 1.5]), zero input, the PO and FGDO observers of `fojax/examples/example_3_3_7.toml`
+(disk region centre -3, radius 2), 10 s on a 0.01 s grid (1,001 points); metrics IAE, ISE,
+ITAE, peak and settling time per sample, observer and signal (5 signals).
+
+The peer is what a competent SciPy user writes: per-sample index-1 reduction and joint
+loop matrix in batched NumPy, ``scipy.linalg.expm`` on the whole ``(B, N, N)`` stack,
+then a batched NumPy recurrence over the grid accumulating the same metrics. Both run
+on the same samples; their per-sample metrics are checked to agree (≤ 1e-8 relative)
+before anything is timed.
+
+    python benchmarks/study_default.py                 # B = 1,000 and 10,000
+    python benchmarks/study_default.py --sizes 1000 --repeats 3 --host-devices 2
+
+Timing: the first call of `fojax.run_study` (after `jax.clear_caches()`) is reported
+separately and ``compile ≈ first − median``; then the median of ``--repeats`` calls.
+Main rows use ``quantiles=()`` (the peer computes no quantile bands); one extra row
+times `run_study` with its default quantile bands (host-side ``np.quantile`` over the
+``(B, T)`` errors). Writes ``benchmarks/results/study_latest.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import _common  # noqa: E402
+
+
+_common.limit_blas_threads()
+if any(a.startswith("--host-devices") for a in sys.argv[1:]):
+    _common.force_host_devices()
+_common.prefer_checkout()
+
+import jax  # noqa: E402
+
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy.linalg  # noqa: E402
+
+import fojax  # noqa: E402
+from fojax import studies as S  # noqa: E402
+from fojax.design import design_functional_observer, Disk  # noqa: E402
+
+
+T_END, DT, SETTLE_TOL = 10.0, 0.01, 0.05
+METRICS = ("iae", "ise", "itae", "peak", "settling_time")
+
+
+def build(B: int, seed: int = 0):
+    ex = fojax.models.example_3_3_7()
+    obs = tuple(
+        design_functional_observer(ex.augmented, ex.L_aug, kind=k, region=Disk(-3.0, 2.0)).observer
+        for k in ("proportional", "generalized")
+    )
+    dA = np.zeros((1, 9, 9))
+    dA[0, :6, :6] = ex.dA
+    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    x0 = jnp.concatenate([jnp.full((6,), 0.5), jnp.zeros(3)])
+    ts = jnp.linspace(0.0, T_END, int(round(T_END / DT)) + 1)
+    nf = 10
+    k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
+    study = fojax.Study(plant, x0, ts, ex.L_aug, None,
+                        uncertainty=(S.constant_delta(k1, B // nf, 1, bounds=(-0.3, 0.3)),),
+                        scenarios=(S.constant_faults(k2, nf, x0, 3, magnitude=(0.5, 1.5)),),
+                        signal_names=("z1", "z2", "f1", "f2", "f3"))
+    return ex, plant, obs, study
+
+
+def peer_inputs(ex, plant, obs, study):
+    """Plain NumPy arrays of the samples (outside the timed region)."""
+    B = study.num_samples
+    iu = np.arange(B) // study.num_scenarios
+    jf = np.arange(B) % study.num_scenarios
+    delta = np.asarray(study.uncertainty[0].values.value)[iu, 0]  # (B,)
+    x0 = np.asarray(study.scenarios[0].values)[jf]  # (B, 9)
+    lms = [o.linear_matrices() for o in obs]
+    return dict(
+        E=np.asarray(plant.E), A0=np.asarray(plant.nominal.A), dA=np.asarray(plant.dA[0]), C=np.asarray(plant.nominal.C),
+        L=np.asarray(ex.L_aug), delta=delta, x0=x0,
+        obs=[tuple(np.asarray(m) for m in (lm.A, lm.By, lm.C, lm.Dy)) for lm in lms],
+        ts=np.asarray(study.ts),
+    )
+
+
+def peer(d):
+    """The SciPy/NumPy peer: metrics ``(5, obs, signal, B)``."""
+    E, C, L, ts = d["E"], d["C"], d["L"], d["ts"]
+    A = d["A0"][None] + d["delta"][:, None, None] * d["dA"][None]  # (B, n, n)
+    B = A.shape[0]
+    U, s, Vt = np.linalg.svd(E)
+    r = int(np.sum(s > 1e-12 * s[0]))
+    V = Vt.T
+    At = U.T @ A @ V
+    K = -np.linalg.solve(At[:, r:, r:], At[:, r:, :r])  # (B, n-r, r)
+    Tx = V[None, :, :r] + V[None, :, r:] @ K  # (B, n, r)
+    As = (At[:, :r, :r] + At[:, :r, r:] @ K) / s[None, :r, None]
+    sizes = [o[0].shape[0] for o in d["obs"]]
+    N = r + sum(sizes)
+    Aj = np.zeros((B, N, N))
+    Aj[:, :r, :r] = As
+    G = []
+    off = r
+    for (Ao, By, Co, Dy), sz in zip(d["obs"], sizes):
+        Aj[:, off : off + sz, :r] = By @ C @ Tx
+        Aj[:, off : off + sz, off : off + sz] = Ao
+        g = np.zeros((B, Co.shape[0], N))
+        g[:, :, :r] = (Dy @ C - L) @ Tx
+        g[:, :, off : off + sz] = Co
+        G.append(g)
+        off += sz
+    G = np.concatenate(G, axis=1)  # (B, K, N)
+    h = ts[1] - ts[0]
+    Phi = scipy.linalg.expm(h * Aj)  # (B, N, N)
+    w = np.zeros((B, N))
+    w[:, :r] = d["x0"] @ V[:, :r]
+    PhiT, GT = np.swapaxes(Phi, 1, 2), np.swapaxes(G, 1, 2)
+    e = np.einsum("bn,bnk->bk", w, GT)
+    a = np.abs(e)
+    a0, e0 = a, e
+    s1 = np.zeros_like(a)
+    s2 = np.zeros_like(a)
+    s3 = np.zeros_like(a)
+    peak = a.copy()
+    last = np.where(a > SETTLE_TOL, 0, -1)
+    tr = ts - ts[0]
+    for k in range(1, ts.shape[0]):
+        w = np.einsum("bn,bnm->bm", w, PhiT)
+        e = np.einsum("bn,bnk->bk", w, GT)
+        a = np.abs(e)
+        s1 += a
+        s2 += e * e
+        s3 += tr[k] * a
+        np.maximum(peak, a, out=peak)
+        last = np.where(a > SETTLE_TOL, k, last)
+    T = ts.shape[0]
+    iae = h * (s1 + 0.5 * a0 - 0.5 * a)
+    ise = h * (s2 + 0.5 * e0**2 - 0.5 * e**2)
+    itae = h * (s3 - 0.5 * tr[-1] * a)
+    settle = np.where(last < 0, 0.0, np.where(last == T - 1, np.inf, tr[np.minimum(last + 1, T - 1)]))
+    return np.stack([iae, ise, itae, peak, settle])  # (5, B, K)
+
+
+def fojax_metrics(res):
+    """run_study metrics as ``(5, B, K)`` (K = observer × signal), sample order (i, j)."""
+    out = []
+    for name in METRICS:
+        v = res.metrics[name]  # (obs, Nu, Nf, q)
+        out.append(np.transpose(v, (1, 2, 0, 3)).reshape(v.shape[1] * v.shape[2], -1))
+    return np.stack(out)
+
+
+def timed(f, repeats):
+    ts = []
+    out = None
+    for _ in range(repeats):
+        t = time.perf_counter()
+        out = f()
+        ts.append(time.perf_counter() - t)
+    return statistics.median(ts), ts, out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--host-devices", type=int, default=None)
+    ap.add_argument("--out", default=str(_common.RESULTS / "study_latest.json"))
+    args = ap.parse_args()
+    info = _common.machine_info()
+    rows = []
+    for B in args.sizes:
+        ex, plant, obs, study = build(B)
+        d = peer_inputs(ex, plant, obs, study)
+        jax.clear_caches()
+        t = time.perf_counter()
+        res = fojax.run_study(study, obs, quantiles=(), quiet=True)
+        first = time.perf_counter() - t
+        assert res.attrs["engine"] == "exact-batch", res.attrs
+        ref = peer(d)
+        got = fojax_metrics(res)
+        fin = np.isfinite(ref)
+        rel = np.abs(got[fin] - ref[fin]) / np.maximum(np.abs(ref[fin]), 1e-12 * np.max(np.abs(ref[fin])))
+        agree = float(np.max(rel))
+        if not (agree <= 1e-8 and np.array_equal(np.isfinite(got), fin)):
+            raise SystemExit(f"B={B}: fojax and the peer disagree (max rel {agree:.2e})")
+        med, reps, _ = timed(lambda: fojax.run_study(study, obs, quantiles=(), quiet=True), args.repeats)
+        pmed, preps, _ = timed(lambda: peer(d), max(1, args.repeats if B <= 1000 else 1))
+        t = time.perf_counter()
+        fojax.run_study(study, obs, quiet=True)  # default quantile bands: another structure, compiles once
+        qfirst = time.perf_counter() - t
+        qmed, qreps, _ = timed(lambda: fojax.run_study(study, obs, quiet=True), 1)
+        row = dict(
+            B=B, agreement_max_rel=agree,
+            fojax_first_call_s=first, fojax_compile_estimate_s=first - med, fojax_median_s=med, fojax_runs_s=reps,
+            fojax_samples_per_s=B / med,
+            fojax_default_quantiles_first_call_s=qfirst, fojax_default_quantiles_s=qmed,
+            peer_median_s=pmed, peer_runs_s=preps, peer_samples_per_s=B / pmed,
+            speedup_vs_peer=pmed / med,
+            load_average=_common.load_average(),
+            num_devices=res.attrs["num_devices"],
+        )
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    result = dict(
+        benchmark="study_default (issue 13): fojax.run_study on the default §3.3.7 study vs SciPy/NumPy peer",
+        study=dict(plant="fault-augmented §3.3.7 (n=9, rank E=7), constant delta in [-0.3, 0.3] x constant faults",
+                   observers=["PO", "FGDO"], region="Disk(-3, 2)", input="zero", horizon_s=T_END, dt_s=DT,
+                   joint_states=None, metrics=list(METRICS)),
+        machine=info, rows=rows, load_average_at_end=_common.load_average(),
+        note="measured once on a shared 2-core machine under load from other jobs (see load averages)",
+    )
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(args.out).with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(result, indent=1))
+    os.replace(tmp, args.out)
+    print("wrote", args.out)
+
+
+if __name__ == "__main__":
+    main()

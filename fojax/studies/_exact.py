@@ -1,0 +1,299 @@
+r"""The exact path of `run_study`: LTI samples on the batch-last kernel of `simulate_lti_batch`.
+
+A study qualifies when every sample is a linear time-invariant loop driven by *known*
+signals: the plant is a `fojax.DescriptorSystem` or an `fojax.UncertainDescriptorSystem`
+with a constant $\delta$ (per sample), possibly wrapped in a `FaultyPlant`; the
+observers are LTI; the grid is uniform; the input and the fault are signals that a
+linear exosystem generates exactly (`exosystem`): zero, constant, step, ramp
+(saturating or not), sine, piecewise constant, `FaultProfile` (step or ramp-then-hold
+faults, any onset). The signals become extra states $v$ of the joint loop
+($\dot v = S v$), and their jumps (a step's onset, a ramp's start and end, a fault's
+onset) enter exactly even between grid points: with $t_{k-1} < t_j \le t_k$,
+
+$$w_k = e^{\mathcal A h} w_{k-1} + e^{\mathcal A (t_k - t_j)}\,\Delta w_j .$$
+
+Each sample is then $w_k = \Phi w_{k-1}$ (+ its jumps) on the grid, stepped by
+`fojax.simulation._batch` with the batch as the last axis, and the metrics of
+`run_study` (IAE, ISE, ITAE, peak, settling time, and the error trajectories for the
+quantile bands when asked) are accumulated inside the time loop with the same
+definitions as `error_metrics` (trapezoidal rule on the grid).
+"""
+
+from __future__ import annotations
+
+import collections
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from ..plant import Constant, PiecewiseConstant, Ramp, Sine, Stack, Step, SumSignal, Zero
+from ..simulation._batch import _block_kernel, _output_basis, Exogenous, joint_matrices
+from ..simulation._reduction import (
+    check_index1_host,
+    is_concrete,
+    lti_matrices,
+    svd_split,
+    SVDSplit,
+)
+from ..simulation._simulate import UNIFORM_GRID_RTOL
+from ._wrappers import FaultProfile, FaultyPlant
+
+
+#: Signal types `exosystem` generates exactly (and sums / stacks of them).
+EXACT_SIGNALS = (Zero, Constant, Step, Ramp, Sine, PiecewiseConstant, FaultProfile)
+
+
+def exactly_generated(sig) -> bool:
+    """Whether `exosystem` generates `sig` exactly."""
+    if isinstance(sig, SumSignal):
+        return all(exactly_generated(t) for t in sig.terms)
+    if isinstance(sig, Stack):
+        return all(exactly_generated(t) for t in sig.parts)
+    return isinstance(sig, EXACT_SIGNALS)
+
+
+def exosystem(sig, t0):
+    r"""``(S, H, v0, jt, jdv)`` of a linear exosystem generating `sig` exactly from ``t0``:
+    $\dot v = S v$, ``sig(t) = H v(t)``, ``v(t0) = v0``, jumps ``jdv[j]`` at ``jt[j]``
+    (applied at ``t ≥ jt[j]``, like the signals' own ``t >= onset`` tests; jumps at or
+    before ``t0`` are already in ``v0``). ``None`` for other signals. Traceable (values
+    may be batched); the structure depends only on the signal's type and shapes."""
+    dt = jnp.asarray(t0).dtype
+    if isinstance(sig, SumSignal | Stack):
+        parts = [exosystem(t, t0) for t in (sig.terms if isinstance(sig, SumSignal) else sig.parts)]
+        if any(p is None for p in parts):
+            return None
+        H = (jnp.concatenate if isinstance(sig, SumSignal) else lambda hs, axis: _blkdiag(*hs))(
+            [p[1] for p in parts], axis=1
+        )
+        return (_blkdiag(*[p[0] for p in parts]), H, jnp.concatenate([p[2] for p in parts]),
+                jnp.concatenate([p[3] for p in parts]), _blkdiag(*[p[4] for p in parts]))
+    if isinstance(sig, Zero):
+        n = sig.size
+        return (jnp.zeros((0, 0), dt), jnp.zeros((n, 0), dt), jnp.zeros((0,), dt), jnp.zeros((0,), dt),
+                jnp.zeros((0, 0), dt))
+    if isinstance(sig, Constant | Step | PiecewiseConstant):
+        m = sig.size
+        S, H = jnp.zeros((m, m), dt), jnp.eye(m, dtype=dt)
+        if isinstance(sig, Constant):
+            return S, H, sig.value, jnp.zeros((0,), dt), jnp.zeros((0, m), dt)
+        if isinstance(sig, Step):
+            return S, H, sig(t0), sig.t0[None], sig.amplitude[None]
+        return S, H, sig(t0), sig.times, jnp.diff(sig.values, axis=0)
+    if isinstance(sig, Sine):
+        m = sig.size
+        I, Z = jnp.eye(m, dtype=dt), jnp.zeros((m, m), dt)
+        W = jnp.diag(sig.omega)
+        S = jnp.block([[Z, Z, Z], [Z, Z, W], [Z, -W, Z]])  # [offset; sin; cos]
+        H = jnp.concatenate([I, jnp.diag(sig.amplitude), Z], axis=1)
+        arg = sig.omega * t0 + sig.phase
+        v0 = jnp.concatenate([sig.offset, jnp.sin(arg), jnp.cos(arg)])
+        return S, H, v0, jnp.zeros((0,), dt), jnp.zeros((0, 3 * m), dt)
+    if isinstance(sig, Ramp | FaultProfile):
+        m = sig.size
+        I, Z = jnp.eye(m, dtype=dt), jnp.zeros((m, m), dt)
+        S = jnp.block([[Z, I], [Z, Z]])  # [value; rate]
+        H = jnp.concatenate([I, Z], axis=1)
+        if isinstance(sig, Ramp):
+            start, end, rate = sig.t0, sig.t1, sig.slope
+            step = jnp.zeros((m,), dt)
+        else:
+            ramped = sig.rise > 0
+            start, end = sig.onset, sig.onset + sig.rise
+            rate = jnp.where(ramped, sig.amplitude / jnp.where(ramped, sig.rise, 1.0), 0.0)
+            step = jnp.where(ramped, 0.0, sig.amplitude)
+        active = (t0 >= start) & (t0 < end)
+        v0 = jnp.concatenate([sig(t0), jnp.where(active, rate, 0.0)])
+        jt = jnp.stack([start, end])
+        jdv = jnp.stack([jnp.concatenate([step, rate]), jnp.concatenate([jnp.zeros_like(step), -rate])])
+        return S, H, v0, jt, jdv
+    return None
+
+
+def _unwrap(plant):
+    """``(base, Fa, Fs, fault)`` (``fault`` ``None`` without a `FaultyPlant`)."""
+    if isinstance(plant, FaultyPlant):
+        return plant.base, plant.Fa, plant.Fs, plant.fault
+    return plant, None, None, None
+
+
+def _blkdiag(*ms):
+    rows = sum(m.shape[0] for m in ms)
+    cols = sum(m.shape[1] for m in ms)
+    out = jnp.zeros((rows, cols), ms[0].dtype)
+    r = c = 0
+    for m in ms:
+        out = out.at[r : r + m.shape[0], c : c + m.shape[1]].set(m)
+        r, c = r + m.shape[0], c + m.shape[1]
+    return out
+
+
+class StudyProblem(eqx.Module):
+    """The samples of a study as a problem of the batch kernel (see module docstring):
+    per index pair ``(i, j)`` the joint loop of plant, observers and exosystem, and the
+    metrics of `run_study` accumulated along the grid."""
+
+    study: object
+    observers: tuple
+    split: SVDSplit
+    E0: Array
+    settle_tol: Array
+    r: int | None = eqx.field(static=True)
+    keep: bool = eqx.field(static=True, default=False)
+
+    def joint(self, p):
+        i, j = p
+        study = self.study
+        plant, x0 = study.sample(i, j)
+        base, Fa, Fs, fault = _unwrap(plant)
+        A, B, C = lti_matrices(base)
+        t0 = study.ts[0]
+        Su, Hu, vu0, jtu, jdvu = exosystem(study.u, t0)
+        nu_, m = Su.shape[0], Hu.shape[0]
+        n, p_ = A.shape[0], C.shape[0]
+        if fault is None:
+            Sf, Hf, vf0, jtf, jdvf = exosystem(Zero(0), t0)
+            Fa, Fs = jnp.zeros((n, 0)), jnp.zeros((p_, 0))
+        else:
+            Sf, Hf, vf0, jtf, jdvf = exosystem(fault, t0)
+        nf_ = Sf.shape[0]
+        exo = Exogenous(
+            S=_blkdiag(Su, Sf),
+            Hin=_blkdiag(Hu, Hf),
+            Hu=jnp.concatenate([Hu, jnp.zeros((m, nf_))], axis=1),
+            Dy=jnp.concatenate([jnp.zeros((p_, nu_)), Fs @ Hf], axis=1),
+            v0=jnp.concatenate([vu0, vf0]),
+            jt=jnp.concatenate([jtu, jtf]),
+            jdv=_blkdiag(jdvu, jdvf),
+        )
+        Aj, w0, out_map, ok = joint_matrices(
+            base.E, A, jnp.concatenate([B, Fa], axis=1), C, self.observers, x0, self.split, self.r, exo
+        )
+        ok = ok & jnp.all(base.E == self.E0)
+        # errors ẑ_i − z as a linear map of [x; ξ_1; ...; v]
+        sizes = [o.state_size for o in self.observers]
+        L = study.L
+        Hz = jnp.zeros((L.shape[0], nu_ + nf_))
+        if study.fault_targets:
+            L = jnp.concatenate([L, jnp.zeros((Hf.shape[0], n))], axis=0)
+            Hz = jnp.concatenate([Hz, jnp.concatenate([jnp.zeros((Hf.shape[0], nu_)), Hf], axis=1)], axis=0)
+        rows = []
+        for k, o in enumerate(self.observers):
+            lm = o.linear_matrices()
+            blocks = [lm.Dy @ C - L]
+            blocks += [lm.C if k == kk else jnp.zeros((lm.C.shape[0], s)) for kk, s in enumerate(sizes)]
+            blocks.append(lm.Dy @ exo.Dy + lm.Du @ exo.Hu - Hz)
+            rows.append(jnp.concatenate(blocks, axis=1))
+        G = jnp.concatenate(rows, axis=0) @ out_map
+        N = Aj.shape[0]
+        dW = jnp.concatenate([jnp.zeros((exo.jt.shape[0], N - exo.S.shape[0])), exo.jdv], axis=1)
+        jumps = (exo.jt, dW) if exo.jt.shape[0] else None
+        return Aj, w0, G, ok, jumps
+
+    # metrics along the grid, as `error_metrics` defines them
+    def init(self, o0):
+        a = jnp.abs(o0)
+        z = jnp.zeros_like(a)
+        return z, z, z, a, jnp.where(a > self.settle_tol, 0, -1)
+
+    def update(self, acc, o, k, ts):
+        s1, s2, s3, peak, last = acc
+        a = jnp.abs(o)
+        return s1 + a, s2 + o * o, s3 + (ts[k] - ts[0]) * a, jnp.maximum(peak, a), jnp.where(a > self.settle_tol, k, last)
+
+    def final(self, acc, o0, o_end, ts, h, ok):
+        s1, s2, s3, peak, last = acc
+        T = ts.shape[0]
+        a0, a1 = jnp.abs(o0), jnp.abs(o_end)
+        tr = ts - ts[0]
+        iae = h * (s1 + 0.5 * a0 - 0.5 * a1)
+        ise = h * (s2 + 0.5 * o0 * o0 - 0.5 * o_end * o_end)
+        itae = h * (s3 - 0.5 * tr[-1] * a1)
+        settle = jnp.where(last < 0, 0.0, jnp.where(last == T - 1, jnp.inf, tr[jnp.minimum(last + 1, T - 1)]))
+        mets = jnp.stack([iae, ise, itae, peak, settle])  # (5, K, b)
+        good = ok & jnp.all(jnp.isfinite(mets[:4]), axis=(0, 1))
+        return jnp.where(good[None, None], mets, jnp.nan), good
+
+
+@eqx.filter_jit
+def _first_joint(problem, p):
+    Aj, w0, G, ok, _ = problem.joint(p)
+    return G, ok
+
+
+def exact_problem(study, observers, settle_tol: float, keep: bool):
+    """Host: the `StudyProblem` of `study`, or ``(None, reason)`` when it does not qualify."""
+    if not all(o.linear_matrices() is not None for o in observers):
+        return None, "an observer is not LTI"
+    if not is_concrete(study):
+        return None, "the study's arrays are traced"
+    t = np.asarray(study.ts)
+    T = t.shape[0]
+    h = (t[-1] - t[0]) / (T - 1)
+    if not (h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL):
+        return None, "the grid is not uniform"
+    plant0, _ = study.sample(0, 0)
+    base, _, _, fault = _unwrap(plant0)
+    mats = lti_matrices(base)
+    if mats is None:
+        return None, f"the plant ({type(base).__name__}) is not LTI"
+    if not exactly_generated(study.u) or (fault is not None and not exactly_generated(fault)):
+        return None, "a signal has no exact exosystem"
+    E0 = np.asarray(base.E)
+    # every sample must share E (one SVD split for all): checked on the host
+    iu = np.arange(study.num_samples) // study.num_scenarios
+    jf = np.arange(study.num_samples) % study.num_scenarios
+    Es = jax.vmap(lambda i, j: _unwrap(study.sample(i, j)[0])[0].E)(jnp.asarray(iu), jnp.asarray(jf))
+    if not np.array_equal(np.asarray(Es), np.broadcast_to(E0, Es.shape)):
+        return None, "E differs between samples"
+    check_index1_host(E0, np.asarray(mats[0]), jacobian_name="A")
+    split = svd_split(jnp.asarray(E0))
+    r = int(np.sum(np.asarray(split.slow)))
+    problem = StudyProblem(study, tuple(observers), split, jnp.asarray(E0), jnp.asarray(float(settle_tol)), r, keep)
+    G0, _ = _first_joint(problem, (jnp.asarray(0), jnp.asarray(0)))
+    basis = _output_basis(np.asarray(G0))
+    basis = None if basis is None else (basis[0], jnp.asarray(basis[1]))
+    return (problem, basis, (jnp.asarray(iu), jnp.asarray(jf))), None
+
+
+#: Traces of the differentiable exact study loss (tests prove `study_loss` takes it).
+TRACE_COUNTS: collections.Counter = collections.Counter()
+
+
+def traced_qualifies(study, observers) -> bool:
+    """Whether `study_loss` can use the exact kernel: decided from types only (works on a
+    traced study inside `jax.jit` / `jax.grad`); a traced grid is assumed uniform, as
+    `fojax.simulate`'s ``"auto"`` does."""
+    if not all(o.linear_matrices() is not None for o in observers):
+        return False
+    plant0, _ = study.sample(0, 0)
+    base, _, _, fault = _unwrap(plant0)
+    if lti_matrices(base) is None:
+        return False
+    if not exactly_generated(study.u) or (fault is not None and not exactly_generated(fault)):
+        return False
+    if is_concrete(study.ts):
+        t = np.asarray(study.ts)
+        T = t.shape[0]
+        h = (t[-1] - t[0]) / (T - 1)
+        return bool(h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL)
+    return True
+
+
+def sample_metrics_traced(study, observers, settle_tol):
+    """Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of every sample, exactly and
+    reverse-differentiably (one block of all samples, `expm_small`, the masked full-size
+    slow coordinates so that nothing needs ``rank E`` on the host). Traceable."""
+    TRACE_COUNTS["study_loss_exact"] += 1
+    E0 = _unwrap(study.sample(0, 0)[0])[0].E
+    split = svd_split(E0)
+    problem = StudyProblem(study, tuple(observers), split, E0, jnp.asarray(settle_tol, dtype=jnp.float64), None)
+    k = jnp.arange(study.num_samples)
+    idx = (k // study.num_scenarios, k % study.num_scenarios)
+    ts = study.ts
+    h = (ts[-1] - ts[0]) / (ts.shape[0] - 1)
+    mets, ok = _block_kernel(problem, idx, h, ts, None, differentiable=True)
+    return mets, ok

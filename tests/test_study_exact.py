@@ -1,0 +1,229 @@
+"""`run_study` on the exact batch-last kernel (LTI samples, known signals).
+
+Oracles: (1) the path `run_study` took before (one `fojax.simulate` per sample, exact
+matrix-exponential stepping with Gauss–Legendre input quadrature, or diffrax at tight
+tolerances for faults with onsets between grid points) followed by `error_metrics`;
+(2) an independent NumPy/SciPy computation: index-1 reduction by the SVD of ``E``,
+``scipy.linalg.expm`` of the joint loop, a plain recurrence and the trapezoidal rule.
+"""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+from closed_loop_413 import ACL, B0, C0, DA, E as E413, LTIObserver, X0 as X413
+
+import fojax
+from fojax import studies as S
+from fojax.design import design_functional_observer, Disk
+from fojax.simulation import _batch
+from fojax.studies import _exact
+
+
+SIGNALS = ("z1", "z2", "f1", "f2", "f3")
+TS = jnp.linspace(0.0, 1.0, 51)
+METRICS = ("iae", "ise", "itae", "peak", "settling_time")
+
+
+@pytest.fixture(scope="module")
+def ex337():
+    """The default §3.3.7 study's model: fault-augmented plant with a constant δ, PO and FGDO."""
+    ex = fojax.models.example_3_3_7()
+    po = design_functional_observer(ex.augmented, ex.L_aug, kind="proportional", region=Disk(-3.0, 2.0))
+    fg = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-3.0, 2.0))
+    dA = np.zeros((1, 9, 9))
+    dA[0, :6, :6] = ex.dA
+    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    x0 = jnp.zeros(9).at[:6].set(0.5)
+    return ex, (po.observer, fg.observer), plant, x0
+
+
+def study337(ex337, seed, nu=3, nf=2, u=None):
+    ex, _, plant, x0 = ex337
+    k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
+    return S.Study(plant, x0, TS, ex.L_aug, u, uncertainty=(S.constant_delta(k1, nu, 1, bounds=(-0.3, 0.3)),),
+                   scenarios=(S.constant_faults(k2, nf, x0, 3),), signal_names=SIGNALS)
+
+
+def reference(study, observers, i, j, **opts):
+    """Per-sample metrics and errors through `fojax.simulate` (the former run_study path)."""
+    plant, x0 = study.sample(i, j)
+    sol = fojax.simulate(plant, x0, study.ts, study.u, observers=observers, **opts)
+    z = study.target(plant, study.ts, sol.xs)
+    errs = [np.asarray(zh - z) for zh in sol.estimates]
+    return [{k: np.asarray(v) for k, v in S.error_metrics(study.ts, e).items()} for e in errs], errs
+
+
+def assert_metrics_close(res, refs, i, j, rtol):
+    for o, ref in enumerate(refs):
+        for name in METRICS:
+            got, want = res.metrics[name][o, i, j], ref[name]
+            atol = 1e-12 * max(1.0, float(np.max(np.abs(want[np.isfinite(want)]), initial=0.0)))
+            assert np.allclose(got, want, rtol=rtol, atol=atol), (name, o, i, j, got, want)
+
+
+def scipy_oracle(E, A, C, L, obs_mats, x0, ts):
+    """IAE/ISE/ITAE/peak per error signal of one LTI sample (zero input), in NumPy/SciPy."""
+    U, s, Vt = np.linalg.svd(E)
+    r = int(np.sum(s > 1e-12 * s[0]))
+    V = Vt.T
+    At = U.T @ A @ V
+    K = -np.linalg.solve(At[r:, r:], At[r:, :r])
+    Tx = V @ np.vstack([np.eye(r), K])  # x = Tx x1
+    As = np.diag(1 / s[:r]) @ (At[:r, :r] + At[:r, r:] @ K)
+    G, w0 = [], [V[:, :r].T @ x0]
+    sizes = [m[0].shape[0] for m in obs_mats]
+    N = r + sum(sizes)
+    Aj = np.zeros((N, N))
+    Aj[:r, :r] = As
+    off = r
+    for (Ao, By, Co, Dy), sz in zip(obs_mats, sizes):
+        Aj[off : off + sz, :r] = By @ C @ Tx
+        Aj[off : off + sz, off : off + sz] = Ao
+        g = np.zeros((Co.shape[0], N))
+        g[:, :r] = (Dy @ C - L) @ Tx
+        g[:, off : off + sz] = Co
+        G.append(g)
+        w0.append(np.zeros(sz))
+        off += sz
+    G = np.vstack(G)
+    h = float(ts[1] - ts[0])
+    Phi = scipy.linalg.expm(h * Aj)
+    w = np.concatenate(w0)
+    e = [G @ w]
+    for _ in range(len(ts) - 1):
+        w = Phi @ w
+        e.append(G @ w)
+    e = np.array(e)
+    a = np.abs(e)
+    tr = np.asarray(ts) - float(ts[0])
+    trap = lambda v: np.sum(0.5 * (v[1:] + v[:-1]) * h, axis=0)  # noqa: E731
+    return {"iae": trap(a), "ise": trap(e**2), "itae": trap(tr[:, None] * a), "peak": a.max(axis=0)}
+
+
+def test_default_337_study_runs_exact_and_matches_simulate_and_scipy(ex337):
+    ex, observers, plant, _ = ex337
+    one = jax.devices()[:1]
+    study = study337(ex337, 0)
+    before = dict(_batch.TRACE_COUNTS)
+    res = S.run_study(study, observers, devices=one, quantiles=(0.1, 0.5, 0.9), quiet=True)
+    assert res.attrs["engine"] == "exact-batch" and res.metrics["success"].all()
+    compiled = _batch.TRACE_COUNTS["StudyProblem"]
+    assert compiled == before.get("StudyProblem", 0) + 1
+    all_errs = []
+    for i in range(3):
+        for j in range(2):
+            refs, errs = reference(study, observers, i, j, method="exact")
+            assert_metrics_close(res, refs, i, j, rtol=1e-8)
+            all_errs.append(errs)
+    # quantile bands over all samples, from the former path's error trajectories
+    for o in range(2):
+        E = np.stack([e[o] for e in all_errs])
+        want = np.quantile(E, (0.1, 0.5, 0.9), axis=0)
+        assert np.allclose(res.metrics["quantiles"][o], want, rtol=1e-8, atol=1e-12)
+    # the independent SciPy oracle on a few samples
+    mats = [(np.asarray(m.A), np.asarray(m.By), np.asarray(m.C), np.asarray(m.Dy))
+            for m in (o.linear_matrices() for o in observers)]
+    for i, j in [(0, 0), (2, 1)]:
+        p, x0 = study.sample(i, j)
+        A, _, C = (np.asarray(a) for a in p.matrices(0.0))
+        ref = scipy_oracle(np.asarray(p.E), A, C, np.asarray(ex.L_aug), mats, np.asarray(x0), np.asarray(TS))
+        for name, want in ref.items():
+            got = res.metrics[name][:, i, j].reshape(-1)
+            assert np.allclose(got, want, rtol=1e-8, atol=1e-12), name
+    # new numbers (δ draws, fault sizes, observer gains) reuse the compiled kernel
+    other = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.5, 1.5))
+    res2 = S.run_study(study337(ex337, 1), (observers[0], other.observer), devices=one,
+                       quantiles=(0.1, 0.5, 0.9), quiet=True)
+    assert _batch.TRACE_COUNTS["StudyProblem"] == compiled
+    assert res2.metrics["success"].all() and not np.allclose(res2.metrics["iae"], res.metrics["iae"])
+
+
+def test_faulty_plant_steps_ramps_and_sine_input_match_tight_diffrax(ex337):
+    # FaultyPlant (not LTI for fojax.simulate): step and ramp faults with onsets between
+    # grid points, a sine input and a step input off the grid; all exact on the kernel.
+    ex, _, _, x0 = ex337
+    base = fojax.UncertainDescriptorSystem(ex.system, dA=ex.dA, delta=fojax.Constant(jnp.zeros(1)))
+    plant = S.FaultyPlant(base, ex.Fa, ex.Fs, fault=S.FaultProfile(jnp.zeros(3)))
+    po = design_functional_observer(ex.augmented, ex.L_aug, kind="proportional", region=Disk(-3.0, 2.0))
+    obs = po.observer
+    key = jax.random.PRNGKey(4)
+    u = fojax.Sine(jnp.array([1.0, 0.5]), jnp.array([1.0, 3.0]), 0.2, 0.1) + fojax.Step(jnp.array([0.3, -0.2]), 0.233)
+    assert _exact.exactly_generated(u)
+    ts = jnp.linspace(0.0, 1.0, 41)  # h = 0.025
+    study = S.Study(plant, x0[:6], ts, ex.L, u,
+                    uncertainty=(S.constant_delta(key, 2, 1, bounds=(-0.3, 0.3), path=("plant", "base", "delta")),),
+                    scenarios=(S.fault_scenarios(key, 3, 3, onset=(0.1, 0.6), rise=(0.0, 0.3), which="all"),),
+                    fault_targets=True)
+    res = S.run_study(study, obs, quantiles=(), quiet=True)
+    assert res.attrs["engine"] == "exact-batch" and res.metrics["success"].all()
+    rises = np.asarray(study.scenarios[0].values.rise)
+    assert np.any(rises > 0)
+    for i, j in [(0, 0), (1, 2)]:
+        refs, _ = reference(study, (obs,), i, j, method="diffrax", solver=diffrax.Tsit5(), rtol=1e-12, atol=1e-14)
+        assert_metrics_close(res, refs, i, j, rtol=1e-8)
+
+
+def test_413_loop_matches_simulate():
+    plant = fojax.UncertainDescriptorSystem(fojax.DescriptorSystem(E413, ACL, B0, C0), dA=DA[None],
+                                            delta=fojax.Constant(jnp.zeros(1)))
+    obs = LTIObserver(jnp.asarray([[-2.0, 0.5], [0.0, -3.0]]), jnp.asarray([[1.0, 0.0, 0.2], [0.0, 1.0, -0.1]]),
+                      jnp.zeros(2))
+    ts = jnp.linspace(0.0, 2.0, 101)
+    study = S.Study(plant, X413, ts, C0[:2], None,
+                    uncertainty=(S.constant_delta(jax.random.PRNGKey(2), 5, 1, bounds=(-0.5, 0.5)),))
+    one = jax.devices()[:1]
+    res = S.run_study(study, obs, quantiles=(), quiet=True, chunk_size=2, devices=one)  # 3 chunks, padded
+    assert res.attrs["engine"] == "exact-batch" and res.attrs["num_chunks"] == 3 and res.attrs["chunk_size"] == 2
+    assert "quantiles" not in res.metrics
+    assert res.metrics["success"].all()
+    for i in range(5):
+        refs, _ = reference(study, (obs,), i, 0, method="exact")
+        assert_metrics_close(res, refs, i, 0, rtol=1e-8)
+
+
+def test_studies_that_do_not_qualify_keep_the_former_path(ex337):
+    ex, observers, plant, x0 = ex337
+    tv = S.Study(plant, x0, TS, ex.L_aug, None,
+                 uncertainty=(S.sinusoidal_delta(jax.random.PRNGKey(0), 2, 1),), signal_names=SIGNALS)
+    prepared, reason = _exact.exact_problem(tv, observers, 0.05, False)
+    assert prepared is None and "not LTI" in reason
+    uneven = S.Study(plant, x0, jnp.array([0.0, 0.1, 0.3]), ex.L_aug, None, signal_names=SIGNALS)
+    assert _exact.exact_problem(uneven, observers, 0.05, False)[1] == "the grid is not uniform"
+
+
+def test_study_loss_runs_exact_kernel_and_its_gradient_matches_finite_differences(ex337):
+    # study_loss (what tune differentiates) on the exact kernel, reverse mode through it
+    import equinox as eqx
+
+    from fojax.tuning import initial_parameters, observer_from_parameters
+
+    ex, _, plant, x0 = ex337
+    d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
+    k1, k2 = jax.random.split(jax.random.PRNGKey(7))
+    study = S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, fojax.Sine(jnp.array([1.0, 0.5]), 1.0),
+                    uncertainty=(S.constant_delta(k1, 2, 1, bounds=(-0.3, 0.3)),),
+                    scenarios=(S.constant_faults(k2, 2, x0, 3),), signal_names=SIGNALS)
+    fx, params = initial_parameters(d, parameterization="disk")
+    cfg = S.SimConfig(method="exact")
+
+    def f(p, st):
+        obs, _ = observer_from_parameters(fx, p)
+        return S.study_loss(st, obs, cfg=cfg)
+
+    before = _exact.TRACE_COUNTS["study_loss_exact"]
+    vg = eqx.filter_jit(jax.value_and_grad(f))
+    value, g = vg(params, study)
+    assert _exact.TRACE_COUNTS["study_loss_exact"] == before + 1
+    # the value equals the mean over samples of the former path's per-sample IAE
+    obs0, _ = observer_from_parameters(fx, params)
+    per = [np.mean(reference(study, (obs0,), i, j, method="exact")[0][0]["iae"]) for i in range(2) for j in range(2)]
+    assert np.isclose(float(value), np.mean(per), rtol=1e-10)
+    eps = 1e-5
+    for name in ("Theta", "Y3"):
+        idx = tuple(int(i) for i in np.unravel_index(np.argmax(np.abs(g[name])), g[name].shape))
+        e = jnp.zeros_like(params[name]).at[idx].set(eps)
+        fd = (vg({**params, name: params[name] + e}, study)[0] - vg({**params, name: params[name] - e}, study)[0]) / (2 * eps)
+        assert abs(float(g[name][idx]) - float(fd)) <= 1e-5 * abs(float(fd)), (name, float(g[name][idx]), float(fd))
