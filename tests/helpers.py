@@ -71,6 +71,28 @@ def match_eigenvalues(actual, desired, *, rtol=1e-7, atol=0.0):
     return aligned, False, "no one-to-one matching within tolerance; closest pairing:\n" + "\n".join(lines)
 
 
+def spectral_distance(a, b) -> float:
+    """The smallest ``d`` such that `a` and `b` pair one to one with every ``|a_i - b_j| <= d``
+    (the bottleneck matching distance of two multisets of equal size; ``inf`` otherwise)."""
+    a = np.asarray(a, dtype=complex).ravel()
+    b = np.asarray(b, dtype=complex).ravel()
+    if a.size != b.size or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        return float("inf")
+    if a.size == 0:
+        return 0.0
+    dist = np.abs(a[:, None] - b[None, :])
+    cand = np.unique(dist)
+    lo, hi = 0, cand.size - 1  # the answer is one of the pair distances: bisect on them
+    while lo < hi:
+        mid = (lo + hi) // 2
+        r, c = linear_sum_assignment(dist > cand[mid])
+        if np.any(dist[r, c] > cand[mid]):
+            lo = mid + 1
+        else:
+            hi = mid
+    return float(cand[lo])
+
+
 def assert_eigenvalues_match(actual, desired, *, rtol=1e-7, atol=0.0, err_msg: str = ""):
     """Assert that two eigenvalue multisets agree up to a one-to-one matching.
 

@@ -7,7 +7,7 @@ value with its nearest neighbour fails but a one-to-one matching exists).
 
 import numpy as np
 import pytest
-from helpers import assert_eigenvalues_match, match_eigenvalues
+from helpers import assert_eigenvalues_match, match_eigenvalues, spectral_distance
 
 
 def test_conjugate_pair_in_either_order_matches():
@@ -46,3 +46,12 @@ def test_per_value_tolerance_and_zero_tolerance():
         assert_eigenvalues_match([10.0, 1.05], [1.0, 10.0], atol=[0.0, 0.1], rtol=0.0)
     assert_eigenvalues_match([2.0, 1.0], [1.0, 2.0], rtol=0.0)  # exact, any order
     assert_eigenvalues_match([], [])
+
+
+def test_spectral_distance_is_the_bottleneck_matching():
+    # {0, i, 2i} vs {0, i, 1}: the pairing of least total distance keeps 0-0 and i-i and
+    # leaves 2i-1 (sqrt 5); the bottleneck pairing 0-1, i-0, 2i-i has every distance 1
+    assert spectral_distance([0.0, 1j, 2j], [0.0, 1j, 1.0]) == pytest.approx(1.0)
+    assert spectral_distance([1.04, 0.95], [1.0, 1.1]) == pytest.approx(0.06)
+    assert spectral_distance([1.0 + 1.0j, 1.0 - 1.0j], [1.0 - 1.0j, 1.0 + 1.0j]) == 0.0
+    assert spectral_distance([1.0], [1.0, 2.0]) == np.inf
