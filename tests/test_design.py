@@ -1027,11 +1027,12 @@ def test_min_gain_design_is_verified_whatever_route(monkeypatch):
         assert _min_gain_objective(d) <= _min_gain_objective(f) * (1 + 1e-6)
 
 
-def test_inaccurate_min_gain_is_retried_before_the_feasibility_fallback(monkeypatch):
+@pytest.mark.parametrize("failure", [cp.OPTIMAL_INACCURATE, "solver_error"])
+def test_inaccurate_min_gain_is_retried_before_the_feasibility_fallback(monkeypatch, failure):
     """The ladder, made deterministic: every Clarabel run at the strict tolerances
-    (`CLARABEL_SETTINGS`) is reported "optimal_inaccurate". The next run must be the same
-    min-gain problem at `CLARABEL_RETRY` (on main it was the feasibility problem), and
-    whatever that run returns, the design verifies and its route is consistent."""
+    (`CLARABEL_SETTINGS`) ends at "optimal_inaccurate" (or raises cvxpy's SolverError).
+    The next run must be the same min-gain problem at `CLARABEL_RETRY` (on main it was the
+    feasibility problem, or the error was raised), and the design verifies."""
     from fojax.design import _lmi
 
     orig, calls = cp.Problem.solve, []
@@ -1040,8 +1041,11 @@ def test_inaccurate_min_gain_is_retried_before_the_feasibility_fallback(monkeypa
         settings = {key: k[key] for key in _lmi.CLARABEL_SETTINGS if key in k}
         objective = "feasibility" if self.objective.args[0].is_constant() else "min-gain"
         calls.append((k.get("solver"), objective, settings))
+        strict = settings == _lmi.CLARABEL_SETTINGS
+        if strict and failure == "solver_error":
+            raise cp.error.SolverError("Solver 'CLARABEL' failed (forced by the test).")
         out = orig(self, *a, **k)
-        if settings == _lmi.CLARABEL_SETTINGS:
+        if strict:
             self._status = cp.OPTIMAL_INACCURATE
         return out
 
@@ -1054,5 +1058,6 @@ def test_inaccurate_min_gain_is_retried_before_the_feasibility_fallback(monkeypa
     assert_verified_design(d, sysm, L_REP, [("disk", -3.0, 2.5)], "proportional")
     lmi = d.solver["lmi"]
     assert lmi["settings"] == _lmi.CLARABEL_RETRY  # the strict runs were all refused
-    assert lmi["retried_after"] == [{"status": "optimal_inaccurate", "settings": _lmi.CLARABEL_SETTINGS}]
-    assert "retry after optimal_inaccurate at 1e-09" in d.report.extra["LMI route"]
+    assert lmi["retried_after"] == [{"status": failure, "settings": _lmi.CLARABEL_SETTINGS}]
+    assert f"retry after {failure} at 1e-09" in d.report.extra["LMI route"]
+    assert "message" not in lmi  # no stale error text on a solved problem
