@@ -980,9 +980,18 @@ def test_reproduction_problem_is_feasible():
     s = observer_structure(np.eye(3), A_REP, np.ones((3, 1)), C_REP, L_REP, R_REP)
     pc = oracle_pieces(np.eye(3), A_REP, C_REP, R_REP, np.zeros((0, 3)))
     Cm = np.vstack([pc["N2"], pc["N3"]])
-    Qr = sla.orth(Cm.T).T  # place_poles needs a full-rank output matrix: use a row basis of Cm
+    # place_poles needs a full-rank output matrix: use a row basis of Cm. Σ = [R; C] is square
+    # and invertible, so N3 = (I - ΣΣ⁺)[I; 0] is zero in exact arithmetic and Cm has rank 1;
+    # its second singular value is rounding noise of order eps·cond(Σ)·‖Cm‖ (2e-16 to 6e-16
+    # of 0.38 across BLAS kernels), which orth's default threshold (7 eps relative) splits
+    # (issue 17). The rank threshold (for orth and pinv) is set from that noise level, far
+    # below σ1.
+    rcond = 1e3 * Cm.shape[0] * np.finfo(float).eps * np.linalg.cond(pc["Sigma"])
+    Qr = sla.orth(Cm.T, rcond=rcond).T
+    assert Qr.shape[0] == 1
     G = place_poles(pc["N1"].T, Qr.T, [-3.0, -2.9]).gain_matrix.T
-    K = G @ Qr @ sla.pinv(Cm)  # K Cm = G Qr because the rows of Qr lie in the row space of Cm
+    K = G @ Qr @ sla.pinv(Cm, rtol=rcond)  # K Cm = G Qr: the rows of Qr lie in the row space of Cm
+    np.testing.assert_allclose(K @ Cm, G @ Qr, rtol=0, atol=1e-12 * np.abs(G).max())
     nZ = pc["N2"].shape[0]
     P = {k: np.zeros(v) for k, v in s.param_shapes().items()}
     P["Z"], P["Y1"] = K[:, :nZ], K[:, nZ:]
