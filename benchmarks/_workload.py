@@ -195,10 +195,26 @@ def output_map(T: np.ndarray) -> np.ndarray:
 
 
 def nominal_finite_poles() -> np.ndarray:
-    """Finite poles of the nominal loop: eigenvalues of the reduced 7×7 matrix, sorted."""
+    """Finite poles of the nominal loop: eigenvalues of the reduced 7×7 matrix, sorted by
+    real part (rounded to 1e-9, so that a conjugate pair whose real parts differ in the
+    last bits comes out as (-imag, +imag) on every BLAS), then imaginary part."""
     A_red, _ = reduce_index1(closed_loop_A(A))
     lam = np.linalg.eigvals(A_red)
-    return lam[np.lexsort((lam.imag, lam.real))]
+    return lam[np.lexsort((lam.imag, np.round(lam.real, 9)))]
+
+
+def poles_match(lam, expected, atol: float) -> bool:
+    """Whether `lam` and `expected` pair one to one within `atol` (a matching, not a sort:
+    the order of eigenvalues depends on the BLAS kernel)."""
+    from scipy.optimize import linear_sum_assignment
+
+    lam, expected = np.asarray(lam).ravel(), np.asarray(expected).ravel()
+    if lam.size != expected.size:
+        return False
+    dist = np.abs(lam[:, None] - expected[None, :])
+    # pairs beyond atol cost more than any matching within atol: found whenever one exists
+    r, c = linear_sum_assignment(np.where(dist <= atol, dist, lam.size * atol + 1.0))
+    return bool(np.all(dist[r, c] <= atol))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -214,6 +214,7 @@ def worker(spec: dict) -> dict:
         lmi = d.solver.get("lmi", d.solver)
         res["solver_used"] = lmi.get("solver")
         res["objective"] = lmi.get("objective")
+        res["route"] = lmi.get("route")
         res["iterations"] = lmi.get("iterations")
         res["verification_passed"] = bool(d.report.passed)
         res["max_real_error_eig"] = float(np.max(np.real(d.report.eigenvalues)))

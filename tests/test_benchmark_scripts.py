@@ -28,6 +28,7 @@ import design_scaling  # noqa: E402
 import make_readme  # noqa: E402
 import scaling  # noqa: E402
 import tuning_scaling  # noqa: E402
+from helpers import assert_eigenvalues_match  # noqa: E402
 
 import fojax  # noqa: E402
 
@@ -74,16 +75,22 @@ def test_hand_reduction_solves_the_descriptor_equation(n):
         U, sv, _ = np.linalg.svd(loop.E)
         null_left = U[:, sv < 1e-10]
         assert np.abs(null_left.T @ Ak @ x0).max() <= 1e-11 * np.abs(Ak @ x0).max()
-        # its poles are the pencil's finite poles
-        lam = np.sort_complex(_finite_poles(Ak, loop.E))
-        np.testing.assert_allclose(lam, np.sort_complex(np.linalg.eigvals(Ask)), rtol=1e-8, atol=1e-9)
+        # its poles are the pencil's finite poles (a multiset: matched, not sorted)
+        assert_eigenvalues_match(_finite_poles(Ak, loop.E), np.linalg.eigvals(Ask), rtol=1e-8, atol=1e-9)
 
 
 def test_samples_do_not_depend_on_the_batch_size():
     loop = scaling.random_stable_index1(6, seed=2)
     a, b = scaling.make_samples(loop, 3, seed=5), scaling.make_samples(loop, 10, seed=5)
+    # the random draws and the elementwise A_k are bit-identical ...
+    np.testing.assert_array_equal(a.delta, b.delta[:3])
+    np.testing.assert_array_equal(a.z0, b.z0[:3])
     np.testing.assert_array_equal(a.A, b.A[:3])
-    np.testing.assert_array_equal(a.x0, b.x0[:3])
+    # ... x0 = T z0 comes from one matrix product over the batch, whose blocking (hence the
+    # rounding) depends on B and on the BLAS kernel (Nehalem differs in the last bit, issue
+    # 17): equal within the dot-product rounding bound r·eps·|T||z0| per entry
+    bound = loop.r * np.finfo(float).eps * (np.abs(a.z0) @ np.abs(loop.T).T)
+    assert np.all(np.abs(a.x0 - b.x0[:3]) <= bound)
 
 
 def test_generic_expm_peer_equals_closed_form():

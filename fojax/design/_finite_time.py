@@ -285,7 +285,9 @@ def _design_ft(
     for Ys, X, reg, info in ((Ys1, X1, r1, info1), (Ys2, X2, r2, info2)):
         b = split_Y(Ys[0], s.q0, c)
         params = {"Z": Z, "Y1": b["Y1"], "Y2": b["Y2"], "Y3": np.zeros((s.q, c)), "J": b["J"], "G": b["G"]}
-        mats, report = verify_structure_design(s, params, reg, X)
+        route = (info["lmi"]["route"] if "lmi" in info else "pole placement" + (
+            f" (LMI refused: {info['lmi_status']})" if info["lmi_status"] else ""))
+        mats, report = verify_structure_design(s, params, reg, X, extra={"LMI route": route})
         designs.append(
             FunctionalObserverDesign(
                 observer=build_observer(s, mats, kind=kind),

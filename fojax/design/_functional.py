@@ -303,6 +303,10 @@ def solve_gains(
     return Xvs[0], Zv, Yss[0], {"lmi": info}
 
 
+#: The objectives `solve_with_fallbacks` tries, in order, with each solver.
+OBJECTIVES = ("min-gain", "feasibility")
+
+
 def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
     """Solve ``min obj s.t. cons``, falling back to the feasibility problem.
 
@@ -310,11 +314,15 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
     sometimes stop at "optimal_inaccurate". The pure feasibility problem (interior
     point) is better conditioned; it is a fallback because its gains are larger.
     With ``solver="auto"`` the order is: Clarabel (min-gain), Clarabel (feasibility),
-    SCS (min-gain), SCS (feasibility). Only status ``optimal`` is ever accepted.
+    SCS (min-gain), SCS (feasibility); each of these first retries the same solver with
+    looser settings (`fojax.design._lmi.solve`), so that the min-gain problem does not
+    fall back because of the last digits of a BLAS kernel. Only status ``optimal`` is
+    ever accepted, and the caller verifies the solution in float64 whatever route
+    produced it. ``info["route"]`` says which one did (also shown in the design's report).
     """
     import cvxpy as cp
     solvers = ("CLARABEL", "SCS") if _lmi.check_solver(solver) == "AUTO" else (solver,)
-    attempts = [(sv, o) for sv in solvers for o in ("min-gain", "feasibility")]
+    attempts = [(sv, o) for sv in solvers for o in OBJECTIVES]
     statuses = []
     for sv, o in attempts:
         prob = cp.Problem(cp.Minimize(obj if o == "min-gain" else 0), cons)
@@ -326,6 +334,8 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
         info["objective"] = o
         if statuses:
             info["failed_attempts"] = list(statuses)
+        info["route"] = _lmi.describe_route(info, o) + (
+            f"; refused before: {'; '.join(statuses)}" if statuses else "")
         return info
     raise LMIInfeasibleError(name, "; ".join(statuses), {}, hint)
 
@@ -459,7 +469,7 @@ def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN):
         "J": blocks["J"],
         "G": blocks["G"],
     }
-    mats, report = verify_structure_design(s, params, region, X)
+    mats, report = verify_structure_design(s, params, region, X, extra={"LMI route": info["lmi"]["route"]})
     obs = build_observer(s, mats, kind=kind)
     return FunctionalObserverDesign(
         observer=obs,

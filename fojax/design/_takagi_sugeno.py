@@ -242,7 +242,7 @@ def design_ts_observer(
         "J": np.stack([b["J"] for b in blocks]),
         "G": np.stack([b["G"] for b in blocks]),
     }
-    mats, report = verify_structure_design(s, params, region, X)
+    mats, report = verify_structure_design(s, params, region, X, extra={"LMI route": info["lmi"]["route"]})
     report = _lyapunov_recheck(report, np.asarray(X), mats)
     p, m = C.shape[0], B.shape[-1]
     Wu, Wy = np.zeros((p, m)), np.eye(p)  # w = y (psi="output")

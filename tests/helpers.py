@@ -1,0 +1,110 @@
+"""Helpers shared by the test modules (import with ``from helpers import ...``).
+
+Eigenvalues, poles and roots are multisets: LAPACK returns them in an order that depends
+on the BLAS kernel (a complex pair whose real parts differ by one ulp sorts either way),
+so tests compare them with `assert_eigenvalues_match`, an optimal one-to-one matching
+(`scipy.optimize.linear_sum_assignment`), never by sorting.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+
+def _fmt(z: np.ndarray) -> str:
+    # display only: sorted by rounded real part, then imaginary part
+    z = np.asarray(z, dtype=complex)
+    z = z[np.lexsort((z.imag, np.round(z.real, 8)))]
+    return "[" + ", ".join(f"{v.real:.12g}{v.imag:+.12g}j" for v in z) + "]"
+
+
+def match_eigenvalues(actual, desired, *, rtol=1e-7, atol=0.0):
+    """Pair `actual` with `desired` one to one within ``atol + rtol·|desired|``.
+
+    **Arguments:**
+
+    - `actual`, `desired`: two collections of (complex) numbers, any shapes, flattened.
+    - `rtol`, `atol`: the tolerance of the pair ``(a, b)`` is ``atol + rtol·|b|``, as in
+      `numpy.testing.assert_allclose(actual, desired)`; either may be an array
+      broadcastable to `desired` (one tolerance per desired value).
+
+    **Returns:** ``(aligned, ok, report)``: `aligned` is `actual` reordered so that
+    ``aligned[j]`` is paired with ``desired.ravel()[j]``; `ok` says whether every pair is
+    within its tolerance; `report` describes the worst pairs when not.
+
+    A matching within tolerance exists iff the bipartite graph of the pairs within
+    tolerance has a perfect matching; `linear_sum_assignment` on the normalised distances
+    (``|a - b| / tol``, pairs beyond tolerance charged ``size + 1``) finds one whenever
+    one exists, because any such matching costs at most ``size``.
+    """
+    a = np.asarray(actual, dtype=complex).ravel()
+    b = np.asarray(desired, dtype=complex).ravel()
+    if a.size != b.size:
+        return a, False, f"{a.size} actual values but {b.size} desired values"
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        return a, False, "non-finite values"
+    if a.size == 0:
+        return a, True, ""
+    tol = np.broadcast_to(np.asarray(atol, float), np.shape(desired)).ravel() + np.broadcast_to(
+        np.asarray(rtol, float), np.shape(desired)
+    ).ravel() * np.abs(b)
+    dist = np.abs(a[:, None] - b[None, :])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(dist == 0.0, 0.0, dist / tol[None, :])
+    within = ratio <= 1.0
+    rows, cols = linear_sum_assignment(np.where(within, ratio, a.size + 1.0))
+    aligned = np.empty_like(a)
+    aligned[cols] = a[rows]
+    ok = bool(np.all(within[rows, cols]))
+    if ok:
+        return aligned, True, ""
+    # For the message: the matching that minimises the total distance, worst pairs first.
+    rows, cols = linear_sum_assignment(dist)
+    worst = np.argsort(-ratio[rows, cols])
+    lines = [
+        f"  actual {a[rows[k]]:.12g} ~ desired {b[cols[k]]:.12g}: |diff| {dist[rows[k], cols[k]]:.3e}"
+        f" > tol {tol[cols[k]]:.3e}"
+        for k in worst
+        if not within[rows[k], cols[k]]
+    ]
+    return aligned, False, "no one-to-one matching within tolerance; closest pairing:\n" + "\n".join(lines)
+
+
+def spectral_distance(a, b) -> float:
+    """The smallest ``d`` such that `a` and `b` pair one to one with every ``|a_i - b_j| <= d``
+    (the bottleneck matching distance of two multisets of equal size; ``inf`` otherwise)."""
+    a = np.asarray(a, dtype=complex).ravel()
+    b = np.asarray(b, dtype=complex).ravel()
+    if a.size != b.size or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        return float("inf")
+    if a.size == 0:
+        return 0.0
+    dist = np.abs(a[:, None] - b[None, :])
+    cand = np.unique(dist)
+    lo, hi = 0, cand.size - 1  # the answer is one of the pair distances: bisect on them
+    while lo < hi:
+        mid = (lo + hi) // 2
+        r, c = linear_sum_assignment(dist > cand[mid])
+        if np.any(dist[r, c] > cand[mid]):
+            lo = mid + 1
+        else:
+            hi = mid
+    return float(cand[lo])
+
+
+def assert_eigenvalues_match(actual, desired, *, rtol=1e-7, atol=0.0, err_msg: str = ""):
+    """Assert that two eigenvalue multisets agree up to a one-to-one matching.
+
+    Tolerances as in `match_eigenvalues` (``|a - b| <= atol + rtol·|b|`` for every pair).
+    The failure message shows both sets (sorted for display only) and the pairs that are
+    too far apart. Returns `actual` reordered to the order of `desired`.
+    """
+    aligned, ok, report = match_eigenvalues(actual, desired, rtol=rtol, atol=atol)
+    if not ok:
+        raise AssertionError(
+            f"eigenvalue sets differ (rtol={np.max(rtol):g}, atol={np.max(atol):g}): {report}\n"
+            f"  actual : {_fmt(np.ravel(actual))}\n  desired: {_fmt(np.ravel(desired))}"
+            + (f"\n{err_msg}" if err_msg else "")
+        )
+    return aligned
