@@ -8,6 +8,10 @@ Layers (data flows one way): ``plant`` (models) → ``analysis`` (structure) →
 
 import importlib.metadata
 
+from .cli import _startup as _startup  # first: the `fojax` program ends on Ctrl-C while importing
+
+
+# isort: split
 from . import (
     analysis as analysis,
     config as config,

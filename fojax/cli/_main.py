@@ -97,7 +97,7 @@ def demo(quiet: bool = False) -> int:
     return 0 if ok else 1
 
 
-def main(argv: list[str] | None = None) -> int:
+def _run(argv: list[str] | None) -> int:
     raw = argparse.RawDescriptionHelpFormatter
     parser = argparse.ArgumentParser(
         prog="fojax", description=DESCRIPTION, epilog=EPILOG, formatter_class=raw
@@ -178,49 +178,84 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     command = args.command or "demo"
     from . import _commands
+    from ._signals import on_interrupt
 
-    try:
-        if command == "demo":
-            return demo(quiet=args.quiet)
-        if command == "examples":
-            return _commands.examples(quiet=args.quiet)
-        if command == "study":
-            _enable_x64()
-            config = None if args.config is None else _commands.resolve_config(args.config)
-            return _commands.study(config, args.out, samples=args.samples, horizon=args.horizon,
-                                   steps=args.steps, resume=args.resume, quiet=args.quiet)
+    if command == "demo":
+        return demo(quiet=args.quiet)
+    if command == "examples":
+        return _commands.examples(quiet=args.quiet)
+    if command == "study":
         _enable_x64()
-        configs = [_commands.resolve_config(c) for c in args.config]
-        if command == "design" and args.name is not None and len(configs) > 1:
-            parser.error("--name needs a single CONFIG (each config gets its own folder)")
-        status = 0
-        for config in configs:
-            if command == "check":
-                status = max(status, _commands.check(config, quiet=args.quiet))
-            else:
-                status = max(status, _commands.design(
-                    config, args.out, name=args.name, overwrite=args.overwrite, quiet=args.quiet
-                ))
-        return status
-    except _commands._Unavailable as err:
-        print(f"fojax: {err}", file=sys.stderr)
-        return 3
-    except Exception as err:  # one-line reason, non-zero exit
-        import os
-
-        if os.environ.get("FOJAX_DEBUG"):  # full traceback for bug reports
-            raise
-        from fojax import FojaxError
-
-        if isinstance(err, FojaxError | FileExistsError):
-            kind = "error"
+        config = None if args.config is None else _commands.resolve_config(args.config)
+        return _commands.study(config, args.out, samples=args.samples, horizon=args.horizon,
+                               steps=args.steps, resume=args.resume, quiet=args.quiet)
+    _enable_x64()
+    if command == "design":
+        on_interrupt("every file written so far is complete (each is written atomically); the "
+                     "observers not reached yet are missing from the results folder")
+    configs = [_commands.resolve_config(c) for c in args.config]
+    if command == "design" and args.name is not None and len(configs) > 1:
+        parser.error("--name needs a single CONFIG (each config gets its own folder)")
+    status = 0
+    for config in configs:
+        if command == "check":
+            status = max(status, _commands.check(config, quiet=args.quiet))
         else:
-            kind = f"unexpected {type(err).__name__}"
-        msg = " ".join(str(err).split("\n")[0].split()) if str(err) else ""
-        print(f"fojax: {kind}: {msg}", file=sys.stderr)
-        return 2
-    parser.print_help()
-    return 2
+            status = max(status, _commands.design(
+                config, args.out, name=args.name, overwrite=args.overwrite, quiet=args.quiet
+            ))
+    return status
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the ``fojax`` command with `argv` (default: ``sys.argv[1:]``) and return its exit code.
+
+    SIGINT/SIGTERM end every command with one line on stderr and exit code 130/143 (see
+    `fojax.cli._signals`). Called as the program (`argv` None: the ``fojax`` script,
+    ``python -m fojax.cli``), an interrupted command leaves with ``os._exit`` after its
+    message, without the interpreter shutdown that crashes while jaxlib still compiles.
+    """
+    import os
+
+    from ._signals import Interrupts
+
+    with Interrupts() as interrupts:
+        try:
+            code = _run(argv)
+        except KeyboardInterrupt:
+            if interrupts.signum is None:  # not a signal of this command
+                raise
+            code = None
+        except Exception as err:  # one-line reason, non-zero exit
+            from . import _commands
+
+            if interrupts.signum is not None:  # a signal that surfaced as another error
+                code = None
+            elif isinstance(err, _commands._Unavailable):
+                print(f"fojax: {err}", file=sys.stderr)
+                code = 3
+            else:
+                if os.environ.get("FOJAX_DEBUG"):  # full traceback for bug reports
+                    raise
+                from fojax import FojaxError
+
+                if isinstance(err, FojaxError | FileExistsError):
+                    kind = "error"
+                else:
+                    kind = f"unexpected {type(err).__name__}"
+                msg = " ".join(str(err).split("\n")[0].split()) if str(err) else ""
+                print(f"fojax: {kind}: {msg}", file=sys.stderr)
+                code = 2
+        if interrupts.signum is not None:  # also when the command ran on to its end
+            interrupts.finish()
+            code = interrupts.exit_code
+            what = interrupts.message or "no file was written"
+            print(f"fojax: interrupted; {what}", file=sys.stderr, flush=True)
+    if argv is None and interrupts.signum is not None:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 if __name__ == "__main__":  # pragma: no cover
