@@ -25,6 +25,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -277,3 +278,28 @@ def test_the_early_handler_is_for_the_fojax_program_only():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        preexec_fn=_defaults)
     assert r.stdout.split() == ["True", "True"], r.stderr
+
+
+def test_ctrl_c_during_an_scs_solve_is_a_keyboard_interrupt(default_handlers):
+    """SCS takes SIGINT for itself while it runs and stops with status "interrupted",
+    which cvxpy reports as a solver failure: before the fix the design saw an
+    `LMIInfeasibleError` ('solver_error') and Python never saw the Ctrl-C."""
+    import cvxpy as cp
+
+    from fojax.design import _lmi
+
+    rng = np.random.default_rng(0)
+    n = 60  # a Lyapunov LMI SCS needs minutes for at eps = 1e-7
+    A = rng.standard_normal((n, n)) - 3 * np.eye(n)
+    P = cp.Variable((n, n), symmetric=True)
+    problem = cp.Problem(cp.Minimize(cp.trace(P)), [P >> np.eye(n), A.T @ P + P @ A << -np.eye(n)])
+    with warnings.catch_warnings():  # "Solution may be inaccurate": 5 iterations
+        warnings.simplefilter("ignore")
+        problem.solve(solver=_lmi._scs_solver(), max_iters=5)  # canonicalization, then cached
+    timer = threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    t0 = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        _lmi.solve(problem, "lyapunov", solver="SCS")
+    timer.join()
+    assert time.monotonic() - t0 < 60  # stopped by the signal, not by the iteration limit

@@ -33,8 +33,10 @@ examples:
                                         with fojax study --resume <its folder>)
 
 exit codes: 0 success; 1 a design failed verification; 2 error (one-line reason on
-stderr); 3 command not available in this installation; 130/143 study interrupted by
-SIGINT/SIGTERM (resumable).
+stderr); 3 command not available in this installation; 130/143 interrupted by SIGINT
+(Ctrl-C) / SIGTERM: any command, at any moment, with one line on stderr; the files
+written are complete (each is written atomically), an interrupted study is resumable.
+A signal ignored when fojax starts (e.g. a background job's SIGINT) stays ignored.
 Python: fojax.config.load_config, fojax.results.save_design / load_design.
 """
 

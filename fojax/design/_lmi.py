@@ -15,6 +15,13 @@ with eps_abs = eps_rel = 1e-7 (SCS's own default, 1e-4, is too loose for
 verification at 1e-8) and retried once with more iterations. Neither solver wins
 everywhere: on §3.1.3's structure Clarabel stopped at ``optimal_inaccurate`` where SCS
 reached ``optimal`` — hence "auto".
+
+**Ctrl-C during an SCS solve.** SCS installs its own SIGINT handler while it runs and
+then stops with status "interrupted", which cvxpy reports as a solver failure: the
+interruption would become an `LMIInfeasibleError` (or the next attempt), and Python
+(the ``fojax`` command, a notebook) would never see it. `solve` therefore runs SCS
+through `_scs_solver`, which re-raises the SIGINT in Python (`signal.raise_signal`)
+when SCS was interrupted: Ctrl-C ends the design as it does everywhere else.
 """
 
 from __future__ import annotations
@@ -61,6 +68,32 @@ def check_solver(solver: str) -> str:
     return s
 
 
+_SCS_SOLVER = None
+
+
+def _scs_solver():
+    """cvxpy's SCS interface, except that a solve SCS stopped on SIGINT re-raises the
+    signal in Python (see the module docstring). One instance, made on first use."""
+    global _SCS_SOLVER
+    if _SCS_SOLVER is None:
+        import signal
+
+        from cvxpy.reductions.solvers.conic_solvers.scs_conif import SCS
+
+        class _SCS(SCS):
+            def name(self):
+                return "SCS (fojax)"  # cvxpy requires custom solvers to have their own name
+
+            def solve_via_data(self, *args, **kwargs):
+                results = super().solve_via_data(*args, **kwargs)
+                if results["info"].get("status_val") == -5:  # SCS_SIGINT: interrupted by SIGINT
+                    signal.raise_signal(signal.SIGINT)  # KeyboardInterrupt, unless ignored
+                return results
+
+        _SCS_SOLVER = _SCS()
+    return _SCS_SOLVER
+
+
 def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_SOLVER) -> dict:
     """Solve; raise `LMIInfeasibleError` unless the status is ``optimal``."""
     import cvxpy as cp
@@ -87,7 +120,7 @@ def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                problem.solve(solver=solver, **settings)
+                problem.solve(solver=_scs_solver() if solver == "SCS" else solver, **settings)
         except cp.error.SolverError as e:
             raise LMIInfeasibleError(name, "solver_error", {"message": str(e)}, hint) from e
         status = problem.status
