@@ -280,7 +280,7 @@ def test_the_early_handler_is_for_the_fojax_program_only():
     assert r.stdout.split() == ["True", "True"], r.stderr
 
 
-def test_ctrl_c_during_an_scs_solve_is_a_keyboard_interrupt(default_handlers):
+def test_ctrl_c_during_an_scs_solve_is_a_keyboard_interrupt():
     """SCS takes SIGINT for itself while it runs and stops with status "interrupted",
     which cvxpy reports as a solver failure: before the fix the design saw an
     `LMIInfeasibleError` ('solver_error') and Python never saw the Ctrl-C."""
@@ -296,10 +296,26 @@ def test_ctrl_c_during_an_scs_solve_is_a_keyboard_interrupt(default_handlers):
     with warnings.catch_warnings():  # "Solution may be inaccurate": 5 iterations
         warnings.simplefilter("ignore")
         problem.solve(solver=_lmi._scs_solver(), max_iters=5)  # canonicalization, then cached
-    timer = threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGINT))
-    timer.start()
+    done, received = threading.Event(), []
+
+    def handler(signum, frame):  # Python's KeyboardInterrupt, once
+        received.append(signum)
+        if len(received) == 1:
+            raise KeyboardInterrupt
+
+    def send():  # Ctrl-C every 0.5 s: one lands while SCS iterates (not in its C set-up,
+        while not done.wait(0.5):  # where Python's handler would wait for the solve's end)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    old = signal.signal(signal.SIGINT, handler)
+    sender = threading.Thread(target=send)
+    sender.start()
     t0 = time.monotonic()
-    with pytest.raises(KeyboardInterrupt):
-        _lmi.solve(problem, "lyapunov", solver="SCS")
-    timer.join()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            _lmi.solve(problem, "lyapunov", solver="SCS")
+    finally:
+        done.set()
+        sender.join()
+        signal.signal(signal.SIGINT, old)
     assert time.monotonic() - t0 < 60  # stopped by the signal, not by the iteration limit

@@ -223,33 +223,16 @@ def main(argv: list[str] | None = None) -> int:
 
     with Interrupts() as interrupts:
         try:
-            code = _run(argv)
+            try:
+                code = _run(argv)
+            except Exception as err:  # one-line reason, non-zero exit
+                code = None if interrupts.signum is not None else _error(err)
+            interrupts.finish()  # from here on a signal is only recorded
         except KeyboardInterrupt:
             if interrupts.signum is None:  # not a signal of this command
                 raise
-            code = None
-        except Exception as err:  # one-line reason, non-zero exit
-            from . import _commands
-
-            if interrupts.signum is not None:  # a signal that surfaced as another error
-                code = None
-            elif isinstance(err, _commands._Unavailable):
-                print(f"fojax: {err}", file=sys.stderr)
-                code = 3
-            else:
-                if os.environ.get("FOJAX_DEBUG"):  # full traceback for bug reports
-                    raise
-                from fojax import FojaxError
-
-                if isinstance(err, FojaxError | FileExistsError):
-                    kind = "error"
-                else:
-                    kind = f"unexpected {type(err).__name__}"
-                msg = " ".join(str(err).split("\n")[0].split()) if str(err) else ""
-                print(f"fojax: {kind}: {msg}", file=sys.stderr)
-                code = 2
-        if interrupts.signum is not None:  # also when the command ran on to its end
             interrupts.finish()
+        if interrupts.signum is not None:  # also when the command ran on to its end
             code = interrupts.exit_code
             what = interrupts.message or "no file was written"
             print(f"fojax: interrupted; {what}", file=sys.stderr, flush=True)
@@ -258,6 +241,25 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.flush()
         os._exit(code)
     return code
+
+
+def _error(err: Exception) -> int:
+    """Print the one-line reason of a failed command; its exit code (2, or 3: unavailable)."""
+    import os
+
+    from . import _commands
+
+    if isinstance(err, _commands._Unavailable):
+        print(f"fojax: {err}", file=sys.stderr)
+        return 3
+    if os.environ.get("FOJAX_DEBUG"):  # full traceback for bug reports
+        raise err
+    from fojax import FojaxError
+
+    kind = "error" if isinstance(err, FojaxError | FileExistsError) else f"unexpected {type(err).__name__}"
+    msg = " ".join(str(err).split("\n")[0].split()) if str(err) else ""
+    print(f"fojax: {kind}: {msg}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":  # pragma: no cover
