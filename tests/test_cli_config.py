@@ -428,7 +428,7 @@ def test_a_signal_during_a_checkpoint_write_takes_effect_after_it(tmp_path):
     import inspect
 
     import fojax.tuning._loop as tune_module
-    from fojax.cli._commands import _Interrupts
+    from fojax.cli._signals import Interrupts as _Interrupts
 
     # the writer the CLI recognises is the one the tuning uses
     name, part = _Interrupts.PAIRED_WRITERS[0]

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from ._signals import check as check_interrupted, Interrupts as _Interrupts, on_interrupt  # noqa: F401
+from ._signals import check as check_interrupted, on_interrupt
 
 
 class _Progress:
