@@ -6,12 +6,12 @@ Layers (data flows one way): ``plant`` (models) → ``analysis`` (structure) →
 ``models`` holds the thesis's examples.
 """
 
-import importlib.metadata
-
 from .cli import _startup as _startup  # first: the `fojax` program ends on Ctrl-C while importing
 
 
 # isort: split
+import importlib.metadata
+
 from . import (
     analysis as analysis,
     config as config,

@@ -205,10 +205,17 @@ def test_a_signal_while_fojax_design_designs_an_observer(sig, observer, tmp_path
         assert "PO.npz" in names
 
 
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux /proc")
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_while_python_imports_fojax(sig):
     child = _Child("examples")
-    time.sleep(0.5)  # importing fojax (JAX, SciPy, cvxpy, ...) takes seconds
+    # NumPy's extension is mapped into the process: fojax's imports have begun (Python's own
+    # start-up, before fojax, is outside fojax's reach); JAX, SciPy, cvxpy ... take seconds more
+    maps = Path(f"/proc/{child.proc.pid}/maps")
+    deadline = time.monotonic() + TIMEOUT
+    while "_multiarray_umath" not in maps.read_text() and time.monotonic() < deadline:
+        assert child.proc.poll() is None, child.err
+        time.sleep(0.005)
     child.signal(sig)
     _assert_clean_exit(child, sig, "fojax: interrupted")
     assert child.out == [] or all("example" in line for line in child.out)
