@@ -6,6 +6,10 @@ Layers (data flows one way): ``plant`` (models) → ``analysis`` (structure) →
 ``models`` holds the thesis's examples.
 """
 
+from .cli import _startup as _startup  # first: the `fojax` program ends on Ctrl-C while importing
+
+
+# isort: split
 import importlib.metadata
 
 from . import (

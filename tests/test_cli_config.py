@@ -542,13 +542,15 @@ def test_a_signal_during_a_checkpoint_write_takes_effect_after_it(tmp_path):
     import inspect
 
     import fojax.tuning._loop as tune_module
-    from fojax.cli._commands import _Interrupts
+    from fojax.cli._signals import Interrupts as _Interrupts
 
     # the writer the CLI recognises is the one the tuning uses
     name, part = _Interrupts.PAIRED_WRITERS[0]
     assert part in inspect.getfile(getattr(tune_module, name))
-    # the handlers in place before (not necessarily Python's defaults: an xdist worker may
-    # have SIGINT ignored, depending on the execnet version)
+    # an xdist worker may have SIGINT ignored (depending on the execnet version), and an
+    # ignored signal stays ignored in `fojax`: start from Python's defaults
+    ignored = {s: signal.signal(s, h) for s, h in ((signal.SIGINT, signal.default_int_handler),
+                                                  (signal.SIGTERM, signal.SIG_DFL))}
     before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     # a stand-in with the same name and file: the signal arrives between its two writes
     src = (
@@ -576,6 +578,8 @@ def test_a_signal_during_a_checkpoint_write_takes_effect_after_it(tmp_path):
             time.sleep(0.01)
         pytest.fail("not interrupted")
     assert {s: signal.getsignal(s) for s in before} == before  # restored
+    for s, h in ignored.items():
+        signal.signal(s, h)
 
 
 # ---------------------------------------------------------------- fojax design: every observer, files

@@ -5,10 +5,11 @@ from __future__ import annotations
 import hashlib
 import json
 import pathlib
-import signal
 import time
 
 import numpy as np
+
+from ._signals import check as check_interrupted, on_interrupt
 
 
 class _Progress:
@@ -415,6 +416,8 @@ def study(
                 f"{n_samples} samples, horizon {T} s, {n_steps} tuning steps)")
     else:
         folder = new_results_folder(out_dir if out_dir is not None else "fojax-results", prefix=f"study-{cfg.name}")
+        on_interrupt(f"{folder} was interrupted while it was being set up (it cannot be resumed); "
+                     "delete it and start the study again")
         out.say(f"fojax study: {cfg.name} ({path}) -> results folder {folder}")
         config_bytes = pathlib.Path(path).read_bytes()
         atomic_write_bytes(folder / "config.toml", config_bytes)
@@ -426,17 +429,9 @@ def study(
             "fojax_version": fojax_version(),
         })
     out.say(f"samples: {plan.message}")
-    with _Interrupts() as interrupts:
-        try:
-            return _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps,
-                          resumed=resume is not None)
-        except KeyboardInterrupt:
-            import sys
-
-            code = 128 + (interrupts.signum or signal.SIGINT)
-            print(f"fojax: interrupted; every file in {folder} is complete (tuning checkpoints "
-                  f"included). Continue with: fojax study --resume {folder}", file=sys.stderr, flush=True)
-            return code
+    on_interrupt(f"every file in {folder} is complete (tuning checkpoints included). Continue "
+                 f"with: fojax study --resume {folder}")
+    return _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, resumed=resume is not None)
 
 
 def _resume_folder(folder, config_path, out_dir, given: dict):
@@ -496,63 +491,6 @@ def _resume_folder(folder, config_path, out_dir, given: dict):
     return folder, opts["config"], cfg
 
 
-class _Interrupts:
-    """SIGINT/SIGTERM raise `KeyboardInterrupt` (so that atomic writers remove their
-    temporary files), except while a tuning checkpoint (an ``.npz`` + ``.json`` pair) is
-    being written: then the interruption happens right after that write."""
-
-    #: (function name, part of its file path) of writers that must not be interrupted
-    PAIRED_WRITERS = (("save_checkpoint", "tuning"),)
-
-    def __init__(self):
-        self.signum = None
-        self._old = {}
-        self._waiting = False
-
-    def __enter__(self):
-        import threading
-
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._old[sig] = signal.signal(sig, self._handler)
-        return self
-
-    def __exit__(self, *exc):
-        for sig, old in self._old.items():
-            signal.signal(sig, old)
-        return False
-
-    @classmethod
-    def _in_paired_write(cls, frame) -> bool:
-        while frame is not None:
-            code = frame.f_code
-            if any(code.co_name == n and part in code.co_filename for n, part in cls.PAIRED_WRITERS):
-                return True
-            frame = frame.f_back
-        return False
-
-    def _handler(self, signum, frame):
-        self.signum = self.signum or signum
-        if self._in_paired_write(frame):
-            if not self._waiting:  # interrupt once the write is complete
-                import threading
-
-                self._waiting = True
-                threading.Thread(target=self._after_write, args=(threading.main_thread().ident,),
-                                 daemon=True).start()
-            return
-        raise KeyboardInterrupt
-
-    def _after_write(self, main_id):
-        import _thread
-        import sys
-
-        while self._in_paired_write(sys._current_frames().get(main_id)):
-            time.sleep(0.01)
-        self._waiting = False
-        _thread.interrupt_main(self.signum)
-
-
 def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bool) -> int:
     """The body of `study` (after the results folder is set up); `plan` is the
     `fojax.cli._study_samples.SamplePlan` announced and recorded by `study`."""
@@ -590,6 +528,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                                                region=o.region, R=o.R, q0=o.q0, q1=o.q1)
             files[f"design of '{o.name}'"] = save_design(d, saved, overwrite=ow,
                                                          metadata={"config": path, "observer": o.name})
+        check_interrupted()
         designs[o.name] = d
         figures[f"Error poles of '{o.name}'"] = plot_poles(folder / f"poles-{o.name}.png",
                                                            d.report.eigenvalues, d.region, overwrite=ow)
@@ -636,7 +575,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                           "samples (compiling the gradient first)"):
                 tr = tuning.tune(designs[nm], train, heldout=heldout_small, steps=n_steps,
                                  optimizer=tuning.shared_optimizer("adam", learning_rate=tspec.learning_rate),
-                                 eval_every=max(1, n_steps // 10),
+                                 eval_every=max(1, n_steps // 10), callback=_after_step,
                                  checkpoint=checkpoint, resume=resumed, quiet=out.quiet)
             tuned_name = f"{nm}-tuned"
             designs[tuned_name] = tr.design
@@ -704,6 +643,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         res = studies.run_study(st, [d.observer for d in designs.values()], observer_names=names,
                                 quantiles=(0.05, 0.5, 0.95), quiet=out.quiet, solver=diffrax.Tsit5(),
                                 settle_tol=ss.SETTLE_TOL)
+        check_interrupted()  # a signal during the run whose interruption was swallowed
     flat = ss.flat_metrics(res)  # {metric: (observer, sample, signal)}
     # the samples are joint draws along one axis (the Study's fault axis has size 1): save
     # them as such, not as "uncertainty" x "fault"
@@ -809,6 +749,11 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
     return 0 if all(d.report.passed for d in designs.values()) else 1
 
 
+def _after_step(step, record):
+    """The tuning callback of `fojax study`: a signal received during the step ends the
+    tuning here (the checkpoint of the previous step is complete), even if the
+    interruption it raised was swallowed on the way."""
+    check_interrupted()
 def _cell(v) -> str:
     """A console table cell: numbers to 4 significant digits, strings shortened."""
     if isinstance(v, str):

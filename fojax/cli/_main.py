@@ -35,8 +35,10 @@ examples:
 exit codes: 0 success; 1 an observer could not be designed or failed verification
 (the others are still designed and saved; each failure is named on stderr and in the
 report); 2 error (one-line reason on stderr; `fojax check a b c` checks every file and
-reports each bad one); 3 command not available in this installation; 130/143 study
-interrupted by SIGINT/SIGTERM (resumable).
+reports each bad one); 3 command not available in this installation; 130/143
+interrupted by SIGINT (Ctrl-C) / SIGTERM: any command, at any moment, with one line on
+stderr; the files written are complete (each is written atomically), an interrupted
+study is resumable. A signal ignored when fojax starts stays ignored.
 files: fojax writes only inside the results folder (names in a config and --name must
 be plain file names: letters, digits, '.', '_', '-'), atomically, with the permissions
 your umask gives, and lists what it wrote in the folder's fojax-manifest.json.
@@ -150,7 +152,7 @@ def _check_all(configs: list[str], quiet: bool) -> int:
     return status
 
 
-def main(argv: list[str] | None = None) -> int:
+def _run(argv: list[str] | None) -> int:
     raw = argparse.RawDescriptionHelpFormatter
     parser = argparse.ArgumentParser(
         prog="fojax", description=DESCRIPTION, epilog=EPILOG, formatter_class=raw
@@ -242,37 +244,79 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     command = args.command
     from . import _commands
+    from ._signals import on_interrupt
 
-    try:
-        if command == "demo":
-            return demo(quiet=args.quiet)
-        if command == "examples":
-            return _commands.examples(quiet=args.quiet)
-        if command == "study":
-            _enable_x64()
-            config = None if args.config is None else _commands.resolve_config(args.config)
-            return _commands.study(config, args.out, samples=args.samples, horizon=args.horizon,
-                                   steps=args.steps, resume=args.resume, quiet=args.quiet)
+    if command == "demo":
+        return demo(quiet=args.quiet)
+    if command == "examples":
+        return _commands.examples(quiet=args.quiet)
+    if command == "study":
         _enable_x64()
-        configs = [_commands.resolve_config(c) for c in args.config]
-        if command == "check":
-            return _check_all(configs, args.quiet)
-        if command == "design" and args.name is not None and len(configs) > 1:
-            parser.error("--name needs a single CONFIG (each config gets its own folder)")
-        status = 0
-        for config in configs:
-            status = max(status, _commands.design(
-                config, args.out, name=args.name, overwrite=args.overwrite, quiet=args.quiet
-            ))
-        return status
-    except _commands._Unavailable as err:
+        config = None if args.config is None else _commands.resolve_config(args.config)
+        return _commands.study(config, args.out, samples=args.samples, horizon=args.horizon,
+                               steps=args.steps, resume=args.resume, quiet=args.quiet)
+    _enable_x64()
+    if command == "design":
+        on_interrupt("every file written so far is complete (each is written atomically); the "
+                     "observers not reached yet are missing from the results folder")
+    configs = [_commands.resolve_config(c) for c in args.config]
+    if command == "check":
+        return _check_all(configs, args.quiet)
+    if command == "design" and args.name is not None and len(configs) > 1:
+        parser.error("--name needs a single CONFIG (each config gets its own folder)")
+    status = 0
+    for config in configs:
+        status = max(status, _commands.design(
+            config, args.out, name=args.name, overwrite=args.overwrite, quiet=args.quiet
+        ))
+    return status
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the ``fojax`` command with `argv` (default: ``sys.argv[1:]``) and return its exit code.
+
+    SIGINT/SIGTERM end every command with one line on stderr and exit code 130/143 (see
+    `fojax.cli._signals`). Called as the program (`argv` None: the ``fojax`` script,
+    ``python -m fojax.cli``), an interrupted command leaves with ``os._exit`` after its
+    message, without the interpreter shutdown that crashes while jaxlib still compiles.
+    """
+    import os
+
+    from ._signals import Interrupts
+
+    with Interrupts() as interrupts:
+        try:
+            try:
+                code = _run(argv)
+            except Exception as err:  # one-line reason, non-zero exit
+                code = None if interrupts.signum is not None else _error(err)
+            interrupts.finish()  # from here on a signal is only recorded
+        except KeyboardInterrupt:
+            if interrupts.signum is None:  # not a signal of this command
+                raise
+            interrupts.finish()
+        if interrupts.signum is not None:  # also when the command ran on to its end
+            code = interrupts.exit_code
+            what = interrupts.message or "no file was written"
+            print(f"fojax: interrupted; {what}", file=sys.stderr, flush=True)
+    if argv is None and interrupts.signum is not None:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
+def _error(err: Exception) -> int:
+    """Print the one-line reason of a failed command; its exit code (2, or 3: unavailable)."""
+    from . import _commands
+
+    if isinstance(err, _commands._Unavailable):
         print(f"fojax: {err}", file=sys.stderr)
         return 3
-    except Exception as err:  # one-line reason, non-zero exit
-        if _debug():  # FOJAX_DEBUG=1: full traceback for bug reports
-            raise
-        print(_error_line(err), file=sys.stderr)
-        return 2
+    if _debug():  # FOJAX_DEBUG=1: full traceback for bug reports
+        raise err
+    print(_error_line(err), file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

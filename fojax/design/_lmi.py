@@ -28,6 +28,13 @@ LMIs are strict by ``margin`` (1e-3) and every solution is re-verified in float6
 (`fojax.design.verify`), so the solver's tolerance never decides what is returned. The
 settings that produced a solution are in ``info["settings"]``, the refused attempts in
 ``info["retried_after"]``.
+
+**Ctrl-C during an SCS solve.** SCS installs its own SIGINT handler while it runs and
+then stops with status "interrupted", which cvxpy reports as a solver failure: the
+interruption would become an `LMIInfeasibleError` (or the next attempt), and Python
+(the ``fojax`` command, a notebook) would never see it. `solve` therefore runs SCS
+through `_scs_solver`, which re-raises the SIGINT in Python (`signal.raise_signal`)
+when SCS was interrupted: Ctrl-C ends the design as it does everywhere else.
 """
 
 from __future__ import annotations
@@ -76,6 +83,32 @@ def check_solver(solver: str) -> str:
     return s
 
 
+_SCS_SOLVER = None
+
+
+def _scs_solver():
+    """cvxpy's SCS interface, except that a solve SCS stopped on SIGINT re-raises the
+    signal in Python (see the module docstring). One instance, made on first use."""
+    global _SCS_SOLVER
+    if _SCS_SOLVER is None:
+        import signal
+
+        from cvxpy.reductions.solvers.conic_solvers.scs_conif import SCS
+
+        class _SCS(SCS):
+            def name(self):
+                return "SCS (fojax)"  # cvxpy requires custom solvers to have their own name
+
+            def solve_via_data(self, *args, **kwargs):
+                results = super().solve_via_data(*args, **kwargs)
+                if results["info"].get("status_val") == -5:  # SCS_SIGINT: interrupted by SIGINT
+                    signal.raise_signal(signal.SIGINT)  # KeyboardInterrupt, unless ignored
+                return results
+
+        _SCS_SOLVER = _SCS()
+    return _SCS_SOLVER
+
+
 def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_SOLVER) -> dict:
     """Solve; raise `LMIInfeasibleError` unless the status is ``optimal``.
 
@@ -106,7 +139,7 @@ def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                problem.solve(solver=solver, **settings)
+                problem.solve(solver=_scs_solver() if solver == "SCS" else solver, **settings)
         except cp.error.SolverError as e:
             # a numerical breakdown (Clarabel's NumericalError/InsufficientProgress) is
             # retried like optimal_inaccurate
