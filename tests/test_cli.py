@@ -96,3 +96,33 @@ def test_check_checks_every_file_and_reports_each_bad_one(tmp_path, capsys, monk
     monkeypatch.setenv("FOJAX_DEBUG", "1")
     with pytest.raises(fojax.ConfigError, match="not valid TOML"):
         main(["check", str(bad_syntax), "example_3_1_3"])
+
+
+def test_design_of_several_configs_goes_on_after_a_bad_one(tmp_path, capsys):
+    # `fojax design a b`: a config that cannot be loaded is named on stderr and the next one
+    # is still designed (on main the first error ended the command)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[model]\nE = [[1.0]]\nA = [[-1.0]]\nB = [[1.0]]\nC = [[1.0]]\n")  # no L
+    code = main(["design", str(bad), "example_3_1_3", "--out", str(tmp_path / "runs"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and err[0].startswith(f"fojax: error: {bad}: ") and "'L'" in err[0]
+    [folder] = (tmp_path / "runs").iterdir()  # the good config's results folder
+    assert folder.name.startswith("design-") and (folder / "report.md").is_file()
+    assert list(folder.glob("*.npz"))
+
+
+def test_output_into_a_closed_pipe_ends_quietly():
+    # `fojax examples | head -1`: the reader leaves; no "unexpected BrokenPipeError" line,
+    # exit status 141 (128 + SIGPIPE, what a shell reports for such a writer)
+    script = (
+        "import os, sys\n"
+        "r, w = os.pipe(); os.close(r)\n"  # a pipe whose reader is gone
+        "os.dup2(w, 1)\n"
+        "import signal; signal.signal(signal.SIGPIPE, signal.SIG_IGN)\n"  # EPIPE, not a kill
+        "from fojax.cli import main\n"
+        "sys.exit(main(['examples']))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 141, r.stderr
+    assert r.stderr == ""

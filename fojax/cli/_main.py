@@ -133,15 +133,16 @@ def _error_line(err: BaseException, path: str | None = None) -> str:
     return f"fojax: {kind}: {msg}"
 
 
-def _check_all(configs: list[str], quiet: bool) -> int:
-    """`fojax check a b c`: every file is checked; each bad one gets its one-line reason
-    on stderr, and the exit code is 2 if any failed (after all were checked)."""
+def _each_config(configs: list[str], command) -> int:
+    """Run ``command(config)`` for every config (`fojax check a b c`, `fojax design a b c`):
+    a config that fails gets its one-line reason on stderr (naming the file) and the next
+    one still runs; the exit code is the worst of all (2 for a failed config)."""
     from . import _commands
 
     status = 0
     for config in configs:
         try:
-            status = max(status, _commands.check(config, quiet=quiet))
+            status = max(status, command(config))
         except _commands._Unavailable:
             raise
         except Exception as err:
@@ -261,15 +262,11 @@ def _run(argv: list[str] | None) -> int:
                      "observers not reached yet are missing from the results folder")
     configs = [_commands.resolve_config(c) for c in args.config]
     if command == "check":
-        return _check_all(configs, args.quiet)
+        return _each_config(configs, lambda c: _commands.check(c, quiet=args.quiet))
     if command == "design" and args.name is not None and len(configs) > 1:
         parser.error("--name needs a single CONFIG (each config gets its own folder)")
-    status = 0
-    for config in configs:
-        status = max(status, _commands.design(
-            config, args.out, name=args.name, overwrite=args.overwrite, quiet=args.quiet
-        ))
-    return status
+    return _each_config(configs, lambda c: _commands.design(
+        c, args.out, name=args.name, overwrite=args.overwrite, quiet=args.quiet))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -313,6 +310,11 @@ def _error(err: Exception) -> int:
     if isinstance(err, _commands._Unavailable):
         print(f"fojax: {err}", file=sys.stderr)
         return 3
+    if isinstance(err, BrokenPipeError):  # `fojax examples | head -2`: the reader left
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        return 128 + 13  # as a shell reports a process ended by SIGPIPE
     if _debug():  # FOJAX_DEBUG=1: full traceback for bug reports
         raise err
     print(_error_line(err), file=sys.stderr)
