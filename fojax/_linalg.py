@@ -122,3 +122,28 @@ def jsqrtm_psd(S):
     S = 0.5 * (S + S.T)
     w, V = jnp.linalg.eigh(S)
     return (V * jnp.sqrt(jnp.clip(w, 0.0))) @ V.T
+
+
+def clusters(points, tol) -> list[np.ndarray]:
+    """Groups of indices of `points` (complex numbers) linked by single linkage: ``i`` and
+    ``j`` are in one group when a chain of points each within the tolerance of the next
+    joins them. `tol` is one number or one per point (``|p_i - p_j| <= tol[i]``)."""
+    pts = np.asarray(points, dtype=complex).ravel()
+    n = pts.size
+    tols = np.broadcast_to(np.asarray(tol, dtype=float), (n,))
+    parent = list(range(n))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(n):
+        for j in range(i + 1, n):
+            if abs(pts[i] - pts[j]) <= tols[i]:
+                parent[find(i)] = find(j)
+    groups: dict[int, list[int]] = {}
+    for i in range(n):
+        groups.setdefault(find(i), []).append(i)
+    return [np.asarray(g) for g in groups.values()]

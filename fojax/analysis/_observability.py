@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._linalg import left_null_space, rank
+from .._linalg import clusters, left_null_space, rank
 from ..plant import check_functional, DescriptorSystem
 from ._common import as_system, crank, Pencil, require_regular
 from ._pencil import _poles_normalized, AXIS_TOL
@@ -42,22 +42,9 @@ def _test_points(poles: np.ndarray) -> list[complex]:
     k = len(pts)
     if k < 2:
         return pts
-    parent = list(range(k))
-
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for i in range(k):
-        for j in range(i + 1, k):
-            if abs(pts[i] - pts[j]) <= CLUSTER_RTOL * max(1.0, abs(pts[i])):
-                parent[find(i)] = find(j)
-    groups: dict[int, list[complex]] = {}
-    for i in range(k):
-        groups.setdefault(find(i), []).append(pts[i])
-    for g in groups.values():
+    rtol = CLUSTER_RTOL * np.maximum(1.0, np.abs(np.asarray(pts)))
+    groups = [[pts[i] for i in g] for g in clusters(pts, rtol)]
+    for g in groups:
         if len(g) > 1:
             pts.append(complex(np.mean(g)))
     return pts

@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from .._linalg import clusters
 from ._io import atomic_write_bytes
 
 
@@ -131,27 +132,6 @@ def _part_boundary(part, far: float):
     raise TypeError(f"cannot draw a region of type {type(part).__name__}")
 
 
-def _clusters(points: np.ndarray, tol: float) -> list[np.ndarray]:
-    """Indices of points within `tol` of each other (single linkage)."""
-    n = len(points)
-    parent = list(range(n))
-
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for i in range(n):
-        for j in range(i + 1, n):
-            if abs(points[i] - points[j]) <= tol:
-                parent[find(i)] = find(j)
-    groups: dict[int, list[int]] = {}
-    for i in range(n):
-        groups.setdefault(find(i), []).append(i)
-    return [np.asarray(g) for g in groups.values()]
-
-
 def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
                   title: str = "Observer error poles and design region", size=DEFAULT_SIZE):
     from matplotlib.patches import Polygon
@@ -230,7 +210,7 @@ def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
     ax.axhline(0.0, color="k", lw=0.5, zorder=0.5)
 
     def _markers(z, fmt, color, ms, label, **kw):
-        groups = _clusters(z, tol)
+        groups = clusters(z, tol)
         pos = np.array([z[g].mean() for g in groups]) if groups else np.zeros(0, complex)
         mult = np.array([len(g) for g in groups], dtype=int)
         if pos.size:
