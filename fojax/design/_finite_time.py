@@ -242,7 +242,7 @@ def _design_ft(
     if not (isinstance(r1, Disk) and isinstance(r2, Disk)):
         raise RegionError("finite-time observers need two Disk regions (bounded, separable).")
     _check_separated(r1, r2)
-    s = prepare_structure(sys, L, R=R, q0=q0, q1=0, region=r1)
+    s = prepare_structure(sys, L, R=R, q0=q0, q1=0, region=r1, fname="design_finite_time_observer")
     check_detectability(s, r2)
     if kind == "proportional":
         q1 = 0

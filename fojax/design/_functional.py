@@ -41,8 +41,10 @@ from ..observer._generalized import GeneralizedFunctionalObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
 from . import _lmi
 from ._conditions import (
+    check_data_range,
     check_detectability,
     check_functional_observability,
+    check_regular,
     check_structure,
     default_R,
     unobservable_modes,
@@ -329,7 +331,8 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
         try:
             info = _lmi.solve(prob, name, hint=hint, solver=sv)
         except LMIInfeasibleError as err:
-            statuses.append(f"{err.status} ({sv}, {o})")
+            why = f": {err.info['message']}" if err.info.get("message") else ""
+            statuses.append(f"{err.status} ({sv}, {o}{why})")
             continue
         info["objective"] = o
         if statuses:
@@ -373,8 +376,10 @@ def verify_structure_design(s, params, region, X, *, rtol=None, extra=None) -> t
 
 
 def prepare_structure(sys: DescriptorSystem, L, *, R=None, q0=None, q1=0, region, psi="descriptor",
-                      Eperp=None, A_rules=None, B_rules=None) -> FunctionalObserverStructure:
-    """Existence checks (Assumption 1, rank conditions, detectability) and the structure."""
+                      Eperp=None, A_rules=None, B_rules=None,
+                      fname: str = "design_functional_observer") -> FunctionalObserverStructure:
+    """Existence checks (regularity of every rule, the data range, Assumption 1, rank
+    conditions, detectability) and the structure; `fname` names the caller in errors."""
     E, A, B, C = (np.asarray(x) for x in (sys.E, sys.A, sys.B, sys.C))
     if A_rules is not None:
         A, B = np.asarray(A_rules), np.asarray(B_rules)
@@ -382,8 +387,12 @@ def prepare_structure(sys: DescriptorSystem, L, *, R=None, q0=None, q1=0, region
     if Eperp is None:
         Eperp = left_null_space(E) if psi == "descriptor" else np.zeros((0, E.shape[0]))
     As = A if A.ndim == 3 else A[None]
+    for i, Ai in enumerate(As):
+        check_regular(E, Ai, fname=fname,
+                      what=f"rule {i + 1} (E, A_{i + 1})" if len(As) > 1 else "the plant (E, A)")
+    check_data_range({"E": E, "A": As, "B": B, "C": C, "L": L}, fname=fname)
     for Ai in As:
-        check_functional_observability(E, Ai, C, L, Eperp)
+        check_functional_observability(E, Ai, C, L, Eperp, output_only=psi == "output")
     if R is None:
         R = default_R(E, A, B, C, L, psi=psi, Eperp=Eperp, region=region, q0=q0, q1=q1)
     else:
