@@ -370,9 +370,34 @@ def verify_structure_design(s, params, region, X, *, rtol=None, extra=None) -> t
         region,
         X,
         extra=extra,
+        scales=condition_scales(s, mats),
         **kw,
     )
     return mats, report
+
+
+def condition_scales(s, mats) -> dict:
+    """Per condition, the sum of the norms of its terms (host): the scale its residual is
+    relative to in `verify` —
+    a. ``‖N‖‖TE‖ + ‖F‖‖Ψ‖ + ‖T‖‖A‖``, b. ``‖H‖ + ‖T‖‖B‖``, c. ``‖S‖‖TE‖ + ‖M‖‖Ψ‖``,
+    d. ``‖P‖‖TE‖ + ‖Q‖‖Ψ‖ + ‖L‖`` (max over rules, spectral norms)."""
+
+    def nrm(x):
+        x = np.asarray(x, dtype=float)
+        if x.size == 0:
+            return 0.0
+        return float(np.max(np.linalg.norm(x.reshape((-1,) + x.shape[-2:]), ord=2, axis=(-2, -1))))
+
+    As, Bs = np.asarray(s.rules_A()), np.asarray(s.rules_B())
+    Psi = np.vstack([np.asarray(s.Eperp) @ As[0], np.asarray(s.C)])
+    T = np.asarray(mats.T)
+    TE, nP, nT = nrm(T @ np.asarray(s.E)), nrm(Psi), nrm(T)
+    return {
+        "a": nrm(mats.N) * TE + nrm(mats.F) * nP + nT * nrm(As),
+        "b": nrm(mats.H) + nT * nrm(Bs),
+        "c": nrm(mats.S) * TE + nrm(mats.M) * nP,
+        "d": nrm(mats.P) * TE + nrm(mats.Q) * nP + nrm(s.L),
+    }
 
 
 def prepare_structure(sys: DescriptorSystem, L, *, R=None, q0=None, q1=0, region, psi="descriptor",

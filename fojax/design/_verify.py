@@ -120,17 +120,28 @@ def verify(
     rtol: float = RESIDUAL_RTOL,
     raise_on_failure: bool = True,
     extra: dict | None = None,
+    scales: dict | None = None,
 ) -> VerificationReport:
     """Check residuals, eigenvalue locations and (if `X` is given) the region LMI.
 
     `error_matrices` is ``(k, d, d)``: the LMI is re-checked for every rule with the
-    common certificate `X`.
+    common certificate `X`. With `scales` (one per residual: the sum of the norms of the
+    terms of that condition), the relative residual is ``max_k residual_k / scales_k`` —
+    each condition relative to its own terms, so that one large matrix (e.g. ``C`` in
+    small units) cannot hide a wrong condition d. (``PTE + QΨ = L``) behind a large
+    common scale; otherwise ``max(residuals) / max(scale, 1)``.
     """
     error_matrices = np.asarray(error_matrices, dtype=float)
     if error_matrices.ndim == 2:
         error_matrices = error_matrices[None]
     res = {k: float(v) for k, v in residuals.items()}
-    rel = max(res.values()) / max(float(scale), 1.0) if res else 0.0
+    if scales is not None and res:
+        rel = max(
+            (v / float(scales[k]) if float(scales[k]) > 0 else (0.0 if v == 0 else np.inf))
+            for k, v in res.items()
+        )
+    else:
+        rel = max(res.values()) / max(float(scale), 1.0) if res else 0.0
     eigs = (
         np.concatenate([np.linalg.eigvals(Ai) for Ai in error_matrices])
         if error_matrices.shape[-1]
