@@ -305,7 +305,9 @@ def _check(sys):
 
 
 _COMMON_ARGS = r"""
-    - `L`: ``(m, n)`` state feedback ($u = Lx$); designed by `design_state_feedback`
+    - `L`: ``(m, n)`` state feedback ($u = Lx$); a given `L` must make $(E, A + BL)$
+      regular and impulse-free (`fojax.IrregularSystemError` / `fojax.ImpulsiveSystemError`
+      otherwise, checked before any design); designed by `design_state_feedback`
       (with `feedback` as keyword arguments, e.g. ``{"decay": 1.0}``) when ``None``.
     - `region`, `R`, `q0`, `q1`, `kind`, `solver`: the observer design on the augmented
       system, passed to `fojax.design.design_functional_observer` (default region

@@ -196,7 +196,8 @@ def design_finite_time_observer(
     **Returns:** a `FiniteTimeObserverDesign`; its `observer.reconstruct` /
     `finite_time_estimates` equal ``z(t)`` for ``t ≥ h`` on the nominal model.
 
-    **Raises:** `RegionError` (regions not two separated disks),
+    **Raises:** `IrregularSystemError`, `DataRangeError` (as
+    `design_functional_observer`), `RegionError` (regions not two separated disks),
     `DetectabilityError` (a mode that no gain moves: it would be common to both
     observers, violating Lemma 6), `LMIInfeasibleError`, `DesignVerificationError`
     (including an ill-conditioned reconstruction, ``rcond < 1e-8``).

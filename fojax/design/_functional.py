@@ -452,7 +452,10 @@ def design_functional_observer(
 
     **Arguments:**
 
-    - `sys`: the plant, a `fojax.DescriptorSystem` (regular; $E$ may be singular).
+    - `sys`: the plant, a `fojax.DescriptorSystem`: regular (checked first, with
+      `fojax.analysis.is_regular`'s decision); $E$ may be singular, and the plant may even
+      be impulsive when Assumption 1 holds (partial impulse observability with respect
+      to $L$, thesis §3.1: the observer only uses $w = [-E^\perp Bu;\ y]$).
     - `L`: ``(q, n)`` functional to estimate.
     - `kind`: ``"generalized"`` (eq. 3.5), ``"PI"`` ($S = 0$) or ``"proportional"``
       ($q_1 = 0$).
@@ -470,10 +473,13 @@ def design_functional_observer(
     conditions a.–d. (≤ 1e-8 relative), the error eigenvalues inside `region` and the
     region LMI re-checked in float64 at the certificate ``X``.
 
-    **Raises:** `FunctionalObservabilityError`, `RankConditionError`,
+    **Raises:** `IrregularSystemError` (a singular pencil, with the failed rank decision),
+    `DataRangeError` (a matrix whose largest entry is outside ``2^±100``: rescale its
+    units), `FunctionalObservabilityError`, `RankConditionError`,
     `DetectabilityError` (existence conditions, checked before any LMI, with what to
-    change), `LMIInfeasibleError` (solver status other than ``optimal``),
-    `DesignVerificationError` (a float64 check failed).
+    change), `LMIInfeasibleError` (solver status other than ``optimal``, or a solver
+    exception, with its message), `DesignVerificationError` (a float64 check failed:
+    each design condition relative to the norms of its own terms).
     """
     check_kind(kind)
     sys = _as_system(sys)

@@ -208,7 +208,9 @@ def design_ts_observer(
     ≤ 1e-8 relative, eigenvalues of every $\mathbb A_i$ in `region`, the region LMI
     and the Lyapunov inequality re-checked at the common $X$ in float64).
 
-    **Raises:** `ImpulseObservabilityError` (Assumption 2, naming the rule),
+    **Raises:** `IrregularSystemError` (a rule whose pencil $sE - A_i$ is singular,
+    naming the rule), `DataRangeError`, `ImpulseObservabilityError` (Assumption 2,
+    naming the rule),
     `FunctionalObservabilityError` (with Γ = [E; C]), `RankConditionError`,
     `DetectabilityError` (naming the rule), `LMIInfeasibleError`,
     `DesignVerificationError`.

@@ -499,7 +499,8 @@ def design_unknown_input_observer(
     a.–f. (≤ 1e-8 relative), the eigenvalues of $\mathbb A$ (inside `region`) and the
     region LMI re-checked at $X$.
 
-    **Raises:** `ShapeError`, `RankConditionError` (rank of D, rank conditions),
+    **Raises:** `IrregularSystemError` (singular pencil), `DataRangeError`, `ShapeError`,
+    `RankConditionError` (rank of D, rank conditions),
     `FunctionalObservabilityError`, `DetectabilityError` (fixed modes, unknown-input
     mode), `LMIInfeasibleError`, `DesignVerificationError`.
     """
