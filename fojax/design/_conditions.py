@@ -62,9 +62,12 @@ def check_regular(E, A, *, fname: str, what: str = "the plant") -> None:
 #: ``[DATA_RANGE[0], DATA_RANGE[1]] = [2^-100, 2^100]`` (about 8e-31 to 1.3e30).
 #: Outside it, the region LMIs (whose coefficients are products of two or three such
 #: entries) leave the range where double precision with the solvers' absolute tolerances
-#: (~1e-9) means anything: on main, entries near 1e300 crashed SCS ("ScsWork allocation
-#: error"), 1e-300 in L crashed the default-R search, and 1e300 in C "verified" an observer
-#: whose condition d. residual was 12.
+#: (~1e-9) means anything. Measured before this check on thesis example 4.1.3: E, A, B
+#: times 1e300 "verified" (relative residual 1e-299), C times 1e300 gave a wrong
+#: FunctionalObservabilityError, L times 1e-300 a raw ValueError of the default-R search;
+#: issue 15 reports "ScsWork allocation error!" from SCS. Inside the range, mixed units can
+#: still make a design fail (a typed RankConditionError/DesignVerificationError), but the
+#: per-condition verification never returns a wrong observer.
 DATA_RANGE = (2.0**-100, 2.0**100)
 
 
@@ -116,8 +119,7 @@ def check_impulse_free(E, A, *, fname: str, what: str = "the closed loop (E, A +
 
 
 def check_functional_observability(E, A, C, L, Eperp=None, *, what: str = "L", D=None,
-                                   output_only: bool = False, condition: str | None = None,
-                                   explain: str = "", suggestion: str | None = None) -> None:
+                                   output_only: bool = False) -> None:
     """Assumption 1: rank [L; E; E⊥A; C] = rank [E; E⊥A; C]; raises with a suggestion.
 
     The ranks are `fojax.analysis.functional_rank_pair`'s (blocks normalised by their
@@ -132,11 +134,10 @@ def check_functional_observability(E, A, C, L, Eperp=None, *, what: str = "L", D
     if r1 != r0:
         G = "[E; C]" if output_only else "[E; E⊥A; C]"
         raise FunctionalObservabilityError(
-            condition or "functional observability (Assumption 1)",
+            "functional observability (Assumption 1)",
             f"rank [{what}; {G[1:-1]}] = {r1} but rank {G} = {r0}: the functional "
-            f"z = {what} x is not determined by the measured signals and the constraints."
-            + (" " + explain if explain else ""),
-            suggestion or f"Estimate another functional (rows of L in the row space of {G}), or "
+            f"z = {what} x is not determined by the measured signals and the constraints.",
+            f"Estimate another functional (rows of L in the row space of {G}), or "
             "add outputs (rows of C) that measure the missing directions.",
             lhs=r1,
             rhs=r0,
