@@ -28,6 +28,7 @@ from . import (
 from ._errors import (
     AlgebraicLoopError as AlgebraicLoopError,
     ConfigError as ConfigError,
+    DataRangeError as DataRangeError,
     DesignVerificationError as DesignVerificationError,
     DetectabilityError as DetectabilityError,
     ExistenceConditionError as ExistenceConditionError,

@@ -63,6 +63,29 @@ class ImpulsiveSystemError(InputError):
     """The system is regular but not impulse-free (index > 1)."""
 
 
+class DataRangeError(InputError):
+    """Matrix entries too large or too small for the LMI solvers (units far from 1).
+
+    Attributes `name` (the matrix), `magnitude` (its largest absolute entry) and `bounds`
+    (the accepted range of that magnitude).
+    """
+
+    def __init__(self, name: str, magnitude: float, bounds: tuple[float, float], fname: str = ""):
+        self.name = name
+        self.magnitude = magnitude
+        self.bounds = bounds
+        where = f"{fname}: " if fname else ""
+        super().__init__(
+            f"{where}the largest entry of {name} has magnitude {magnitude:.3e}, outside the range "
+            f"[{bounds[0]:.1e}, {bounds[1]:.1e}] that the LMI solvers (Clarabel/SCS, double "
+            "precision with absolute tolerances near 1e-9) can represent: products of such "
+            "entries overflow or vanish, and a solver status would mean nothing. Rescale the "
+            f"model: choose units in which the entries of {name} are within a few orders of "
+            "magnitude of 1 (e.g. kPa instead of Pa, or divide an equation's row of E, A and B "
+            "by a common factor), design, and convert the estimates back."
+        )
+
+
 class InconsistentInitialConditionError(InputError):
     """x0 violates the algebraic constraints and strict consistency was requested."""
 

@@ -64,6 +64,11 @@ def test_ts_impulse_observability_names_the_rule(arm_ts):
     sys = arm_ts.system
     A = np.array(sys.A)
     A[1, 4, :] = [0.0, 0.0, 0.18, 0.0, 0.0]  # rule 2: the algebraic row no longer sees x5
+    # With x5 in no equation rule 2 would be irregular (refused first, IrregularSystemError);
+    # let x5 enter the 4th (differential) equation: regular, impulsive, and x5 is still not
+    # seen by [E; E⊥A_2; C].
+    A[1, 3, 4] = 1.0
+    assert fojax.analysis.is_regular(np.asarray(sys.E), A[1])
     bad = fojax.TakagiSugenoSystem(sys.E, A, sys.B, sys.C, sys.membership)
     with pytest.raises(
         fojax.ImpulseObservabilityError, match=r"rank \[E; E⊥A_2; C\] = 4 < n = 5 for rule 2"

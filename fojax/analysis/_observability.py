@@ -28,7 +28,7 @@ import numpy as np
 
 from .._linalg import clusters, left_null_space, rank
 from ..plant import check_functional, DescriptorSystem
-from ._common import as_system, crank, Pencil, require_regular
+from ._common import _unit, as_system, crank, Pencil, require_regular
 from ._pencil import _poles_normalized, AXIS_TOL
 
 
@@ -257,14 +257,39 @@ is_impulse_observable = is_i_observable
 is_impulse_controllable = is_i_controllable
 
 
+def functional_rank_pair(E, A, C, L, *, D=None, output_only: bool = False,
+                         tol: float | None = None) -> tuple[int, int]:
+    r"""``(rank [L; Γ], rank Γ)`` with $\Gamma = [E; E^\perp A; C]$ on normalised blocks (host-only).
+
+    The one functional-observability rank test of fojax (`is_functionally_observable`,
+    `structure_report` and every observer design call it). Each block is divided by its
+    spectral norm (``E``, ``A``, ``C``, ``L``, and ``D``) before the rank decisions, so
+    the verdict does not change with the units of the equations, outputs or functional.
+
+    **Arguments:**
+
+    - `E`, `A` (``(n, n)``), `C` (``(p, n)``), `L` (``(q, n)``): float64 matrices.
+    - `D`: ``(n, l)`` unknown-input directions; then $E^\perp$ spans the left null space
+      of $[E\;D]$ (the unknown-input observer, `fojax.design.design_unknown_input_observer`).
+    - `output_only`: $\Gamma = [E; C]$ (the Takagi–Sugeno observer measures $y$ only).
+    - `tol`: absolute rank threshold on the normalised blocks.
+    """
+    E, A, C, L = (np.asarray(x, dtype=float) for x in (E, A, C, L))
+    En, An, Cn, Ln = (_unit(M)[0] for M in (E, A, C, L))
+    if output_only:
+        Gamma = np.vstack([En, Cn])
+    else:
+        K = En if D is None else np.hstack([En, _unit(np.asarray(D, dtype=float))[0]])
+        Ep = left_null_space(K, tol)
+        Gamma = np.vstack([En, Ep @ An, Cn])
+    return rank(np.vstack([Ln, Gamma]), tol), rank(Gamma, tol)
+
+
 def functional_ranks(sys: DescriptorSystem, L, *, tol: float | None = None) -> tuple[int, int]:
     r"""``(rank [L; E; E⊥A; C], rank [E; E⊥A; C])`` on normalised blocks (host-only)."""
     p = as_system(sys, "is_functionally_observable")
     L = np.asarray(check_functional(sys, L), dtype=float)
-    Ln = L / (np.linalg.norm(L, 2) or 1.0) if L.size else L
-    Ep = left_null_space(p.En, tol)
-    Gamma = np.vstack([p.En, Ep @ p.An, p.Cn])
-    return rank(np.vstack([Ln, Gamma]), tol), rank(Gamma, tol)
+    return functional_rank_pair(p.E, p.A, p.C, L, tol=tol)
 
 
 def is_functionally_observable(sys: DescriptorSystem, L, *, tol: float | None = None) -> bool:

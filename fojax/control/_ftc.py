@@ -46,6 +46,7 @@ from jaxtyping import Array, Float
 from .._dtype import as_matrix, require_x64
 from .._errors import ExistenceConditionError
 from ..design import design_functional_observer, FunctionalObserverDesign
+from ..design._conditions import check_impulse_free
 from ..observer import AbstractObserver
 from ..plant import AbstractSignal, augment_faults, DescriptorSystem, Stack, Zero
 from ..plant._signals import as_signal
@@ -226,9 +227,16 @@ class FaultTolerantControl:
 # --------------------------------------------------------------------------- helpers
 
 
-def _feedback(sys, L, feedback_kw):
+def _feedback(sys, L, feedback_kw, fname="fault-tolerant control design"):
     if L is not None:
-        return as_matrix("L", L, rows=sys.m, cols=sys.n), None
+        L = as_matrix("L", L, rows=sys.m, cols=sys.n)
+        # the schemes need (E, A + BL) admissible (module docstring): a given L must at least
+        # make it regular and impulse-free (fojax.analysis decides; design_state_feedback
+        # guarantees both for the L it designs)
+        E, A, B = (np.asarray(x, dtype=float) for x in (sys.E, sys.A, sys.B))
+        check_impulse_free(E, A + B @ np.asarray(L, dtype=float), fname=fname,
+                           what="the closed loop (E, A + BL) with the given L")
+        return L, None
     fb = design_state_feedback(sys, **(feedback_kw or {}))
     return fb.L, fb
 
@@ -297,7 +305,9 @@ def _check(sys):
 
 
 _COMMON_ARGS = r"""
-    - `L`: ``(m, n)`` state feedback ($u = Lx$); designed by `design_state_feedback`
+    - `L`: ``(m, n)`` state feedback ($u = Lx$); a given `L` must make $(E, A + BL)$
+      regular and impulse-free (`fojax.IrregularSystemError` / `fojax.ImpulsiveSystemError`
+      otherwise, checked before any design); designed by `design_state_feedback`
       (with `feedback` as keyword arguments, e.g. ``{"decay": 1.0}``) when ``None``.
     - `region`, `R`, `q0`, `q1`, `kind`, `solver`: the observer design on the augmented
       system, passed to `fojax.design.design_functional_observer` (default region
@@ -349,7 +359,7 @@ def design_sensor_ftc(
     _check(sys)
     Fs = np.eye(sys.p) if Fs is None else np.asarray(as_matrix("Fs", Fs, rows=sys.p))
     nf = Fs.shape[1]
-    L, fb = _feedback(sys, L, feedback)
+    L, fb = _feedback(sys, L, feedback, "design_sensor_ftc")
     aug = augment_faults(sys, Fs=Fs)
     Lbar = np.hstack([np.asarray(L), np.zeros((sys.m, nf))])
     obs, od = _observer(aug, Lbar, observer, region, R, q0, q1, kind, solver)
@@ -418,7 +428,7 @@ def design_actuator_ftc(
     Fa = np.asarray(sys.B) if Fa is None else np.asarray(as_matrix("Fa", Fa, rows=sys.n))
     Ka = _matched(sys, Fa)
     nf = Fa.shape[1]
-    L, fb = _feedback(sys, L, feedback)
+    L, fb = _feedback(sys, L, feedback, "design_actuator_ftc")
     aug = augment_faults(sys, Fa=Fa)
     Lbar = np.hstack([np.asarray(L), -Ka])
     obs, od = _observer(aug, Lbar, observer, region, R, q0, q1, kind, solver)
@@ -497,7 +507,7 @@ def design_simultaneous_ftc(
     nf = na + ns
     Fa_full = np.hstack([Fa, np.zeros((n, ns))])
     Fs_full = np.hstack([np.zeros((p, na)), Fs])
-    L, fb = _feedback(sys, L, feedback)
+    L, fb = _feedback(sys, L, feedback, "design_simultaneous_ftc")
     aug = augment_faults(sys, Fa=Fa_full, Fs=Fs_full)
     top = np.hstack([np.asarray(L), -Ka, np.zeros((m, ns))])
     bottom = np.hstack([np.zeros((nf, n)), np.eye(nf)])

@@ -5,11 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from .._errors import (
+    DataRangeError,
     DetectabilityError,
     FunctionalObservabilityError,
+    ImpulsiveSystemError,
+    IrregularSystemError,
     RankConditionError,
 )
-from .._linalg import rank, row_space
+from .._linalg import rank, RANK_RTOL, row_space
 from ._parameterization import FunctionalObserverStructure, observer_structure, pieces
 from ._regions import AbstractRegion
 
@@ -24,17 +27,118 @@ def gamma_matrix(E, A, C, Eperp) -> np.ndarray:
     return np.vstack([E, Ep @ A, C])
 
 
-def check_functional_observability(E, A, C, L, Eperp, *, what: str = "L") -> None:
-    """Assumption 1: rank [L; E; E⊥A; C] = rank [E; E⊥A; C]; raises with a suggestion."""
-    Gam = gamma_matrix(E, A, C, Eperp)
-    r0, r1 = rank(Gam), rank(np.vstack([np.asarray(L, float), Gam]))
+def check_regular(E, A, *, fname: str, what: str = "the plant") -> None:
+    r"""Refuse a singular pencil before any LMI: `fojax.IrregularSystemError` with the numbers.
+
+    The decision is `fojax.analysis.is_regular`'s (the orthogonal deflation of the
+    normalised pencil $(E/\|E\|, A/\|A\|)$ with the fojax rank rule), so design and
+    analysis give the same verdict on the same data. The thesis's observers assume a
+    regular plant (§3.1: "we assume that system (3.1) is regular"): for a singular pencil
+    $\det(sE - A) \equiv 0$, the solutions $x$ are not unique, $z = Lx$ is not a function
+    of $(u, y)$, and a "verified" observer would certify error dynamics of a system that
+    does not determine what it estimates. The error has attributes `property`
+    (``"regularity"``), `detail` (the failed rank decision with the singular value and
+    the threshold) and `fname`.
+    """
+    from ..analysis._common import as_pencil, deflate
+
+    d = deflate(as_pencil(np.asarray(E, dtype=float), np.asarray(A, dtype=float), fname=fname), None)
+    if d.failed is None:
+        return
+    err = IrregularSystemError(
+        f"{fname}: {what} is not regular: the pencil sE - A is singular (det(sE - A) = 0 for "
+        f"every s; fojax.analysis.is_regular is False): {d.failed}, on the pencil normalised "
+        "to (E/‖E‖, A/‖A‖). The observer theory (thesis §3.1) assumes a regular plant: its "
+        "solutions x are not unique, so z = Lx is not determined by u and y and no observer "
+        "can be verified. Fix the model (a missing or duplicated equation, or a state that "
+        "appears in no equation, typically causes this); fojax.structure_report shows the "
+        "structure."
+    )
+    err.property, err.detail, err.fname = "regularity", d.failed, fname
+    raise err
+
+
+#: The largest absolute entry of every non-zero design matrix must lie in
+#: ``[DATA_RANGE[0], DATA_RANGE[1]] = [2^-100, 2^100]`` (about 8e-31 to 1.3e30).
+#: Outside it, the region LMIs (whose coefficients are products of two or three such
+#: entries) leave the range where double precision with the solvers' absolute tolerances
+#: (~1e-9) means anything. Measured before this check on thesis example 4.1.3: E, A, B
+#: times 1e300 "verified" (relative residual 1e-299), C times 1e300 gave a wrong
+#: FunctionalObservabilityError, L times 1e-300 a raw ValueError of the default-R search;
+#: issue 15 reports "ScsWork allocation error!" from SCS. Inside the range, mixed units can
+#: still make a design fail (a typed RankConditionError/DesignVerificationError), but the
+#: per-condition verification never returns a wrong observer.
+DATA_RANGE = (2.0**-100, 2.0**100)
+
+
+def check_data_range(blocks: dict, *, fname: str) -> None:
+    """`fojax.DataRangeError` when a non-zero matrix has its largest entry outside `DATA_RANGE`.
+
+    `blocks` maps names (``"E"``, ``"A"``, ...) to arrays; empty and all-zero matrices are
+    skipped (a zero ``B`` or ``A`` is legitimate).
+    """
+    lo, hi = DATA_RANGE
+    for name, M in blocks.items():
+        M = np.asarray(M, dtype=float)
+        if M.size == 0:
+            continue
+        big = float(np.max(np.abs(M)))
+        if big != 0.0 and not (lo <= big <= hi):
+            raise DataRangeError(name, big, DATA_RANGE, fname)
+
+
+def check_impulse_free(E, A, *, fname: str, what: str = "the closed loop (E, A + BL)") -> None:
+    r"""Refuse an impulsive (index > 1) regular pencil: `fojax.ImpulsiveSystemError`.
+
+    Regularity first (`check_regular`); then `fojax.analysis.nilpotency_index` decides
+    (index $\le 1$ is impulse-free, the same decision as `fojax.analysis.is_impulse_free`).
+    The message reports the index and `fojax.analysis.impulse_free_margin`
+    ($\sigma_{\min}(U_2^\top A V_2)$, relative to $\|A\|_2$) against ``RANK_RTOL``.
+    Attributes `property` (``"impulse-freeness"``), `index`, `margin`, `tol`.
+    """
+    from ..analysis import impulse_free_margin, nilpotency_index
+
+    E, A = np.asarray(E, dtype=float), np.asarray(A, dtype=float)
+    check_regular(E, A, fname=fname, what=what)
+    nu = nilpotency_index(E, A)
+    if nu <= 1:
+        return
+    nA = float(np.linalg.norm(A, 2)) or 1.0
+    margin = float(impulse_free_margin(E, A)) / nA
+    err = ImpulsiveSystemError(
+        f"{fname}: {what} is impulsive: nilpotency index {nu} > 1 "
+        f"(fojax.analysis.is_impulse_free is False; impulse-free margin "
+        f"σmin(U2ᵀ A V2)/‖A‖ = {margin:.2e}, threshold {RANK_RTOL:.0e}). Its response has "
+        "impulses and derivatives of the inputs, and fojax's simulation and the thesis's "
+        "admissibility (regular, impulse-free, stable) need index <= 1. Choose a feedback "
+        "that makes it impulse-free (omit L to let fojax.design_state_feedback design one), "
+        "or change the model."
+    )
+    err.property, err.index, err.margin, err.tol = "impulse-freeness", nu, margin, RANK_RTOL
+    raise err
+
+
+def check_functional_observability(E, A, C, L, Eperp=None, *, what: str = "L", D=None,
+                                   output_only: bool = False) -> None:
+    """Assumption 1: rank [L; E; E⊥A; C] = rank [E; E⊥A; C]; raises with a suggestion.
+
+    The ranks are `fojax.analysis.functional_rank_pair`'s (blocks normalised by their
+    norms, the fojax rank rule), so this check and `fojax.analysis.is_functionally_observable`
+    cannot disagree. `Eperp` is accepted for compatibility and ignored: the annihilator is
+    the left null space of ``E`` (of ``[E D]`` when `D` is given); with `output_only`
+    ``Γ = [E; C]`` (the Takagi–Sugeno observer).
+    """
+    from ..analysis._observability import functional_rank_pair
+
+    r1, r0 = functional_rank_pair(E, A, C, np.asarray(L, float), D=D, output_only=output_only)
     if r1 != r0:
+        G = "[E; C]" if output_only else "[E; E⊥A; C]"
         raise FunctionalObservabilityError(
             "functional observability (Assumption 1)",
-            f"rank [{what}; E; E⊥A; C] = {r1} but rank [E; E⊥A; C] = {r0}: the functional "
+            f"rank [{what}; {G[1:-1]}] = {r1} but rank {G} = {r0}: the functional "
             f"z = {what} x is not determined by the measured signals and the constraints.",
-            "Estimate another functional (rows of L in the row space of [E; E⊥A; C]), or add "
-            "outputs (rows of C) that measure the missing directions.",
+            f"Estimate another functional (rows of L in the row space of {G}), or "
+            "add outputs (rows of C) that measure the missing directions.",
             lhs=r1,
             rhs=r0,
         )

@@ -10,6 +10,7 @@ import numpy as np
 from .._errors import ShapeError
 from ..plant._descriptor import augment_faults, check_functional, DescriptorSystem
 from . import _lmi
+from ._conditions import check_regular
 from ._functional import check_kind, design_functional_observer, FunctionalObserverDesign
 
 
@@ -75,6 +76,8 @@ def design_fault_estimator(
     """
     L = np.asarray(check_functional(sys, L))
     check_kind(kind)
+    # the augmented pencil is regular iff (E, A) is (det = det(sE - A) s^nf): name the plant
+    check_regular(np.asarray(sys.E), np.asarray(sys.A), fname="design_fault_estimator")
     aug = augment_faults(sys, Fa=Fa, Fs=Fs, ramp=ramp)
     nf = (aug.n - sys.n) // (2 if ramp else 1)
     q = L.shape[0]

@@ -196,7 +196,8 @@ def design_finite_time_observer(
     **Returns:** a `FiniteTimeObserverDesign`; its `observer.reconstruct` /
     `finite_time_estimates` equal ``z(t)`` for ``t ≥ h`` on the nominal model.
 
-    **Raises:** `RegionError` (regions not two separated disks),
+    **Raises:** `IrregularSystemError`, `DataRangeError` (as
+    `design_functional_observer`), `RegionError` (regions not two separated disks),
     `DetectabilityError` (a mode that no gain moves: it would be common to both
     observers, violating Lemma 6), `LMIInfeasibleError`, `DesignVerificationError`
     (including an ill-conditioned reconstruction, ``rcond < 1e-8``).
@@ -242,7 +243,7 @@ def _design_ft(
     if not (isinstance(r1, Disk) and isinstance(r2, Disk)):
         raise RegionError("finite-time observers need two Disk regions (bounded, separable).")
     _check_separated(r1, r2)
-    s = prepare_structure(sys, L, R=R, q0=q0, q1=0, region=r1)
+    s = prepare_structure(sys, L, R=R, q0=q0, q1=0, region=r1, fname="design_finite_time_observer")
     check_detectability(s, r2)
     if kind == "proportional":
         q1 = 0

@@ -41,8 +41,10 @@ from ..observer._generalized import GeneralizedFunctionalObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
 from . import _lmi
 from ._conditions import (
+    check_data_range,
     check_detectability,
     check_functional_observability,
+    check_regular,
     check_structure,
     default_R,
     unobservable_modes,
@@ -329,7 +331,8 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
         try:
             info = _lmi.solve(prob, name, hint=hint, solver=sv)
         except LMIInfeasibleError as err:
-            statuses.append(f"{err.status} ({sv}, {o})")
+            why = f": {err.info['message']}" if err.info.get("message") else ""
+            statuses.append(f"{err.status} ({sv}, {o}{why})")
             continue
         info["objective"] = o
         if statuses:
@@ -367,14 +370,41 @@ def verify_structure_design(s, params, region, X, *, rtol=None, extra=None) -> t
         region,
         X,
         extra=extra,
+        scales=condition_scales(s, mats),
         **kw,
     )
     return mats, report
 
 
+def condition_scales(s, mats) -> dict:
+    """Per condition, the sum of the norms of its terms (host): the scale its residual is
+    relative to in `verify` —
+    a. ``‖N‖‖TE‖ + ‖F‖‖Ψ‖ + ‖T‖‖A‖``, b. ``‖H‖ + ‖T‖‖B‖``, c. ``‖S‖‖TE‖ + ‖M‖‖Ψ‖``,
+    d. ``‖P‖‖TE‖ + ‖Q‖‖Ψ‖ + ‖L‖`` (max over rules, spectral norms)."""
+
+    def nrm(x):
+        x = np.asarray(x, dtype=float)
+        if x.size == 0:
+            return 0.0
+        return float(np.max(np.linalg.norm(x.reshape((-1,) + x.shape[-2:]), ord=2, axis=(-2, -1))))
+
+    As, Bs = np.asarray(s.rules_A()), np.asarray(s.rules_B())
+    Psi = np.vstack([np.asarray(s.Eperp) @ As[0], np.asarray(s.C)])
+    T = np.asarray(mats.T)
+    TE, nP, nT = nrm(T @ np.asarray(s.E)), nrm(Psi), nrm(T)
+    return {
+        "a": nrm(mats.N) * TE + nrm(mats.F) * nP + nT * nrm(As),
+        "b": nrm(mats.H) + nT * nrm(Bs),
+        "c": nrm(mats.S) * TE + nrm(mats.M) * nP,
+        "d": nrm(mats.P) * TE + nrm(mats.Q) * nP + nrm(s.L),
+    }
+
+
 def prepare_structure(sys: DescriptorSystem, L, *, R=None, q0=None, q1=0, region, psi="descriptor",
-                      Eperp=None, A_rules=None, B_rules=None) -> FunctionalObserverStructure:
-    """Existence checks (Assumption 1, rank conditions, detectability) and the structure."""
+                      Eperp=None, A_rules=None, B_rules=None,
+                      fname: str = "design_functional_observer") -> FunctionalObserverStructure:
+    """Existence checks (regularity of every rule, the data range, Assumption 1, rank
+    conditions, detectability) and the structure; `fname` names the caller in errors."""
     E, A, B, C = (np.asarray(x) for x in (sys.E, sys.A, sys.B, sys.C))
     if A_rules is not None:
         A, B = np.asarray(A_rules), np.asarray(B_rules)
@@ -382,8 +412,12 @@ def prepare_structure(sys: DescriptorSystem, L, *, R=None, q0=None, q1=0, region
     if Eperp is None:
         Eperp = left_null_space(E) if psi == "descriptor" else np.zeros((0, E.shape[0]))
     As = A if A.ndim == 3 else A[None]
+    for i, Ai in enumerate(As):
+        check_regular(E, Ai, fname=fname,
+                      what=f"rule {i + 1} (E, A_{i + 1})" if len(As) > 1 else "the plant (E, A)")
+    check_data_range({"E": E, "A": As, "B": B, "C": C, "L": L}, fname=fname)
     for Ai in As:
-        check_functional_observability(E, Ai, C, L, Eperp)
+        check_functional_observability(E, Ai, C, L, Eperp, output_only=psi == "output")
     if R is None:
         R = default_R(E, A, B, C, L, psi=psi, Eperp=Eperp, region=region, q0=q0, q1=q1)
     else:
@@ -418,7 +452,10 @@ def design_functional_observer(
 
     **Arguments:**
 
-    - `sys`: the plant, a `fojax.DescriptorSystem` (regular; $E$ may be singular).
+    - `sys`: the plant, a `fojax.DescriptorSystem`: regular (checked first, with
+      `fojax.analysis.is_regular`'s decision); $E$ may be singular, and the plant may even
+      be impulsive when Assumption 1 holds (partial impulse observability with respect
+      to $L$, thesis §3.1: the observer only uses $w = [-E^\perp Bu;\ y]$).
     - `L`: ``(q, n)`` functional to estimate.
     - `kind`: ``"generalized"`` (eq. 3.5), ``"PI"`` ($S = 0$) or ``"proportional"``
       ($q_1 = 0$).
@@ -436,10 +473,13 @@ def design_functional_observer(
     conditions a.–d. (≤ 1e-8 relative), the error eigenvalues inside `region` and the
     region LMI re-checked in float64 at the certificate ``X``.
 
-    **Raises:** `FunctionalObservabilityError`, `RankConditionError`,
+    **Raises:** `IrregularSystemError` (a singular pencil, with the failed rank decision),
+    `DataRangeError` (a matrix whose largest entry is outside ``2^±100``: rescale its
+    units), `FunctionalObservabilityError`, `RankConditionError`,
     `DetectabilityError` (existence conditions, checked before any LMI, with what to
-    change), `LMIInfeasibleError` (solver status other than ``optimal``),
-    `DesignVerificationError` (a float64 check failed).
+    change), `LMIInfeasibleError` (solver status other than ``optimal``, or a solver
+    exception, with its message), `DesignVerificationError` (a float64 check failed:
+    each design condition relative to the norms of its own terms).
     """
     check_kind(kind)
     sys = _as_system(sys)

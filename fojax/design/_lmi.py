@@ -123,11 +123,13 @@ def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_
             try:
                 info = solve(problem, name, hint, "SCS")
             except LMIInfeasibleError as second:
+                why = "; ".join(f"{sv}: {e.info['message']}" for sv, e in (("CLARABEL", first), ("SCS", second))
+                                if e.info.get("message"))
                 raise LMIInfeasibleError(
                     name,
                     f"{first.status} (Clarabel), {second.status} (SCS)",
                     {"clarabel": first.info, "scs": second.info},
-                    hint,
+                    (f"Solver failures: {why}. " if why else "") + hint,
                 ) from None
             info["fallback_from"] = {"solver": "CLARABEL", "status": first.status}
             return info
@@ -140,11 +142,13 @@ def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 problem.solve(solver=_scs_solver() if solver == "SCS" else solver, **settings)
-        except cp.error.SolverError as e:
-            # a numerical breakdown (Clarabel's NumericalError/InsufficientProgress) is
-            # retried like optimal_inaccurate
+        except Exception as e:  # noqa: BLE001 - every solver failure becomes a typed error
+            # a numerical breakdown (Clarabel's NumericalError/InsufficientProgress, a
+            # cvxpy SolverError) is retried like optimal_inaccurate; so is any other
+            # exception of the solver interface (SCS raises ValueError("ScsWork allocation
+            # error!") on data it cannot hold), which must never reach the user untyped
             status = "solver_error"
-            info.update(status=status, message=str(e), settings=dict(settings))
+            info.update(status=status, message=f"{type(e).__name__}: {e}", settings=dict(settings))
             refused.append({"status": status, "settings": dict(settings)})
             continue
         status = problem.status
@@ -163,7 +167,31 @@ def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_
         if status != cp.OPTIMAL_INACCURATE:
             break
         refused.append({"status": status, "settings": dict(settings)})
+    if status == "solver_error":
+        info.update(problem_size(problem))
+        hint = (f"{solver} failed: {info['message']} (problem: {info['variables']} scalar "
+                f"variables, {info['constraints']} constraints, largest data entry "
+                f"{info['data_magnitude']:.1e}). " + hint).strip()
     raise LMIInfeasibleError(name, str(status), info, hint)
+
+
+def problem_size(problem) -> dict:
+    """Scalar variables, constraints and the largest absolute constant of a cvxpy problem
+    (what a solver failure report needs: was the problem large, or its data extreme?)."""
+    out: dict = {}
+    try:
+        m = problem.size_metrics
+        out["variables"] = int(m.num_scalar_variables)
+        out["constraints"] = int(m.num_scalar_eq_constr + m.num_scalar_leq_constr)
+    except Exception:  # noqa: BLE001 - best effort, for the message only
+        out["variables"] = out["constraints"] = -1
+    big = 0.0
+    for c in problem.constants():
+        v = np.abs(np.asarray(c.value if not hasattr(c.value, "toarray") else c.value.toarray(), dtype=float))
+        if v.size:
+            big = max(big, float(np.nanmax(v)))
+    out["data_magnitude"] = big
+    return out
 
 
 def describe_route(info: dict, objective: str | None = None) -> str:

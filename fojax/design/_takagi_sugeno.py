@@ -54,11 +54,12 @@ from .._errors import (
     ImpulseObservabilityError,
     InputError,
 )
-from .._linalg import left_null_space, rank, row_space
+from .._linalg import row_space
 from ..observer._takagi_sugeno import TakagiSugenoObserver
 from ..plant._descriptor import check_functional
 from ..plant._takagi_sugeno import TakagiSugenoSystem
 from . import _lmi
+from ._conditions import check_regular
 from ._functional import (
     check_kind,
     prepare_structure,
@@ -125,11 +126,13 @@ class TakagiSugenoObserverDesign(StructureDesignMixin):
 
 def check_impulse_observability(E, A_rules, C) -> None:
     """Assumption 2: ``rank [E; E⊥A_i; C] = n`` for every rule; raises `ImpulseObservabilityError`."""
+    from ..analysis._observability import functional_rank_pair
+
     E, C = np.asarray(E, float), np.asarray(C, float)
     n = E.shape[0]
-    Ep = left_null_space(E)
     for i, Ai in enumerate(np.asarray(A_rules, float)):
-        r = rank(np.vstack([E, Ep @ Ai, C]))
+        # rank Γ_i = rank [E; E⊥A_i; C] as fojax.analysis decides it (normalised blocks)
+        _, r = functional_rank_pair(E, Ai, C, np.zeros((0, n)))
         if r != n:
             raise ImpulseObservabilityError(
                 "impulse observability (Assumption 2)",
@@ -144,9 +147,11 @@ def check_impulse_observability(E, A_rules, C) -> None:
 
 def check_output_functional_observability(E, C, L) -> None:
     """Functional observability with Γ = [E; C] (the T-S observer measures w = y only)."""
+    from ..analysis._observability import functional_rank_pair
+
     E, C, L = (np.asarray(x, float) for x in (E, C, L))
     Gam = np.vstack([E, C])
-    r0, r1 = rank(Gam), rank(np.vstack([L, Gam]))
+    r1, r0 = functional_rank_pair(E, np.zeros_like(E), C, L, output_only=True)
     if r1 != r0:
         basis = row_space(Gam)
         resid = L - L @ basis.T @ basis
@@ -203,7 +208,9 @@ def design_ts_observer(
     ≤ 1e-8 relative, eigenvalues of every $\mathbb A_i$ in `region`, the region LMI
     and the Lyapunov inequality re-checked at the common $X$ in float64).
 
-    **Raises:** `ImpulseObservabilityError` (Assumption 2, naming the rule),
+    **Raises:** `IrregularSystemError` (a rule whose pencil $sE - A_i$ is singular,
+    naming the rule), `DataRangeError`, `ImpulseObservabilityError` (Assumption 2,
+    naming the rule),
     `FunctionalObservabilityError` (with Γ = [E; C]), `RankConditionError`,
     `DetectabilityError` (naming the rule), `LMIInfeasibleError`,
     `DesignVerificationError`.
@@ -223,10 +230,13 @@ def design_ts_observer(
         q1 = 0
     E, A, B, C = (np.asarray(x, float) for x in (ts_sys.E, ts_sys.A, ts_sys.B, ts_sys.C))
     L = np.asarray(check_functional(ts_sys, L))
+    for i, Ai in enumerate(A):  # every rule's pencil, as fojax.analysis.is_regular decides
+        check_regular(E, Ai, fname="design_ts_observer", what=f"rule {i + 1} (E, A_{i + 1})")
     check_impulse_observability(E, A, C)
     check_output_functional_observability(E, C, L)
     s = prepare_structure(
-        ts_sys.rule(0), L, R=R, q0=q0, q1=0, region=region, psi="output", A_rules=A, B_rules=B
+        ts_sys.rule(0), L, R=R, q0=q0, q1=0, region=region, psi="output", A_rules=A, B_rules=B,
+        fname="design_ts_observer",
     )
     if q1 is None:
         q1 = s.q0

@@ -107,7 +107,9 @@ from ..observer._unknown_input import UnknownInputObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
 from . import _lmi
 from ._conditions import (
+    check_data_range,
     check_detectability,
+    check_regular,
     check_structure,
     default_R,
     unobservable_modes,
@@ -274,9 +276,11 @@ def _check_D(D: np.ndarray) -> None:
         )
 
 
-def _check_functional_observability(E, A, C, L, Ep) -> None:
-    Gam = np.vstack([E, Ep @ A, C])
-    r0, r1 = rank(Gam), rank(np.vstack([L, Gam]))
+def _check_functional_observability(E, A, C, L, Ep, D) -> None:
+    from ..analysis._observability import functional_rank_pair
+
+    # the ranks of fojax.analysis (normalised blocks), E⊥ spanning the left null space of [E D]
+    r1, r0 = functional_rank_pair(E, A, C, L, D=D)
     if r1 != r0:
         raise FunctionalObservabilityError(
             "functional observability with the unknown input (Assumption 1, E⊥ annihilating [E D])",
@@ -495,7 +499,8 @@ def design_unknown_input_observer(
     a.–f. (≤ 1e-8 relative), the eigenvalues of $\mathbb A$ (inside `region`) and the
     region LMI re-checked at $X$.
 
-    **Raises:** `ShapeError`, `RankConditionError` (rank of D, rank conditions),
+    **Raises:** `IrregularSystemError` (singular pencil), `DataRangeError`, `ShapeError`,
+    `RankConditionError` (rank of D, rank conditions),
     `FunctionalObservabilityError`, `DetectabilityError` (fixed modes, unknown-input
     mode), `LMIInfeasibleError`, `DesignVerificationError`.
     """
@@ -504,10 +509,13 @@ def design_unknown_input_observer(
     E, A, B, C = (np.asarray(x, float) for x in (sys.E, sys.A, sys.B, sys.C))
     n = E.shape[0]
     D = np.asarray(as_matrix("D", D, rows=n, hint=f"D needs one row per state (n = {n})."))
+    check_regular(E, A, fname="design_unknown_input_observer")
     _check_D(D)
     L = np.asarray(check_functional(sys, L))
+    check_data_range({"E": E, "A": A, "B": B, "C": C, "D": D, "L": L},
+                     fname="design_unknown_input_observer")
     Ep = left_null_space(np.hstack([E, D]))
-    _check_functional_observability(E, A, C, L, Ep)
+    _check_functional_observability(E, A, C, L, Ep, D)
     if R is None:
         R = _choose_R(E, A, B, C, L, D, Ep, region, q0)
     else:

@@ -12,6 +12,8 @@ from ._regions import AbstractRegion
 
 #: Residuals of the design conditions must be below this, relative to the data's scale.
 RESIDUAL_RTOL = 1e-8
+#: Floor of a per-condition scale, relative to the common scale (see `verify`).
+CONDITION_SCALE_FLOOR = 1e-6
 #: Eigenvalues must be inside the region by at least this (absolute) margin, or by
 #: 1e-3 of the region's size when that is smaller (`required_margin`).
 EIG_MARGIN = 1e-9
@@ -120,17 +122,30 @@ def verify(
     rtol: float = RESIDUAL_RTOL,
     raise_on_failure: bool = True,
     extra: dict | None = None,
+    scales: dict | None = None,
 ) -> VerificationReport:
     """Check residuals, eigenvalue locations and (if `X` is given) the region LMI.
 
     `error_matrices` is ``(k, d, d)``: the LMI is re-checked for every rule with the
-    common certificate `X`.
+    common certificate `X`. With `scales` (one per residual: the sum of the norms of the
+    terms of that condition), the relative residual is
+    ``max_k residual_k / max(scales_k, CONDITION_SCALE_FLOOR * max(scale, 1))`` — each
+    condition relative to its own terms, so that one large matrix (e.g. ``C`` in small
+    units) cannot hide a wrong condition d. (``PTE + QΨ = L``) behind a large common
+    scale; the floor keeps a condition whose terms all vanish (e.g. ``S = M = 0``) from
+    turning rounding (1e-30) into a failure: with ``rtol = 1e-8`` it accepts residuals
+    below ``1e-14 · scale``, the rounding level of the whole design. Without `scales`:
+    ``max(residuals) / max(scale, 1)``.
     """
     error_matrices = np.asarray(error_matrices, dtype=float)
     if error_matrices.ndim == 2:
         error_matrices = error_matrices[None]
     res = {k: float(v) for k, v in residuals.items()}
-    rel = max(res.values()) / max(float(scale), 1.0) if res else 0.0
+    if scales is not None and res:
+        floor = CONDITION_SCALE_FLOOR * max(float(scale), 1.0)
+        rel = max(v / max(float(scales[k]), floor) for k, v in res.items())
+    else:
+        rel = max(res.values()) / max(float(scale), 1.0) if res else 0.0
     eigs = (
         np.concatenate([np.linalg.eigvals(Ai) for Ai in error_matrices])
         if error_matrices.shape[-1]
