@@ -135,8 +135,9 @@ def _error_line(err: BaseException, path: str | None = None) -> str:
 
 def _each_config(configs: list[str], command) -> int:
     """Run ``command(config)`` for every config (`fojax check a b c`, `fojax design a b c`):
-    a config that fails gets its one-line reason on stderr (naming the file) and the next
-    one still runs; the exit code is the worst of all (2 for a failed config)."""
+    a config that fails gets its one-line reason on stderr (naming the file when there are
+    several) and the next one still runs; the exit code is the worst of all (2 for a failed
+    config)."""
     from . import _commands
 
     status = 0
@@ -148,7 +149,7 @@ def _each_config(configs: list[str], command) -> int:
         except Exception as err:
             if _debug():  # full traceback for bug reports
                 raise
-            print(_error_line(err, config), file=sys.stderr, flush=True)
+            print(_error_line(err, config if len(configs) > 1 else None), file=sys.stderr, flush=True)
             status = 2
     return status
 
