@@ -434,16 +434,23 @@ def run_study(
             qs.append(np.quantile(E, np.asarray(quantiles), axis=0))
         metrics["quantiles"] = np.stack(qs)
         axes["quantiles"] = ("observer", "quantile", "time", "signal")
+    return _result(study, names, quantiles, cfg, metrics, axes,
+                   solver=type(solver).__name__ if solver is not None else "default", chunk_size=chunk,
+                   num_chunks=n_chunks, num_devices=int(ndev), engine="vmap-simulate")
+
+
+def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, **attrs) -> StudyResult:
+    """The `StudyResult` of either engine: coordinates from the study, attributes from
+    `cfg` (without the solver object) updated by the engine's own `attrs`."""
     coords = {
         "observer": names,
         "signal": study.signal_names,
         "quantile": np.asarray(quantiles, dtype=float),
         "time": np.asarray(study.ts),
     }
-    attrs = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "solver"}
-    attrs.update(solver=type(solver).__name__ if solver is not None else "default", chunk_size=chunk,
-                 num_chunks=n_chunks, num_devices=int(ndev), engine="vmap-simulate")
-    return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=attrs)
+    merged = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "solver"}
+    merged.update(attrs)
+    return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=merged)
 
 
 def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices) -> StudyResult:
@@ -474,16 +481,9 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
         qs = np.quantile(E, np.asarray(quantiles), axis=-1)  # (nq, T, obs, q)
         metrics["quantiles"] = np.ascontiguousarray(np.transpose(qs, (2, 0, 1, 3)))
         axes["quantiles"] = ("observer", "quantile", "time", "signal")
-    coords = {
-        "observer": names,
-        "signal": study.signal_names,
-        "quantile": np.asarray(quantiles, dtype=float),
-        "time": np.asarray(study.ts),
-    }
-    attrs = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "solver"}
-    attrs.update(method="exact", solver="none (exact matrix-exponential stepping)", chunk_size=layout["chunk_size"],
-                 num_chunks=layout["num_chunks"], num_devices=layout["num_devices"], engine="exact-batch")
-    return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=attrs)
+    return _result(study, names, quantiles, cfg, metrics, axes, method="exact",
+                   solver="none (exact matrix-exponential stepping)", chunk_size=layout["chunk_size"],
+                   num_chunks=layout["num_chunks"], num_devices=layout["num_devices"], engine="exact-batch")
 
 
 def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", quantile: float | None = None,
