@@ -204,27 +204,40 @@ def _integrand(o, kinds):
 _TAYLOR_DEGREE, _TAYLOR_THETA, _PS_BLOCK = 18, 1.0, 4
 
 
-#: Largest matrix size for which `_mm_last` unrolls the product into column FMAs; above it
-#: the graph (``N²`` fused multiply–adds per product) compiles too slowly (measured with
-#: the unrolled form at every size: compile 18.5 s at N = 12, 43.6 s at N = 24, against
-#: 12.8 s and 25 s with einsum) and the batched einsum is used instead.
-_MM_UNROLL_MAX = 10
+#: `_mm_last` by inner size ``K``: unrolled column FMAs for ``K ≤ _MM_UNROLL_MAX``, a
+#: `jax.lax.fori_loop` of rank-1 updates for ``K ≤ _MM_LOOP_MAX``, the batched einsum
+#: above. Measured on `expm_last` of 256 samples (XLA CPU, loaded 2-core machine),
+#: compile / run per sample: N = 4 unrolled 1.3 s / 0.15 µs, loop 0.9 s / 0.41 µs;
+#: N = 7 unrolled 2.7 s / 0.75 µs, loop 0.8 s / 0.91 µs, einsum 0.7 s / 2.6 µs;
+#: N = 10 unrolled 6.3 s / 3.0 µs, loop 1.1 s / 2.9 µs, einsum 0.9 s / 3.2 µs;
+#: N = 13 unrolled 9.8 s / 7.2 µs, loop 1.0 s / 6.2 µs, einsum 1.0 s / 4.8 µs;
+#: N = 22 unrolled 18.7 s, einsum 0.9 s / 20 µs. The unrolled graph has ``N²`` FMAs per
+#: product (its compile grows with ``N²``); the loop's and the einsum's do not grow.
+_MM_UNROLL_MAX = 4
+_MM_LOOP_MAX = 11
 
 
 def _mm_last(A, B):
     """Batch-last matrix product ``(N, K, b) × (K, M, b) → (N, M, b)``.
 
-    For small matrices (``K, M ≤ _MM_UNROLL_MAX``): column by column as fused
-    multiply–adds over the batch axis, fenced with `jax.lax.optimization_barrier`.
-    Without the fence XLA fuses each product into its consumers and recomputes it per
-    use, and the batched ``einsum`` becomes a dot with ``b`` tiny ``N × N`` matrices.
-    Measured on the ``7 × 7`` reference loop, one product per sample: einsum 450 ns, this
-    55 ns; the whole `expm_last` of 10,000 samples in blocks of 256: einsum 39 ms, this
-    11–20 ms, without the fence 100 ms. Larger matrices use the einsum (see
-    `_MM_UNROLL_MAX`).
+    For tiny matrices (``K, M ≤ _MM_UNROLL_MAX``): column by column as fused
+    multiply–adds over the batch axis, fenced with `jax.lax.optimization_barrier`
+    (without the fence XLA fuses each product into its consumers and recomputes it per
+    use). Up to ``_MM_LOOP_MAX``: the same FMAs as ``K`` rank-1 updates
+    ``A[:, j] ⊗ B[j]`` in a `jax.lax.fori_loop` (a graph of constant size). Larger:
+    the batched ``einsum`` (a dot with ``b`` small matrices, slower per product for
+    small ``K`` but fastest above). See `_MM_LOOP_MAX` for the measurements.
     """
-    if max(A.shape[1], B.shape[1]) > _MM_UNROLL_MAX:
+    K = max(A.shape[1], B.shape[1])
+    if K > _MM_LOOP_MAX:
         return jnp.einsum("ijb,jkb->ikb", A, B)
+    if K > _MM_UNROLL_MAX:
+        def rank1(j, acc):
+            a = lax.dynamic_index_in_dim(A, j, 1, keepdims=False)  # (N, b)
+            bj = lax.dynamic_index_in_dim(B, j, 0, keepdims=False)  # (M, b)
+            return acc + a[:, None, :] * bj[None, :, :]
+
+        return lax.fori_loop(0, A.shape[1], rank1, jnp.zeros((A.shape[0], B.shape[1], A.shape[2]), A.dtype))
     cols = []
     for k in range(B.shape[1]):
         acc = A[:, 0, :] * B[0, k][None, :]
