@@ -262,6 +262,15 @@ def test_expm_last_matches_scipy(rng, size):
     for k, M in enumerate(Ms):
         ref = scipy.linalg.expm(M)
         assert np.max(np.abs(got[:, :, k] - ref)) <= 1e-13 * max(1.0, np.max(np.abs(ref)))
+    # the reverse-differentiable form (fixed-length squaring scan; study_loss uses it): the
+    # same values, NaN beyond max_squarings, and d/da Σ expm(a M) = Σ M expm(a M) at a = 1
+    fixed = np.asarray(expm_last(jnp.asarray(np.stack(Ms, axis=-1)), max_squarings=24))
+    np.testing.assert_array_equal(fixed, got)
+    assert np.all(np.isnan(np.asarray(expm_last(jnp.asarray(Ms[-2])[..., None] * 1e3, max_squarings=3))))
+    M = jnp.asarray(np.stack(Ms[2:4], axis=-1))
+    g = jax.grad(lambda a: jnp.sum(expm_last(a * M, max_squarings=24)))(1.0)
+    want = sum(np.sum(Mk @ scipy.linalg.expm(Mk)) for Mk in Ms[2:4])
+    assert np.isclose(float(g), want, rtol=1e-11)
 
 
 def test_expm_last_graph_does_not_grow_with_n():

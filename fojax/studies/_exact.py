@@ -300,8 +300,9 @@ def traced_qualifies(study, observers) -> bool:
 
 def sample_metrics_traced(study, observers, settle_tol):
     """Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of every sample, exactly and
-    reverse-differentiably (one block of all samples, `expm_small`, the masked full-size
-    slow coordinates so that nothing needs ``rank E`` on the host). Traceable."""
+    reverse-differentiably (one block of all samples, `expm_last` with a fixed-length
+    squaring scan, the masked full-size slow coordinates so that nothing needs ``rank E``
+    on the host). Traceable."""
     TRACE_COUNTS["study_loss_exact"] += 1
     E0 = _unwrap(study.sample(0, 0)[0])[0].E
     split = svd_split(E0)
