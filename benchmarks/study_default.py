@@ -184,8 +184,12 @@ def main():
     args = ap.parse_args()
     info = _common.machine_info()
     rows = []
+    joint_states = None
     for B in args.sizes:
         ex, plant, obs, study = build(B)
+        # the joint loop stepped per sample: the plant's rank E slow states + the observers'
+        # (zero input and faults in the augmented state: no exosystem states)
+        joint_states = int(np.linalg.matrix_rank(np.asarray(plant.E))) + sum(o.state_size for o in obs)
         d = peer_inputs(ex, plant, obs, study)
         jax.clear_caches()
         t = time.perf_counter()
@@ -218,10 +222,11 @@ def main():
         rows.append(row)
         print(json.dumps(row), flush=True)
     result = dict(
+        status="complete",
         benchmark="study_default (issue 13): fojax.run_study on the default §3.3.7 study vs SciPy/NumPy peer",
         study=dict(plant="fault-augmented §3.3.7 (n=9, rank E=7), constant delta in [-0.3, 0.3] x constant faults",
                    observers=["PO", "FGDO"], region="Disk(-3, 2)", input="zero", horizon_s=T_END, dt_s=DT,
-                   joint_states=None, metrics=list(METRICS)),
+                   joint_states=joint_states, metrics=list(METRICS)),
         machine=info, rows=rows, load_average_at_end=_common.load_average(),
         note="measured once on a shared 2-core machine under load from other jobs (see load averages)",
     )

@@ -108,3 +108,24 @@ def assert_eigenvalues_match(actual, desired, *, rtol=1e-7, atol=0.0, err_msg: s
             + (f"\n{err_msg}" if err_msg else "")
         )
     return aligned
+
+
+def count_equations(fn, *args) -> int:
+    """Number of primitive equations in the jaxpr of ``fn(*args)``, counting the bodies of
+    ``jit``/``scan``/``while``/``cond`` once each (a proxy for the size of the compiled
+    graph, independent of timing: a Python loop unrolled over a size shows up as a count
+    that grows with that size)."""
+    import jax
+
+    def count(jaxpr) -> int:
+        total = 0
+        for eqn in jaxpr.eqns:
+            total += 1
+            for p in eqn.params.values():
+                for sub in p if isinstance(p, tuple | list) else (p,):
+                    inner = getattr(sub, "jaxpr", sub)
+                    if hasattr(inner, "eqns"):
+                        total += count(inner)
+        return total
+
+    return count(jax.make_jaxpr(fn)(*args).jaxpr)

@@ -25,6 +25,7 @@ from closed_loop_413 import (  # the §4.1.3 loop shared with test_exponential.p
     MX,
     X0,
 )
+from helpers import count_equations
 
 import fojax
 from fojax.simulation import simulate_lti_batch
@@ -248,11 +249,11 @@ def test_independent_of_device_count_and_block(batch_result):
         np.testing.assert_array_equal(np.asarray(two[name]), out[name])
 
 
-@pytest.mark.parametrize("size", [6, 14])  # unrolled column FMAs (N <= 10) and einsum products
+@pytest.mark.parametrize("size", [3, 6, 14])  # unrolled column FMAs, fori_loop rank-1 updates, einsum
 def test_expm_last_matches_scipy(rng, size):
-    from fojax.simulation._batch import _MM_UNROLL_MAX, expm_last
+    from fojax.simulation._batch import _MM_LOOP_MAX, _MM_UNROLL_MAX, expm_last
 
-    assert (size <= _MM_UNROLL_MAX) == (size == 6)
+    assert [size <= _MM_UNROLL_MAX, _MM_UNROLL_MAX < size <= _MM_LOOP_MAX, size > _MM_LOOP_MAX].count(True) == 1
     # norms from 1e-3 to 40: 0 ... 7 squarings; non-normal matrices
     Ms = [s * rng.standard_normal((size, size)) + np.triu(5 * s * rng.standard_normal((size, size)), 1)
           for s in (1e-3, 0.1, 1.0, 3.0, 8.0)]
@@ -261,6 +262,28 @@ def test_expm_last_matches_scipy(rng, size):
     for k, M in enumerate(Ms):
         ref = scipy.linalg.expm(M)
         assert np.max(np.abs(got[:, :, k] - ref)) <= 1e-13 * max(1.0, np.max(np.abs(ref)))
+    # the reverse-differentiable form (fixed-length squaring scan; study_loss uses it): the
+    # same values, NaN beyond max_squarings, and d/da Σ expm(a M) = Σ M expm(a M) at a = 1
+    fixed = np.asarray(expm_last(jnp.asarray(np.stack(Ms, axis=-1)), max_squarings=24))
+    np.testing.assert_array_equal(fixed, got)
+    assert np.all(np.isnan(np.asarray(expm_last(jnp.asarray(Ms[-2])[..., None] * 1e3, max_squarings=3))))
+    M = jnp.asarray(np.stack(Ms[2:4], axis=-1))
+    g = jax.grad(lambda a: jnp.sum(expm_last(a * M, max_squarings=24)))(1.0)
+    want = sum(np.sum(Mk @ scipy.linalg.expm(Mk)) for Mk in Ms[2:4])
+    assert np.isclose(float(g), want, rtol=1e-11)
+
+
+def test_expm_last_graph_does_not_grow_with_n():
+    # Issue 13: the products of expm_last were unrolled into N² FMAs up to N = 10 (compile
+    # 6.3 s at N = 10 against 1.1 s now); the fori_loop and einsum forms have a graph of
+    # the same size for every N in their range.
+    from fojax.simulation._batch import _MM_LOOP_MAX, _MM_UNROLL_MAX, expm_last
+
+    def count(N):
+        return count_equations(expm_last, jnp.zeros((N, N, 3)))
+
+    assert len({count(N) for N in (_MM_UNROLL_MAX + 1, 8, _MM_LOOP_MAX)}) == 1
+    assert len({count(N) for N in (_MM_LOOP_MAX + 1, 22, 40)}) == 1
 
 
 def model_scaled_E(p):

@@ -4,8 +4,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
+from helpers import count_equations
 
-from fojax._small_linalg import expm_small, solve_small
+from fojax._small_linalg import expm_small, solve_small, SOLVE_UNROLL_MAX
 
 
 def test_solve_small_matches_numpy_including_pivoting(rng):
@@ -45,3 +46,23 @@ def test_batched_grad_and_vmap(rng):
     g = jax.grad(f)(1.0)
     fd = (f(1.0 + 1e-6) - f(1.0 - 1e-6)) / 2e-6
     assert np.isclose(float(g), float(fd), rtol=1e-6)
+
+
+def test_solve_small_graph_does_not_grow_with_n(rng):
+    # Issue 13: the elimination unrolled in Python made the graph (and the XLA compile,
+    # 9 s for the 22-state study loop under vmap) grow with n. Above SOLVE_UNROLL_MAX it
+    # is a fori_loop: the same number of equations for every n, results still LAPACK's.
+    sizes = (SOLVE_UNROLL_MAX + 1, 12, 30)
+    counts = {n: count_equations(solve_small, jnp.eye(n), jnp.ones((n, n))) for n in sizes}
+    assert len(set(counts.values())) == 1, counts
+    for n in (7, 30):
+        A = rng.normal(size=(n, n))
+        A[0, 0] = 0.0  # forces a row exchange
+        B = rng.normal(size=(n, 2))
+        np.testing.assert_allclose(np.asarray(jax.jit(solve_small)(jnp.asarray(A), jnp.asarray(B))),
+                                   np.linalg.solve(A, B), rtol=1e-9, atol=1e-11)
+    # reverse mode through the loop: d/dA sum(A⁻¹ b) = -A⁻ᵀ 1 xᵀ
+    A, b = rng.normal(size=(7, 7)) + 7 * np.eye(7), rng.normal(size=7)
+    g = np.asarray(jax.grad(lambda a: jnp.sum(solve_small(a, jnp.asarray(b))))(jnp.asarray(A)))
+    x = np.linalg.solve(A, b)
+    np.testing.assert_allclose(g, -np.outer(np.linalg.solve(A.T, np.ones(7)), x), rtol=1e-10, atol=1e-12)

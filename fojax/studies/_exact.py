@@ -224,9 +224,26 @@ def _first_joint(problem, p):
     return G, ok
 
 
+@eqx.filter_jit
+def _sample_data(study, iu, jf):
+    """``E`` and ``A`` of sample 0, whether every sample's ``E`` equals it, and its SVD
+    split: one compiled call (done eagerly, these few dozen small operations cost one
+    XLA compile each, ~2 s on the first call of a process)."""
+    base0 = _unwrap(study.sample(0, 0)[0])[0]
+    E0 = base0.E
+    Es = jax.vmap(lambda i, j: _unwrap(study.sample(i, j)[0])[0].E)(iu, jf)
+    return E0, lti_matrices(base0)[0], jnp.all(Es == E0[None]), svd_split(E0)
+
+
+def _structure(fn, *args):
+    """The output structure of ``fn(*args)`` without computing it (``None`` stays ``None``,
+    module types are kept, arrays become shapes)."""
+    return eqx.filter_eval_shape(fn, *args)
+
+
 def exact_problem(study, observers, settle_tol: float, keep: bool):
     """Host: the `StudyProblem` of `study`, or ``(None, reason)`` when it does not qualify."""
-    if not all(o.linear_matrices() is not None for o in observers):
+    if not all(_structure(lambda o: o.linear_matrices(), o) is not None for o in observers):
         return None, "an observer is not LTI"
     if not is_concrete(study):
         return None, "the study's arrays are traced"
@@ -235,22 +252,20 @@ def exact_problem(study, observers, settle_tol: float, keep: bool):
     h = (t[-1] - t[0]) / (T - 1)
     if not (h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL):
         return None, "the grid is not uniform"
-    plant0, _ = study.sample(0, 0)
+    plant0 = _structure(lambda s: s.sample(0, 0)[0], study)
     base, _, _, fault = _unwrap(plant0)
-    mats = lti_matrices(base)
-    if mats is None:
+    if _structure(lambda s: lti_matrices(_unwrap(s.sample(0, 0)[0])[0]), study) is None:
         return None, f"the plant ({type(base).__name__}) is not LTI"
     if not exactly_generated(study.u) or (fault is not None and not exactly_generated(fault)):
         return None, "a signal has no exact exosystem"
-    E0 = np.asarray(base.E)
     # every sample must share E (one SVD split for all): checked on the host
     iu = np.arange(study.num_samples) // study.num_scenarios
     jf = np.arange(study.num_samples) % study.num_scenarios
-    Es = jax.vmap(lambda i, j: _unwrap(study.sample(i, j)[0])[0].E)(jnp.asarray(iu), jnp.asarray(jf))
-    if not np.array_equal(np.asarray(Es), np.broadcast_to(E0, Es.shape)):
+    E0, A0, same_E, split = _sample_data(study, jnp.asarray(iu), jnp.asarray(jf))
+    if not bool(same_E):
         return None, "E differs between samples"
-    check_index1_host(E0, np.asarray(mats[0]), jacobian_name="A")
-    split = svd_split(jnp.asarray(E0))
+    E0 = np.asarray(E0)
+    check_index1_host(E0, np.asarray(A0), jacobian_name="A")
     r = int(np.sum(np.asarray(split.slow)))
     problem = StudyProblem(study, tuple(observers), split, jnp.asarray(E0), jnp.asarray(float(settle_tol)), r, keep)
     G0, _ = _first_joint(problem, (jnp.asarray(0), jnp.asarray(0)))
@@ -285,8 +300,9 @@ def traced_qualifies(study, observers) -> bool:
 
 def sample_metrics_traced(study, observers, settle_tol):
     """Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of every sample, exactly and
-    reverse-differentiably (one block of all samples, `expm_small`, the masked full-size
-    slow coordinates so that nothing needs ``rank E`` on the host). Traceable."""
+    reverse-differentiably (one block of all samples, `expm_last` with a fixed-length
+    squaring scan, the masked full-size slow coordinates so that nothing needs ``rank E``
+    on the host). Traceable."""
     TRACE_COUNTS["study_loss_exact"] += 1
     E0 = _unwrap(study.sample(0, 0)[0])[0].E
     split = svd_split(E0)
