@@ -180,10 +180,13 @@ def test_a_signal_while_jax_compiles_the_tuning_step(model, tmp_path):
 
 def test_a_signal_while_the_monte_carlo_program_runs(model, tmp_path):
     path, _ = model
-    child = _Child("study", path, "--samples", 1024, "--horizon", 20, "--steps", 0, "--quiet",
+    # 2048 samples x 4001 steps: ~0.8 s of running on the exact kernel here (1024 x 2001 ran
+    # in ~0.1 s once run_study moved to it, shorter than the 0.2 s delay this test had: the
+    # signal could arrive after the run); the signal goes 0.05 s after the compile finished
+    child = _Child("study", path, "--samples", 2048, "--horizon", 40, "--steps", 0, "--quiet",
                    "--out", tmp_path, log_compiles=True)
     child.wait_for(f"Finished XLA compilation of {MC_PROGRAM}", child.err)
-    time.sleep(0.2)  # 1024 samples x 2001 steps x 2 observers: seconds of running
+    time.sleep(0.05)
     child.signal(signal.SIGINT)
     folder = _study_folder(tmp_path)
     assert f"fojax study --resume {folder}" in _assert_clean_exit(child, signal.SIGINT)
