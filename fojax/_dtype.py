@@ -37,6 +37,36 @@ def _is_tracer(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
+#: Largest number of entries a `scipy.sparse` input is densified to (2^27 float64 = 1 GiB).
+MAX_DENSIFIED_ENTRIES = 2**27
+
+
+def _densify(name: str, x):
+    """A `scipy.sparse` matrix or array as a dense NumPy array; anything else unchanged.
+
+    fojax's algorithms (QZ, SVD rank decisions, LMIs, matrix exponentials) work on dense
+    matrices, so a sparse input is densified here, once, at the boundary: memory is then
+    ``8·rows·cols`` bytes, which is what the dense algorithms need anyway. Without this,
+    ``np.asarray`` wraps a sparse matrix in a 0-d object array ("E has shape ()").
+    A matrix whose dense form would exceed `MAX_DENSIFIED_ENTRIES` entries is refused.
+    """
+    if not (hasattr(x, "toarray") and hasattr(x, "nnz") and hasattr(x, "shape")):
+        return x
+    from ._errors import InputError
+
+    shape = tuple(int(d) for d in x.shape)
+    size = int(np.prod(shape)) if shape else 1
+    if size > MAX_DENSIFIED_ENTRIES:
+        raise InputError(
+            f"{name} is a sparse {shape[0]}x{shape[1]} matrix ({x.nnz} stored entries); fojax "
+            f"computes with dense matrices and would need {8 * size / 2**30:.1f} GiB for it "
+            f"(limit {MAX_DENSIFIED_ENTRIES} entries = {8 * MAX_DENSIFIED_ENTRIES / 2**30:.0f} GiB). "
+            "Reduce the model first (e.g. remove states that no output or function z = L x "
+            "depends on) or pass a smaller matrix."
+        )
+    return np.asarray(x.toarray())
+
+
 def as_float_array(name: str, x, ndim: int | None = None, *, check_finite: bool = True):
     """Convert `x` to a float64 JAX array, validating dtype, rank and finiteness.
 
@@ -48,7 +78,7 @@ def as_float_array(name: str, x, ndim: int | None = None, *, check_finite: bool 
     if _is_tracer(x) or isinstance(x, jax.Array):
         dt = x.dtype
     else:
-        x = np.asarray(x)
+        x = np.asarray(_densify(name, x))
         dt = x.dtype
     if dt.kind == "c":
         # before the x64 check: complex data is wrong whatever the precision
@@ -92,9 +122,12 @@ def _complex_message(name: str, x, dt) -> str:
 
 
 def as_matrix(name: str, x, rows: int | None = None, cols: int | None = None, hint: str = ""):
-    """`as_float_array` for a 2-d matrix with optional expected shape."""
+    """`as_float_array` for a 2-d matrix with optional expected shape.
+
+    `scipy.sparse` matrices and arrays are accepted and densified (see `_densify`)."""
     from ._errors import ShapeError
 
+    x = _densify(name, x)
     if not (_is_tracer(x) or isinstance(x, jax.Array | np.ndarray)):
         x = np.asarray(x, dtype=float) if np.asarray(x).dtype.kind in "iub" else np.asarray(x)
     if len(np.shape(x)) != 2:

@@ -146,3 +146,39 @@ def test_uncertain_system_matrices():
     assert np.isclose(float(A_t[0, 1]), 1.0 + 0.3 * np.sin(0.5))
     with pytest.raises(fojax.ShapeError, match="delta"):
         fojax.UncertainDescriptorSystem(nom, dA=dA, delta=fojax.Sine([0.3, 0.1], 2.0))
+
+
+def test_scipy_sparse_matrices_are_densified():
+    """Issue 16 item 3: a `scipy.sparse` model used to fail with "E has shape ()" (np.asarray
+    wraps it in a 0-d object array). Oracle: the same model built from `.toarray()`."""
+    import scipy.sparse as sp
+
+    E, A = np.array(E2), np.array(A2)
+    B, C = np.array([[1.0], [0.0]]), np.array([[1.0, 0.0]])
+    for make in (sp.csr_matrix, sp.csc_array, sp.coo_matrix):
+        s = fojax.DescriptorSystem(make(E), make(A), make(B), make(C))
+        dense = fojax.DescriptorSystem(E, A, B, C)
+        for a, b in zip(jax.tree_util.tree_leaves(s), jax.tree_util.tree_leaves(dense), strict=True):
+            assert a.dtype == jnp.float64 and np.array_equal(np.asarray(a), np.asarray(b))
+    # wrong shapes are still named with the sparse matrix's real shape
+    with pytest.raises(fojax.ShapeError, match=r"A .*\(3, 3\)"):
+        fojax.DescriptorSystem(sp.eye(2), sp.eye(3))
+
+
+def test_huge_sparse_matrix_is_refused_before_densifying():
+    import scipy.sparse as sp
+
+    big = sp.eye(20_000, format="csr")  # 4e8 dense entries (3 GiB) > the 2^27 limit
+    with pytest.raises(fojax.InputError, match=r"E is a sparse 20000x20000 matrix .*GiB"):
+        fojax.DescriptorSystem(big, big)
+
+
+def test_design_accepts_a_sparse_model_and_functional():
+    """The design entry point on a sparse plant and sparse L verifies like the dense one."""
+    import scipy.sparse as sp
+
+    ex = fojax.models.example_4_1_3()
+    plant = fojax.DescriptorSystem(sp.csr_matrix(np.asarray(ex.E)), ex.A + ex.B @ ex.L, ex.B, ex.C)
+    d = fojax.design_functional_observer(plant, sp.csr_matrix(np.asarray(ex.L)), kind="proportional",
+                                         region=fojax.Disk(-2.0, 1.0))
+    assert d.report.passed
