@@ -56,6 +56,7 @@ from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
 from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, run_batched
 from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
+from ._exponential import exponential_problem
 from ._families import Family
 from ._wrappers import FaultyPlant
 
@@ -397,6 +398,13 @@ def run_study(
         prepared, _reason = exact_problem(study, observers, settle_tol, keep)
         if prepared is not None:
             return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices)
+    if method in ("auto", "exponential"):
+        prepared, _reason = exponential_problem(study, observers, settle_tol, keep, strict=method == "exponential")
+        if prepared is not None:
+            n_start, sub_start, substeps = prepared[0].schedule
+            return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, method="exponential",
+                              solver=f"ETDRK4, {substeps} steps per grid interval ({sub_start} in the first "
+                                     f"{n_start})", engine="exponential-batch")
     mesh, batch_sh, rep_sh = _mesh(devices)
     ndev = mesh.devices.size
     B = study.num_samples
@@ -453,8 +461,10 @@ def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, **attrs) -> 
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=merged)
 
 
-def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices) -> StudyResult:
-    """`run_study` on the batch-last exact kernel (`fojax.studies._exact`)."""
+def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices, method="exact",
+               solver="none (exact matrix-exponential stepping)", engine="exact-batch") -> StudyResult:
+    """`run_study` on the batch-last kernel (`run_batched`): the exact problem of
+    `fojax.studies._exact` or the exponential one of `fojax.studies._exponential`."""
     problem, basis, idx = prepared
     B = study.num_samples
     keep = problem.keep
@@ -481,9 +491,9 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
         qs = np.quantile(E, np.asarray(quantiles), axis=-1)  # (nq, T, obs, q)
         metrics["quantiles"] = np.ascontiguousarray(np.transpose(qs, (2, 0, 1, 3)))
         axes["quantiles"] = ("observer", "quantile", "time", "signal")
-    return _result(study, names, quantiles, cfg, metrics, axes, method="exact",
-                   solver="none (exact matrix-exponential stepping)", chunk_size=layout["chunk_size"],
-                   num_chunks=layout["num_chunks"], num_devices=layout["num_devices"], engine="exact-batch")
+    return _result(study, names, quantiles, cfg, metrics, axes, method=method, solver=solver,
+                   chunk_size=layout["chunk_size"], num_chunks=layout["num_chunks"],
+                   num_devices=layout["num_devices"], engine=engine)
 
 
 def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", quantile: float | None = None,

@@ -1,0 +1,209 @@
+r"""The exponential path of `run_study`: time-varying affine samples on the batch kernel.
+
+A study whose samples vary in time only through signals that enter the index-1 plant's
+*differential* equations affinely — an `UncertainDescriptorSystem` with a time-varying
+$\delta(t)$ (`sinusoidal_delta`, `piecewise_constant_delta`), faults of a `FaultyPlant`,
+any known input — is reduced per sample to $\dot w = A_0 w + g_k(t, w)$ with $A_0$ the
+joint slow matrix of the nominal loop (sample 0 with every signal at zero) and $g_k$
+affine in $w$ and in the signal values (`fojax.simulation._exponential`). It is stepped by
+Krogstad's fourth-order exponential Runge–Kutta method (ETDRK4) on the batch kernel
+(`run_batched`: chunks, padding, blocks and devices exist once), and the metrics of
+`run_study` (IAE, ISE, ITAE, peak, settling time; trapezoid rule on the grid; the error
+trajectories for the quantile bands when asked) are accumulated in the time loop by the
+same reducer as the exact path (`StudyProblem`), i.e. with the definitions of
+`error_metrics`.
+
+**Accuracy and the step.** ETDRK4 has classical order 4 (observed in
+``tests/test_exponential.py``); $A_0$ is integrated exactly, so the step only resolves
+$g$: the signals and the perturbation $\delta(t)\,\Delta A$ acting on the slow state. The
+step is the study grid's ``h`` divided by `SUBSTEPS` (2), and by `STARTUP_SUBSTEPS` (4)
+over an initial layer of $\lceil 5/(|\lambda|_{\max} h)\rceil$ grid intervals
+($\lambda$ the eigenvalues of $A_0$), where the initial state excites the fast modes that
+$g$ couples into. Fixed steps, no error control: the accuracy is a *measured* statement.
+On the default §3.3.7 study with $\delta(t) = a\sin(\omega t + \varphi)$,
+$|a| \le 0.3$, $\omega \le 5$ rad/s, on the 0.01 s grid it is given by
+``benchmarks/study_time_varying.py`` (fojax's error and the `solve_ivp` peer's against a
+DOP853 reference at rtol 1e-12). Signal jumps and kinks (fault onsets, ramp ends,
+switching times of a piecewise-constant $\delta$, steps of the input) must lie on the
+step grid: the method is fourth order only between them. `exponential_problem` checks
+this for every sample and the ``"auto"`` method otherwise keeps the adaptive diffrax
+path (it places steps at the breakpoints).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._errors import InputError
+from ..simulation._exponential import (
+    _check_structure,
+    _plant_signals,
+    _with_probes,
+    check_affine,
+    decompose,
+    ExponentialProblem,
+    phi_functions,
+    prepare,
+    setup_data,
+)
+from ..simulation._reduction import host_initial_checks
+from ..simulation._simulate import UNIFORM_GRID_RTOL
+from ._exact import StudyProblem
+
+
+#: Integration steps per grid interval after the initial layer.
+SUBSTEPS = 2
+#: Integration steps per grid interval in the initial layer.
+STARTUP_SUBSTEPS = 4
+#: A signal breakpoint counts as on the step grid within this fraction of a step (below
+#: `fojax.simulation._exponential.LEFT_LIMIT`, the offset of the left-limit stage).
+BREAKPOINT_RTOL = 1e-10
+#: Samples per call of the host pre-pass (set-up and plan statistics).
+PREPARE_CHUNK = 2048
+
+
+class StudyModel(eqx.Module):
+    """``(i, j) -> (plant, observers, u)`` of a study (the form the affine check reads)."""
+
+    study: object
+    observers: tuple
+
+    def __call__(self, p):
+        plant, _ = self.study.sample(p[0], p[1])
+        return plant, self.observers, self.study.u
+
+
+class StudyErrors(eqx.Module):
+    """The errors ``ẑ_k − z`` of every observer, from the plant's own output (the
+    affine check compares the decomposition's error maps with it)."""
+
+    L: jax.Array
+    fault_targets: bool = eqx.field(static=True)
+
+    def __call__(self, plant, observers, t, x, xi, u_t, y):
+        z = self.L @ x
+        if self.fault_targets:
+            z = jnp.concatenate([z, plant.fault(t)])
+        parts, off = [], 0
+        for o in observers:
+            parts.append(o.output(t, xi[off : off + o.state_size], u_t, y) - z)
+            off += o.state_size
+        return jnp.concatenate(parts)
+
+
+class StudySetup(eqx.Module):
+    r"""Per-sample set-up for `ExponentialProblem`: ``p = (i, j)`` → the decomposition of
+    sample ``(i, j)`` with the error maps $e = G w + H v$ per probe as outputs."""
+
+    study: object
+    observers: tuple
+
+    def __call__(self, p):
+        study, observers = self.study, self.observers
+        plant, x0 = study.sample(p[0], p[1])
+        Aj, Bj, OM, OF, (Yw, Yv), w0, mask = decompose(plant, observers, x0)
+        n, m = plant.n, plant.m
+        P = Aj.shape[0]
+        X, XV = OM[:, :n], OF[:, :n]  # x = X w + XV v per probe
+        L = study.L
+        if study.fault_targets:
+            # the fault's value at each probe (s = 0, e_1, ...): its coefficients in s
+            sigs = _plant_signals(plant)
+            ns = sum(sg.size for sg in sigs)
+            probes = jnp.concatenate([jnp.zeros((1, ns)), jnp.eye(ns)], axis=0)
+            zf = jax.vmap(lambda s: _with_probes(plant, s).fault(study.ts[0]))(probes)  # (P, nf)
+            L = jnp.concatenate([L, jnp.zeros((zf.shape[1], n))], axis=0)
+        sel_u = jnp.concatenate([jnp.eye(m), jnp.zeros((m, 1))], axis=1)
+        Gs, Hs, off = [], [], n
+        for o in observers:
+            lm = o.linear_matrices()
+            s = o.state_size
+            Gk = (lm.Dy @ Yw - L @ X).at[:, :, off : off + s].add(lm.C)
+            Hk = lm.Dy @ Yv + (lm.Du @ sel_u)[None] - L @ XV
+            if study.fault_targets:
+                Hk = Hk.at[:, study.L.shape[0] :, m].add(-zf)
+            Gs.append(Gk)
+            Hs.append(jnp.broadcast_to(Hk, (P,) + Hk.shape[1:]))
+            off += s
+        data = setup_data(Aj, Bj, jnp.concatenate(Gs, axis=1), jnp.concatenate(Hs, axis=1), w0, mask)
+        return data, (_plant_signals(plant), study.u)
+
+
+@eqx.filter_jit
+def _breakpoints(study, iu, jf):
+    """Every sample's signal breakpoints (plant signals and input), ``(B, k)``."""
+
+    def one(i, j):
+        plant, _ = study.sample(i, j)
+        parts = [sg.breakpoints().reshape(-1) for sg in _plant_signals(plant)] + [study.u.breakpoints().reshape(-1)]
+        return jnp.concatenate(parts)
+
+    return jax.vmap(one)(iu, jf)
+
+
+def _off_step_grid(bps: np.ndarray, t0: float, t1: float, h_step: float) -> np.ndarray:
+    b = bps[np.isfinite(bps) & (bps > t0) & (bps < t1)]
+    k = (b - t0) / h_step
+    return b[np.abs(k - np.round(k)) > BREAKPOINT_RTOL]
+
+
+def exponential_problem(study, observers, settle_tol: float, keep: bool, strict: bool):
+    """Host: ``((problem, None, (iu, jf)), None)`` for `run_batched`, or ``(None,
+    reason)`` when the study does not qualify (with `strict`: raise `fojax.InputError`)."""
+
+    def refuse(reason):
+        if strict:
+            raise InputError(
+                f"run_study(method='exponential') cannot run this study: {reason}. Use method='auto' "
+                "(which then takes the adaptive diffrax path) or method='diffrax'."
+            )
+        return None, reason
+
+    if not all(o.linear_matrices() is not None for o in observers):
+        return refuse("an observer is not LTI")
+    t = np.asarray(study.ts)
+    T = t.shape[0]
+    h = (t[-1] - t[0]) / (T - 1)
+    if not (T >= 2 and h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL):
+        return refuse("the grid is not uniform")
+    plant0, x00 = study.sample(0, 0)
+    try:
+        _check_structure(plant0, tuple(observers))
+    except InputError as err:
+        return refuse(str(err))
+    iu = np.arange(study.num_samples) // study.num_scenarios
+    jf = np.arange(study.num_samples) % study.num_scenarios
+    idx = (jnp.asarray(iu), jnp.asarray(jf))
+    off = _off_step_grid(np.asarray(_breakpoints(study, *idx)), float(t[0]), float(t[-1]), h / SUBSTEPS)
+    if off.size:
+        return refuse(
+            f"{off.size} signal breakpoint(s) (jumps or kinks, e.g. at t = {float(off[0]):.6g}) are not on the "
+            f"step grid (h / {SUBSTEPS} = {h / SUBSTEPS:g}); put fault onsets and switching times on it"
+        )
+    try:
+        host_initial_checks(plant0, x00, study.ts[0], study.u, strict=False, tol=0.0)
+        setup = StudySetup(study, tuple(observers))
+        first = (idx[0][0], idx[1][0])
+        A0, plan, data0 = prepare(setup, idx, first, first, PREPARE_CHUNK)
+        ns = sum(sg.size for sg in _plant_signals(plant0))
+        check_affine(StudyModel(study, tuple(observers)), first, data0, A0,
+                     StudyErrors(study.L, study.fault_targets), float(t[0]), float(t[-1]), ns, plant0.m,
+                     who="run_study(method='exponential')")
+    except InputError as err:
+        if strict:
+            raise
+        return None, str(err)
+    kept = np.asarray(plan.keep, dtype=int)
+    A0k = A0[kept][:, kept]
+    lam = float(np.max(np.abs(np.linalg.eigvals(np.asarray(A0k))), initial=0.0)) if kept.size else 0.0
+    n_start = min(T - 1, math.ceil(5.0 / (lam * h))) if lam > 0 else 0
+    hj = jnp.asarray(h)
+    phis = (phi_functions(A0k, hj / SUBSTEPS), phi_functions(A0k, hj / STARTUP_SUBSTEPS))
+    reducer = StudyProblem(study, tuple(observers), None, None, jnp.asarray(float(settle_tol)), None, keep)
+    problem = ExponentialProblem(setup, reducer, A0, phis, plan, (n_start, STARTUP_SUBSTEPS, SUBSTEPS))
+    return (problem, None, idx), None
