@@ -16,10 +16,12 @@ same reducer as the exact path (`StudyProblem`), i.e. with the definitions of
 **Accuracy and the step.** ETDRK4 has classical order 4 (observed in
 ``tests/test_exponential.py``); $A_0$ is integrated exactly, so the step only resolves
 $g$: the signals and the perturbation $\delta(t)\,\Delta A$ acting on the slow state. The
-step is the study grid's ``h`` divided by `SUBSTEPS` (2), and by `STARTUP_SUBSTEPS` (4)
-over an initial layer of $\lceil 5/(|\lambda|_{\max} h)\rceil$ grid intervals
-($\lambda$ the eigenvalues of $A_0$), where the initial state excites the fast modes that
-$g$ couples into. Fixed steps, no error control: the accuracy is a *measured* statement.
+step is the study grid's ``h`` divided by the smallest number of substeps $s$ with
+$(h/s)\,\rho \le$ `STEP_RATE` (0.5), $\rho$ the larger of $|\lambda|_{\max}(A_0)$ and
+the largest angular frequency of a `fojax.Sine` signal of any sample; over an initial
+layer of $\lceil 5/(|\lambda|_{\max} h)\rceil$ grid intervals, where the initial state
+excites the fast modes that $g$ couples into, it is `STARTUP_FACTOR` (2) times smaller.
+Fixed steps, no error control: the accuracy is a *measured* statement, not a bound.
 On the default §3.3.7 study with $\delta(t) = a\sin(\omega t + \varphi)$,
 $|a| \le 0.3$, $\omega \le 5$ rad/s, on the 0.01 s grid it is given by
 ``benchmarks/study_time_varying.py`` (fojax's error and the `solve_ivp` peer's against a
@@ -40,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import InputError
+from ..plant import Sine
 from ..simulation._exponential import (
     _check_structure,
     _plant_signals,
@@ -56,10 +59,11 @@ from ..simulation._simulate import UNIFORM_GRID_RTOL
 from ._exact import StudyProblem
 
 
-#: Integration steps per grid interval after the initial layer.
-SUBSTEPS = 2
-#: Integration steps per grid interval in the initial layer.
-STARTUP_SUBSTEPS = 4
+#: Largest step × rate: the step resolves the fastest mode of the nominal loop
+#: (``|λ|max(A0)``) and the fastest `fojax.Sine` signal (``ω``), ``h_step · rate ≤ STEP_RATE``.
+STEP_RATE = 0.5
+#: Over the initial layer the step is this many times smaller.
+STARTUP_FACTOR = 2
 #: A signal breakpoint counts as on the step grid within this fraction of a step (below
 #: `fojax.simulation._exponential.LEFT_LIMIT`, the offset of the left-limit stage).
 BREAKPOINT_RTOL = 1e-10
@@ -136,12 +140,16 @@ class StudySetup(eqx.Module):
 
 @eqx.filter_jit
 def _breakpoints(study, iu, jf):
-    """Every sample's signal breakpoints (plant signals and input), ``(B, k)``."""
+    """Every sample's signal breakpoints (plant signals and input) ``(B, k)`` and the
+    angular frequencies of its `fojax.Sine` signals ``(B, k')``."""
 
     def one(i, j):
         plant, _ = study.sample(i, j)
-        parts = [sg.breakpoints().reshape(-1) for sg in _plant_signals(plant)] + [study.u.breakpoints().reshape(-1)]
-        return jnp.concatenate(parts)
+        sigs = _plant_signals(plant) + (study.u,)
+        sines = [leaf for leaf in jax.tree.leaves(sigs, is_leaf=lambda x: isinstance(x, Sine))
+                 if isinstance(leaf, Sine)]
+        return (jnp.concatenate([sg.breakpoints().reshape(-1) for sg in sigs]),
+                jnp.concatenate([jnp.zeros((0,))] + [sn.omega.reshape(-1) for sn in sines]))
 
     return jax.vmap(one)(iu, jf)
 
@@ -179,12 +187,7 @@ def exponential_problem(study, observers, settle_tol: float, keep: bool, strict:
     iu = np.arange(study.num_samples) // study.num_scenarios
     jf = np.arange(study.num_samples) % study.num_scenarios
     idx = (jnp.asarray(iu), jnp.asarray(jf))
-    off = _off_step_grid(np.asarray(_breakpoints(study, *idx)), float(t[0]), float(t[-1]), h / SUBSTEPS)
-    if off.size:
-        return refuse(
-            f"{off.size} signal breakpoint(s) (jumps or kinks, e.g. at t = {float(off[0]):.6g}) are not on the "
-            f"step grid (h / {SUBSTEPS} = {h / SUBSTEPS:g}); put fault onsets and switching times on it"
-        )
+    bps, omega = (np.asarray(a) for a in _breakpoints(study, *idx))
     try:
         host_initial_checks(plant0, x00, study.ts[0], study.u, strict=False, tol=0.0)
         setup = StudySetup(study, tuple(observers))
@@ -201,9 +204,18 @@ def exponential_problem(study, observers, settle_tol: float, keep: bool, strict:
     kept = np.asarray(plan.keep, dtype=int)
     A0k = A0[kept][:, kept]
     lam = float(np.max(np.abs(np.linalg.eigvals(np.asarray(A0k))), initial=0.0)) if kept.size else 0.0
+    rate = max(lam, float(np.max(np.abs(omega), initial=0.0)))
+    substeps = max(1, math.ceil(rate * h / STEP_RATE))
+    sub_start = STARTUP_FACTOR * substeps
     n_start = min(T - 1, math.ceil(5.0 / (lam * h))) if lam > 0 else 0
+    off = _off_step_grid(bps, float(t[0]), float(t[-1]), h / substeps)
+    if off.size:
+        return refuse(
+            f"{off.size} signal breakpoint(s) (jumps or kinks, e.g. at t = {float(off[0]):.6g}) are not on the "
+            f"step grid (h / {substeps} = {h / substeps:g}); put fault onsets and switching times on it"
+        )
     hj = jnp.asarray(h)
-    phis = (phi_functions(A0k, hj / SUBSTEPS), phi_functions(A0k, hj / STARTUP_SUBSTEPS))
+    phis = (phi_functions(A0k, hj / substeps), phi_functions(A0k, hj / sub_start))
     reducer = StudyProblem(study, tuple(observers), None, None, jnp.asarray(float(settle_tol)), None, keep)
-    problem = ExponentialProblem(setup, reducer, A0, phis, plan, (n_start, STARTUP_SUBSTEPS, SUBSTEPS))
+    problem = ExponentialProblem(setup, reducer, A0, phis, plan, (n_start, sub_start, substeps))
     return (problem, None, idx), None
