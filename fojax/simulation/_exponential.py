@@ -64,6 +64,13 @@ plans compile different kernels, so compilation happens once per structure *and*
 sparsity pattern. All samples of a block are stepped together with the batch as the
 last axis; metrics are accumulated inside the time loop (trapezoid rule on ``ts``), so no
 trajectory is stored and memory grows linearly with ``B``.
+
+**One batch kernel.** `ExponentialProblem` is a *problem* of
+`fojax.simulation._batch.run_batched` (the chunking, padding, blocking and device
+sharding of `simulate_lti_batch` and of `fojax.run_study`'s exact engine) that brings
+its own block stepping; what is reduced along the grid is another problem's
+``init``/``update``/``final`` (the integrated metrics of `simulate_batch_exponential`,
+or `fojax.run_study`'s IAE/ISE/ITAE/peak/settling time, `fojax.studies._exponential`).
 """
 
 from __future__ import annotations
@@ -915,8 +922,11 @@ def simulate_batch_exponential(
     - `substeps`: integration steps per grid interval (``≥ 1``).
     - `startup`: ``(k, s)``: the first ``k`` grid intervals with ``s`` steps each (see
       above); ``None``: uniform.
-    - `chunk_size`: largest number of samples per compiled call (default 4096): ``B`` is
-      split into ``⌈B / chunk_size⌉`` equal chunks (whole blocks), the last one padded.
+    - `chunk_size`: samples per compiled call (default 4096), rounded up to a multiple of
+      ``block × devices``; the last chunk is padded. Chunks, padding, blocks and devices
+      are those of the batch kernel (`fojax.simulation._batch.run_batched`, shared with
+      `simulate_lti_batch` and `fojax.run_study`): this function only brings the stepping
+      (`ExponentialProblem`).
     - `block`: samples stepped together in one time loop (default 256).
     - `devices`: the devices the blocks of a chunk are spread over, round-robin, with
       `jax.shard_map` (default `jax.local_devices()`; on a CPU e.g.

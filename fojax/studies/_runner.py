@@ -13,6 +13,8 @@ numbers (a new key, new observer gains) reuse the compiled code; only a new
 take this path: they run on the batch-last exact kernel shared with
 `fojax.simulation.simulate_lti_batch` (`fojax.studies._exact`), which streams chunks,
 pads and shards with the same kernel code (`fojax.simulation._batch.run_batched`).
+Time-varying affine studies (δ(t), faults, known inputs) run on the exponential
+integrator through the same `run_batched` (`fojax.studies._exponential`).
 
 **Chunks and devices (one code path).** The index batch is cut into chunks of a fixed
 size (the last one padded with copies of sample 0, whose results are dropped, so the
@@ -369,6 +371,17 @@ def run_study(
       noise, other signals) every sample runs `fojax.simulate` under `jax.vmap`
       (``attrs["engine"] == "vmap-simulate"``; ``"exact"`` then needs an LTI plant
       as in `fojax.simulate`), as does ``method="diffrax"``.
+      Samples that vary in time only through signals entering the differential equations
+      affinely (a time-varying δ(t) such as `sinusoidal_delta` or
+      `piecewise_constant_delta`, `FaultyPlant` faults, any known input), with LTI
+      observers and every signal breakpoint (fault onset, switching time) on the step
+      grid, run instead on the exponential integrator (ETDRK4, fourth order, steps a
+      fraction of the grid chosen from the loop's fastest rate; see
+      `fojax.studies._exponential`) on the same batch kernel
+      (``attrs["engine"] == "exponential-batch"``): with ``"auto"`` when the exact engine
+      does not apply, or asked for with ``method="exponential"`` (an `InputError` says
+      why a study does not qualify). `study_loss` does not use it (not differentiable
+      in reverse mode yet).
     - `rtol`, `atol`, `max_steps`, `solver`: passed to `fojax.simulate` on the
       ``"vmap-simulate"`` engine (``throw=False``; failed samples are flagged in
       ``metrics["success"]``). For non-stiff studies an explicit solver
