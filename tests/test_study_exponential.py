@@ -29,8 +29,10 @@ from fojax.studies._families import Family
 FA = np.array([[0.3], [0.0], [-0.2], [0.5]])  # row 4: the fault moves the algebraic x4
 TS = np.linspace(0.0, 2.0, 51)  # grid 0.04 s; ETDRK4 steps 0.01 s (|λ|max(A0) = 39.8: 4 per interval)
 U_AMP, U_OMEGA, U_PHASE, U_OFF = np.array([0.5, -0.4]), np.array([1.5, 2.5]), np.array([0.0, 0.3]), np.array([0.1, 0.0])
-# onsets and ramp ends on grid points (0.52) and between them on the step grid (0.3 + 0.62 = 0.92, 1.02)
-ONSET, RISE = np.array([0.52, 0.3, 1.02]), np.array([0.0, 0.62, 0.0])
+# onsets and ramp ends on grid points (0.52) and between them on the step grid (0.3 + 0.62 = 0.92, 1.02);
+# the step onsets 1e-13 s late (a jump time off the boundary by rounding still belongs to the next
+# step: the regression test of the right-limit start of a step, 2.2e-4 relative error without it)
+ONSET, RISE = np.array([0.52 + 1e-13, 0.3, 1.02 + 1e-13]), np.array([0.0, 0.62, 0.0])
 NU, NF = 3, 3
 METRICS = ("iae", "ise", "itae", "peak", "settling_time")
 SETTLE_TOL = 0.05

@@ -114,10 +114,12 @@ PLAN_RTOL = 1e-13
 #: Largest relative mismatch between the decomposition and the plant's own vector
 #: field accepted by the host check.
 AFFINE_CHECK_RTOL = 1e-8
-#: The last ETDRK4 stage of a step ``[t, t + h]`` reads the signals at ``t + (1 − LEFT_LIMIT) h``
-#: (their left limits when a jump lies on the step boundary ``t + h``); for a smooth signal
-#: this moves one stage by 1e-9 of a step.
-LEFT_LIMIT = 1e-9
+#: One-sided signal values at a step boundary ``t + h``: the last ETDRK4 stage of the step
+#: ``[t, t + h]`` reads the signals at ``t + (1 − SIDE_OFFSET) h`` (their left limits) and the
+#: next step starts from their values at ``t + (1 + SIDE_OFFSET) h`` (right limits), so a jump
+#: on the boundary belongs to the next step even when the boundary and the jump time differ
+#: by rounding. For a smooth signal this moves a stage by 1e-9 of a step.
+SIDE_OFFSET = 1e-9
 
 __all__ = ["METRIC_KINDS", "simulate_batch_exponential"]
 
@@ -749,13 +751,13 @@ class ExponentialProblem(eqx.Module):
 
             def step(carry, t):
                 w, piw, c0, v0 = carry
-                # the last stage uses the signals' left limits at t + h (a jump exactly at
-                # a step boundary belongs to the next step); the carry their values at t + h
-                c1, v1 = evaluate(t + h)
+                # the last stage uses the signals' left limits at t + h, the next step their
+                # right limits (a jump on the step boundary belongs to the next step)
+                c1, v1 = evaluate(t + (1.0 + SIDE_OFFSET) * h)
                 if nr == 0:
                     return (E @ w, piw, c1, v1), None
                 ch, vh = evaluate(t + 0.5 * h)
-                cl, vl = evaluate(t + (1.0 - LEFT_LIMIT) * h)
+                cl, vl = evaluate(t + (1.0 - SIDE_OFFSET) * h)
                 fh, fl = forcing(ch, vh), forcing(cl, vl)
                 Nn = g(piw, c0, forcing(c0, v0))
                 Y0 = L0 @ jnp.concatenate([w, Nn], axis=0)

@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._errors import InputError
+from .._errors import FojaxError, InputError
 from ..plant import Sine
 from ..simulation._exponential import (
     _check_structure,
@@ -54,7 +54,7 @@ from ..simulation._exponential import (
     prepare,
     setup_data,
 )
-from ..simulation._reduction import host_initial_checks
+from ..simulation._reduction import host_initial_checks, is_concrete
 from ..simulation._simulate import UNIFORM_GRID_RTOL
 from ._exact import StudyProblem
 
@@ -65,7 +65,7 @@ STEP_RATE = 0.5
 #: Over the initial layer the step is this many times smaller.
 STARTUP_FACTOR = 2
 #: A signal breakpoint counts as on the step grid within this fraction of a step (below
-#: `fojax.simulation._exponential.LEFT_LIMIT`, the offset of the left-limit stage).
+#: `fojax.simulation._exponential.SIDE_OFFSET`, the offset of the one-sided signal values).
 BREAKPOINT_RTOL = 1e-10
 #: Samples per call of the host pre-pass (set-up and plan statistics).
 PREPARE_CHUNK = 2048
@@ -174,6 +174,8 @@ def exponential_problem(study, observers, settle_tol: float, keep: bool, strict:
 
     if not all(o.linear_matrices() is not None for o in observers):
         return refuse("an observer is not LTI")
+    if not is_concrete(study):
+        return refuse("the study's arrays are traced")
     t = np.asarray(study.ts)
     T = t.shape[0]
     h = (t[-1] - t[0]) / (T - 1)
@@ -197,10 +199,10 @@ def exponential_problem(study, observers, settle_tol: float, keep: bool, strict:
         check_affine(StudyModel(study, tuple(observers)), first, data0, A0,
                      StudyErrors(study.L, study.fault_targets), float(t[0]), float(t[-1]), ns, plant0.m,
                      who="run_study(method='exponential')")
-    except InputError as err:
+    except FojaxError as err:  # refused by a check: "auto" keeps the adaptive path
         if strict:
             raise
-        return None, str(err)
+        return None, f"{type(err).__name__}: {err}"
     kept = np.asarray(plan.keep, dtype=int)
     A0k = A0[kept][:, kept]
     lam = float(np.max(np.abs(np.linalg.eigvals(np.asarray(A0k))), initial=0.0)) if kept.size else 0.0
