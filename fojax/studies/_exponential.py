@@ -23,13 +23,21 @@ layer of $\lceil 5/(|\lambda|_{\max} h)\rceil$ grid intervals, where the initial
 excites the fast modes that $g$ couples into, it is `STARTUP_FACTOR` (2) times smaller.
 Fixed steps, no error control: the accuracy is a *measured* statement, not a bound.
 On the default §3.3.7 study with $\delta(t) = a\sin(\omega t + \varphi)$,
-$|a| \le 0.3$, $\omega \le 5$ rad/s, on the 0.01 s grid it is given by
-``benchmarks/study_time_varying.py`` (fojax's error and the `solve_ivp` peer's against a
-DOP853 reference at rtol 1e-12). Signal jumps and kinks (fault onsets, ramp ends,
-switching times of a piecewise-constant $\delta$, steps of the input) must lie on the
-step grid: the method is fourth order only between them. `exponential_problem` checks
-this for every sample and the ``"auto"`` method otherwise keeps the adaptive diffrax
-path (it places steps at the breakpoints).
+$|a| \le 0.3$, $\omega \le 5$ rad/s, on the 0.01 s grid (one step per interval, two in
+the first 140) the largest relative error of IAE, ISE, ITAE and peak over 10 samples is
+5.1e-10 against DOP853 at rtol 1e-12, where a `solve_ivp` loop (RK45, rtol 1e-6) is off
+by 2.5e-6 (``benchmarks/study_time_varying.py``); with a piecewise-constant δ switching
+on the grid, 1.3e-9 against diffrax's Dopri8 at rtol 1e-11; on the §4.1.3 loop of
+``tests/test_study_exponential.py`` (grid 0.04 s, four steps per interval) 8.6e-10.
+
+**Jumps.** Signal jumps and kinks (fault onsets, ramp ends, switching times of a
+piecewise-constant $\delta$, steps of the input) must lie on the step grid (to within
+`BREAKPOINT_RTOL` of a step): the method is fourth order only between them, and a jump
+on a step boundary is taken exactly (the last stage reads the left limits, the next
+step starts from the right limits). `exponential_problem` checks this for every sample;
+otherwise ``"auto"`` keeps the adaptive diffrax path, which places steps at the
+breakpoints. Fault onsets drawn at random times (`fault_scenarios` with an `onset`
+range) are therefore not on this path.
 """
 
 from __future__ import annotations
