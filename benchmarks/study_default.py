@@ -62,7 +62,9 @@ T_END, DT, SETTLE_TOL = 10.0, 0.01, 0.05
 METRICS = ("iae", "ise", "itae", "peak", "settling_time")
 
 
-def build(B: int, seed: int = 0):
+def build(B: int, seed: int = 0, delta: str = "constant"):
+    """The default study with ``B`` samples; ``delta="sine"``: its time-varying version,
+    δ(t) = a sin(ωt + φ) with |a| ≤ 0.3, ω ∈ [0.5, 5] rad/s (`study_time_varying.py`)."""
     ex = fojax.models.example_3_3_7()
     obs = tuple(
         design_functional_observer(ex.augmented, ex.L_aug, kind=k, region=Disk(-3.0, 2.0)).observer
@@ -70,13 +72,15 @@ def build(B: int, seed: int = 0):
     )
     dA = np.zeros((1, 9, 9))
     dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    template = fojax.Constant(jnp.zeros(1)) if delta == "constant" else fojax.Sine(jnp.zeros(1), jnp.ones(1), jnp.zeros(1))
+    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=template)
     x0 = jnp.concatenate([jnp.full((6,), 0.5), jnp.zeros(3)])
     ts = jnp.linspace(0.0, T_END, int(round(T_END / DT)) + 1)
     nf = 10
     k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
     study = fojax.Study(plant, x0, ts, ex.L_aug, None,
-                        uncertainty=(S.constant_delta(k1, B // nf, 1, bounds=(-0.3, 0.3)),),
+                        uncertainty=(S.constant_delta(k1, B // nf, 1, bounds=(-0.3, 0.3)) if delta == "constant" else
+                                     S.sinusoidal_delta(k1, B // nf, 1, amplitude=(-0.3, 0.3), omega=(0.5, 5.0)),),
                         scenarios=(S.constant_faults(k2, nf, x0, 3, magnitude=(0.5, 1.5)),),
                         signal_names=("z1", "z2", "f1", "f2", "f3"))
     return ex, plant, obs, study
@@ -87,7 +91,8 @@ def peer_inputs(ex, plant, obs, study):
     B = study.num_samples
     iu = np.arange(B) // study.num_scenarios
     jf = np.arange(B) % study.num_scenarios
-    delta = np.asarray(study.uncertainty[0].values.value)[iu, 0]  # (B,)
+    vals = study.uncertainty[0].values
+    delta = np.asarray(vals.value)[iu, 0] if isinstance(vals, fojax.Constant) else None  # (B,); None: δ(t)
     x0 = np.asarray(study.scenarios[0].values)[jf]  # (B, 9)
     lms = [o.linear_matrices() for o in obs]
     return dict(

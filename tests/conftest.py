@@ -82,6 +82,7 @@ HEAVY_FIRST = (
     "test_implicit_solver.py",
     "test_notebook_monte_carlo.py",
     "test_exponential.py",
+    "test_study_exponential.py",
     "test_batch_simulation.py",
     "test_notebook_observers.py",
     "test_control.py",

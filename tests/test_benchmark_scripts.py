@@ -244,3 +244,13 @@ def test_latest_results_are_tracked_and_the_rest_ignored():
     assert not ignored("benchmarks/results/study_latest.json")
     assert ignored("benchmarks/results/study_2031-01-02.json")
     assert ignored("benchmarks/results/study_latest.md")
+
+
+def test_make_readme_renders_the_time_varying_study(tmp_path):
+    row = {"B": 1000, "fojax_samples_per_s": 254.98, "peer_samples_per_s": 4.1083, "speedup_vs_solve_ivp": 62.064,
+           "fojax_error_vs_reference_max_rel": 5.115e-10, "peer_error_vs_reference_max_rel": 2.455e-6,
+           "fojax_first_call_s": 60.84, "load_average_start": "[17.95, 17.87, 15.15]"}
+    _write(tmp_path, "study_time_varying", {"status": "complete", "machine": MACHINE, "rows": [row]})
+    text = make_readme.render(tmp_path)
+    assert "| 1000 | 255 | 4.11 | 62.1× | 5.1e-10 | 2.5e-06 | 60.8 | 17.9 |" in text
+    assert "took 60.8 s, the time the solve_ivp loop needs for 250 samples" in text

@@ -32,7 +32,7 @@ from closed_loop_413 import (  # the §4.1.3 loop shared with test_batch_simulat
 
 import fojax
 from fojax.simulation import simulate_batch_exponential, simulate_lti_batch
-from fojax.simulation._exponential import _host_plan, _setup_chunk, TRACE_COUNTS
+from fojax.simulation._exponential import _ModelSetup, prepare, TRACE_COUNTS
 from fojax.studies import FaultyPlant
 
 
@@ -205,8 +205,8 @@ def test_plan_exploits_the_structure(batch):
     p = jax.tree.map(jnp.asarray, params)
     first = jax.tree.map(lambda a: a[0], p)
     Cs = jnp.concatenate([C for _, C in METRICS.values()], axis=0)
-    _, _, stats, A0 = _setup_chunk(model, p, jnp.asarray(x0), Cs, first)
-    plan = _host_plan(stats, A0)
+    x0 = jnp.asarray(x0)
+    _, plan, _ = prepare(_ModelSetup(model, Cs), (p, x0), (first, x0[0]), (first, x0[0]), 4096)
     assert len(plan.keep) == 5  # 3 slow plant coordinates + 2 observer states
     assert plan.terms == ((1, "shared"),)  # the δ direction; Ā_k = A0 (common nominal)
     assert len(plan.cols) == 2 and plan.rows == tuple(range(5))

@@ -474,11 +474,13 @@ def _device_kernel(problem, p, nvalid, h, ts, basis, dev):
     ``nvalid`` blocks are computed (a while loop), the others stay zero."""
     nb = jax.tree.leaves(p)[0].shape[0]
     take = lambda a, i: lax.dynamic_index_in_dim(a, i, keepdims=False)  # noqa: E731
-    shape = jax.eval_shape(lambda q: _block_kernel(problem, q, h, ts, basis), jax.tree.map(lambda a: a[0], p))
+    # a problem with its own stepping (the exponential integrator) brings its block kernel
+    kernel = getattr(problem, "block_kernel", None) or (lambda q, h, ts, basis: _block_kernel(problem, q, h, ts, basis))
+    shape = jax.eval_shape(lambda q: kernel(q, h, ts, basis), jax.tree.map(lambda a: a[0], p))
     out = jax.tree.map(lambda s: jnp.zeros((nb,) + s.shape, s.dtype), shape)
 
     def body(i, out):
-        res = _block_kernel(problem, jax.tree.map(lambda a: take(a, i), p), h, ts, basis)
+        res = kernel(jax.tree.map(lambda a: take(a, i), p), h, ts, basis)
         return jax.tree.map(lambda o, r_: lax.dynamic_update_index_in_dim(o, r_, i, 0), out, res)
 
     return lax.fori_loop(0, nvalid[dev], body, out)

@@ -64,6 +64,13 @@ plans compile different kernels, so compilation happens once per structure *and*
 sparsity pattern. All samples of a block are stepped together with the batch as the
 last axis; metrics are accumulated inside the time loop (trapezoid rule on ``ts``), so no
 trajectory is stored and memory grows linearly with ``B``.
+
+**One batch kernel.** `ExponentialProblem` is a *problem* of
+`fojax.simulation._batch.run_batched` (the chunking, padding, blocking and device
+sharding of `simulate_lti_batch` and of `fojax.run_study`'s exact engine) that brings
+its own block stepping; what is reduced along the grid is another problem's
+``init``/``update``/``final`` (the integrated metrics of `simulate_batch_exponential`,
+or `fojax.run_study`'s IAE/ISE/ITAE/peak/settling time, `fojax.studies._exponential`).
 """
 
 from __future__ import annotations
@@ -76,15 +83,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax, shard_map
-from jax.sharding import PartitionSpec
+from jax import lax
 
 from .._dtype import as_float_array
 from .._errors import InputError, ShapeError
 from .._small_linalg import solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal, Constant
-from ._batch import _check_metrics, _integrand, _matvec_last, _mesh_for, METRIC_KINDS
+from ._batch import _check_metrics, _matvec_last, _ModelProblem, METRIC_KINDS, run_batched
 from ._reduction import (
     host_initial_checks,
     is_concrete,
@@ -108,6 +114,12 @@ PLAN_RTOL = 1e-13
 #: Largest relative mismatch between the decomposition and the plant's own vector
 #: field accepted by the host check.
 AFFINE_CHECK_RTOL = 1e-8
+#: One-sided signal values at a step boundary ``t + h``: the last ETDRK4 stage of the step
+#: ``[t, t + h]`` reads the signals at ``t + (1 − SIDE_OFFSET) h`` (their left limits) and the
+#: next step starts from their values at ``t + (1 + SIDE_OFFSET) h`` (right limits), so a jump
+#: on the boundary belongs to the next step even when the boundary and the jump time differ
+#: by rounding. For a smooth signal this moves a stage by 1e-9 of a step.
+SIDE_OFFSET = 1e-9
 
 __all__ = ["METRIC_KINDS", "simulate_batch_exponential"]
 
@@ -226,8 +238,9 @@ def _probe_matrices(plant, observers):
     the algebraic equations' state dependence alone, and the host check (which uses the
     plant's own, per-point solve) refuses plants where they do not.
 
-    Returns ``(Aj (P, N, N), Bj (P, N, m+1), OM (P, n+Σ, N), OF (P, n+Σ, m+1), split)``:
-    $\dot w = A_j w + B_j v$ and $[x; \xi] = OM\,w + OF\,v$.
+    Returns ``(Aj (P, N, N), Bj (P, N, m+1), OM (P, n+Σ, N), OF (P, n+Σ, m+1), split,
+    (Yw (P, p, N), Yv (P, p, m+1)))``: $\dot w = A_j w + B_j v$, $[x; \xi] = OM\,w + OF\,v$
+    and the plant output $y = Y_w w + Y_v v$.
     """
     ns = sum(sg.size for sg in _plant_signals(plant))
     probes = jnp.concatenate([jnp.zeros((1, ns)), jnp.eye(ns)], axis=0)
@@ -285,7 +298,8 @@ def _probe_matrices(plant, observers):
         axis=1,
     )
     OF = jnp.concatenate([Tu, zeros(no, m + 1)], axis=1)
-    return Aj, Bj, OM, OF, split
+    Yw = jnp.concatenate([Cs, zeros(Cs.shape[1], no)], axis=2)
+    return Aj, Bj, OM, OF, split, (Yw, Ds)
 
 
 def _split_terms(M):
@@ -293,54 +307,92 @@ def _split_terms(M):
     return jnp.concatenate([M[:1], M[1:] - M[:1]], axis=0)
 
 
-def _sample_setup(model, p, x0k, Cstack):
-    plant, observers, u = _parse_model_output(model(p))
-    Aj, Bj, OM, OF, split = _probe_matrices(plant, observers)
+def decompose(plant, observers, x0k):
+    """One sample's probe decomposition (`_probe_matrices`), its initial slow state and
+    mask: ``(Aj, Bj, OM, OF, (Yw, Yv), w0, mask)`` (leading probe axis ``P``)."""
+    Aj, Bj, OM, OF, split, Y = _probe_matrices(plant, observers)
     no = Aj.shape[-1] - plant.n
     w0 = jnp.concatenate([split.slow * (split.V.T @ x0k)] + [o.initial_state() for o in observers])
     mask = jnp.concatenate([split.slow, jnp.ones((no,))])
-    data = dict(
-        A=_split_terms(Aj),
-        B=_split_terms(Bj),
-        G=jnp.einsum("rj,ijn->irn", Cstack, _split_terms(OM)),
-        H=jnp.einsum("rj,ijm->irm", Cstack, _split_terms(OF)),
-        w0=w0,
-        mask=mask,
-    )
+    return Aj, Bj, OM, OF, Y, w0, mask
+
+
+def setup_data(Aj, Bj, G, H, w0, mask):
+    """The kernel's per-sample data from per-probe matrices (outputs $o = G w + H v$ at
+    each probe): constant parts and coefficients of the signal values (`_split_terms`)."""
+    return dict(A=_split_terms(Aj), B=_split_terms(Bj), G=_split_terms(G), H=_split_terms(H), w0=w0, mask=mask)
+
+
+def _sample_setup(model, p, x0k, Cstack):
+    plant, observers, u = _parse_model_output(model(p))
+    Aj, Bj, OM, OF, _, w0, mask = decompose(plant, observers, x0k)
+    data = setup_data(Aj, Bj, jnp.einsum("rj,ijn->irn", Cstack, OM), jnp.einsum("rj,ijm->irm", Cstack, OF), w0, mask)
     return data, (_plant_signals(plant), u)
 
 
-def _stats(data):
-    """Small per-chunk summaries the host turns into a plan."""
+class _ModelSetup(eqx.Module):
+    """Per-sample set-up of `simulate_batch_exponential`: ``p = (params_k, x0_k)``."""
+
+    model: Callable
+    Cstack: jax.Array
+
+    def __call__(self, p):
+        return _sample_setup(self.model, p[0], p[1], self.Cstack)
+
+
+def _stats(data, ref):
+    """Small summaries of a chunk's data the host turns into a plan; deviations are
+    measured from ``ref`` (one sample's data, no batch axis), so that chunks merge
+    (`_merge_stats`)."""
     A, B, G, H, mask = data["A"], data["B"], data["G"], data["H"], data["mask"]
     return dict(
         mask_min=jnp.min(mask, axis=0),
         mask_max=jnp.max(mask, axis=0),
         A_abs=jnp.max(jnp.abs(A), axis=0),
-        A_dev=jnp.max(jnp.abs(A - A[:1]), axis=(0, 2, 3)),
+        A_dev=jnp.max(jnp.abs(A - ref["A"][None]), axis=(0, 2, 3)),
         B_abs=jnp.max(jnp.abs(B), axis=0),
         G_abs=jnp.max(jnp.abs(G), axis=(0, 2, 3)),
-        G_dev=jnp.max(jnp.abs(G - G[:1]), axis=(0, 2, 3)),
+        G_dev=jnp.max(jnp.abs(G - ref["G"][None]), axis=(0, 2, 3)),
         H_abs=jnp.max(jnp.abs(H), axis=(0, 2, 3)),
     )
 
 
-@eqx.filter_jit
-def _setup_chunk(model, params, x0, Cstack, reference):
-    """Per-sample decomposition of a chunk, ``A0`` and the plan statistics.
+def _merge_stats(a, b):
+    return {k: (np.minimum if k == "mask_min" else np.maximum)(np.asarray(a[k]), np.asarray(b[k])) for k in a}
 
-    The reference goes through the same (vmapped) code as one extra sample, so the
-    set-up is compiled once; ``A0`` is its constant part (all signals at zero), and the
-    constant term of every sample becomes ``Ā_k − A0``.
-    """
+
+@eqx.filter_jit
+def _setup_stats(setup, p, first, reference):
+    """The set-up of a chunk ``p`` (leaves with a leading batch axis), of ``first`` (the
+    sample whose data the deviations are measured from) and of ``reference`` (whose
+    constant part, all signals at zero, is ``A0``), in one vmapped call, so the set-up is
+    compiled once. Returns ``(data of first, stats, A0)``; the constant term of every
+    sample is ``Ā_k − A0``."""
     TRACE_COUNTS["setup"] += 1
-    params = jax.tree.map(lambda a, r: jnp.concatenate([a, r[None]], axis=0), params, reference)
-    x0 = jnp.concatenate([x0, x0[:1]], axis=0)
-    data, sigpack = jax.vmap(lambda p, x: _sample_setup(model, p, x, Cstack))(params, x0)
+    p = jax.tree.map(lambda a, f, r: jnp.concatenate([a, f[None], r[None]], axis=0), p, first, reference)
+    data, _ = jax.vmap(setup)(p)
     A0 = data["A"][-1, 0]
-    data, sigpack = jax.tree.map(lambda a: a[:-1], (data, sigpack))
+    data = jax.tree.map(lambda a: a[:-1], data)
     data["A"] = data["A"].at[:, 0].add(-A0[None])
-    return data, sigpack, _stats(data), A0
+    ref = jax.tree.map(lambda a: a[-1], data)
+    return ref, _stats(jax.tree.map(lambda a: a[:-1], data), ref), A0
+
+
+def prepare(setup, p, first, reference, chunk_size: int):
+    """Host: ``A0``, the `_Plan` of all samples of ``p`` (read in chunks of `chunk_size`)
+    and the data of ``first``."""
+    Bn = jax.tree.leaves(p)[0].shape[0]
+    bc = min(int(chunk_size), Bn)
+    n_chunks = -(-Bn // bc)
+    pad = n_chunks * bc - Bn
+    if pad:  # copies of the last sample change no maximum; one shape, one compilation
+        p = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)], axis=0), p)
+    stats = None
+    for i in range(n_chunks):
+        pc = jax.tree.map(lambda a, i=i: a[i * bc : (i + 1) * bc], p)
+        ref, st, A0 = _setup_stats(setup, pc, first, reference)
+        stats = st if stats is None else _merge_stats(stats, st)
+    return A0, _host_plan(stats, A0), ref
 
 
 class _Plan(NamedTuple):
@@ -401,10 +453,20 @@ def _host_plan(stats, A0) -> _Plan:
 # --------------------------------------------------------------------------- host check
 
 
+class CstackOutputs(eqx.Module):
+    """The metric outputs of `simulate_batch_exponential`: ``C [x; ξ_1; …]``."""
+
+    Cstack: jax.Array
+
+    def __call__(self, plant, observers, t, x, xi, u_t, y):
+        return self.Cstack @ jnp.concatenate([x, xi])
+
+
 @eqx.filter_jit
-def _affinity_mismatch(model, p, terms, Cstack, t_rand, s_rand, u_rand, w_rand):
+def _affinity_mismatch(model, p, terms, outputs, t_rand, s_rand, u_rand, w_rand):
     """Relative mismatch of one sample's decomposition (``terms = (A, B, G, H)``, raw: the
-    constant part not reduced by ``A0``) against the plant's own slow field and outputs."""
+    constant part not reduced by ``A0``) against the plant's own slow field and against
+    ``outputs(plant, observers, t, x, ξ, u, y)`` computed from the plant's own output."""
     TRACE_COUNTS["check"] += 1
     plant, observers, u = _parse_model_output(model(p))
     A, B, G, H = terms
@@ -424,7 +486,7 @@ def _affinity_mismatch(model, p, terms, Cstack, t_rand, s_rand, u_rand, w_rand):
         for o in observers:
             parts.append(o.vector_field(t, w[off : off + o.state_size], u_t, y))
             off += o.state_size
-        return jnp.concatenate(parts), Cstack @ jnp.concatenate([x, w[n:]])
+        return jnp.concatenate(parts), outputs(pl, observers, t, x, w[n:], u_t, y)
 
     def decomposed(s, v):
         c = jnp.concatenate([jnp.ones((1,)), s])
@@ -445,17 +507,19 @@ def _affinity_mismatch(model, p, terms, Cstack, t_rand, s_rand, u_rand, w_rand):
     return jnp.stack([rel(D1, F1), rel(P1, O1), rel(D2, F2), rel(P2, O2)])
 
 
-def _check_affine(model, first, data, A0, Cstack, t0, t1, ns, m):
+def check_affine(model, first, data, A0, outputs, t0, t1, ns, m, who="simulate_batch_exponential"):
+    """Host: refuse (`fojax.InputError`) a decomposition of sample ``first`` (its `data`,
+    no batch axis) that misses the plant's own vector field or outputs."""
     rng = np.random.default_rng(20261121)
     t_rand = jnp.asarray(t0 + 0.3719 * (t1 - t0))
-    terms = tuple(data[k][0] for k in ("A", "B", "G", "H"))
+    terms = tuple(data[k] for k in ("A", "B", "G", "H"))
     terms = (terms[0].at[0].add(A0),) + terms[1:]
     err = np.asarray(
         _affinity_mismatch(
             model,
             first,
             terms,
-            Cstack,
+            outputs,
             t_rand,
             jnp.asarray(rng.standard_normal(ns)),
             jnp.asarray(rng.standard_normal(m)),
@@ -471,7 +535,7 @@ def _check_affine(model, first, data, A0, Cstack, t0, t1, ns, m):
     for e, w in zip(err, what):
         if not e <= AFFINE_CHECK_RTOL:
             raise InputError(
-                "simulate_batch_exponential needs a plant whose reduced vector field is affine in "
+                f"{who} needs a plant whose reduced vector field is affine in "
                 "the state and in the values of its signals (uncertainty δ(t), faults, noise, "
                 "input), with time entering only through those signals. On the first sample the "
                 f"affine decomposition misses {w} by {e:.1e} (relative; tolerance "
@@ -567,70 +631,79 @@ def _etd_matrices(phis, h, rows, Pi):
     return E, L0, L1, L2, L3
 
 
-@eqx.filter_jit
-def _step_chunk(sigpack, data, phis, t0, h_grid, layout):
-    """Step one chunk; ``data`` leaves and ``sigpack`` leaves have a leading chunk axis.
+class ExponentialProblem(eqx.Module):
+    r"""A problem of the batch kernel (`fojax.simulation._batch.run_batched`) stepped by
+    ETDRK4 instead of exact matrix exponentials.
 
-    ``phis``: `phi_functions` of the kept block of ``A0`` at the bulk step
-    ``h_grid / substeps`` and at the start-up step ``h_grid / startup_substeps``.
+    ``setup(p_k)`` gives one sample's data (`setup_data`: the affine decomposition's
+    terms, ``w0``, mask) and its signals ``(plant signals, input)``; ``reducer`` is a
+    batch-kernel problem whose ``init``/``update``/``final`` reduce the outputs
+    $o = \sum_i c_i(t)\,(G_i w + H_i v)$ along the grid (the integrated metrics of
+    `simulate_batch_exponential`, or `run_study`'s metrics). ``A0`` (full size) and its
+    φ-functions ``phis`` (kept block; bulk step and start-up step) are shared by every
+    sample; ``plan`` (static, `_Plan`) says which terms are applied and how;
+    ``schedule = (n_start, sub_start, substeps)``.
+
+    `run_batched` owns chunks, padding, blocks and devices; `block_kernel` steps one block
+    with the batch as the last axis.
     """
-    TRACE_COUNTS["simulate_batch_exponential"] += 1
-    T, (n_start, sub_start, substeps), kinds, block, plan, mesh = layout
-    keep, rows, cols = (np.asarray(a, dtype=int) for a in plan[:3])
-    nr = len(rows)
-    R_out = data["G"].shape[2]
-    Nk = keep.size
 
-    # per-sample data restricted to the plan, batch axis first for now
-    A = data["A"][:, :, keep][:, :, :, keep]
-    Ar = A[:, :, rows][:, :, :, cols]  # (bc, nt, nr, nc)
-    shared = [i for i, kind in plan.terms if kind == "shared"]
-    sample = [i for i, kind in plan.terms if kind == "sample"]
-    # Pi: what g reads from a state — the shared perturbation matrices (embedded in the
-    # kept coordinates) and, for per-sample terms, the components they read
-    Pi = [jnp.zeros((nr, Nk)).at[:, cols].set(Ar[0, i]) for i in shared]
-    if sample:
-        Pi.append(jnp.eye(Nk)[cols])
-    Pi = jnp.concatenate(Pi, axis=0) if Pi else jnp.zeros((0, Nk))
-    q, n_sh = Pi.shape[0], len(shared) * nr
-    phases = []  # (first interval, number of intervals, substeps, h, stage matrices)
-    if n_start:
-        h_s = h_grid / sub_start
-        phases.append((0, n_start, sub_start, h_s, _etd_matrices(phis[1], h_s, rows, Pi)))
-    if T - 1 - n_start:
-        h_b = h_grid / substeps
-        phases.append((n_start, T - 1 - n_start, substeps, h_b, _etd_matrices(phis[0], h_b, rows, Pi)))
-    Bf = data["B"][:, :, keep][:, :, rows]  # (bc, nt, nr, m+1)
-    G = data["G"][:, :, :, keep]  # (bc, nt, R, Nk)
-    g_sh = [i for i, kind in plan.gterms if kind == "shared"]
-    g_sa = [i for i, kind in plan.gterms if kind == "sample"]
-    G_sh = jnp.concatenate([G[0, i] for i in g_sh], axis=0) if g_sh else None
-    per_sample = dict(
-        A=jnp.stack([Ar[:, i] for i in sample], axis=1) if sample else None,  # (bc, k, nr, nc)
-        B=jnp.stack([Bf[:, i] for i in plan.fterms], axis=1) if plan.fterms else None,
-        G=jnp.stack([G[:, i] for i in g_sa], axis=1) if g_sa else None,
-        H=jnp.stack([data["H"][:, i] for i in plan.hterms], axis=1) if plan.hterms else None,
-        w0=data["w0"][:, keep],
-        sig=sigpack,
-    )
-    bc = data["w0"].shape[0]
-    sub = min(block, bc)
-    n_sub = -(-bc // sub)
-    pad = n_sub * sub - bc
-    padf = lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)], axis=0) if pad else a  # noqa: E731
-    per_sample = jax.tree.map(padf, per_sample)
-    # (n_sub, sub, ...) for lax.map; arrays moved to batch-last inside run_block
-    per_sample = jax.tree.map(lambda a: a.reshape((n_sub, sub) + a.shape[1:]), per_sample)
-    last = lambda a: None if a is None else jnp.moveaxis(a, 0, -1)  # noqa: E731
+    setup: eqx.Module
+    reducer: eqx.Module
+    A0: jax.Array
+    phis: tuple
+    plan: _Plan = eqx.field(static=True)
+    schedule: tuple = eqx.field(static=True)
 
-    def run_block(blk):
-        Ms = last(blk["A"])  # (k, nr, nc, b)
-        Bs = last(blk["B"])  # (kf, nr, m+1, b)
-        Gs = last(blk["G"])  # (kg, R, Nk, b)
-        Hs = last(blk["H"])  # (kh, R, m+1, b)
-        w0 = last(blk["w0"])  # (Nk, b)
-        sigs, usig = blk["sig"]
+    @property
+    def keep(self) -> bool:
+        return self.reducer.keep
 
+    def block_kernel(self, p, h_grid, ts, basis=None):
+        """One block (leading axis ``b`` of every leaf of ``p``): the reducer's result
+        (and the ``(T, K, b)`` outputs when ``reducer.keep``), batch last."""
+        TRACE_COUNTS["simulate_batch_exponential"] += 1
+        del basis  # the exponential kernel steps the slow state itself
+        plan, (n_start, sub_start, substeps) = self.plan, self.schedule
+        data, sigpack = jax.vmap(self.setup)(p)
+        data["A"] = data["A"].at[:, 0].add(-self.A0[None])
+        T = ts.shape[0]
+        t0 = ts[0]
+        keep, rows, cols = (np.asarray(a, dtype=int) for a in plan[:3])
+        nr = len(rows)
+        R_out = data["G"].shape[2]
+        Nk = keep.size
+
+        A = data["A"][:, :, keep][:, :, :, keep]
+        Ar = A[:, :, rows][:, :, :, cols]  # (b, nt, nr, nc)
+        shared = [i for i, kind in plan.terms if kind == "shared"]
+        sample = [i for i, kind in plan.terms if kind == "sample"]
+        # Pi: what g reads from a state — the shared perturbation matrices (embedded in the
+        # kept coordinates) and, for per-sample terms, the components they read
+        Pi = [jnp.zeros((nr, Nk)).at[:, cols].set(Ar[0, i]) for i in shared]
+        if sample:
+            Pi.append(jnp.eye(Nk)[cols])
+        Pi = jnp.concatenate(Pi, axis=0) if Pi else jnp.zeros((0, Nk))
+        q, n_sh = Pi.shape[0], len(shared) * nr
+        phases = []  # (first interval, number of intervals, substeps, h, stage matrices)
+        if n_start:
+            h_s = h_grid / sub_start
+            phases.append((0, n_start, sub_start, h_s, _etd_matrices(self.phis[1], h_s, rows, Pi)))
+        if T - 1 - n_start:
+            h_b = h_grid / substeps
+            phases.append((n_start, T - 1 - n_start, substeps, h_b, _etd_matrices(self.phis[0], h_b, rows, Pi)))
+        Bf = data["B"][:, :, keep][:, :, rows]  # (b, nt, nr, m+1)
+        G = data["G"][:, :, :, keep]  # (b, nt, R, Nk)
+        g_sh = [i for i, kind in plan.gterms if kind == "shared"]
+        g_sa = [i for i, kind in plan.gterms if kind == "sample"]
+        G_sh = jnp.concatenate([G[0, i] for i in g_sh], axis=0) if g_sh else None
+        last = lambda a: jnp.moveaxis(a, 0, -1)  # noqa: E731
+        Ms = last(jnp.stack([Ar[:, i] for i in sample], axis=1)) if sample else None  # (k, nr, nc, b)
+        Bs = last(jnp.stack([Bf[:, i] for i in plan.fterms], axis=1)) if plan.fterms else None
+        Gs = last(jnp.stack([G[:, i] for i in g_sa], axis=1)) if g_sa else None
+        Hs = last(jnp.stack([data["H"][:, i] for i in plan.hterms], axis=1)) if plan.hterms else None
+        w0 = last(data["w0"][:, keep])  # (Nk, b)
+        sigs, usig = sigpack
         b = w0.shape[-1]
 
         def evaluate(t):
@@ -671,19 +744,22 @@ def _step_chunk(sigpack, data, phis, t0, h_grid, layout):
                 o = o + cf[i][None, :] * _matvec_last(Gs[j], w)
             for j, i in enumerate(plan.hterms):
                 o = o + cf[i][None, :] * _matvec_last(Hs[j], v)
-            return _integrand(o, kinds)
+            return o
 
         def make_step(h, mats):
             E, L0, L1, L2, L3 = mats
 
             def step(carry, t):
-                w, piw, c0, f0 = carry
-                ch, vh = evaluate(t + 0.5 * h)
-                c1, v1 = evaluate(t + h)
+                w, piw, c0, v0 = carry
+                # the last stage uses the signals' left limits at t + h, the next step their
+                # right limits (a jump on the step boundary belongs to the next step)
+                c1, v1 = evaluate(t + (1.0 + SIDE_OFFSET) * h)
                 if nr == 0:
-                    return (E @ w, piw, c1, f0), v1
-                fh, f1 = forcing(ch, vh), forcing(c1, v1)
-                Nn = g(piw, c0, f0)
+                    return (E @ w, piw, c1, v1), None
+                ch, vh = evaluate(t + 0.5 * h)
+                cl, vl = evaluate(t + (1.0 - SIDE_OFFSET) * h)
+                fh, fl = forcing(ch, vh), forcing(cl, vl)
+                Nn = g(piw, c0, forcing(c0, v0))
                 Y0 = L0 @ jnp.concatenate([w, Nn], axis=0)
                 pa, pb, pc = Y0[:q], Y0[q : 2 * q], Y0[2 * q : 3 * q]
                 w_new, piw = Y0[3 * q : 3 * q + Nk], Y0[3 * q + Nk :]
@@ -693,57 +769,41 @@ def _step_chunk(sigpack, data, phis, t0, h_grid, layout):
                 Nb = g(pb, ch, fh)
                 Y2 = L2 @ Nb
                 pc, w_new, piw = pc + Y2[:q], w_new + Y2[q : q + Nk], piw + Y2[q + Nk :]
-                Nc = g(pc, c1, f1)
+                Nc = g(pc, cl, fl)
                 Y3 = L3 @ Nc
-                return (w_new + Y3[:Nk], piw + Y3[Nk:], c1, f1), v1
+                return (w_new + Y3[:Nk], piw + Y3[Nk:], c1, v1), None
 
             return step
+
+        reducer = self.reducer
 
         def run_phase(carry, first, count, sub, h, mats):
             step = make_step(h, mats)
             t_base = t0 + first * h_grid
 
             def interval(carry, i):
-                w, piw, cf, f, acc = carry
+                w, piw, cf, v, acc = carry
                 ts_i = t_base + (i * sub + jnp.arange(sub, dtype=w.dtype)) * h
-                (w, piw, cf, f), vs = lax.scan(step, (w, piw, cf, f), ts_i)
-                return (w, piw, cf, f, acc + outputs(w, cf, vs[-1])), None
+                (w, piw, cf, v), _ = lax.scan(step, (w, piw, cf, v), ts_i)
+                o = outputs(w, cf, v)
+                acc = reducer.update(acc, o, first + 1 + i, ts)
+                return (w, piw, cf, v, acc), (o if reducer.keep else None)
 
-            carry, _ = lax.scan(interval, carry, jnp.arange(count, dtype=w0.dtype))
-            return carry
+            return lax.scan(interval, carry, jnp.arange(count))
 
         c_init, v_init = evaluate(t0)
-        f_init = forcing(c_init, v_init)
         o_first = outputs(w0, c_init, v_init)
-        carry = (w0, Pi @ w0, c_init, f_init, jnp.zeros_like(o_first))
+        carry = (w0, Pi @ w0, c_init, v_init, reducer.init(o_first))
+        trajs = [o_first[None]]
         for first, count, sub, h, mats in phases:
-            carry = run_phase(carry, first, count, sub, h, mats)
-        w_end, _, c_end, _, acc = carry
-        # the last grid point was added with weight 1 (acc holds f_1 .. f_{T-1}); its input
-        # is evaluated again here for its output
-        _, v_end = evaluate(t0 + (T - 1) * h_grid)
-        o_last = outputs(w_end, c_end, v_end)
-        return h_grid * (acc + 0.5 * o_first - 0.5 * o_last)
-
-    D = 1 if mesh is None else mesh.devices.size
-    if D == 1 or n_sub < D:
-        out = lax.map(run_block, per_sample)  # (n_sub, Rm, sub)
-    else:
-        # blocks round-robin over the devices (block k on device k mod D), one code path
-        nb = -(-n_sub // D)
-        extra = nb * D - n_sub
-        if extra:
-            per_sample = jax.tree.map(
-                lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)], axis=0), per_sample)
-        arranged = jax.tree.map(lambda a: jnp.swapaxes(a.reshape((nb, D) + a.shape[1:]), 0, 1), per_sample)
-
-        def local(ps):
-            return lax.map(run_block, jax.tree.map(lambda a: a[0], ps))[None]
-
-        spec = PartitionSpec("devices")
-        out = shard_map(local, mesh=mesh, in_specs=(spec,), out_specs=spec, check_vma=False)(arranged)
-        out = jnp.swapaxes(out, 0, 1).reshape((nb * D,) + out.shape[2:])[:n_sub]
-    return jnp.moveaxis(out, 0, 1).reshape(out.shape[1], n_sub * sub)[:, :bc]
+            carry, traj = run_phase(carry, first, count, sub, h, mats)
+            trajs.append(traj)
+        w_end, _, c_end, v_end, acc = carry
+        ok = jnp.all(jnp.isfinite(w_end), axis=0)
+        out = reducer.final(acc, o_first, outputs(w_end, c_end, v_end), ts, h_grid, ok)
+        if reducer.keep:
+            out = (out, jnp.concatenate(trajs, axis=0))  # (T, K, b)
+        return out
 
 
 # --------------------------------------------------------------------------- public entry
@@ -864,8 +924,11 @@ def simulate_batch_exponential(
     - `substeps`: integration steps per grid interval (``≥ 1``).
     - `startup`: ``(k, s)``: the first ``k`` grid intervals with ``s`` steps each (see
       above); ``None``: uniform.
-    - `chunk_size`: largest number of samples per compiled call (default 4096): ``B`` is
-      split into ``⌈B / chunk_size⌉`` equal chunks (whole blocks), the last one padded.
+    - `chunk_size`: samples per compiled call (default 4096), rounded up to a multiple of
+      ``block × devices``; the last chunk is padded. Chunks, padding, blocks and devices
+      are those of the batch kernel (`fojax.simulation._batch.run_batched`, shared with
+      `simulate_lti_batch` and `fojax.run_study`): this function only brings the stepping
+      (`ExponentialProblem`).
     - `block`: samples stepped together in one time loop (default 256).
     - `devices`: the devices the blocks of a chunk are spread over, round-robin, with
       `jax.shard_map` (default `jax.local_devices()`; on a CPU e.g.
@@ -943,46 +1006,22 @@ def simulate_batch_exponential(
     concrete = is_concrete(params, x0, ts, reference, Cstack)
     if concrete:
         host_initial_checks(plant0, x0[0], ts[0], u0, strict=False, tol=0.0)
-    t0 = ts[0]
     n_terms = 1 + ns
-
-    # ⌈B / chunk_size⌉ equal chunks (a multiple of `block` when larger than one block),
-    # the last one padded: at most one block of padding per chunk
-    n_chunks = -(-Bn // chunk_size)
-    bc = -(-Bn // n_chunks)
-    if bc > block:
-        bc = min(-(-bc // block) * block, max(chunk_size, block))
-    n_chunks = -(-Bn // bc)
-    pad = n_chunks * bc - Bn
-    if pad:
-        padf = lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)], axis=0)  # noqa: E731
-        params, x0 = jax.tree.map(padf, params), padf(x0)
-
-    mesh = _mesh_for(devices)
-
-    def run_chunk(p, x, plan, check=False):
-        data, sigpack, stats, A0 = _setup_chunk(model, p, x, Cstack, reference)
-        if check:
-            _check_affine(model, first, data, A0, Cstack, float(ts[0]), float(ts[-1]), ns, plant0.m)
-        if plan is None:
-            plan = _host_plan(stats, A0)
-        keep = np.asarray(plan.keep, dtype=int)
-        A0k = A0[keep][:, keep]
-        phis = (phi_functions(A0k, h / substeps), phi_functions(A0k, h / sub_start))
-        return _step_chunk(sigpack, data, phis, t0, h, (T, schedule, kinds, int(block), plan, mesh))
-
+    setup = _ModelSetup(model, Cstack)
+    p = (params, x0)
     if concrete:
-        outs = []
-        for i in range(n_chunks):
-            sl = lambda a, i=i: a[i * bc : (i + 1) * bc]  # noqa: E731
-            outs.append(run_chunk(jax.tree.map(sl, params), sl(x0), None, check=i == 0))
-        out = jnp.concatenate(outs, axis=1)
-    else:
+        # A0, the plan of the whole batch (read in chunks) and the affine check on sample 0
+        A0, plan, data0 = prepare(setup, p, (first, x0[0]), (reference, x0[0]), chunk_size)
+        check_affine(model, first, data0, A0, CstackOutputs(Cstack), float(ts[0]), float(ts[-1]), ns, plant0.m)
+    else:  # under an outer jax.jit: every term per sample
+        A0 = _setup_stats(setup, jax.tree.map(lambda a: a[:1], p), (first, x0[0]), (reference, x0[0]))[2]
         plan = _full_plan(size, n_terms)
-        resh = lambda a: a.reshape((n_chunks, bc) + a.shape[1:])  # noqa: E731
-        res = lax.map(lambda px: run_chunk(px[0], px[1], plan), (jax.tree.map(resh, params), resh(x0)))
-        out = jnp.moveaxis(res, 1, 0).reshape(res.shape[1], n_chunks * bc)
-    out = out[:, :Bn].T
+    keep = np.asarray(plan.keep, dtype=int)
+    A0k = A0[keep][:, keep]
+    phis = (phi_functions(A0k, h / substeps), phi_functions(A0k, h / sub_start))
+    problem = ExponentialProblem(setup, _ModelProblem(model, Cstack, None, None, kinds), A0, phis, plan, schedule)
+    out, _ = run_batched(problem, p, ts, chunk_size=chunk_size, block=block, devices=devices)
+    out = out.T
     result, off = {}, 0
     for name, (kind, k) in zip(names, kinds):
         if kind in ("iae_l1", "ise_l2"):

@@ -13,6 +13,8 @@ numbers (a new key, new observer gains) reuse the compiled code; only a new
 take this path: they run on the batch-last exact kernel shared with
 `fojax.simulation.simulate_lti_batch` (`fojax.studies._exact`), which streams chunks,
 pads and shards with the same kernel code (`fojax.simulation._batch.run_batched`).
+Time-varying affine studies (δ(t), faults, known inputs) run on the exponential
+integrator through the same `run_batched` (`fojax.studies._exponential`).
 
 **Chunks and devices (one code path).** The index batch is cut into chunks of a fixed
 size (the last one padded with copies of sample 0, whose results are dropped, so the
@@ -56,6 +58,7 @@ from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
 from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, run_batched
 from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
+from ._exponential import exponential_problem
 from ._families import Family
 from ._wrappers import FaultyPlant
 
@@ -368,6 +371,17 @@ def run_study(
       noise, other signals) every sample runs `fojax.simulate` under `jax.vmap`
       (``attrs["engine"] == "vmap-simulate"``; ``"exact"`` then needs an LTI plant
       as in `fojax.simulate`), as does ``method="diffrax"``.
+      Samples that vary in time only through signals entering the differential equations
+      affinely (a time-varying δ(t) such as `sinusoidal_delta` or
+      `piecewise_constant_delta`, `FaultyPlant` faults, any known input), with LTI
+      observers and every signal breakpoint (fault onset, switching time) on the step
+      grid, run instead on the exponential integrator (ETDRK4, fourth order, steps a
+      fraction of the grid chosen from the loop's fastest rate; see
+      `fojax.studies._exponential`) on the same batch kernel
+      (``attrs["engine"] == "exponential-batch"``): with ``"auto"`` when the exact engine
+      does not apply, or asked for with ``method="exponential"`` (an `InputError` says
+      why a study does not qualify). `study_loss` does not use it (not differentiable
+      in reverse mode yet).
     - `rtol`, `atol`, `max_steps`, `solver`: passed to `fojax.simulate` on the
       ``"vmap-simulate"`` engine (``throw=False``; failed samples are flagged in
       ``metrics["success"]``). For non-stiff studies an explicit solver
@@ -397,6 +411,13 @@ def run_study(
         prepared, _reason = exact_problem(study, observers, settle_tol, keep)
         if prepared is not None:
             return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices)
+    if method in ("auto", "exponential"):
+        prepared, _reason = exponential_problem(study, observers, settle_tol, keep, strict=method == "exponential")
+        if prepared is not None:
+            n_start, sub_start, substeps = prepared[0].schedule
+            return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, method="exponential",
+                              solver=f"ETDRK4, {substeps} steps per grid interval ({sub_start} in the first "
+                                     f"{n_start})", engine="exponential-batch")
     mesh, batch_sh, rep_sh = _mesh(devices)
     ndev = mesh.devices.size
     B = study.num_samples
@@ -453,8 +474,10 @@ def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, **attrs) -> 
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=merged)
 
 
-def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices) -> StudyResult:
-    """`run_study` on the batch-last exact kernel (`fojax.studies._exact`)."""
+def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices, method="exact",
+               solver="none (exact matrix-exponential stepping)", engine="exact-batch") -> StudyResult:
+    """`run_study` on the batch-last kernel (`run_batched`): the exact problem of
+    `fojax.studies._exact` or the exponential one of `fojax.studies._exponential`."""
     problem, basis, idx = prepared
     B = study.num_samples
     keep = problem.keep
@@ -481,9 +504,9 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
         qs = np.quantile(E, np.asarray(quantiles), axis=-1)  # (nq, T, obs, q)
         metrics["quantiles"] = np.ascontiguousarray(np.transpose(qs, (2, 0, 1, 3)))
         axes["quantiles"] = ("observer", "quantile", "time", "signal")
-    return _result(study, names, quantiles, cfg, metrics, axes, method="exact",
-                   solver="none (exact matrix-exponential stepping)", chunk_size=layout["chunk_size"],
-                   num_chunks=layout["num_chunks"], num_devices=layout["num_devices"], engine="exact-batch")
+    return _result(study, names, quantiles, cfg, metrics, axes, method=method, solver=solver,
+                   chunk_size=layout["chunk_size"], num_chunks=layout["num_chunks"],
+                   num_devices=layout["num_devices"], engine=engine)
 
 
 def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", quantile: float | None = None,

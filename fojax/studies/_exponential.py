@@ -1,0 +1,231 @@
+r"""The exponential path of `run_study`: time-varying affine samples on the batch kernel.
+
+A study whose samples vary in time only through signals that enter the index-1 plant's
+*differential* equations affinely — an `UncertainDescriptorSystem` with a time-varying
+$\delta(t)$ (`sinusoidal_delta`, `piecewise_constant_delta`), faults of a `FaultyPlant`,
+any known input — is reduced per sample to $\dot w = A_0 w + g_k(t, w)$ with $A_0$ the
+joint slow matrix of the nominal loop (sample 0 with every signal at zero) and $g_k$
+affine in $w$ and in the signal values (`fojax.simulation._exponential`). It is stepped by
+Krogstad's fourth-order exponential Runge–Kutta method (ETDRK4) on the batch kernel
+(`run_batched`: chunks, padding, blocks and devices exist once), and the metrics of
+`run_study` (IAE, ISE, ITAE, peak, settling time; trapezoid rule on the grid; the error
+trajectories for the quantile bands when asked) are accumulated in the time loop by the
+same reducer as the exact path (`StudyProblem`), i.e. with the definitions of
+`error_metrics`.
+
+**Accuracy and the step.** ETDRK4 has classical order 4 (observed in
+``tests/test_exponential.py``); $A_0$ is integrated exactly, so the step only resolves
+$g$: the signals and the perturbation $\delta(t)\,\Delta A$ acting on the slow state. The
+step is the study grid's ``h`` divided by the smallest number of substeps $s$ with
+$(h/s)\,\rho \le$ `STEP_RATE` (0.5), $\rho$ the larger of $|\lambda|_{\max}(A_0)$ and
+the largest angular frequency of a `fojax.Sine` signal of any sample; over an initial
+layer of $\lceil 5/(|\lambda|_{\max} h)\rceil$ grid intervals, where the initial state
+excites the fast modes that $g$ couples into, it is `STARTUP_FACTOR` (2) times smaller.
+Fixed steps, no error control: the accuracy is a *measured* statement, not a bound.
+On the default §3.3.7 study with $\delta(t) = a\sin(\omega t + \varphi)$,
+$|a| \le 0.3$, $\omega \le 5$ rad/s, on the 0.01 s grid (one step per interval, two in
+the first 140) the largest relative error of IAE, ISE, ITAE and peak over 10 samples is
+5.1e-10 against DOP853 at rtol 1e-12, where a `solve_ivp` loop (RK45, rtol 1e-6) is off
+by 2.5e-6 (``benchmarks/study_time_varying.py``); with a piecewise-constant δ switching
+on the grid, 1.3e-9 against diffrax's Dopri8 at rtol 1e-11; on the §4.1.3 loop of
+``tests/test_study_exponential.py`` (grid 0.04 s, four steps per interval) 8.6e-10.
+
+**Jumps.** Signal jumps and kinks (fault onsets, ramp ends, switching times of a
+piecewise-constant $\delta$, steps of the input) must lie on the step grid (to within
+`BREAKPOINT_RTOL` of a step): the method is fourth order only between them, and a jump
+on a step boundary is taken exactly (the last stage reads the left limits, the next
+step starts from the right limits). `exponential_problem` checks this for every sample;
+otherwise ``"auto"`` keeps the adaptive diffrax path, which places steps at the
+breakpoints. Fault onsets drawn at random times (`fault_scenarios` with an `onset`
+range) are therefore not on this path.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._errors import FojaxError, InputError
+from ..plant import Sine
+from ..simulation._exponential import (
+    _check_structure,
+    _plant_signals,
+    _with_probes,
+    check_affine,
+    decompose,
+    ExponentialProblem,
+    phi_functions,
+    prepare,
+    setup_data,
+)
+from ..simulation._reduction import host_initial_checks, is_concrete
+from ..simulation._simulate import UNIFORM_GRID_RTOL
+from ._exact import StudyProblem
+
+
+#: Largest step × rate: the step resolves the fastest mode of the nominal loop
+#: (``|λ|max(A0)``) and the fastest `fojax.Sine` signal (``ω``), ``h_step · rate ≤ STEP_RATE``.
+STEP_RATE = 0.5
+#: Over the initial layer the step is this many times smaller.
+STARTUP_FACTOR = 2
+#: A signal breakpoint counts as on the step grid within this fraction of a step (below
+#: `fojax.simulation._exponential.SIDE_OFFSET`, the offset of the one-sided signal values).
+BREAKPOINT_RTOL = 1e-10
+#: Samples per call of the host pre-pass (set-up and plan statistics).
+PREPARE_CHUNK = 2048
+
+
+class StudyModel(eqx.Module):
+    """``(i, j) -> (plant, observers, u)`` of a study (the form the affine check reads)."""
+
+    study: object
+    observers: tuple
+
+    def __call__(self, p):
+        plant, _ = self.study.sample(p[0], p[1])
+        return plant, self.observers, self.study.u
+
+
+class StudyErrors(eqx.Module):
+    """The errors ``ẑ_k − z`` of every observer, from the plant's own output (the
+    affine check compares the decomposition's error maps with it)."""
+
+    L: jax.Array
+    fault_targets: bool = eqx.field(static=True)
+
+    def __call__(self, plant, observers, t, x, xi, u_t, y):
+        z = self.L @ x
+        if self.fault_targets:
+            z = jnp.concatenate([z, plant.fault(t)])
+        parts, off = [], 0
+        for o in observers:
+            parts.append(o.output(t, xi[off : off + o.state_size], u_t, y) - z)
+            off += o.state_size
+        return jnp.concatenate(parts)
+
+
+class StudySetup(eqx.Module):
+    r"""Per-sample set-up for `ExponentialProblem`: ``p = (i, j)`` → the decomposition of
+    sample ``(i, j)`` with the error maps $e = G w + H v$ per probe as outputs."""
+
+    study: object
+    observers: tuple
+
+    def __call__(self, p):
+        study, observers = self.study, self.observers
+        plant, x0 = study.sample(p[0], p[1])
+        Aj, Bj, OM, OF, (Yw, Yv), w0, mask = decompose(plant, observers, x0)
+        n, m = plant.n, plant.m
+        P = Aj.shape[0]
+        X, XV = OM[:, :n], OF[:, :n]  # x = X w + XV v per probe
+        L = study.L
+        if study.fault_targets:
+            # the fault's value at each probe (s = 0, e_1, ...): its coefficients in s
+            sigs = _plant_signals(plant)
+            ns = sum(sg.size for sg in sigs)
+            probes = jnp.concatenate([jnp.zeros((1, ns)), jnp.eye(ns)], axis=0)
+            zf = jax.vmap(lambda s: _with_probes(plant, s).fault(study.ts[0]))(probes)  # (P, nf)
+            L = jnp.concatenate([L, jnp.zeros((zf.shape[1], n))], axis=0)
+        sel_u = jnp.concatenate([jnp.eye(m), jnp.zeros((m, 1))], axis=1)
+        Gs, Hs, off = [], [], n
+        for o in observers:
+            lm = o.linear_matrices()
+            s = o.state_size
+            Gk = (lm.Dy @ Yw - L @ X).at[:, :, off : off + s].add(lm.C)
+            Hk = lm.Dy @ Yv + (lm.Du @ sel_u)[None] - L @ XV
+            if study.fault_targets:
+                Hk = Hk.at[:, study.L.shape[0] :, m].add(-zf)
+            Gs.append(Gk)
+            Hs.append(jnp.broadcast_to(Hk, (P,) + Hk.shape[1:]))
+            off += s
+        data = setup_data(Aj, Bj, jnp.concatenate(Gs, axis=1), jnp.concatenate(Hs, axis=1), w0, mask)
+        return data, (_plant_signals(plant), study.u)
+
+
+@eqx.filter_jit
+def _breakpoints(study, iu, jf):
+    """Every sample's signal breakpoints (plant signals and input) ``(B, k)`` and the
+    angular frequencies of its `fojax.Sine` signals ``(B, k')``."""
+
+    def one(i, j):
+        plant, _ = study.sample(i, j)
+        sigs = _plant_signals(plant) + (study.u,)
+        sines = [leaf for leaf in jax.tree.leaves(sigs, is_leaf=lambda x: isinstance(x, Sine))
+                 if isinstance(leaf, Sine)]
+        return (jnp.concatenate([sg.breakpoints().reshape(-1) for sg in sigs]),
+                jnp.concatenate([jnp.zeros((0,))] + [sn.omega.reshape(-1) for sn in sines]))
+
+    return jax.vmap(one)(iu, jf)
+
+
+def _off_step_grid(bps: np.ndarray, t0: float, t1: float, h_step: float) -> np.ndarray:
+    b = bps[np.isfinite(bps) & (bps > t0) & (bps < t1)]
+    k = (b - t0) / h_step
+    return b[np.abs(k - np.round(k)) > BREAKPOINT_RTOL]
+
+
+def exponential_problem(study, observers, settle_tol: float, keep: bool, strict: bool):
+    """Host: ``((problem, None, (iu, jf)), None)`` for `run_batched`, or ``(None,
+    reason)`` when the study does not qualify (with `strict`: raise `fojax.InputError`)."""
+
+    def refuse(reason):
+        if strict:
+            raise InputError(
+                f"run_study(method='exponential') cannot run this study: {reason}. Use method='auto' "
+                "(which then takes the adaptive diffrax path) or method='diffrax'."
+            )
+        return None, reason
+
+    if not all(o.linear_matrices() is not None for o in observers):
+        return refuse("an observer is not LTI")
+    if not is_concrete(study):
+        return refuse("the study's arrays are traced")
+    t = np.asarray(study.ts)
+    T = t.shape[0]
+    h = (t[-1] - t[0]) / (T - 1)
+    if not (T >= 2 and h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL):
+        return refuse("the grid is not uniform")
+    plant0, x00 = study.sample(0, 0)
+    try:
+        _check_structure(plant0, tuple(observers))
+    except InputError as err:
+        return refuse(str(err))
+    iu = np.arange(study.num_samples) // study.num_scenarios
+    jf = np.arange(study.num_samples) % study.num_scenarios
+    idx = (jnp.asarray(iu), jnp.asarray(jf))
+    bps, omega = (np.asarray(a) for a in _breakpoints(study, *idx))
+    try:
+        host_initial_checks(plant0, x00, study.ts[0], study.u, strict=False, tol=0.0)
+        setup = StudySetup(study, tuple(observers))
+        first = (idx[0][0], idx[1][0])
+        A0, plan, data0 = prepare(setup, idx, first, first, PREPARE_CHUNK)
+        ns = sum(sg.size for sg in _plant_signals(plant0))
+        check_affine(StudyModel(study, tuple(observers)), first, data0, A0,
+                     StudyErrors(study.L, study.fault_targets), float(t[0]), float(t[-1]), ns, plant0.m,
+                     who="run_study(method='exponential')")
+    except FojaxError as err:  # refused by a check: "auto" keeps the adaptive path
+        if strict:
+            raise
+        return None, f"{type(err).__name__}: {err}"
+    kept = np.asarray(plan.keep, dtype=int)
+    A0k = A0[kept][:, kept]
+    lam = float(np.max(np.abs(np.linalg.eigvals(np.asarray(A0k))), initial=0.0)) if kept.size else 0.0
+    rate = max(lam, float(np.max(np.abs(omega), initial=0.0)))
+    substeps = max(1, math.ceil(rate * h / STEP_RATE))
+    sub_start = STARTUP_FACTOR * substeps
+    n_start = min(T - 1, math.ceil(5.0 / (lam * h))) if lam > 0 else 0
+    off = _off_step_grid(bps, float(t[0]), float(t[-1]), h / substeps)
+    if off.size:
+        return refuse(
+            f"{off.size} signal breakpoint(s) (jumps or kinks, e.g. at t = {float(off[0]):.6g}) are not on the "
+            f"step grid (h / {substeps} = {h / substeps:g}); put fault onsets and switching times on it"
+        )
+    hj = jnp.asarray(h)
+    phis = (phi_functions(A0k, hj / substeps), phi_functions(A0k, hj / sub_start))
+    reducer = StudyProblem(study, tuple(observers), None, None, jnp.asarray(float(settle_tol)), None, keep)
+    problem = ExponentialProblem(setup, reducer, A0, phis, plan, (n_start, sub_start, substeps))
+    return (problem, None, idx), None
