@@ -111,7 +111,11 @@ def test_random_systems_verify(n, seed, q0, kind):
     N1 = np.asarray(pieces(d.structure).N1)[0]
     assert np.any(inside(region, sla.eigvals(N1)) <= 0)
     if kind == "generalized":
-        assert d.observer.q1 == d.observer.q0 and np.abs(blocks(d)["G"]).max() > 0
+        # the documented decoupling of the Riccati route: J = 0, S = -Y2 N3 = 0, G = g I
+        b = blocks(d)
+        assert d.observer.q1 == d.observer.q0
+        assert not np.any(b["J"]) and not np.any(b["S"]) and not np.any(d.params["Y2"])
+        np.testing.assert_array_equal(b["G"], b["G"][0, 0] * np.eye(d.observer.q1))
 
 
 @pytest.mark.parametrize("region", [HalfPlane(1.0), Sector(0.7)], ids=["halfplane", "sector"])
@@ -154,6 +158,48 @@ def test_thesis_413_generalized():
     region = Disk(ex.alpha, ex.tau)
     d = design_functional_observer(ex.system, ex.L, kind="generalized", region=region, method="riccati")
     assert_riccati_design(d, ex.system, ex.L, region)
+
+
+def test_generalized_gain_is_the_full_riccati_solution():
+    """The blocks fojax solves separately equal SciPy's DARE of the whole pair (𝔸1(Z), 𝔸2)
+    in the disk's Möbius coordinates (oracle: scipy.linalg.solve_discrete_are)."""
+    from fojax.design import pieces
+
+    ex = models.example_4_1_3()
+    region = Disk(ex.alpha, ex.tau)
+    d = design_functional_observer(ex.system, ex.L, kind="generalized", region=region, method="riccati")
+    pc = pieces(d.structure)
+    N1, N2, N3 = np.asarray(pc.N1)[0], np.asarray(pc.N2)[0], np.asarray(pc.N3)
+    q0, q1, c = d.observer.q0, d.observer.q1, N3.shape[0]
+    disk = d.solver["lmi"]["disk"]
+    alpha, tau = disk["center"], disk["radius"] * 0.95
+    A1 = sla.block_diag(N1 - d.params["Z"] @ N2, np.zeros((q1, q1)))
+    A2 = sla.block_diag(N3, -np.eye(q1))
+    Ad, Cd = (A1 - alpha * np.eye(q0 + q1)) / tau, A2 / tau
+    P = sla.solve_discrete_are(Ad.T, Cd.T, np.eye(q0 + q1), np.eye(c + q1))
+    Yfull = Ad @ P @ Cd.T @ np.linalg.inv(np.eye(c + q1) + Cd @ P @ Cd.T)
+    scale = np.abs(Yfull).max()
+    np.testing.assert_allclose(Yfull[:q0, c:], 0, atol=1e-9 * scale)  # J
+    np.testing.assert_allclose(Yfull[q0:, :c], 0, atol=1e-9 * scale)  # Y2
+    np.testing.assert_allclose(Yfull[q0:, c:], d.params["G"], atol=1e-9 * scale)  # G = g I
+
+
+def test_unobservable_modes_shortcut_agrees_with_the_pbh_loop():
+    """`unobservable_modes` skips the per-eigenvalue SVDs when Cm has full column rank
+    (σ_min([λI - A; Cm]) ≥ σ_min(Cm)); oracle: the PBH rank test with NumPy's matrix_rank."""
+    from fojax.design._conditions import unobservable_modes
+
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((6, 6))
+    full = rng.standard_normal((8, 6))
+    assert unobservable_modes(A, full).size == 0
+    for lam in np.linalg.eigvals(A):
+        assert np.linalg.matrix_rank(np.vstack([lam * np.eye(6) - A, full])) == 6
+    # a rank-deficient Cm still finds the hidden mode: A = diag(3, B), Cm blind to e1
+    A2 = sla.block_diag([[3.0]], rng.standard_normal((5, 5)))
+    Cm = np.hstack([np.zeros((8, 1)), rng.standard_normal((8, 5))])
+    modes = unobservable_modes(A2, Cm)
+    assert modes.size == 1 and abs(modes[0] - 3.0) < 1e-12
 
 
 def test_auto_dispatch():

@@ -37,7 +37,31 @@ unique solution $X \succeq I$, and $(\mathbb A - \alpha I)^\top X(\mathbb A - \a
 = \tau'^2(X - I) \prec \tau^2X$: by a Schur complement this is the Chilali–Gahinet disk
 LMI $\begin{bmatrix}-\tau X & X(\mathbb A - \alpha I)\\ \cdot & -\tau X\end{bmatrix}\prec 0$
 that `fojax.design.verify` re-checks in float64. The certificate is recomputed from the
-closed loop, not taken from the Riccati solution ($P^{-1}$ would also certify).
+closed loop, not taken from the Riccati solution ($P^{-1}$ would also certify); for a
+generalized observer it is solved block by block (the closed loop is block diagonal, below).
+
+**Z, and the decoupling of the generalized observer.** $Z$ only enters the
+$\varepsilon$-block $N_1' - ZN_2' - Y_1N_3$, itself an output-injection problem for the
+pair $(N_1', [N_2'; N_3])$ with gain $[Z\;Y_1]$ (what the LMI route linearises with
+$W = X_1Z$): one DARE of size $q_0$ gives $Z$ and $Y_1$ — for a proportional observer,
+the whole design. For a generalized observer the pair $(\mathbb A_1(Z), \mathbb A_2)$
+is block diagonal ($\mathbb A_1 = \operatorname{diag}(\cdot, 0)$,
+$\mathbb A_2 = \operatorname{diag}(N_3, -I)$), and so are the weights $Q = R = I$: the
+block-diagonal assembly of the two blocks' stabilizing solutions is a stabilizing
+solution of the full DARE, hence *the* solution, and its gain is block diagonal:
+$J = 0$, $Y_2 = 0$ ($S = 0$) and $G = gI$ with $g$ from the $1\times1$ DARE of
+$(-\alpha/\tau', -1/\tau')$. fojax computes these blocks directly (a test checks them
+against SciPy's DARE of the full pair), so a generalized design costs one DARE of size
+$q_0$, not $q_0 + q_1$. *Consequence, stated plainly:* the Riccati route's generalized
+observer does not use the coupling freedom ($J$, $Y_2$) of eq. 3.5 — it is the proportional
+design plus an undriven, stable integral state. The coupled generalized designs come from
+the LMI route (minimum-gain objective) or from tuning (`fojax.tuning`), which moves
+$J, Y_2, G$ freely from this starting point. Fixing $Z = 0$ instead of taking it from the
+DARE also gives valid observers when $(N_1', N_3)$ is detectable, but on thesis example
+3.1.3 (one independent row of $N_3$, three modes to move) that gain had norm 1.4e4 and a
+certificate with condition number 4e9 that failed verification; with $Z$ from the DARE
+the largest gain entries are of the LMI route's size (3.1.2: 39 vs 40, 3.1.3: 2.2 vs 2.7,
+4.1.3: 10.8 vs 9.9).
 
 **Half-planes and sectors (mapped into a disk; sound).** If $X$ certifies the disk
 $\mathcal Q(\alpha, \tau)$, then $\|X^{1/2}(\mathbb A - \alpha I)X^{-1/2}\| < \tau$, so the
@@ -57,15 +81,6 @@ the LMI route.
 **Margin.** Like the LMI route (which targets `region.tightened(0.05)`), the Riccati
 route targets the disk with radius $\tau' = 0.95\tau$, so the eigenvalues keep a margin
 of $0.05\tau$ inside the disk (hence inside the region).
-
-**Z.** $Z$ only enters the $\varepsilon$-block, $N_1' - ZN_2' - Y_1N_3$, which is itself an
-output-injection problem for the pair $(N_1', [N_2'; N_3])$ with gain $[Z\;Y_1]$ (the
-LMI route's $W = X_1Z$ step, `choose_Z`). fojax takes $Z$ from that DARE, then solves
-the DARE of $(\mathbb A_1(Z), \mathbb A_2)$ for the whole $\mathbb Y$. Fixing $Z = 0$
-instead also gives valid observers when $(N_1', N_3)$ is detectable, but on thesis
-example 3.1.3 (one independent row of $N_3$, three modes to move) its gain had norm
-1.4e4 and a certificate with condition number 4e9 that failed verification; with $Z$
-from the DARE the gains are of the LMI route's size (3.1.2: 39 vs 40, 4.1.3: 10.8 vs 9.9).
 
 **What is not different from the LMI route.** The result goes through the same
 `verify_structure_design` (conditions a.–d., eigenvalues in the user's region, the
@@ -190,58 +205,59 @@ def _spectral_radius(M: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(M)))) if M.size else 0.0
 
 
+def _stein(Acl: np.ndarray, steps: list) -> np.ndarray:
+    """``X`` with ``Aclᵀ X Acl - X + I = 0`` (an ill-conditioned solve's warning goes in `steps`:
+    `verify` re-checks the certificate whatever its conditioning)."""
+    if Acl.size == 0:
+        return np.zeros(Acl.shape)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        X = scipy.linalg.solve_discrete_lyapunov(Acl.T, np.eye(Acl.shape[0]))
+    if caught:
+        steps.append("Stein equation: " + "; ".join(str(w.message) for w in caught))
+    return 0.5 * (X + X.T)
+
+
 def riccati_gains(s: FunctionalObserverStructure, region: AbstractRegion, *, kind: str):
     """Gains by the Riccati route for one rule (module docstring).
 
     **Returns:** ``(X, Z, [𝕐], info)`` like `fojax.design._functional.solve_gains`, where
-    ``info["lmi"]["route"]`` describes the route (the key is shared with the LMI route so
-    that reports and the CLI show it in one place).
+    ``info["lmi"]`` holds ``method="riccati"``, the ``route`` line shown in the report,
+    the ``disk`` used and the closed-loop ``spectral_radius`` in its coordinates.
     """
     pc = pieces(s, xp=np)
     N1 = np.asarray(pc.N1)[0]
     N2 = np.asarray(pc.N2)[0]
     N3 = np.asarray(pc.N3)
     q0, q1 = s.q0, (s.q1 if kind == "generalized" else 0)
-    c = N3.shape[0]
+    c, nZ = N3.shape[0], N2.shape[0]
     d = q0 + q1
-    A2 = np.block([[N3, np.zeros((c, q1))], [np.zeros((q1, q0)), -np.eye(q1)]])
     fixed = _fixed_modes_eps(s) if not isinstance(region, Disk) else np.zeros(0)
     disk = region_disk(region, fixed)
     alpha, tau = disk.center, disk.radius * (1.0 - TIGHTEN)
-
     steps = []
-    Z = np.zeros((q0, N2.shape[0]))
-    if N2.size:
-        # Step 1: (Z, Y1) from the ε-block output-injection problem (N1', [N2'; N3]): for a
-        # proportional observer this is the whole design; for a generalized one it fixes Z.
-        Ad = (N1 - alpha * np.eye(q0)) / tau
-        Cd = np.vstack([N2, N3]) / tau
-        Z = output_injection_gain(Ad, Cd)[:, : N2.shape[0]]
-        steps.append("Z from the ε-block Riccati equation (N1', [N2'; N3])")
-    A1 = np.zeros((d, d))
-    A1[:q0, :q0] = N1 - Z @ N2
-    Ad, Cd = (A1 - alpha * np.eye(d)) / tau, A2 / tau
-    Y = output_injection_gain(Ad, Cd)
-    Acl = Ad - Y @ Cd
-    rho = _spectral_radius(Acl)
-    steps.append(f"𝕐 from the Riccati equation of (𝔸1(Z), 𝔸2): closed-loop spectral radius {rho:.3g} "
-                 "(Möbius coordinates)")
-    if not rho < SCHUR_TOL:
-        raise LMIInfeasibleError(
-            "output-injection Riccati equation (disk mapped to the unit disk)", "not_stabilizing",
-            {"spectral_radius": rho, "disk": disk.describe()},
-            f"The Riccati gain leaves the error dynamics with spectral radius {rho:.6g} ≥ 1 in the "
-            f"coordinates of {Disk(alpha, tau).describe()}: a mode no gain can move is outside it. "
-            "Enlarge the region, choose another R / observer order, or use method='lmi'.",
-        )
-    with warnings.catch_warnings(record=True) as caught:
-        # an ill-conditioned Stein equation warns (LinAlgWarning); the certificate is
-        # re-checked by `verify` whatever the conditioning, so the warning goes in the info
-        warnings.simplefilter("always")
-        X = scipy.linalg.solve_discrete_lyapunov(Acl.T, np.eye(d))
-    if caught:
-        steps.append("Stein equation: " + "; ".join(str(w.message) for w in caught))
-    X = 0.5 * (X + X.T)
+    # ε-block: gain [Z, Y1] of the output-injection pair (N1', [N2'; N3])
+    Ad = (N1 - alpha * np.eye(q0)) / tau
+    Cd = np.vstack([N2, N3]) / tau
+    K = output_injection_gain(Ad, Cd)
+    Z, Y1 = K[:, :nZ], K[:, nZ:]
+    Acl1 = Ad - K @ Cd
+    rho = _spectral_radius(Acl1)
+    steps.append(f"[Z, Y1] from the Riccati equation of (N1', [N2'; N3]): spectral radius {rho:.3g}")
+    X1 = _stein(Acl1, steps)
+    Y = np.zeros((d, c + q1))
+    Y[:q0, :c] = Y1
+    X = np.zeros((d, d))
+    X[:q0, :q0] = X1
+    if q1:
+        # v-block: the 1×1 DARE of (a, b) = (-α/τ, -1/τ) (the data decouple, module docstring)
+        a, b = -alpha / tau, -1.0 / tau
+        g = output_injection_gain(np.array([[a]]), np.array([[b]]))[0, 0]
+        acl = a - g * b
+        Y[q0:, c:] = g * np.eye(q1)  # G = g I (the v-block of 𝔸 is G)
+        X[q0:, q0:] = np.eye(q1) / (1.0 - acl * acl)  # 1×1 Stein: acl² x - x + 1 = 0
+        rho = max(rho, abs(acl))
+        steps.append(f"G = {g:.6g}·I from the 1×1 Riccati equation of the v-block; J = 0, Y2 = 0")
     route = (f"Riccati (DARE for the gain, Stein equation for the certificate) in "
              f"{Disk(alpha, tau).describe()}" + ("" if isinstance(region, Disk) else f" inside {region.describe()}"))
     info = {"lmi": {"route": route, "method": "riccati", "solver": "scipy.linalg.solve_discrete_are",
