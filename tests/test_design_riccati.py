@@ -20,6 +20,7 @@ import math
 import numpy as np
 import pytest
 import scipy.linalg as sla
+from helpers import assert_eigenvalues_match
 from scipy.stats import ortho_group
 
 import fojax
@@ -200,6 +201,17 @@ def test_unobservable_modes_shortcut_agrees_with_the_pbh_loop():
     Cm = np.hstack([np.zeros((8, 1)), rng.standard_normal((8, 5))])
     modes = unobservable_modes(A2, Cm)
     assert modes.size == 1 and abs(modes[0] - 3.0) < 1e-12
+    # tall rank-deficient Cm (the QR-compressed path), hidden modes placed by construction
+    for seed in range(4):
+        r = np.random.default_rng([seed, 7])
+        k = int(r.integers(1, 3))  # number of hidden modes
+        A0 = sla.block_diag(np.diag(r.uniform(-3.0, 3.0, k)), r.standard_normal((5, 5)))
+        C0 = np.hstack([np.zeros((12, k)), r.standard_normal((12, 5))])
+        Q = sla.qr(r.standard_normal((5 + k, 5 + k)))[0]
+        got = unobservable_modes(Q @ A0 @ Q.T, C0 @ Q.T)
+        want = [lam for lam in np.linalg.eigvals(A0)
+                if np.linalg.matrix_rank(np.vstack([lam * np.eye(5 + k) - A0, C0]), tol=1e-8) < 5 + k]
+        assert_eigenvalues_match(got, want, atol=1e-9)
 
 
 def test_auto_dispatch():
