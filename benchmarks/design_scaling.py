@@ -283,7 +283,7 @@ def main(argv=None) -> int:
             size = res.get("problem_size", {})
             print(
                 f"  n = {n:3d} {kind:12s} {method:7s} {res.get('status')}: total {_common.fmt(res.get('total_s'), '.3g')} s, "
-                f"peak RSS {_common.fmt(res.get('peak_rss_mib'), '.0f')} MiB, "
+                f"CPU {_common.fmt(res.get('cpu_s'), '.3g')} s, peak RSS {_common.fmt(res.get('peak_rss_mib'), '.0f')} MiB, "
                 f"cvxpy solve {_common.fmt(res.get('cvxpy_solve_wall_s'), '.3g')} s "
                 f"(solver {_common.fmt(res.get('solver_time_s'), '.3g')} s, {res.get('solver_used')}), "
                 f"{size.get('scalar_variables', '—')} variables, LMIs {size.get('lmi_sizes', '—')}",
