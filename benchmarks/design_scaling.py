@@ -1,12 +1,15 @@
-r"""Issue 7, item 4 (design): time of fojax's verified LMI observer design against the
-state dimension n, so users know what to expect.
+r"""Issues 7 and 16 (design): time of fojax's verified observer design against the state
+dimension n, by the LMI route and the Riccati route, so users know what to expect.
 
 What is measured
 ----------------
-For each n in ``--dims`` (default 4, 6, 8, 12, 16, 24, 32, 50) and each kind in
-``--kinds`` (default ``generalized`` and ``proportional``): one call of
-`fojax.design.design_functional_observer(sys, L, kind=kind, q0=q0, solver=--solver)` with
-the default region (``Disk(-2, 1)``) on a random system (see `random_design_problem`):
+For each n in ``--dims`` (default 4, 8, 16, 32, 50, 100, 200, 300, 500), each kind in
+``--kinds`` (default ``generalized`` and ``proportional``) and each route in ``--methods``
+(default ``riccati`` and ``lmi``; the LMI route only up to ``--lmi-max-n``, default 50,
+where it already takes minutes): one call of the public entry point
+`fojax.design.design_functional_observer(sys, L, kind=kind, q0=q0, solver=--solver,
+method=method)` with the default region (``Disk(-2, 1)``) on a random system (see
+`random_design_problem`):
 
 - a random stable index-1 descriptor plant $E\dot x = Ax + Bu$, $y = Cx$ (the generator of
   `scaling.py`: $E = U\,\mathrm{diag}(I_r, 0)V$, $n_{\rm alg} = \max(1, n/4)$ algebraic
@@ -29,9 +32,15 @@ captured by wrapping ``cvxpy.Problem.solve`` for the duration of the call (fojax
 is only called through its public API).
 
 Each (n, kind) runs in a fresh Python process that first makes one untimed warm-up
-design (n = 4, same kind and solver: imports and first-call overheads, reported as
-``warmup_s``). For each kind, n stops increasing once one design takes longer than
-``--budget`` s (default 120) or is killed after ``--hard-timeout`` s.
+design (n = 4, same kind, solver and method: imports and first-call overheads, reported as
+``warmup_s``). For each (kind, method), n stops increasing once one design takes longer
+than ``--budget`` s (default 120) or is killed after ``--hard-timeout`` s.
+
+**Agreement.** There is no unique observer (the routes choose different gains), so the
+routes agree when both designs pass the same float64 verification (conditions a.–d.,
+eigenvalues in the region, the region LMI at the certificate): ``agreement`` lists, per
+(n, kind) where both ran, whether both verified. Each row also records the load average
+before and after the design (``os.getloadavg()``): the machine is shared.
 
 Results: ``results/design_scaling_<date>.{md,json}`` and ``..._latest.{md,json}``.
 
@@ -67,8 +76,10 @@ import numpy as np  # noqa: E402
 from scaling import random_stable_index1  # noqa: E402
 
 
-DIMS = (4, 6, 8, 12, 16, 24, 32, 50)
+DIMS = (4, 8, 16, 32, 50, 100, 200, 300, 500)
 KINDS = ("generalized", "proportional")
+METHODS = ("riccati", "lmi")
+LMI_MAX_N = 50
 DEFAULT_SEED = 20261121
 N_INPUTS = 2
 
@@ -158,16 +169,19 @@ def worker(spec: dict) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    import os
+
     import fojax
     from fojax.analysis import is_functionally_observable
     from fojax.design import design_functional_observer
 
     n, kind, solver = spec["n"], spec["kind"], spec["solver"]
-    res: dict = {"n": n, "kind": kind, "solver_requested": solver}
+    method = spec.get("method", "lmi")
+    res: dict = {"n": n, "kind": kind, "method": method, "solver_requested": solver}
 
     def design(pb):
         sysm = fojax.DescriptorSystem(pb.E, pb.A, pb.B, pb.C)
-        return sysm, design_functional_observer(sysm, pb.L, kind=kind, q0=pb.q0, solver=solver)
+        return sysm, design_functional_observer(sysm, pb.L, kind=kind, q0=pb.q0, solver=solver, method=method)
 
     t0 = time.perf_counter()
     try:
@@ -185,7 +199,9 @@ def worker(spec: dict) -> dict:
         res["status"] = "failed: not functionally observable (generator bug)"
         return res
     rss0 = _common.current_rss_mib()
+    res["load_average_before"] = list(os.getloadavg())
     with record_cvxpy_solves() as calls:
+        c0 = time.process_time()
         t0 = time.perf_counter()
         try:
             _, d = design(pb)
@@ -199,6 +215,10 @@ def worker(spec: dict) -> dict:
             res["status"] = f"crashed: {type(e).__name__}"
             res["error"] = traceback.format_exc()[-3000:]
         res["total_s"] = time.perf_counter() - t0
+        # CPU time of this process (all threads): what the design costs independently of
+        # how much of the shared machine the process got
+        res["cpu_s"] = time.process_time() - c0
+    res["load_average_after"] = list(os.getloadavg())
     res["rss_before_mib"] = rss0
     res["peak_rss_mib"] = _common.peak_rss_mib()
     res["cvxpy_solve_calls"] = len(calls)
@@ -215,6 +235,7 @@ def worker(spec: dict) -> dict:
         res["solver_used"] = lmi.get("solver")
         res["objective"] = lmi.get("objective")
         res["route"] = lmi.get("route")
+        res["route_method"] = lmi.get("method")
         res["iterations"] = lmi.get("iterations")
         res["verification_passed"] = bool(d.report.passed)
         res["max_real_error_eig"] = float(np.max(np.real(d.report.eigenvalues)))
@@ -226,8 +247,12 @@ def worker(spec: dict) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--worker", help=argparse.SUPPRESS)
-    ap.add_argument("--dims", type=int, nargs="+", default=list(DIMS), help="state dimensions n (default 4 … 50)")
+    ap.add_argument("--dims", type=int, nargs="+", default=list(DIMS), help="state dimensions n (default 4 … 500)")
     ap.add_argument("--kinds", nargs="+", default=list(KINDS), choices=("generalized", "PI", "proportional"))
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=("riccati", "lmi", "auto"),
+                    help="design routes (design_functional_observer's method argument)")
+    ap.add_argument("--lmi-max-n", type=int, default=LMI_MAX_N,
+                    help="largest n for the LMI route (default 50: it takes minutes there)")
     ap.add_argument("--solver", default="auto", choices=("auto", "CLARABEL", "SCS"),
                     help="fojax's solver argument (default auto: Clarabel, SCS as fallback)")
     ap.add_argument("--budget", type=float, default=120.0,
@@ -245,17 +270,20 @@ def main(argv=None) -> int:
     rows: list[dict] = []
     stopped: dict[str, str] = {}
     for n in sorted(set(args.dims)):
-        for kind in args.kinds:
-            if kind in stopped:
+        for kind, method in [(k, m) for k in args.kinds for m in args.methods]:
+            key = f"{kind}/{method}"
+            if key in stopped or (method == "lmi" and n > args.lmi_max_n):
                 continue
-            spec = dict(n=n, kind=kind, solver=args.solver, seed=args.seed)
+            spec = dict(n=n, kind=kind, solver=args.solver, seed=args.seed, method=method)
             res = _common.run_worker(Path(__file__), spec, args.hard_timeout)
             res.setdefault("n", n)
             res.setdefault("kind", kind)
+            res.setdefault("method", method)
             rows.append(res)
             size = res.get("problem_size", {})
             print(
-                f"  n = {n:3d} {kind:12s} {res.get('status')}: total {_common.fmt(res.get('total_s'), '.3g')} s, "
+                f"  n = {n:3d} {kind:12s} {method:7s} {res.get('status')}: total {_common.fmt(res.get('total_s'), '.3g')} s, "
+                f"CPU {_common.fmt(res.get('cpu_s'), '.3g')} s, peak RSS {_common.fmt(res.get('peak_rss_mib'), '.0f')} MiB, "
                 f"cvxpy solve {_common.fmt(res.get('cvxpy_solve_wall_s'), '.3g')} s "
                 f"(solver {_common.fmt(res.get('solver_time_s'), '.3g')} s, {res.get('solver_used')}), "
                 f"{size.get('scalar_variables', '—')} variables, LMIs {size.get('lmi_sizes', '—')}",
@@ -263,9 +291,9 @@ def main(argv=None) -> int:
             )
             t = res.get("total_s")
             if res.get("status") == "timeout":
-                stopped[kind] = f"killed at n = {n} after {args.hard_timeout:.0f} s"
+                stopped[key] = f"killed at n = {n} after {args.hard_timeout:.0f} s"
             elif t is not None and t > args.budget:
-                stopped[kind] = f"n = {n} took {t:.0f} s > budget {args.budget:.0f} s"
+                stopped[key] = f"n = {n} took {t:.0f} s > budget {args.budget:.0f} s"
             write(info, args, rows, stopped, "partial")
     write(info, args, rows, stopped, "complete", echo=True)
     return 0
@@ -283,41 +311,65 @@ def write(info, args, rows, stopped, status, echo=False):
         ),
         rows=rows,
         stopped=stopped,
+        agreement=agreement(rows),
+        load_average_at_end=_common.load_average(),
+        note="measured under load: the 2-core machine was shared (see each row's load_average_before/after)",
     )
     _common.write_results(args.out, "design_scaling", payload, render_markdown(payload), echo=echo)
+
+
+def agreement(rows) -> list[dict]:
+    """Per (n, kind) with both routes: did both designs pass the float64 verification?"""
+    out = []
+    by = {(r["n"], r["kind"], r.get("method", "lmi")): r for r in rows}
+    for (n, kind, method), r in sorted(by.items()):
+        other = by.get((n, kind, "lmi"))
+        if method != "riccati" or other is None:
+            continue
+        both = bool(r.get("verification_passed")) and bool(other.get("verification_passed"))
+        out.append({"n": n, "kind": kind, "both_verified": both,
+                    "riccati_s": r.get("total_s"), "lmi_s": other.get("total_s"),
+                    "speedup": (other["total_s"] / r["total_s"]) if both else None})
+    return out
 
 
 def render_markdown(d: dict) -> str:
     fmt, s = _common.fmt, d["settings"]
     lines = [
-        "# LMI observer design time vs state dimension (issue 7)",
+        "# Observer design time vs state dimension, LMI and Riccati routes (issues 7, 16)",
         "",
         f"- status: {d['status']}",
         *_common.machine_lines(d["machine"]),
         "- `fojax.design.design_functional_observer(sys, L, kind, q0 = q)`, default region Disk(-2, 1), "
-        f"solver `{s['solver']}`; random stable index-1 plant, m = 2, p = max(1, n // 4), q = q0 = max(1, n // 2); "
+        f"solver `{s['solver']}`, method = route; random stable index-1 plant, m = 2, p = max(1, n // 4), q = q0 = max(1, n // 2); "
         "one fresh process per design after an untimed n = 4 warm-up design",
         "",
-        "total = the whole design call (checks, default R, LMI build + solve, float64 verification); "
+        "total = wall time of the whole design call (CPU = its process CPU time; checks, default R, LMI build + solve, float64 verification); "
         "cvxpy = time inside `Problem.solve` (all attempts); solver = the solver's own time; rest = total − cvxpy "
         "(existence checks, default R, building the LMI, verification, observer construction). "
         "Size = the accepted cvxpy problem: scalar variables, LMI blocks (sizes).",
         "",
-        "| n | kind | q0 | p | status | total (s) | cvxpy solve (s) | solver (s) | rest (s) | solver used | attempts | "
+        "| n | kind | method | q0 | p | status | total (s) | CPU (s) | cvxpy solve (s) | solver (s) | rest (s) | solver used | attempts | "
         "variables | LMIs (sizes) | max Re λ(error) | peak RSS (MiB) |",
-        "|---:|---|---:|---:|---|---:|---:|---:|---:|---|---:|---:|---|---:|---:|",
+        "|---:|---|---|---:|---:|---|---:|---:|---:|---:|---:|---|---:|---:|---|---:|---:|",
     ]
     for r in d["rows"]:
         size = r.get("problem_size", {})
         sizes = size.get("lmi_sizes")
         lmis = "—" if sizes is None else f"{len(sizes)} ({', '.join(map(str, sizes))})"
         lines.append(
-            f"| {r['n']} | {r['kind']} | {r.get('q0', '—')} | {r.get('p', '—')} | {r.get('status')} | "
-            f"{fmt(r.get('total_s'), '.3g')} | {fmt(r.get('cvxpy_solve_wall_s'), '.3g')} | "
+            f"| {r['n']} | {r['kind']} | {r.get('method', 'lmi')} | {r.get('q0', '—')} | {r.get('p', '—')} | {r.get('status')} | "
+            f"{fmt(r.get('total_s'), '.3g')} | {fmt(r.get('cpu_s'), '.3g')} | {fmt(r.get('cvxpy_solve_wall_s'), '.3g')} | "
             f"{fmt(r.get('solver_time_s'), '.3g')} | {fmt(r.get('outside_cvxpy_s'), '.3g')} | {r.get('solver_used') or '—'} | {r.get('cvxpy_solve_calls', '—')} | "
             f"{size.get('scalar_variables', '—')} | {lmis} | {fmt(r.get('max_real_error_eig'), '.3f')} | "
             f"{fmt(r.get('peak_rss_mib'), '.0f')} |"
         )
+    if d.get("agreement"):
+        lines += ["", "Agreement (both routes' designs pass the float64 verification; speedup = LMI time / "
+                  "Riccati time):", ""]
+        for a in d["agreement"]:
+            lines.append(f"- n = {a['n']}, {a['kind']}: both verified = {a['both_verified']}, "
+                         f"speedup {fmt(a.get('speedup'), '.3g')}")
     if d["stopped"]:
         lines += ["", "Stopped: " + "; ".join(f"{k}: {v}" for k, v in d["stopped"].items())]
     errs = [r for r in d["rows"] if r.get("status") != "ok"]
@@ -325,7 +377,7 @@ def render_markdown(d: dict) -> str:
         lines += ["", "## Failures", ""]
         for r in errs:
             msg = (r.get("error") or "").strip().splitlines()
-            lines.append(f"- n = {r['n']}, {r['kind']}: {r.get('status')} — {msg[0][:300] if msg else ''}")
+            lines.append(f"- n = {r['n']}, {r['kind']}, {r.get('method', 'lmi')}: {r.get('status')} — {msg[0][:300] if msg else ''}")
     return "\n".join(lines) + "\n"
 
 

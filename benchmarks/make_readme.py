@@ -216,22 +216,24 @@ def design_scaling(d: dict, name: str) -> tuple[list[str], list[str]]:
         return _schema_note(name, d), []
     s = d.get("settings") or {}
     out = [
-        "### LMI design time vs state dimension (q0 ≈ n/2, default region)",
+        "### Verified design time vs state dimension, LMI and Riccati routes (q0 ≈ n/2, default region)",
         "",
         source_line(d, name),
         "",
-        f"`design_functional_observer` on random stable index-1 systems, solver `{s.get('solver', '?')}`; total = "
-        "the whole verified design; cvxpy = inside `Problem.solve`.",
+        f"`design_functional_observer(..., method=...)` on random stable index-1 systems, solver `{s.get('solver', '?')}`; "
+        "total = the whole verified design; cvxpy = inside `Problem.solve` (LMI route only).",
         "",
-        "| n | kind | total (s) | cvxpy solve (s) | solver | scalar variables | LMI sizes | status |",
-        "|---:|---|---:|---:|---|---:|---|---|",
+        "| n | kind | method | total (s) | cvxpy solve (s) | solver | scalar variables | LMI sizes | peak RSS (MiB) | status |",
+        "|---:|---|---|---:|---:|---|---:|---|---:|---|",
     ]
     for r in rows:
         size = r.get("problem_size") or {}
         out.append(
-            f"| {r.get('n')} | {r.get('kind')} | {fmt(r.get('total_s'), '.3g')} | {fmt(r.get('cvxpy_solve_wall_s'), '.3g')} | "
+            f"| {r.get('n')} | {r.get('kind')} | {r.get('method', 'lmi')} | {fmt(r.get('total_s'), '.3g')} | "
+            f"{fmt(r.get('cvxpy_solve_wall_s'), '.3g')} | "
             f"{r.get('solver_used') or '—'} | {size.get('scalar_variables', '—')} | "
-            f"{', '.join(map(str, size.get('lmi_sizes', []))) or '—'} | {r.get('status')} |"
+            f"{', '.join(map(str, size.get('lmi_sizes', []))) or '—'} | {fmt(r.get('peak_rss_mib'), '.0f')} | "
+            f"{r.get('status')} |"
         )
     stopped = d.get("stopped") or {}
     if stopped:

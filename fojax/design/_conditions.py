@@ -195,15 +195,23 @@ def check_structure(s: FunctionalObserverStructure) -> None:
 
 def unobservable_modes(A: np.ndarray, Cm: np.ndarray, tol: float = 1e-8) -> np.ndarray:
     """Eigenvalues λ of `A` with rank [λI - A; Cm] < dim A (PBH test, relative tolerance)."""
-    A = np.asarray(A, float)
+    A, Cm = np.asarray(A, float), np.asarray(Cm, float)
     n = A.shape[0]
     if n == 0:
         return np.zeros(0, complex)
+    scale = max(1.0, np.linalg.norm(A, 2), np.linalg.norm(Cm, 2) if Cm.size else 0.0)
+    # Shortcut (exact, O(n³) instead of one SVD per eigenvalue): σ_min([λI - A; Cm]) ≥
+    # σ_min(Cm) for every λ (appending rows never lowers the smallest singular value), so
+    # when Cm has full column rank with twice the threshold to spare, no mode fails the test.
+    if Cm.shape[0] >= n and np.linalg.svd(Cm, compute_uv=False)[n - 1] > 2.0 * tol * scale:
+        return np.zeros(0, complex)
+    # [λI - A; Cm] and [λI - A; R] (Cm = QR) have the same singular values (an orthogonal
+    # transformation of the rows): the per-eigenvalue SVDs get at most 2n rows.
+    Rc = np.linalg.qr(Cm, mode="r") if Cm.shape[0] > n else Cm
     eigs = np.linalg.eigvals(A)
     out = []
-    scale = max(1.0, np.linalg.norm(A, 2), np.linalg.norm(Cm, 2) if Cm.size else 0.0)
     for lam in eigs:
-        Mx = np.vstack([lam * np.eye(n) - A, Cm]) if Cm.size else lam * np.eye(n) - A
+        Mx = np.vstack([lam * np.eye(n) - A, Rc]) if Cm.size else lam * np.eye(n) - A
         s = np.linalg.svd(Mx, compute_uv=False)
         if s.size < n or s[n - 1] <= tol * scale:
             out.append(lam)

@@ -39,7 +39,7 @@ from .._errors import InputError, LMIInfeasibleError, RankConditionError, ShapeE
 from .._linalg import left_null_space
 from ..observer._generalized import GeneralizedFunctionalObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
-from . import _lmi
+from . import _lmi, _riccati
 from ._conditions import (
     check_data_range,
     check_detectability,
@@ -447,6 +447,7 @@ def design_functional_observer(
     q1: int | None = None,
     margin: float = 1e-3,
     solver: str = _lmi.DEFAULT_SOLVER,
+    method: str = "lmi",
 ) -> FunctionalObserverDesign:
     r"""Design a verified functional observer for $z = Lx$ (thesis §3.1, Theorems 1–2).
 
@@ -468,6 +469,12 @@ def design_functional_observer(
       for proportional).
     - `margin`: strictness of the LMIs (``⪯ -margin·I`` with ``X ⪰ I``).
     - `solver`: ``"CLARABEL"`` (default) or ``"SCS"`` (see `fojax.design` notes on solvers).
+    - `method`: ``"lmi"`` (default: the region LMI), ``"riccati"`` (a discrete Riccati
+      equation for the gain and a Stein equation for the certificate, no SDP: disks,
+      half-planes and sectors, generalized and proportional observers; O(n³), see
+      `fojax.design._riccati`) or ``"auto"`` (the Riccati route where it applies, the
+      LMI route otherwise). Either route is verified the same way; the route taken is
+      in ``design.solver["lmi"]["route"]`` and printed in the report.
 
     **Returns:** a `FunctionalObserverDesign` whose `report` shows residuals of
     conditions a.–d. (≤ 1e-8 relative), the error eigenvalues inside `region` and the
@@ -482,6 +489,7 @@ def design_functional_observer(
     each design condition relative to the norms of its own terms).
     """
     check_kind(kind)
+    _riccati.check_method(method)
     sys = _as_system(sys)
     region = as_region(region if region is not None else Disk(-2.0, 1.0))
     if kind == "proportional":
@@ -493,12 +501,18 @@ def design_functional_observer(
     if q1 is None:
         q1 = s.q0
     s = observer_structure(s.E, s.A, s.B, s.C, s.L, s.R, q1=q1, psi=s.psi, Eperp=s.Eperp)
-    return _design_from_structure(s, region, kind=kind, margin=margin, solver=solver)
+    return _design_from_structure(s, region, kind=kind, margin=margin, solver=solver, method=method)
 
 
-def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN):
-    lmi_region = region.tightened(tighten)
-    X, Z, Ys, info = solve_gains(s, lmi_region, kind=kind, margin=margin, solver=solver)
+def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, method="lmi"):
+    why_not = _riccati.riccati_applies(region, kind, s.num_rules)
+    if method == "riccati" and why_not is not None:
+        raise InputError(f"method='riccati' does not apply: {why_not}. Use method='lmi' or 'auto'.")
+    if method != "lmi" and why_not is None:
+        X, Z, Ys, info = _riccati.riccati_gains(s, region, kind=kind)
+    else:
+        X, Z, Ys, info = solve_gains(s, region.tightened(tighten), kind=kind, margin=margin, solver=solver)
+        info["lmi"]["method"] = "lmi"
     c = s.q0 + s.nw
     blocks = split_Y(Ys[0], s.q0, c)
     params = {
@@ -509,7 +523,8 @@ def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN):
         "J": blocks["J"],
         "G": blocks["G"],
     }
-    mats, report = verify_structure_design(s, params, region, X, extra={"LMI route": info["lmi"]["route"]})
+    route_key = "LMI route" if info["lmi"]["method"] == "lmi" else "design route"
+    mats, report = verify_structure_design(s, params, region, X, extra={route_key: info["lmi"]["route"]})
     obs = build_observer(s, mats, kind=kind)
     return FunctionalObserverDesign(
         observer=obs,

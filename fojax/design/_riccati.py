@@ -1,0 +1,265 @@
+r"""Riccati design route: functional-observer gains without an SDP (issue 16).
+
+**The problem.** With the free parameter $Z$ fixed, the error dynamics of the
+generalized/proportional functional observer are (`fojax.design.observer_matrices`)
+
+$$\mathbb A = \mathbb A_1(Z) - \mathbb Y\mathbb A_2,\qquad
+  \mathbb A_1 = \operatorname{diag}(N_1' - ZN_2', 0),\quad
+  \mathbb A_2 = \operatorname{diag}(N_3, -I_{q_1}),$$
+
+with every entry of $\mathbb Y = [[Y_1, J], [Y_2, G]]$ free (generalized), or
+$q_1 = 0$, $\mathbb Y = Y_1$ (proportional). The LMI route (`fojax.design._functional`)
+linearises the bilinear region condition with $\mathcal W = X\mathbb Y$.
+
+**Möbius map of a disk.** $\lambda \mapsto (\lambda - \alpha)/\tau$ sends the disk
+$\mathcal Q(\alpha, \tau)$ onto the unit disk. So the eigenvalues of $\mathbb A$ lie in
+$\mathcal Q(\alpha, \tau)$ iff $A_d - \mathbb Y C_d$ is Schur stable, with
+$A_d = (\mathbb A_1 - \alpha I)/\tau$ and $C_d = \mathbb A_2/\tau$: a *discrete-time
+output-injection* problem for the pair $(A_d, C_d)$ (the dual of state feedback).
+It is solved by the filter Riccati equation (DARE, `scipy.linalg.solve_discrete_are`
+on the transposed pair)
+
+$$P = A_dPA_d^\top - A_dPC_d^\top(I + C_dPC_d^\top)^{-1}C_dPA_d^\top + I,\qquad
+  \mathbb Y = A_dPC_d^\top(I + C_dPC_d^\top)^{-1},$$
+
+whose stabilizing solution exists iff $(A_d, C_d)$ is detectable, i.e. iff every mode
+of $\mathbb A_1$ that no gain can move lies inside the disk (the unit-weight choice
+$Q = R = I$ is fojax's; any positive definite weights give a valid gain). Only the
+row space of $C_d$ matters ($R = I$): the DARE is solved with $\tilde C = S_kV_k^\top$
+from the thin SVD $C_d = U_kS_kV_k^\top$, and $\mathbb Y = \tilde{\mathbb Y}U_k^\top$ — the
+gain has no component outside the range of $\mathbb A_2$, like the LMI route's
+projected gain.
+
+**Certificate (Stein equation).** With $A_{cl} = (\mathbb A - \alpha I)/\tau'$
+(the disk radius $\tau' < \tau$, see below) Schur, the Stein equation
+$A_{cl}^\top XA_{cl} - X + I = 0$ (`scipy.linalg.solve_discrete_lyapunov`) has a
+unique solution $X \succeq I$, and $(\mathbb A - \alpha I)^\top X(\mathbb A - \alpha I)
+= \tau'^2(X - I) \prec \tau^2X$: by a Schur complement this is the Chilali–Gahinet disk
+LMI $\begin{bmatrix}-\tau X & X(\mathbb A - \alpha I)\\ \cdot & -\tau X\end{bmatrix}\prec 0$
+that `fojax.design.verify` re-checks in float64. The certificate is recomputed from the
+closed loop, not taken from the Riccati solution ($P^{-1}$ would also certify); for a
+generalized observer it is solved block by block (the closed loop is block diagonal, below).
+
+**Z, and the decoupling of the generalized observer.** $Z$ only enters the
+$\varepsilon$-block $N_1' - ZN_2' - Y_1N_3$, itself an output-injection problem for the
+pair $(N_1', [N_2'; N_3])$ with gain $[Z\;Y_1]$ (what the LMI route linearises with
+$W = X_1Z$): one DARE of size $q_0$ gives $Z$ and $Y_1$ — for a proportional observer,
+the whole design. For a generalized observer the pair $(\mathbb A_1(Z), \mathbb A_2)$
+is block diagonal ($\mathbb A_1 = \operatorname{diag}(\cdot, 0)$,
+$\mathbb A_2 = \operatorname{diag}(N_3, -I)$), and so are the weights $Q = R = I$: the
+block-diagonal assembly of the two blocks' stabilizing solutions is a stabilizing
+solution of the full DARE, hence *the* solution, and its gain is block diagonal:
+$J = 0$, $Y_2 = 0$ ($S = 0$) and $G = gI$ with $g$ from the $1\times1$ DARE of
+$(-\alpha/\tau', -1/\tau')$. fojax computes these blocks directly (a test checks them
+against SciPy's DARE of the full pair), so a generalized design costs one DARE of size
+$q_0$, not $q_0 + q_1$. *Consequence, stated plainly:* the Riccati route's generalized
+observer does not use the coupling freedom ($J$, $Y_2$) of eq. 3.5 — it is the proportional
+design plus an undriven, stable integral state. The coupled generalized designs come from
+the LMI route (minimum-gain objective) or from tuning (`fojax.tuning`), which moves
+$J, Y_2, G$ freely from this starting point. Fixing $Z = 0$ instead of taking it from the
+DARE also gives valid observers when $(N_1', N_3)$ is detectable, but on thesis example
+3.1.3 (one independent row of $N_3$, three modes to move) that gain had norm 1.4e4 and a
+certificate with condition number 4e9 that failed verification; with $Z$ from the DARE
+the largest gain entries are of the LMI route's size (3.1.2: 39 vs 40, 3.1.3: 2.2 vs 2.7,
+4.1.3: 10.8 vs 9.9).
+
+**Half-planes and sectors (mapped into a disk; sound).** If $X$ certifies the disk
+$\mathcal Q(\alpha, \tau)$, then $\|X^{1/2}(\mathbb A - \alpha I)X^{-1/2}\| < \tau$, so the
+$X$-numerical range $\{v^*X\mathbb Av / v^*Xv\}$ lies in the open disk. For a
+half-plane or a sector the Chilali–Gahinet LMI at $X$ says exactly that this numerical
+range lies in the region (the sector's $2\times2$ LMI is the real form of one Hermitian
+condition per boundary line). Hence a disk *inside* the region gives a certificate of
+the region itself, which `verify` re-checks anyway. fojax uses, for
+$\operatorname{Re}s < -\sigma$, the disk tangent to the boundary with centre
+$-\sigma-\rho$, radius $\rho = \max(1, \sigma)$, enlarged until it contains every
+fixed mode (modes no gain can move) with a margin; for the sector of damping
+$\zeta = \cos\theta$, the disk centred at $-a$ with radius $a\sin\theta$ (tangent to
+both lines), $a$ chosen to contain the fixed modes (else $a = 1$, the sector's
+target). Intersections of regions (and common certificates over rules) are left to
+the LMI route.
+
+**Margin.** Like the LMI route (which targets `region.tightened(0.05)`), the Riccati
+route targets the disk with radius $\tau' = 0.95\tau$, so the eigenvalues keep a margin
+of $0.05\tau$ inside the disk (hence inside the region).
+
+**What is not different from the LMI route.** The result goes through the same
+`verify_structure_design` (conditions a.–d., eigenvalues in the user's region, the
+region LMI at $X$ in float64). A failure of the Riccati route (no stabilizing solution)
+raises `fojax.LMIInfeasibleError`, the error the LMI route raises when its solver finds
+no solution, with the closed-loop spectral radius in the message.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import scipy.linalg
+
+from .._errors import InputError, LMIInfeasibleError
+from ._conditions import unobservable_modes
+from ._parameterization import FunctionalObserverStructure, pieces
+from ._regions import AbstractRegion, Disk, HalfPlane, Sector
+
+
+#: The Riccati route targets the disk shrunk by this fraction (as the LMI route targets
+#: `region.tightened(TIGHTEN)`).
+TIGHTEN = 0.05
+#: The closed loop (in the Möbius coordinates of the shrunk disk) must have spectral
+#: radius below this before the certificate is computed.
+SCHUR_TOL = 1.0 - 1e-9
+METHODS = ("auto", "riccati", "lmi")
+
+
+def check_method(method) -> str:
+    if method in METHODS:
+        return method
+    raise InputError(
+        f"method must be one of {', '.join(map(repr, METHODS))}; got {method!r}. "
+        "'riccati' solves a discrete Riccati equation (disk, half-plane or sector regions), "
+        "'lmi' the region LMI, 'auto' the Riccati route where it applies."
+    )
+
+
+def riccati_applies(region: AbstractRegion, kind: str, num_rules: int = 1) -> str | None:
+    """``None`` if the Riccati route applies, else the reason it does not."""
+    if num_rules != 1:
+        return "several rules need a common certificate (LMI route)"
+    if kind not in ("generalized", "proportional"):
+        return f"kind {kind!r} constrains the gain (S = 0) (LMI route)"
+    if not isinstance(region, Disk | HalfPlane | Sector):
+        return f"the region {region.describe()} is not a single disk, half-plane or sector (LMI route)"
+    return None
+
+
+def _fixed_modes_eps(s: FunctionalObserverStructure) -> np.ndarray:
+    pc = pieces(s, xp=np)
+    N1, N2, N3 = (np.asarray(x)[0] if np.ndim(x) == 3 else np.asarray(x) for x in (pc.N1, pc.N2, pc.N3))
+    return unobservable_modes(N1, np.vstack([N2, N3]))
+
+
+def region_disk(region: AbstractRegion, fixed_modes=()) -> Disk:
+    """A disk inside `region` (module docstring) containing the `fixed_modes` when possible."""
+    fixed = np.atleast_1d(np.asarray(fixed_modes, complex))
+    if isinstance(region, Disk):
+        return region
+    if isinstance(region, HalfPlane):
+        sig = region.decay
+        rho = max(1.0, sig)
+        for lam in fixed:
+            x, y = lam.real + sig, lam.imag  # x < 0 inside the half-plane
+            if x < 0:
+                # |lam - c| < rho with c = -sig - rho  <=>  rho > (x² + y²) / (-2x)
+                rho = max(rho, 1.5 * (x * x + y * y) / (-2.0 * x))
+        return Disk(-sig - rho, rho)
+    if isinstance(region, Sector):
+        th = math.acos(region.damping)
+        s = math.sin(th)
+        a = 1.0
+        if fixed.size:
+            cands = np.logspace(-3, 6, 400) * max(1.0, float(np.max(np.abs(fixed))))
+            worst = [np.max(np.abs(fixed + c)) / (c * s) for c in cands]
+            a = float(cands[int(np.argmin(worst))])
+        return Disk(-a, a * s)
+    raise InputError(f"the Riccati route needs a disk, half-plane or sector; got {region.describe()}.")
+
+
+def output_injection_gain(Ad: np.ndarray, Cd: np.ndarray) -> np.ndarray:
+    """The DARE gain ``Y`` making ``Ad - Y Cd`` Schur (weights ``Q = R = I``; module docstring).
+
+    Raises `LMIInfeasibleError` when SciPy finds no stabilizing solution."""
+    d = Ad.shape[0]
+    if Cd.size == 0:
+        return np.zeros((d, Cd.shape[0]))
+    U, sv, Vt = np.linalg.svd(Cd, full_matrices=False)
+    k = int(np.sum(sv > max(Cd.shape) * np.finfo(float).eps * (sv[0] if sv.size else 0.0)))
+    if k == 0:
+        return np.zeros((d, Cd.shape[0]))
+    Ct = sv[:k, None] * Vt[:k]  # k × d, Cd = U_k Ct
+    try:
+        P = scipy.linalg.solve_discrete_are(Ad.T, Ct.T, np.eye(d), np.eye(k))
+    except (np.linalg.LinAlgError, ValueError) as e:
+        raise LMIInfeasibleError(
+            "output-injection Riccati equation (disk mapped to the unit disk)", "no_stabilizing_solution",
+            {"message": str(e)},
+            "A mode that no observer gain can move lies outside the disk: enlarge the region, or "
+            "choose another R / observer order.",
+        ) from None
+    P = 0.5 * (P + P.T)
+    G = Ct @ P @ Ct.T + np.eye(k)
+    Yt = np.linalg.solve(G, Ct @ P @ Ad.T).T  # Ad P Ctᵀ (I + Ct P Ctᵀ)^{-1}
+    rho = _spectral_radius(Ad - Yt @ Ct)
+    if not rho < SCHUR_TOL:
+        raise LMIInfeasibleError(
+            "output-injection Riccati equation (disk mapped to the unit disk)", "not_stabilizing",
+            {"spectral_radius": rho},
+            f"The Riccati gain leaves spectral radius {rho:.6g} ≥ 1 in the disk's coordinates: a "
+            "mode that no observer gain can move lies outside the disk. Enlarge the region, choose "
+            "another R / observer order, or use method='lmi'.",
+        )
+    return Yt @ U[:, :k].T
+
+
+def _spectral_radius(M: np.ndarray) -> float:
+    return float(np.max(np.abs(np.linalg.eigvals(M)))) if M.size else 0.0
+
+
+def _stein(Acl: np.ndarray, steps: list) -> np.ndarray:
+    """``X`` with ``Aclᵀ X Acl - X + I = 0`` (an ill-conditioned solve's warning goes in `steps`:
+    `verify` re-checks the certificate whatever its conditioning)."""
+    if Acl.size == 0:
+        return np.zeros(Acl.shape)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        X = scipy.linalg.solve_discrete_lyapunov(Acl.T, np.eye(Acl.shape[0]))
+    if caught:
+        steps.append("Stein equation: " + "; ".join(str(w.message) for w in caught))
+    return 0.5 * (X + X.T)
+
+
+def riccati_gains(s: FunctionalObserverStructure, region: AbstractRegion, *, kind: str):
+    """Gains by the Riccati route for one rule (module docstring).
+
+    **Returns:** ``(X, Z, [𝕐], info)`` like `fojax.design._functional.solve_gains`, where
+    ``info["lmi"]`` holds ``method="riccati"``, the ``route`` line shown in the report,
+    the ``disk`` used and the closed-loop ``spectral_radius`` in its coordinates.
+    """
+    pc = pieces(s, xp=np)
+    N1 = np.asarray(pc.N1)[0]
+    N2 = np.asarray(pc.N2)[0]
+    N3 = np.asarray(pc.N3)
+    q0, q1 = s.q0, (s.q1 if kind == "generalized" else 0)
+    c, nZ = N3.shape[0], N2.shape[0]
+    d = q0 + q1
+    fixed = _fixed_modes_eps(s) if not isinstance(region, Disk) else np.zeros(0)
+    disk = region_disk(region, fixed)
+    alpha, tau = disk.center, disk.radius * (1.0 - TIGHTEN)
+    steps = []
+    # ε-block: gain [Z, Y1] of the output-injection pair (N1', [N2'; N3])
+    Ad = (N1 - alpha * np.eye(q0)) / tau
+    Cd = np.vstack([N2, N3]) / tau
+    K = output_injection_gain(Ad, Cd)
+    Z, Y1 = K[:, :nZ], K[:, nZ:]
+    Acl1 = Ad - K @ Cd
+    rho = _spectral_radius(Acl1)
+    steps.append(f"[Z, Y1] from the Riccati equation of (N1', [N2'; N3]): spectral radius {rho:.3g}")
+    X1 = _stein(Acl1, steps)
+    Y = np.zeros((d, c + q1))
+    Y[:q0, :c] = Y1
+    X = np.zeros((d, d))
+    X[:q0, :q0] = X1
+    if q1:
+        # v-block: the 1×1 DARE of (a, b) = (-α/τ, -1/τ) (the data decouple, module docstring)
+        a, b = -alpha / tau, -1.0 / tau
+        g = output_injection_gain(np.array([[a]]), np.array([[b]]))[0, 0]
+        acl = a - g * b
+        Y[q0:, c:] = g * np.eye(q1)  # G = g I (the v-block of 𝔸 is G)
+        X[q0:, q0:] = np.eye(q1) / (1.0 - acl * acl)  # 1×1 Stein: acl² x - x + 1 = 0
+        rho = max(rho, abs(acl))
+        steps.append(f"G = {g:.6g}·I from the 1×1 Riccati equation of the v-block; J = 0, Y2 = 0")
+    route = (f"Riccati (DARE for the gain, Stein equation for the certificate) in "
+             f"{Disk(alpha, tau).describe()}" + ("" if isinstance(region, Disk) else f" inside {region.describe()}"))
+    info = {"lmi": {"route": route, "method": "riccati", "solver": "scipy.linalg.solve_discrete_are",
+                    "disk": disk.to_dict(), "spectral_radius": rho, "steps": steps}}
+    return X, Z, [Y], info
