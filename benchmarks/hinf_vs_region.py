@@ -7,6 +7,8 @@ output noise (`fojax.studies.output_noise`, std σ per output, held ``--noise-dt
 y (`fojax.studies.NoisyPlant`), 10 s on a 0.01 s output grid:
 
 - ``states``: the plant itself (n = 6, rank E = 4), estimating z = L x (no faults);
+- ``noise``: the same with x0 = 0: the plant stays at rest (so δ has no effect) and the
+  estimation error is the response to the output noise alone;
 - ``faults``: the fault-augmented plant of the thesis (n = 9) with constant faults
   (magnitudes in [0.5, 1.5]), estimating z and f (as `benchmarks/study_default.py`).
 
@@ -83,12 +85,13 @@ def designs(ex, case, sigma):
 def study(ex, case, n_delta, n_fault, sigma, noise_dt, seed):
     faults = case == "faults"
     n = 9 if faults else 6
+    x0_value = 0.0 if case == "noise" else 0.5
     dA = np.zeros((1, n, n))
     dA[0, :6, :6] = ex.dA
     base = fojax.UncertainDescriptorSystem(ex.augmented if faults else ex.system, dA=dA,
                                            delta=fojax.Constant(jnp.zeros(1)))
     plant = S.NoisyPlant(base, fojax.Constant(jnp.zeros(3)))
-    x0 = jnp.concatenate([jnp.full((6,), 0.5), jnp.zeros(n - 6)])
+    x0 = jnp.concatenate([jnp.full((6,), x0_value), jnp.zeros(n - 6)])
     ts = jnp.linspace(0.0, T_END, int(round(T_END / DT)) + 1)
     k1, k2, k3 = jax.random.split(jax.random.PRNGKey(seed), 3)
     return fojax.Study(
@@ -106,7 +109,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sigma", type=float, nargs="+", default=[0.05, 0.5])
     ap.add_argument("--seed", type=int, default=18_2026)
     ap.add_argument("--noise-dt", type=float, default=0.05, help="hold time of the output noise [s]")
-    ap.add_argument("--cases", nargs="+", default=["states", "faults"], choices=["states", "faults"])
+    ap.add_argument("--cases", nargs="+", default=["states", "noise", "faults"], choices=["states", "noise", "faults"])
     ap.add_argument("--out", default=str(_common.RESULTS / "hinf_vs_region_latest.json"))
     args = ap.parse_args(argv)
     ex = fojax.models.example_3_3_7()

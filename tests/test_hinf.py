@@ -159,6 +159,16 @@ def test_pi_keeps_S_zero():
     check_design(sys_, L, d, Bw, Dv, region)
 
 
+def test_uncertainty_channel_factorises_delta_A():
+    # §3.3.7's ΔA (ones at (1,3) and (2,2)): rank 2, δ̄ ΔA = Bδ Cδ exactly
+    from fojax.design import hinf_uncertainty_channel
+
+    dA = np.asarray(fojax.models.example_3_3_7().dA)
+    Bd, Cd = hinf_uncertainty_channel(dA, 0.3)
+    assert Bd.shape == (6, 2) and Cd.shape == (2, 6)
+    np.testing.assert_allclose(Bd @ Cd, 0.3 * dA, atol=1e-15)
+
+
 def test_bad_channels():
     sys_, L, Bw, Dv = random_descriptor(0)
     with pytest.raises(ShapeError, match=r"Bw.*5 rows"):

@@ -491,7 +491,9 @@ def design_functional_observer(
     `DetectabilityError` (existence conditions, checked before any LMI, with what to
     change), `LMIInfeasibleError` (solver status other than ``optimal``, or a solver
     exception, with its message), `DesignVerificationError` (a float64 check failed:
-    each design condition relative to the norms of its own terms).
+    each design condition relative to the norms of its own terms; for ``objective="hinf"``
+    also the bounded-real LMI at ``(X, γ)`` and ``γ ≥ ‖T‖∞`` by SLICOT's AB13DD),
+    `ShapeError`/`InputError` (a channel `Bw`/`Dv` of the wrong shape, or none).
     """
     check_kind(kind)
     if objective not in ("region", "hinf"):

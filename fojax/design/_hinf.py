@@ -68,6 +68,14 @@ the L2 gain of the channel $B_w = \bar\delta B_\delta$:
 $\|\hat z - z\|_{L_2} \le \gamma\,\|[w;\,\nu;\,C_\delta x]\|_{L_2}$ (for a stable plant).
 Pass it as a column block of `Bw` (`hinf_uncertainty_channel`).
 
+**When γ cannot improve.** A plant mode on the imaginary axis can fix part of the error
+response for every admissible observer: for $\dot x = 0$, $y = x + \nu$, $z = x$ the gain from
+$\nu$ to $\hat z - z$ at $\omega = 0$ is 1 whatever the observer (a constant noise is
+indistinguishable from a constant state). If the peak gain is attained there, no observer does
+better than the region-only design: on §3.3.7 with the faults as constant states every design
+has the same $\|T\|_\infty$, attained at $\omega = 0$ (`benchmarks/hinf_vs_region.py`, case
+``faults``).
+
 **Verification (float64, independent of the solver).** The design conditions, the region
 and the region LMI (`fojax.design.verify`); the BRL re-evaluated at $(X, \gamma)$; and the
 norm of the error system built from the *observer matrices* computed by SLICOT's
@@ -111,7 +119,8 @@ class HinfCertificate:
         tightness: ``gamma / norm`` (≥ 1).
         region_only_norm: $\|T\|_\infty$ of the region-only design (same structure, same Z).
         Bw, Dv: the disturbance and noise channels (``(n, mw)``, ``(p, mv)``).
-        brl_max_eig: largest eigenvalue of the BRL at ``(X, gamma)`` (``< 0``).
+        brl_max_eig: largest eigenvalue of the BRL at ``(X, gamma)`` (``< 0``; in the scaled
+            problem, channels divided by `region_only_norm`).
     """
 
     gamma: float
