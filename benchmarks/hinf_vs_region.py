@@ -154,7 +154,8 @@ def main(argv=None) -> int:
     payload = _common.result_payload(
         "hinf_vs_region", "complete", info0, args,
         what="§3.3.7, constant delta in [-0.3, 0.3], output noise (ZOH, std sigma); case 'states': the plant "
-             "(n = 6), z = L x; case 'faults': fault-augmented (n = 9), constant faults, z and f; region-only vs "
+             "(n = 6), z = L x, x0 = 0.5; case 'noise': the same with x0 = 0 (error from the noise alone); "
+             "case 'faults': fault-augmented (n = 9), constant faults, z and f; region-only vs "
              "objective='hinf' designs in Disk(-3, 2); mean over samples of fojax.run_study's IAE (summed over "
              "the estimated signals) and peak error (max over signals); measured under load",
         loadavg=list(os.getloadavg()), rows=rows, details=details)
