@@ -232,7 +232,7 @@ def design(
             folder,
             title=f"fojax design: {cfg.name}",
             summary=(cfg.description or "") + f"\n\nConfig: `{config_path}`. {verdict}.",
-            tables={"Designs": (headers, rows)},
+            tables={"Designs": (headers, rows), **_hinf_table(summary)},
             figures=figures,
             files=files,
             sections=sections,
@@ -247,7 +247,8 @@ def design(
                     f"{spec.region.describe()}): structure checks, LMI solve, float64 verification"
                 ):
                     d = design_fn(
-                        sys_, L, kind=spec.kind, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1
+                        sys_, L, kind=spec.kind, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1,
+                        **spec.design_kwargs(),
                     )
             except FojaxError as err:  # this observer failed; design the others
                 kind = type(err).__name__
@@ -282,7 +283,8 @@ def design(
             files[f"design of '{spec.name}' (fojax.results.load_design)"] = path
             summary.append({"name": spec.name, "file": path.name,
                             "status": "verified" if d.report.passed else "not verified",
-                            **d.report.to_dict(), "kind": spec.kind, "q0": d.observer.q0, "q1": d.observer.q1})
+                            **d.report.to_dict(), "kind": spec.kind, "q0": d.observer.q0, "q1": d.observer.q1,
+                            **({"hinf": d.hinf.to_dict()} if getattr(d, "hinf", None) is not None else {})})
             out.say(f"  saved {path}")
     except BaseException as err:  # a bug or an interrupt: say so in the folder, then stop
         import contextlib
@@ -297,6 +299,9 @@ def design(
     for r in rows:
         verified = r[7] if isinstance(r[7], str) else ("yes" if r[7] else "NO")
         out.say(f"{r[0]:<{width}}  {r[1]:<12}  {r[2]:>2}  {r[3]:>2}  {r[5]:>11.4g}  {verified}")
+    for name, row in zip(*_hinf_rows(summary)):
+        out.say(f"{name}: H∞ bound gamma = {row[1]:.6g} >= ||T||inf = {row[2]:.6g} (SLICOT AB13DD, peak at "
+                f"{row[3]:.4g} rad/s, tightness {row[4]:.4f}; region-only design {row[5]:.6g})")
     out.say(f"\nresults: {folder} (report: {report.name})")
     if failed:
         print(f"fojax: {len(failed)} of {len(observers)} observer(s) of {config_path} could not be designed "
@@ -304,6 +309,28 @@ def design(
               file=sys.stderr, flush=True)
     all_ok = not failed and all(e["status"] == "verified" for e in summary)
     return 0 if all_ok else 1
+
+
+def _hinf_rows(summary) -> tuple[list, list]:
+    """Names and rows of the ``objective = "hinf"`` designs of a `design` summary."""
+    names, rows = [], []
+    for e in summary:
+        h = e.get("hinf")
+        if h:
+            names.append(e["name"])
+            rows.append([e["name"], h["gamma"], h["norm"], h["peak_frequency"], h["tightness"],
+                         h["region_only_norm"]])
+    return names, rows
+
+
+def _hinf_table(summary) -> dict:
+    """The report's "H∞ bounds" table (empty dict if no design has one)."""
+    _, rows = _hinf_rows(summary)
+    if not rows:
+        return {}
+    headers = ["observer", "γ (certified bound)", "‖T‖∞ (SLICOT AB13DD)", "peak ω [rad/s]",
+               "tightness γ/‖T‖∞", "‖T‖∞ of the region-only design"]
+    return {"H∞ bounds (d = [w; ν] → ẑ − z)": (headers, rows)}
 
 
 def _default_region():
@@ -525,7 +552,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         else:
             with out.step(f"designing '{o.name}' ({o.kind}, {o.region.describe()}) by LMI"):
                 d = design_functional_observer(cfg.design_system(), cfg.design_L(), kind=o.kind,
-                                               region=o.region, R=o.R, q0=o.q0, q1=o.q1)
+                                               region=o.region, R=o.R, q0=o.q0, q1=o.q1, **o.design_kwargs())
             files[f"design of '{o.name}'"] = save_design(d, saved, overwrite=ow,
                                                          metadata={"config": path, "observer": o.name})
         check_interrupted()

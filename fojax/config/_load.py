@@ -43,6 +43,10 @@ examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
     q0 = 2                               # optional observer order, or
     R = [[...]]                          # optional (q0, n) (of the designed, augmented system)
     q1 = 2                               # optional size of v
+    objective = "hinf"                   # optional: "region" (default) or "hinf" (minimise a
+                                         # certified L2-gain bound from w, nu to zhat - z)
+    Bw = [[...]]                         # "hinf": (n, mw) disturbance E x' = ... + Bw w
+    Dv = [[...]]                         # "hinf": (p, mv) noise y = C x + Dv nu
 
     [study]                              # optional Monte Carlo settings
     samples = 64
@@ -88,7 +92,8 @@ _PROFILE = {
     "sine": {"kind", "amplitude", "omega", "phase"},
 }
 _TS = {"premise", "index", "lower", "upper"}
-_OBSERVER = {"name", "kind", "region", "R", "q0", "q1"}
+_OBSERVER = {"name", "kind", "region", "R", "q0", "q1", "objective", "Bw", "Dv"}
+OBJECTIVES = ("region", "hinf")
 _REGION = {"disk", "decay", "damping"}
 _DISK = {"center", "radius"}
 _STUDY = {"samples", "horizon", "dt", "seed"}
@@ -108,6 +113,16 @@ class ObserverSpec:
     R: np.ndarray | None = None
     q0: int | None = None
     q1: int | None = None
+    objective: str = "region"
+    Bw: np.ndarray | None = None
+    Dv: np.ndarray | None = None
+
+    def design_kwargs(self) -> dict:
+        """The ``objective`` keywords of `fojax.design.design_functional_observer`
+        (empty for the default region objective)."""
+        if self.objective == "region":
+            return {}
+        return {"objective": self.objective, "Bw": self.Bw, "Dv": self.Dv}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -367,6 +382,35 @@ def _join(prefix: str, key: str) -> str:
     return f"{prefix}.{key}" if prefix else key
 
 
+def _objective(v: _V, key: str, o: dict, n: int, n_design: int, p: int, takagi_sugeno: bool):
+    """``objective``, ``Bw``, ``Dv`` of one ``[[observer]]``. `Bw` may have `n` rows (the
+    model's states; zero rows are added for fault states) or `n_design` rows."""
+    objective = v.string(_join(key, "objective"), o["objective"], OBJECTIVES) if "objective" in o else "region"
+    if objective == "region":
+        for ch in ("Bw", "Dv"):
+            if ch in o:
+                raise v.err(_join(key, ch), 'is only used with objective = "hinf"; add that line or remove the key.')
+        return objective, None, None
+    if takagi_sugeno:
+        raise v.err(_join(key, "objective"), 'is "hinf", which is for linear models (not [takagi_sugeno]).')
+    if "Bw" not in o and "Dv" not in o:
+        raise v.err(_join(key, "objective"), 'is "hinf" but neither Bw (n x mw disturbance) nor Dv '
+                    "(p x mv measurement noise) is given: add at least one.")
+    Bw = Dv = None
+    if "Bw" in o:
+        Bw = v.array(_join(key, "Bw"), o["Bw"], 2, "an n x mw matrix")
+        if Bw.shape[0] == n and n_design != n:
+            Bw = np.vstack([Bw, np.zeros((n_design - n, Bw.shape[1]))])
+        if Bw.shape[0] != n_design:
+            raise v.err(_join(key, "Bw"), f"has shape {Bw.shape}, expected ({n}, mw) (one row per state"
+                        + (f", or {n_design} rows of the fault-augmented system)." if n_design != n else ")."))
+    if "Dv" in o:
+        Dv = v.array(_join(key, "Dv"), o["Dv"], 2, "a p x mv matrix")
+        if Dv.shape[0] != p:
+            raise v.err(_join(key, "Dv"), f"has shape {Dv.shape}, expected ({p}, mv) (one row per output, p = {p} from C).")
+    return objective, Bw, Dv
+
+
 def _region(v: _V, key: str, value):
     from ..design import Disk, HalfPlane, Intersection, Sector
 
@@ -550,8 +594,9 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
             q1 = v.number(_join(key, "q1"), o["q1"], integer=True, nonneg=True)
             if kind == "proportional" and q1 != 0:
                 raise v.err(_join(key, "q1"), f"is {q1}; a proportional observer has q1 = 0.")
+        objective, Bw, Dv = _objective(v, key, o, n, n_design, p, ts is not None)
         oname = v.file_name(_join(key, "name"), o["name"], f"observer_{i + 1}") if "name" in o else f"{kind}-{i + 1}"
-        observers.append(ObserverSpec(oname, kind, region, R, q0, q1))
+        observers.append(ObserverSpec(oname, kind, region, R, q0, q1, objective, Bw, Dv))
     _check_observer_names(v, [o.name for o in observers])
 
     study = None

@@ -25,6 +25,10 @@ from ._gain_parameterization import (
     disk_gain as disk_gain,
     lemma10_gain as lemma10_gain,
 )
+from ._hinf import (
+    hinf_uncertainty_channel as hinf_uncertainty_channel,
+    HinfCertificate as HinfCertificate,
+)
 from ._lmi import DEFAULT_SOLVER as DEFAULT_SOLVER, SOLVERS as SOLVERS
 from ._parameterization import (
     design_residuals as design_residuals,

@@ -113,6 +113,8 @@ class FunctionalObserverDesign(StructureDesignMixin):
         X: the LMI certificate (Lyapunov matrix) of the error dynamics.
         report: the float64 `VerificationReport`.
         solver: solver information (status, iterations, LMI steps).
+        hinf: the `fojax.design.HinfCertificate` (γ, the independent norm) of an
+            ``objective="hinf"`` design, else ``None``.
     """
 
     observer: GeneralizedFunctionalObserver
@@ -126,6 +128,7 @@ class FunctionalObserverDesign(StructureDesignMixin):
     X: np.ndarray
     report: VerificationReport
     solver: dict
+    hinf: Any = None
 
     @property
     def error_matrix(self) -> np.ndarray:
@@ -448,6 +451,9 @@ def design_functional_observer(
     margin: float = 1e-3,
     solver: str = _lmi.DEFAULT_SOLVER,
     method: str = "lmi",
+    objective: str = "region",
+    Bw=None,
+    Dv=None,
 ) -> FunctionalObserverDesign:
     r"""Design a verified functional observer for $z = Lx$ (thesis §3.1, Theorems 1–2).
 
@@ -475,6 +481,12 @@ def design_functional_observer(
       `fojax.design._riccati`) or ``"auto"`` (the Riccati route where it applies, the
       LMI route otherwise). Either route is verified the same way; the route taken is
       in ``design.solver["lmi"]["route"]`` and printed in the report.
+    - `objective`: ``"region"`` (default: eigenvalues in the region, minimum gains) or
+      ``"hinf"``: also minimise a certified bound γ on the L2 gain from the disturbance
+      ``w`` ($E\dot x = Ax + Bu + B_w w$) and the noise ``ν`` ($y = Cx + D_v\nu$) to
+      $\hat z - z$ (`fojax.design._hinf`: derivation, conservatism, verification by
+      SLICOT's AB13DD); the result's `hinf` holds γ and the independent norm.
+    - `Bw`, `Dv`: ``(n, mw)`` and ``(p, mv)`` channels of ``objective="hinf"``.
 
     **Returns:** a `FunctionalObserverDesign` whose `report` shows residuals of
     conditions a.–d. (≤ 1e-8 relative), the error eigenvalues inside `region` and the
@@ -486,10 +498,17 @@ def design_functional_observer(
     `DetectabilityError` (existence conditions, checked before any LMI, with what to
     change), `LMIInfeasibleError` (solver status other than ``optimal``, or a solver
     exception, with its message), `DesignVerificationError` (a float64 check failed:
-    each design condition relative to the norms of its own terms).
+    each design condition relative to the norms of its own terms; for ``objective="hinf"``
+    also the bounded-real LMI at ``(X, γ)`` and ``γ ≥ ‖T‖∞`` by SLICOT's AB13DD),
+    `ShapeError`/`InputError` (a channel `Bw`/`Dv` of the wrong shape, or none).
     """
     check_kind(kind)
     _riccati.check_method(method)
+    if objective not in ("region", "hinf"):
+        raise InputError(f"objective must be 'region' or 'hinf'; got {objective!r}.")
+    if objective == "region" and (Bw is not None or Dv is not None):
+        raise InputError("Bw/Dv (disturbance and noise channels) are only used with objective='hinf'; "
+                         "pass objective='hinf' or drop them.")
     sys = _as_system(sys)
     region = as_region(region if region is not None else Disk(-2.0, 1.0))
     if kind == "proportional":
@@ -501,6 +520,10 @@ def design_functional_observer(
     if q1 is None:
         q1 = s.q0
     s = observer_structure(s.E, s.A, s.B, s.C, s.L, s.R, q1=q1, psi=s.psi, Eperp=s.Eperp)
+    if objective == "hinf":
+        from ._hinf import design_hinf
+        return design_hinf(s, region, kind=kind, margin=margin, solver=solver, Bw=Bw, Dv=Dv, tighten=TIGHTEN,
+                           method=method)
     return _design_from_structure(s, region, kind=kind, margin=margin, solver=solver, method=method)
 
 

@@ -237,6 +237,7 @@ def _functional_meta(d, p: str, arrays: dict) -> dict:
         "kind": d.kind,
         "observer_kind": d.observer.kind,
         **_structure_design_meta(d, p, arrays, _OBSERVER_FIELDS),
+        **({"hinf": d.hinf.to_dict()} if getattr(d, "hinf", None) is not None else {}),
     }
 
 
@@ -497,7 +498,13 @@ def _load_functional(m: dict, arrays: dict, p: str, saved: dict):
     from ..observer import GeneralizedFunctionalObserver
 
     obs = GeneralizedFunctionalObserver(*_observer_arrays(arrays, p, _OBSERVER_FIELDS), kind=m["observer_kind"])
-    return FunctionalObserverDesign(observer=obs, kind=m["kind"], **_structure_design_kwargs(m, arrays, p, saved))
+    hinf = None
+    if m.get("hinf"):
+        from ..design import HinfCertificate
+
+        hinf = HinfCertificate.from_dict(m["hinf"])
+    return FunctionalObserverDesign(observer=obs, kind=m["kind"], hinf=hinf,
+                                    **_structure_design_kwargs(m, arrays, p, saved))
 
 
 def _module_from(m: dict, arrays: dict):
