@@ -50,6 +50,15 @@ from ._takagi_sugeno import (
     design_ts_observer as design_ts_observer,
     TakagiSugenoObserverDesign as TakagiSugenoObserverDesign,
 )
+from ._tunable import (
+    AbstractParameterization as AbstractParameterization,
+    certify as certify,
+    CommonCertificate as CommonCertificate,
+    FixedCertificateDisk as FixedCertificateDisk,
+    LiveParameters as LiveParameters,
+    stein_certificate as stein_certificate,
+    SteinDisk as SteinDisk,
+)
 from ._unknown_input import (
     check_unknown_input_modes as check_unknown_input_modes,
     design_unknown_input_observer as design_unknown_input_observer,
