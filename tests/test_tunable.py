@@ -83,10 +83,43 @@ def test_tune_moves_only_live_directions_and_reports_them(hand_designs):
     assert res.live_parameters.live == 1
     assert res.design.solver["tuning"]["live_parameters"] == 1
     assert res.design.solver["tuning"]["free_parameters"] == res.live_parameters.total
-    for name in ("Y1", "Y2", "Y3", "J", "G"):  # dead: not moved (the projector's rounding, ~1e-47, aside)
-        np.testing.assert_allclose(np.asarray(res.params[name]), d.params[name], rtol=0, atol=1e-12)
+    for name in ("Y1", "Y2", "Y3", "J", "G"):  # dead: never moved
+        np.testing.assert_array_equal(np.asarray(res.params[name]), d.params[name])
     assert res.design.report.passed and all(res.history["accepted"])
     assert np.abs(np.asarray(res.params["Z"]) - d.params["Z"]).max() > 0  # the live one did move
+
+
+def _scaled_twin(Dr, Dx):
+    """The hand example with equations scaled by diag(Dr) and states x = diag(Dx) x̃."""
+    Dr, Dx = np.diag(Dr), np.diag(Dx)
+    sysm = fojax.DescriptorSystem(Dr @ Dx, Dr @ A_HAND @ Dx, Dr @ B_HAND, C_HAND @ Dx)
+    return sysm, L_HAND @ Dx
+
+
+def test_whitened_tuning_is_invariant_to_rescaling_rows_and_states():
+    """The same model with rows scaled by (1e-3, 1, 1e3) and states by (1e3, 1e-3, 1): with
+    precondition="whiten" both tune to the same held-out IAE (within 5 %; measured: equal to
+    9 digits); with the raw parameters the rescaled twin barely moves in the same steps."""
+    opt = tuning.shared_optimizer("adam", learning_rate=0.1)
+    out = {}
+    for name, (Dr, Dx) in {"plain": (np.ones(3), np.ones(3)),
+                           "scaled": (np.array([1e-3, 1.0, 1e3]), np.array([1e3, 1e-3, 1.0]))}.items():
+        sysm, L = _scaled_twin(Dr, Dx)
+        d = design_functional_observer(sysm, L, kind="generalized", q1=1, region=Disk(-2.0, 1.0), R=L)
+        u = fojax.Sine(jnp.array([1.0]), 1.0)
+        ts = jnp.linspace(0.0, 3.0, 31)
+        train = S.Study(sysm, jnp.asarray(np.array([1.0, -1.0, 0.5]) / Dx), ts, L, u)
+        held = S.Study(sysm, jnp.asarray(np.array([-0.5, 1.0, 1.0]) / Dx), ts, L, u)
+        for pre in ("whiten", "none"):
+            r = tuning.tune(d, train, heldout=held, steps=10, optimizer=opt, method="exact", precondition=pre,
+                            eval_every=100)
+            out[name, pre] = (r.initial_heldout, r.final_heldout)
+    print(out)
+    w0, w1 = out["plain", "whiten"][1], out["scaled", "whiten"][1]
+    assert abs(w1 - w0) <= 0.05 * w0
+    assert w0 < 0.9 * out["plain", "whiten"][0]  # it did tune
+    # the raw parameters are not invariant: the rescaled twin ends elsewhere
+    assert abs(out["scaled", "none"][1] - out["plain", "none"][1]) > 0.05 * out["plain", "none"][1]
 
 
 def _relative_residual(s, params):

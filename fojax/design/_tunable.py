@@ -92,6 +92,13 @@ class LiveParameters(NamedTuple):
     names: tuple
     response_norm: float = 1.0
 
+    def live_mask(self) -> np.ndarray:
+        """Per flattened parameter: ``True`` unless the parameter is dead by itself (its own
+        direction has no component in the live basis, beyond rounding)."""
+        if self.live == 0:
+            return np.zeros(self.total, dtype=bool)
+        return np.linalg.norm(self.basis, axis=1) > 1e3 * np.finfo(float).eps
+
     def __str__(self) -> str:
         return f"{self.live} of {self.total} free parameters are live (reach the estimate ẑ)"
 
