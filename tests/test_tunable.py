@@ -73,6 +73,9 @@ def test_live_parameters_known_by_hand(hand_designs):
         if name != "Z":
             assert np.abs(lv.basis[a:b]).max(initial=0.0) <= 1e-12, name
     assert "1 of" in str(lv)
+    # the same verdict for the LMI design itself (all six parameters, Z included)
+    lv_design = fojax.design.live_parameters(d)
+    assert (lv_design.live, lv_design.total) == (1, total)
 
 
 def test_tune_moves_only_live_directions_and_reports_them(hand_designs):

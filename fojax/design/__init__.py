@@ -55,6 +55,7 @@ from ._tunable import (
     certify as certify,
     CommonCertificate as CommonCertificate,
     FixedCertificateDisk as FixedCertificateDisk,
+    live_parameters as live_parameters,
     LiveParameters as LiveParameters,
     stein_certificate as stein_certificate,
     SteinDisk as SteinDisk,

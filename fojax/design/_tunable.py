@@ -249,22 +249,55 @@ class AbstractParameterization(eqx.Module):
 
     def live(self, params) -> LiveParameters:
         """How many directions of `params` reach the estimate (module docstring; host)."""
-        names = tuple(sorted((k, tuple(np.shape(v))) for k, v in params.items()))
-        flat0 = jnp.concatenate([jnp.ravel(jnp.asarray(params[k])) for k, _ in names]) if names else jnp.zeros(0)
-        As = np.asarray(error_dynamics(self.matrices(params)))
-        rho = max(float(np.max(np.abs(np.linalg.eigvals(As)))), 1e-300)
-        K = 2 * As.shape[-1] + 2
+        return _live(self.observer, params)
 
-        def feat(flat):
-            return _response_features(self.observer(unflatten(names, flat)), rho, K)
 
-        Jm = np.asarray(jax.jacfwd(feat)(flat0)) if flat0.size else np.zeros((1, 0))
-        fnorm = float(np.linalg.norm(np.asarray(feat(flat0))))
-        if Jm.size == 0:
-            return LiveParameters(0, int(flat0.size), np.zeros(0), np.zeros((flat0.size, 0)), names, 0.0)
-        _, sv, Vt = np.linalg.svd(Jm, full_matrices=False)
-        r = int(np.sum(sv > RANK_RTOL * sv[0])) if sv.size and sv[0] > 0 else 0
-        return LiveParameters(r, int(flat0.size), sv, Vt[:r].T, names, fnorm)
+def _live(observer_fn, params) -> LiveParameters:
+    names = tuple(sorted((k, tuple(np.shape(v))) for k, v in params.items()))
+    flat0 = jnp.concatenate([jnp.ravel(jnp.asarray(params[k])) for k, _ in names]) if names else jnp.zeros(0)
+    obs0 = observer_fn(params)
+    As = np.asarray(obs0.error_matrices if hasattr(obs0, "num_rules") else obs0.error_matrix)
+    rho = max(float(np.max(np.abs(np.linalg.eigvals(As)))), 1e-300) if As.size else 1.0
+    K = 2 * As.shape[-1] + 2
+
+    def feat(flat):
+        return _response_features(observer_fn(unflatten(names, flat)), rho, K)
+
+    if flat0.size == 0:
+        return LiveParameters(0, 0, np.zeros(0), np.zeros((0, 0)), names, 0.0)
+    Jm = np.asarray(jax.jacfwd(feat)(flat0))
+    fnorm = float(np.linalg.norm(np.asarray(feat(flat0))))
+    _, sv, Vt = np.linalg.svd(Jm, full_matrices=False)
+    r = int(np.sum(sv > RANK_RTOL * sv[0])) if sv.size and sv[0] > 0 else 0
+    return LiveParameters(r, int(flat0.size), sv, Vt[:r].T, names, fnorm)
+
+
+def live_parameters(design) -> LiveParameters:
+    r"""How many free parameters ``Z, Y1, Y2, Y3, J, G`` of `design` can reach the estimate
+    $\hat z$ (module docstring), for any `FunctionalObserverDesign` or
+    `TakagiSugenoObserverDesign` (host). A "generalized" design whose extra freedom is
+    structurally void shows it here: e.g. when $[R;\Psi]$ has full row rank only ``Z`` is live.
+    """
+    from ..observer import TakagiSugenoObserver
+    from ._takagi_sugeno import TakagiSugenoObserverDesign
+
+    s = design.structure
+    ts = isinstance(design, TakagiSugenoObserverDesign)
+    if not (ts or isinstance(design, FunctionalObserverDesign)):
+        raise InputError(f"live_parameters needs a FunctionalObserverDesign or TakagiSugenoObserverDesign, got "
+                         f"{type(design).__name__}.")
+    Z = jnp.asarray(np.asarray(design.params["Z"]))
+    params = {k: jnp.asarray(np.asarray(v)) for k, v in design.params.items() if np.size(v)}
+    o = design.observer
+
+    def observer(p):
+        m = observer_matrices(s, **_full(s, p, Z, rules=s.num_rules if ts else None))
+        if ts:
+            return TakagiSugenoObserver(m.N, m.J, m.F, m.H, m.S, m.G, m.M, m.P, m.Q, o.Wu, o.Wy, m.T, o.membership,
+                                        kind=design.kind)
+        return build_observer(s, m, kind=design.kind)
+
+    return _live(observer, params)
 
 
 def unflatten(names: tuple, flat) -> dict:
