@@ -50,15 +50,14 @@ def test_initial_parameters_reproduce_the_lmi_design(setup, parameterization):
 
 def test_stein_certificate_matches_scipy_and_detects_the_disk(setup, rng):
     _, d, _, _ = setup
-    fx, _ = tuning.initial_parameters(d)
     import scipy.linalg
 
-    from fojax.tuning._tune import stein_certificate
+    from fojax.design import stein_certificate
 
     for shift in (0.0, 0.5, -0.5):
         A = d.error_matrix + shift * np.eye(d.error_matrix.shape[0])
         inside = bool(np.all(np.abs(np.linalg.eigvals(A) + 2.0) < 1.0))
-        P = np.asarray(stein_certificate(fx, jnp.asarray(A)))
+        P = np.asarray(stein_certificate(jnp.asarray(A), -2.0, 1.0))
         if inside:
             X = scipy.linalg.solve_discrete_lyapunov((A + 2.0 * np.eye(len(A))).T, np.eye(len(A)))
             np.testing.assert_allclose(P, X, rtol=1e-9, atol=1e-9)

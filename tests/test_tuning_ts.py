@@ -11,6 +11,7 @@ import pytest
 
 import fojax
 from fojax.design import (
+    CommonCertificate,
     design_functional_observer,
     design_residuals,
     design_ts_observer,
@@ -23,7 +24,15 @@ from fojax.models import example_3_3_7, robot_arm, robot_arm_ts
 from fojax.studies import parameter_uncertainty, run_study, Study
 from fojax.studies._runner import SimConfig, study_loss
 from fojax.tuning import TRACE_COUNTS, tune_takagi_sugeno
-from fojax.tuning._tune_ts import initial_ts_parameters, ts_observer_from_parameters
+
+
+def initial_ts_parameters(des, region=None):
+    par = CommonCertificate(des, region)
+    return par, par.init(des)
+
+
+def ts_observer_from_parameters(par, params):
+    return par.observer(params)
 
 
 L_ARM = np.eye(5)[[1, 3]]  # z = [x2, x4] (x5 is refused by the T-S observer, see test_ts_uio)
@@ -58,10 +67,10 @@ def setup():
 def run(setup):
     des, train, heldout = setup
     iterates = []
-    before = TRACE_COUNTS["tune_ts_step"]
+    before = TRACE_COUNTS["tune_step"]
     res = tune_takagi_sugeno(des, train, heldout=heldout, steps=STEPS, optimizer=OPT, barrier=BARRIER,
                              solver=SOLVER, callback=lambda k, rec: iterates.append(rec))
-    return res, iterates, TRACE_COUNTS["tune_ts_step"] - before
+    return res, iterates, TRACE_COUNTS["tune_step"] - before
 
 
 def _rule_matrices(des, params):
@@ -206,8 +215,6 @@ def test_resume_from_checkpoint_equals_uninterrupted(setup, run, tmp_path):
 def test_common_lmi_margin_for_non_disk_regions():
     """The traced margin (Kronecker form with the region's L_R, M_R) equals the float64 one from
     `AbstractRegion.lmi_matrix` and the Lyapunov matrix, at the design and at perturbed gains."""
-    from fojax.tuning._tune_ts import _margin_and_barrier
-
     region = fojax.HalfPlane(1.0) & fojax.Sector(0.8)
     des = design_ts_observer(robot_arm_ts().system, L_ARM, kind="generalized", R=R4, region=region)
     fx, params = initial_ts_parameters(des)
@@ -221,12 +228,12 @@ def test_common_lmi_margin_for_non_disk_regions():
             min(-np.linalg.eigvalsh(region.lmi_matrix(X, X @ A)).max(), -np.linalg.eigvalsh(A.T @ X + X @ A).max())
             for A in As
         ) / np.linalg.norm(X, 2)
-        margin, logdet = _margin_and_barrier(fx, p)
+        margin, logdet = fx.margin(p), -fx.barrier(p)
         np.testing.assert_allclose(float(margin), ref, rtol=1e-9, atol=1e-12)
         assert np.isfinite(float(logdet)) == (ref > 0)
         signs.add(bool(ref > 0))
     assert signs == {True, False}  # admissible and inadmissible points were both compared
-    assert float(_margin_and_barrier(fx, params)[0]) > 0  # the design itself is admissible
+    assert float(fx.margin(params)) > 0  # the design itself is admissible
 
 
 G_WEIGHT = 0.1

@@ -54,6 +54,16 @@ from ._takagi_sugeno import (
     design_ts_observer as design_ts_observer,
     TakagiSugenoObserverDesign as TakagiSugenoObserverDesign,
 )
+from ._tunable import (
+    AbstractParameterization as AbstractParameterization,
+    certify as certify,
+    CommonCertificate as CommonCertificate,
+    FixedCertificateDisk as FixedCertificateDisk,
+    live_parameters as live_parameters,
+    LiveParameters as LiveParameters,
+    stein_certificate as stein_certificate,
+    SteinDisk as SteinDisk,
+)
 from ._unknown_input import (
     check_unknown_input_modes as check_unknown_input_modes,
     design_unknown_input_observer as design_unknown_input_observer,

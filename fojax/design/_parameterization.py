@@ -260,6 +260,27 @@ def _pinv(xp, M):
     return jpinv(M)
 
 
+def left_null_projector(xp, M):
+    r"""$I - MM^+$ as $U_0U_0^\top$, $U_0$ the left singular vectors of `M` whose singular
+    value is at or below fojax's rank tolerance (``RANK_RTOL`` relative; traceable, shapes
+    static).
+
+    *Why not* $I - MM^+$: when `M` has full row rank the projector is exactly zero here,
+    whereas $I - MM^+$ leaves rounding (~1e-16) that a large free parameter multiplies:
+    $Y_1N_3$ with $N_3 = (I - \Sigma\Sigma^+)[I;0]$ made the residual of condition a. grow
+    with $\|Y_1\|$ (1.3e-3 relative at 1e13). With the masked projector the residual
+    stays at rounding relative to the terms of each condition, for any parameter size.
+    """
+    m = M.shape[0]
+    if M.size == 0:
+        return xp.eye(m)
+    U, sv, _ = xp.linalg.svd(M, full_matrices=True)
+    null = sv <= RANK_RTOL * sv[0]
+    mask = xp.concatenate([null, xp.ones((m - sv.shape[0],), dtype=bool)]) if m > sv.shape[0] else null
+    Um = U * xp.where(mask, 1.0, 0.0)[None, :]
+    return Um @ U.T
+
+
 def pieces(s: FunctionalObserverStructure, xp=jnp) -> ParameterizationPieces:
     """The Z-independent matrices of the parameterization.
 
@@ -280,7 +301,7 @@ def pieces(s: FunctionalObserverStructure, xp=jnp) -> ParameterizationPieces:
     Sig = xp.concatenate([R, Psi], axis=0)
     Sp = _pinv(xp, Sig)
     Pn = xp.eye(n) - Sp @ Sig
-    PS = xp.eye(Sig.shape[0]) - Sig @ Sp
+    PS = left_null_projector(xp, Sig)
     Iq = xp.eye(Sig.shape[0], s.q0)
     N3 = PS @ Iq
     # Z_eff = Z0 + Z Π_Z makes condition a. solvable for every Z (computed on the host
@@ -336,7 +357,7 @@ def observer_matrices(
     T = pc.T1 - Z_eff @ pc.T2
     K = pc.K1 - Z_eff @ pc.K2
     Sp, Sig = pc.Sigma_pinv, pc.Sigma
-    PS = xp.eye(Sig.shape[0]) - Sig @ Sp
+    PS = left_null_projector(xp, Sig)
     Iq = xp.eye(Sig.shape[0], s.q0)
     KI = xp.concatenate([K, xp.eye(s.nw)], axis=0)
     N3 = PS @ Iq

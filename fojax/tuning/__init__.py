@@ -2,7 +2,9 @@
 
 from ._optimizer import shared_optimizer as shared_optimizer
 from ._tune import (
+    Coordinates as Coordinates,
     initial_parameters as initial_parameters,
+    make_parameterization as make_parameterization,
     observer_from_parameters as observer_from_parameters,
     TRACE_COUNTS as TRACE_COUNTS,
     tune as tune,

@@ -1,4 +1,4 @@
-"""The optimizer loop shared by `fojax.tuning.tune` and `tune_takagi_sugeno`.
+"""The optimizer loop of `fojax.tuning.tune`.
 
 One place for what every tuning run does around its jitted step: the host check of
 each candidate (a rejected iterate never replaces the parameters), the per-step
@@ -101,7 +101,7 @@ def run_loop(
     heldout_loss: Callable | None,
     eval_every: int,
     callback: Callable | None,
-    callback_params: bool,
+    to_params: Callable,
     path: str | None,
     resume: bool,
     checkpoint_every: int,
@@ -112,7 +112,8 @@ def run_loop(
 
     `step(params, opt_state, *step_args) -> (value, candidate, new_opt_state, margin, ok,
     backtracks)` is the jitted step; `host_check(params) -> (inside, margin, max_real_eig)` the
-    float64 check on the host. With `resume` and an existing checkpoint at `path`, the
+    float64 check on the host; `to_params` maps the optimizer's coordinates to the
+    parameterization's parameters (passed to `callback` as ``record["params"]``). With `resume` and an existing checkpoint at `path`, the
     run continues from it (the result equals an uninterrupted run).
     """
     import os
@@ -138,7 +139,7 @@ def run_loop(
         for k, v in rec.items():
             history[k].append(v)
         if callback is not None:
-            callback(i + 1, dict(rec, params=params) if callback_params else rec)
+            callback(i + 1, dict(rec, params=to_params(params)))
         if path is not None and ((i + 1) % checkpoint_every == 0 or i + 1 == steps):
             save_checkpoint(path, params, opt_state, i + 1, key, history)
     return params, history

@@ -1,0 +1,649 @@
+r"""Tunable parameterizations: free parameters → valid observer → verified design.
+
+One abstraction for every way fojax moves an observer's free parameters (gradient tuning,
+derivative-free searches, user code). An `AbstractParameterization` is an equinox module
+built from a verified design; its data (the structure, the certificate, the frozen ``Z``)
+are leaves, its options (sizes, kind, which blocks are frozen) static. Its protocol:
+
+- ``init(design) -> params``: the unconstrained parameters that reproduce `design`'s
+  observer exactly (host);
+- ``design_params(params)``: the free parameters ``Z, Y1, Y2, Y3, J, G`` of
+  `fojax.design.observer_matrices` (traceable), so conditions a.–d. hold *by construction*
+  for every value;
+- ``observer(params)`` (traceable);
+- ``margin(params)`` (traceable): ``> 0`` iff the parameters are admissible (eigenvalues
+  certified in the region), and ``barrier(params)`` (traceable): a term that is finite
+  inside and tends to $+\infty$ at the boundary;
+- ``certify(params) -> design`` (host): the verified design of these parameters, checked in
+  float64 by the one verification routine (`fojax.design.verify`: residuals of a.–d.,
+  eigenvalues, the region LMI at the returned certificate); raises
+  `fojax.DesignVerificationError` with the numbers otherwise;
+- ``live(params)``: how many free parameters can change the estimate $\hat z$ (below).
+
+Final classes: `SteinDisk` (the parameters themselves, certified by the Stein solution of
+the iterate; default for LTI designs), `FixedCertificateDisk` (the exact disk version of
+the thesis's Lemma 10 $(\mathcal L, \gamma)$ map with the LMI certificate fixed,
+`fojax.design.disk_gain`), `CommonCertificate` (Takagi–Sugeno: the design's common
+certificate fixed, region LMI and Lyapunov inequality for every rule).
+
+**Live parameters.** A direction of the free parameters is *dead* when it cannot reach the
+estimate: the observer's input–output map $(u, y) \mapsto \hat z$ (the observer starts at
+rest, so this map is all of $\hat z$) does not change to first order. `live` measures it by
+the Jacobian of the frequency response $H(s) = C_o(sI - A_o)^{-1}[B_u\;B_y] + [D_u\;D_y]$
+(`fojax.observer.GeneralizedFunctionalObserver.linear_matrices`, every rule of a T-S
+observer) at $K = 2d + 2$ points $s_k = i\rho\tan(\pi(k + \tfrac12)/2K)$ on the imaginary
+axis ($d$ the observer order, $\rho$ the spectral radius of the error dynamics at the
+starting point): a rational matrix of McMillan degree $\le d$ is fixed by that many
+values, so a direction with zero Jacobian there leaves $H$ unchanged. The number of live
+directions is the rank of that Jacobian, decided by fojax's one rank rule
+(`fojax._linalg`, relative tolerance ``RANK_RTOL``). Example: when $[R;\Psi]$ has full row
+rank, $N_3 = F_3 = 0$, so $Y_1, Y_2, Y_3$ enter no observer matrix and $S = M = 0$ leaves
+$v$ unexcited, so $J, G$ do not reach $\hat z$ either: only ``Z`` can be live. The
+analysis is local (at the starting point); the structural zeros of this example hold
+everywhere. The same Jacobian, through its SVD $J = U\Sigma V^\top$, gives the *whitened*
+coordinates $\theta = \theta_0 + V_r\Sigma_r^{-1}\xi$ used by `fojax.tuning.tune`: one
+unit of every coordinate of $\xi$ moves the response by one unit, and the coordinates do
+not depend on how the plant's states and equations are scaled (the response
+$(u, y) \mapsto \hat z$ does not).
+
+**Exactness at any size.** Conditions a.–d. hold by construction; their float64 residual
+stays at rounding relative to the terms of each condition for gains $Y_1, Y_2, Y_3, J, G$
+and $Z$ up to 1e12 along directions that act on the observer (the projector
+$I - \Sigma\Sigma^+$ is exactly zero when $[R;\Psi]$ has full row rank,
+`fojax.design._parameterization.left_null_projector`). *Not fixed:* a huge component of
+``Z`` along a direction that $I - \Gamma\Gamma^+$ annihilates in exact arithmetic leaves
+$\|Z\|\varepsilon$ of rounding in $T$ (measured: the hand example of
+``tests/test_tunable.py`` with ``Z + 1e12`` in every entry gives a relative residual
+3.7e-4; 1e8 gives 3e-8); removing it needs ``Z`` re-parameterized on the range of
+$I - \Gamma\Gamma^+$, which changes the shape of ``design.params["Z"]``. Tuning does
+not create such components: a coordinate that is dead by itself is frozen.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+from jax import lax
+
+from .._errors import DesignVerificationError, InputError
+from .._linalg import RANK_RTOL
+from ._functional import build_observer, FunctionalObserverDesign, verify_structure_design
+from ._gain_parameterization import contraction, disk_gain
+from ._parameterization import (
+    error_dynamics,
+    FunctionalObserverStructure,
+    observer_matrices,
+    pieces,
+)
+from ._regions import AbstractRegion, as_region, Disk
+
+
+class LiveParameters(NamedTuple):
+    """How many free parameters can change the estimate (see `AbstractParameterization.live`).
+
+    Attributes:
+        live: the number of live directions (rank of the response Jacobian).
+        total: the number of free (tuned) parameters.
+        singular_values: the singular values of the response Jacobian (descending).
+        basis: ``(total, live)`` orthonormal live directions $V_r$ in the flattened parameters.
+        names: the parameter names in flattening order (sorted), with their shapes.
+        response_norm: the norm of the response features at the point (their unit).
+    """
+
+    live: int
+    total: int
+    singular_values: np.ndarray
+    basis: np.ndarray
+    names: tuple
+    response_norm: float = 1.0
+
+    def live_mask(self) -> np.ndarray:
+        """Per flattened parameter: ``True`` unless the parameter is dead by itself (its own
+        direction has no component in the live basis, beyond rounding)."""
+        if self.live == 0:
+            return np.zeros(self.total, dtype=bool)
+        return np.linalg.norm(self.basis, axis=1) > 1e3 * np.finfo(float).eps
+
+    def __str__(self) -> str:
+        return f"{self.live} of {self.total} free parameters are live (reach the estimate ẑ)"
+
+
+def stein_certificate(A, center, radius):
+    r"""``P`` solving $\bar A^\top P\bar A - P = -I$, $\bar A = (A - \alpha I)/\tau$ (traceable).
+
+    All eigenvalues of $A$ lie in the open disk $\mathcal Q(\alpha, \tau)$ iff ``P ≻ 0``
+    (then ``P ⪰ I``), and $(A-\alpha I)^\top P(A-\alpha I) - \tau^2P = -\tau^2 I$, so ``P`` is
+    a certificate $X$ of the disk LMI. Smith's doubling, $P = \sum_k (\bar A^\top)^k\bar A^k$
+    over $2^{40}$ terms (matrix products only: cheap to compile and differentiate); outside
+    the disk $\bar A^{2^j}$ overflows and ``P`` is not finite positive definite.
+    """
+    d = A.shape[0]
+    Ab = (A - center * jnp.eye(d)) / radius
+
+    def double(_, carry):
+        P, Ak = carry
+        return P + Ak.T @ P @ Ak, Ak @ Ak
+
+    P, _ = lax.fori_loop(0, 40, double, (jnp.eye(d), Ab))
+    return 0.5 * (P + P.T)
+
+
+def _host_stein(A: np.ndarray, region: Disk) -> np.ndarray:
+    """The float64 Stein certificate of `stein_certificate` by SciPy (host)."""
+    d = A.shape[0]
+    Ab = (A - region.center * np.eye(d)) / region.radius
+    X = scipy.linalg.solve_discrete_lyapunov(Ab.T, np.eye(d))
+    return 0.5 * (X + X.T)
+
+
+def _check_kind(design, who: str):
+    if design.kind not in ("generalized", "proportional"):
+        raise InputError(
+            f"{who} supports generalized and proportional designs; got kind={design.kind!r} (the PI "
+            "constraint S = -Y2 N3 = 0 is not preserved when Y2 moves)."
+        )
+
+
+def _response_features(obs, rho, K):
+    """Real and imaginary parts of the frequency response of `obs` (every rule) at ``K`` points."""
+    rules = [obs.rule(i) for i in range(obs.num_rules)] if hasattr(obs, "num_rules") else [obs]
+    omegas = rho * jnp.tan(jnp.pi * (jnp.arange(K) + 0.5) / (2 * K))
+    out = []
+    for o in rules:
+        lm = o.linear_matrices()
+        A, C = lm[0], lm[3]
+        B = jnp.concatenate([lm[1], lm[2]], axis=1)
+        D = jnp.concatenate([lm[4], lm[5]], axis=1)
+        d = A.shape[0]
+
+        def at(w, A=A, B=B, C=C, D=D, d=d):
+            # (iωI − A)(X_r + iX_i) = B as one real system
+            Mw = jnp.block([[-A, -w * jnp.eye(d)], [w * jnp.eye(d), -A]])
+            Xri = jnp.linalg.solve(Mw, jnp.concatenate([B, jnp.zeros_like(B)], axis=0))
+            return jnp.stack([C @ Xri[:d] + D, C @ Xri[d:]])
+
+        out.append(jax.vmap(at)(omegas).ravel())
+    return jnp.concatenate(out)
+
+
+class AbstractParameterization(eqx.Module):
+    """The protocol of a tunable parameterization (module docstring)."""
+
+    structure: eqx.AbstractVar[FunctionalObserverStructure]
+    region: eqx.AbstractVar[AbstractRegion]
+    kind: eqx.AbstractVar[str]
+
+    @abc.abstractmethod
+    def init(self, design) -> dict:
+        """The parameters reproducing `design`'s observer (host)."""
+
+    @abc.abstractmethod
+    def design_params(self, params) -> dict:
+        """The free parameters ``Z, Y1, Y2, Y3, J, G`` (traceable)."""
+
+    @abc.abstractmethod
+    def margin(self, params):
+        """``> 0`` iff `params` are admissible (traceable)."""
+
+    @abc.abstractmethod
+    def certificate(self, params) -> np.ndarray:
+        """The float64 certificate of `params` (host)."""
+
+    def barrier(self, params):
+        """Finite inside, $+\\infty$ at the boundary (traceable); 0 when the map needs none."""
+        return jnp.zeros(())
+
+    def matrices(self, params):
+        """The observer matrices (`fojax.design.ObserverMatrices`) of `params` (traceable)."""
+        return observer_matrices(self.structure, **self.design_params(params))
+
+    def observer(self, params):
+        """The observer of `params` (traceable)."""
+        return build_observer(self.structure, self.matrices(params), kind=self.kind)
+
+    def _design(self, p, mats, X, report):
+        return FunctionalObserverDesign(
+            observer=build_observer(self.structure, mats, kind=self.kind), kind=self.kind, region=self.region,
+            structure=self.structure, params=p, T=np.asarray(mats.T), K=np.asarray(mats.K),
+            Z_eff=np.asarray(mats.Z_eff), X=X, report=report,
+            solver={"parameterization": type(self).__name__},
+        )  # fmt: skip
+
+    def certify(self, params):
+        """The verified design of `params` (host, float64).
+
+        **Raises:** `fojax.DesignVerificationError` (with the report) when a residual of
+        a.–d. exceeds 1e-8 relative, an eigenvalue is outside the region, or the region LMI
+        fails at the certificate.
+        """
+        p = {k: np.asarray(v, dtype=float) for k, v in self.design_params(params).items()}
+        X = self.certificate(params)
+        if not np.all(np.isfinite(X)):
+            raise DesignVerificationError(
+                f"{type(self).__name__}.certify: no finite certificate for these parameters (their error "
+                f"dynamics are not inside {self.region.describe()}).")
+        mats, report = verify_structure_design(self.structure, p, self.region, X)
+        return self._design(p, mats, X, report)
+
+    def host_check(self, params) -> tuple[bool, float, float]:
+        """``(verified, margin, max real eigenvalue)``: `certify` succeeds and the traced margin is
+        positive (host; used to accept every tuning iterate)."""
+        margin = float(self.margin(params))
+        mats = observer_matrices(self.structure, **{k: np.asarray(v) for k, v in self.design_params(params).items()},
+                                 xp=np)
+        maxre = float(max(np.max(np.linalg.eigvals(A).real) for A in np.asarray(error_dynamics(mats, xp=np))))
+        if not margin > 0:
+            return False, margin, maxre
+        try:
+            self.certify(params)
+        except (DesignVerificationError, np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+            return False, margin, maxre
+        return True, margin, maxre
+
+    def live(self, params) -> LiveParameters:
+        """How many directions of `params` reach the estimate (module docstring; host)."""
+        return _live(self.observer, params)
+
+
+def _live(observer_fn, params) -> LiveParameters:
+    names = tuple(sorted((k, tuple(np.shape(v))) for k, v in params.items()))
+    flat0 = jnp.concatenate([jnp.ravel(jnp.asarray(params[k])) for k, _ in names]) if names else jnp.zeros(0)
+    obs0 = observer_fn(params)
+    As = np.asarray(obs0.error_matrices if hasattr(obs0, "num_rules") else obs0.error_matrix)
+    rho = max(float(np.max(np.abs(np.linalg.eigvals(As)))), 1e-300) if As.size else 1.0
+    K = 2 * As.shape[-1] + 2
+
+    def feat(flat):
+        return _response_features(observer_fn(unflatten(names, flat)), rho, K)
+
+    if flat0.size == 0:
+        return LiveParameters(0, 0, np.zeros(0), np.zeros((0, 0)), names, 0.0)
+    Jm = np.asarray(jax.jacfwd(feat)(flat0))
+    fnorm = float(np.linalg.norm(np.asarray(feat(flat0))))
+    _, sv, Vt = np.linalg.svd(Jm, full_matrices=False)
+    r = int(np.sum(sv > RANK_RTOL * sv[0])) if sv.size and sv[0] > 0 else 0
+    return LiveParameters(r, int(flat0.size), sv, Vt[:r].T, names, fnorm)
+
+
+def live_parameters(design) -> LiveParameters:
+    r"""How many free parameters ``Z, Y1, Y2, Y3, J, G`` of `design` can reach the estimate
+    $\hat z$ (module docstring), for any `FunctionalObserverDesign` or
+    `TakagiSugenoObserverDesign` (host). A "generalized" design whose extra freedom is
+    structurally void shows it here: e.g. when $[R;\Psi]$ has full row rank only ``Z`` is live.
+    """
+    from ..observer import TakagiSugenoObserver
+    from ._takagi_sugeno import TakagiSugenoObserverDesign
+
+    s = design.structure
+    ts = isinstance(design, TakagiSugenoObserverDesign)
+    if not (ts or isinstance(design, FunctionalObserverDesign)):
+        raise InputError(f"live_parameters needs a FunctionalObserverDesign or TakagiSugenoObserverDesign, got "
+                         f"{type(design).__name__}.")
+    Z = jnp.asarray(np.asarray(design.params["Z"]))
+    params = {k: jnp.asarray(np.asarray(v)) for k, v in design.params.items() if np.size(v)}
+    o = design.observer
+
+    def observer(p):
+        m = observer_matrices(s, **_full(s, p, Z, rules=s.num_rules if ts else None))
+        if ts:
+            return TakagiSugenoObserver(m.N, m.J, m.F, m.H, m.S, m.G, m.M, m.P, m.Q, o.Wu, o.Wy, m.T, o.membership,
+                                        kind=design.kind)
+        return build_observer(s, m, kind=design.kind)
+
+    return _live(observer, params)
+
+
+def unflatten(names: tuple, flat) -> dict:
+    """The parameter dict of a flat vector (`LiveParameters.names` order; traceable)."""
+    out, i = {}, 0
+    for k, shape in names:
+        size = math.prod(shape)
+        out[k] = jnp.reshape(flat[i:i + size], shape)
+        i += size
+    return out
+
+
+def _full(structure, params, Z, rules: int | None = None) -> dict:
+    """All six free parameters: the tuned ones, the frozen ``Z`` and empty blocks."""
+    out = {}
+    for name, shape in structure.param_shapes().items():
+        if name in params:
+            out[name] = params[name]
+        elif name == "Z":
+            out[name] = Z
+        else:
+            out[name] = jnp.zeros(shape if rules is None else (rules,) + shape)
+    return out
+
+
+def _lti_design(design, who):
+    if not isinstance(design, FunctionalObserverDesign):
+        raise InputError(f"{who} needs a FunctionalObserverDesign (fojax.design.design_functional_observer), got "
+                         f"{type(design).__name__}; for Takagi–Sugeno designs use CommonCertificate.")
+    _check_kind(design, who)
+    if design.structure.num_rules != 1:
+        raise InputError(f"{who} supports single-rule (LTI) structures only.")
+
+
+def _disk(design, region, who) -> Disk:
+    region = design.region if region is None else region
+    if not isinstance(region, Disk):
+        raise InputError(
+            f"{who} parameterizes disk regions only; got {region.describe()}. Design the observer "
+            "with region=fojax.Disk(center, radius)."
+        )
+    return region
+
+
+class SteinDisk(AbstractParameterization):
+    r"""The free parameters themselves, certified by the Stein solution of each iterate.
+
+    The parameters are $Z, Y_1, Y_2, Y_3, J, G$ of `fojax.design.observer_matrices` (``Z``
+    frozen with ``tune_Z=False``; the blocks that are empty for a proportional design are
+    omitted). For the error dynamics $\mathbb A$, `stein_certificate` gives ``P ≻ 0`` iff
+    every eigenvalue is in the disk $\mathcal Q(\alpha, \tau)$; the margin is
+    ``1/λ_max(P) ∈ (0, 1]`` inside (→ 0 at the boundary, −1 outside), the barrier
+    ``log tr P``. The certificate of `certify` is ``P`` recomputed in float64 by SciPy.
+
+    *Deviation from the thesis:* the thesis tunes through the $(\mathcal L, \gamma)$ map
+    with a fixed certificate (`FixedCertificateDisk`); with a fixed certificate the error
+    modes set by ``Z`` cannot move freely.
+    """
+
+    structure: FunctionalObserverStructure
+    region: Disk
+    Z: jax.Array
+    kind: str = eqx.field(static=True)
+    tune_Z: bool = eqx.field(static=True)
+
+    def __init__(self, design, region=None, *, tune_Z: bool = True):
+        _lti_design(design, "SteinDisk")
+        self.region = _disk(design, region, "SteinDisk")
+        self.structure = design.structure
+        self.Z = jnp.asarray(np.asarray(design.params["Z"]))
+        self.kind = design.kind
+        self.tune_Z = bool(tune_Z)
+        if not float(self.margin(self.init(design))) > 0:
+            raise InputError(
+                f"the design's error dynamics are not inside {self.region.describe()}; pass the region the "
+                "design was made for (or one containing its eigenvalues)."
+            )
+
+    def init(self, design) -> dict:
+        p = {k: jnp.asarray(np.asarray(v)) for k, v in design.params.items()}
+        return {k: v for k, v in p.items() if v.size and (self.tune_Z or k != "Z")}
+
+    def design_params(self, params) -> dict:
+        return _full(self.structure, params, self.Z)
+
+    def _P(self, params):
+        return stein_certificate(error_dynamics(self.matrices(params))[0], self.region.center, self.region.radius)
+
+    def margin(self, params):
+        ev = jnp.linalg.eigvalsh(self._P(params))
+        inside = jnp.all(jnp.isfinite(ev)) & (ev[0] > 0)
+        return jnp.where(inside, 1.0 / jnp.where(inside, ev[-1], 1.0), -1.0)
+
+    def barrier(self, params):
+        return jnp.log(jnp.trace(self._P(params)))
+
+    def certificate(self, params) -> np.ndarray:
+        p = {k: np.asarray(v) for k, v in self.design_params(params).items()}
+        A = np.asarray(error_dynamics(observer_matrices(self.structure, **p, xp=np), xp=np))[0]
+        if not np.all(np.abs(np.linalg.eigvals(A) - self.region.center) < self.region.radius):
+            return np.full(A.shape, np.nan)
+        return _host_stein(A, self.region)
+
+
+def _inverse_contraction(Lc: np.ndarray) -> np.ndarray:
+    """Θ with ``contraction(Θ) = Lc`` (``‖Lc‖ < 1``): ``Θ = Lc C_u``, ``C_u C_uᵀ = (I − LcᵀLc)^{-1}``
+    with ``C_u`` upper triangular (a reversed Cholesky factor)."""
+    k = Lc.shape[1]
+    S = np.linalg.inv(np.eye(k) - Lc.T @ Lc)
+    S = 0.5 * (S + S.T)
+    Jr = np.eye(k)[::-1]
+    Cu = Jr @ np.linalg.cholesky(Jr @ S @ Jr) @ Jr
+    return Lc @ Cu
+
+
+class FixedCertificateDisk(AbstractParameterization):
+    r"""All gains with the LMI certificate $X$ of a disk, fixed (`fojax.design.disk_gain`).
+
+    The exact disk counterpart of the thesis's Lemma 10 $(\mathcal L, \gamma)$ map: every
+    ``Theta`` ``(d, k)`` (through the contraction
+    $\mathcal L = \Theta(I + \Theta^\top\Theta)^{-1/2}$) gives a gain $\mathbb Y$ with
+    $(\mathbb A - \alpha I)^\top X(\mathbb A - \alpha I) \prec \tau^2 X$ as long as the margin
+    $\tau - \|A_\perp(Z)\|$ is positive. Parameters: ``Theta``, ``Y3`` (enters only $P, Q$)
+    and, with ``tune_Z=True``, ``Z`` (it moves $\mathbb A_1$, so the margin can shrink).
+    The component $Y_\perp$ of the gain outside the range of $\tilde B$ is kept at the
+    design's value (it changes nothing). The certificate of `certify` is $X$.
+    """
+
+    structure: FunctionalObserverStructure
+    region: Disk
+    X: jax.Array
+    N1: jax.Array
+    N2: jax.Array
+    A2: jax.Array
+    Z: jax.Array
+    Yperp: jax.Array
+    kind: str = eqx.field(static=True)
+    rank: int = eqx.field(static=True)
+    tune_Z: bool = eqx.field(static=True)
+
+    def __init__(self, design, region=None, *, tune_Z: bool = False):
+        _lti_design(design, "FixedCertificateDisk")
+        region = _disk(design, region, "FixedCertificateDisk")
+        s = design.structure
+        pc = pieces(s, xp=np)
+        q0, q1 = s.q0, s.q1
+        c = pc.N3.shape[0]
+        N1, N2, N3 = np.asarray(pc.N1[0]), np.asarray(pc.N2[0]), np.asarray(pc.N3)
+        A2 = N3 if q1 == 0 else np.block([[N3, np.zeros((c, q1))], [np.zeros((q1, q0)), -np.eye(q1)]])
+        p = design.params
+        Y = np.asarray(p["Y1"]) if q1 == 0 else np.block([[p["Y1"], p["J"]], [p["Y2"], p["G"]]])
+        X = 0.5 * (design.X + design.X.T)
+        Lx = np.linalg.cholesky(X)
+        self.structure, self.region, self.kind, self.tune_Z = s, region, design.kind, bool(tune_Z)
+        self.X, self.N1, self.N2, self.A2 = (jnp.asarray(a) for a in (X, N1, N2, A2))
+        self.Z = jnp.asarray(np.asarray(p["Z"]))
+        self.Yperp = jnp.asarray(Lx.T @ Y)
+        self.rank = int(np.linalg.matrix_rank(A2))
+
+    def _A1(self, Z):
+        s = self.structure
+        top = self.N1 - Z @ self.N2
+        if s.q1 == 0:
+            return top
+        return jnp.block([[top, jnp.zeros((s.q0, s.q1))], [jnp.zeros((s.q1, s.q0 + s.q1))]])
+
+    def _gain(self, params):
+        Z = params.get("Z", self.Z)
+        Y, margin = disk_gain(self.X, self._A1(Z), self.A2, self.region.center, self.region.radius,
+                              contraction(params["Theta"]), self.Yperp, rank=self.rank)
+        return Z, Y, margin
+
+    def init(self, design) -> dict:
+        s = self.structure
+        p = design.params
+        q1 = s.q1
+        Z = np.asarray(p["Z"])
+        Y = np.asarray(p["Y1"]) if q1 == 0 else np.block([[p["Y1"], p["J"]], [p["Y2"], p["G"]]])
+        A1, A2, X = np.asarray(self._A1(jnp.asarray(Z))), np.asarray(self.A2), np.asarray(self.X)
+        d = X.shape[0]
+        al, tau = self.region.center, self.region.radius
+        Lx = np.linalg.cholesky(X)
+        LxinvT = np.linalg.inv(Lx.T)
+        M = Lx.T @ (A1 - Y @ A2 - al * np.eye(d)) @ LxinvT
+        _, _, Vt = np.linalg.svd(A2 @ LxinvT)
+        Vb, Vp = Vt[:self.rank].T, Vt[self.rank:].T
+        M0 = Lx.T @ (A1 - al * np.eye(d)) @ LxinvT
+        F = np.linalg.cholesky(tau**2 * np.eye(d) - (M0 @ Vp) @ (M0 @ Vp).T)
+        Lc = np.linalg.solve(F, M @ Vb)
+        if not np.linalg.norm(Lc, 2) < 1.0:
+            raise InputError(
+                f"the design's certificate X does not certify {self.region.describe()} for its own gain "
+                f"(‖𝓛‖ = {np.linalg.norm(Lc, 2):.4f} ≥ 1); pass the region the design was made for."
+            )
+        params = {"Theta": jnp.asarray(_inverse_contraction(Lc)), "Y3": jnp.asarray(p["Y3"])}
+        if self.tune_Z:
+            params["Z"] = jnp.asarray(Z)
+        return params
+
+    def design_params(self, params) -> dict:
+        s = self.structure
+        Z, Y, _ = self._gain(params)
+        q0, c = s.q0, s.q0 + s.nw
+        return {"Z": Z, "Y1": Y[:q0, :c], "J": Y[:q0, c:], "Y2": Y[q0:, :c], "G": Y[q0:, c:], "Y3": params["Y3"]}
+
+    def margin(self, params):
+        return self._gain(params)[2]
+
+    def certificate(self, params) -> np.ndarray:
+        return np.asarray(self.X)
+
+
+class CommonCertificate(AbstractParameterization):
+    r"""Takagi–Sugeno: the design's common certificate $X$ fixed; parameters moved directly.
+
+    Parameters: the common ``Z`` (frozen with ``tune_Z=False``) and the per-rule
+    ``Y1, Y2, Y3, J, G`` with their leading rule axis (the blocks that are empty for a
+    proportional design are omitted). Admissible when, for every rule $i$, the region LMI
+    $L_R\otimes X + M_R\otimes(\mathbb A_i^\top X) + M_R^\top\otimes(X\mathbb A_i) \prec 0$
+    (`fojax.design.AbstractRegion.lmi_matrix`) and the Lyapunov inequality
+    $\mathbb A_i^\top X + X\mathbb A_i \prec 0$ hold; both are affine in $\mathbb A_i$, so they
+    then hold for every convex combination of the rules. The margin is the smallest
+    eigenvalue of all $-\mathcal R_i/\|X\|$, $-\mathcal L_i/\|X\|$; the barrier
+    $-\sum_i(\log\det(-\mathcal R_i/\|X\|) + \log\det(-\mathcal L_i/\|X\|))$. Any region the
+    T-S design accepts works (disks, half-planes, sectors, intersections). `certify`
+    verifies like `fojax.design.design_ts_observer` (plus the Lyapunov re-check).
+
+    *Deviation from the thesis:* the thesis gives no tuning of T-S observers; with a common
+    certificate the explicit $(\mathcal L, \gamma)$ map of one rule does not apply.
+    """
+
+    structure: FunctionalObserverStructure
+    region: AbstractRegion
+    membership: eqx.Module
+    X: jax.Array
+    LR: jax.Array
+    MR: jax.Array
+    Z: jax.Array
+    Wu: jax.Array
+    Wy: jax.Array
+    xnorm: jax.Array
+    kind: str = eqx.field(static=True)
+    tune_Z: bool = eqx.field(static=True)
+
+    def __init__(self, design, region=None, *, tune_Z: bool = True):
+        from ._takagi_sugeno import TakagiSugenoObserverDesign
+
+        if not isinstance(design, TakagiSugenoObserverDesign):
+            raise InputError(
+                f"CommonCertificate needs a TakagiSugenoObserverDesign (fojax.design.design_ts_observer), got "
+                f"{type(design).__name__}; for LTI designs use SteinDisk or FixedCertificateDisk."
+            )
+        _check_kind(design, "CommonCertificate")
+        region = design.region if region is None else as_region(region)
+        X = 0.5 * (np.asarray(design.X, dtype=float) + np.asarray(design.X, dtype=float).T)
+        LR, MR = (np.asarray(a, dtype=float) for a in region.characteristic())
+        obs = design.observer
+        self.structure, self.region, self.membership = design.structure, region, obs.membership
+        self.X, self.LR, self.MR = jnp.asarray(X), jnp.asarray(LR), jnp.asarray(MR)
+        self.Z = jnp.asarray(np.asarray(design.params["Z"]))
+        self.Wu, self.Wy = jnp.asarray(obs.Wu), jnp.asarray(obs.Wy)
+        self.xnorm = jnp.asarray(float(np.linalg.norm(X, 2)))
+        self.kind, self.tune_Z = design.kind, bool(tune_Z)
+        margin = float(self.margin(self.init(design)))
+        if not margin > 0:
+            raise InputError(
+                f"the design's certificate X does not satisfy the LMI of {region.describe()} and the Lyapunov "
+                f"inequality for every rule (relative margin {margin:.3e} <= 0); pass the region the "
+                "design was made for."
+            )
+
+    def init(self, design) -> dict:
+        p = {k: jnp.asarray(np.asarray(v)) for k, v in design.params.items()}
+        return {k: v for k, v in p.items() if v.size and (self.tune_Z or k != "Z")}
+
+    def design_params(self, params) -> dict:
+        return _full(self.structure, params, self.Z, rules=self.structure.num_rules)
+
+    def observer(self, params):
+        from ..observer import TakagiSugenoObserver
+
+        m = self.matrices(params)
+        return TakagiSugenoObserver(m.N, m.J, m.F, m.H, m.S, m.G, m.M, m.P, m.Q, self.Wu, self.Wy, m.T,
+                                    self.membership, kind=self.kind)
+
+    def lmi_blocks(self, params):
+        """``(region, lyapunov)``: ``-𝓡_i/‖X‖`` and ``-𝓛_i/‖X‖`` per rule (``≻ 0`` iff admissible)."""
+        As = error_dynamics(self.matrices(params))
+        X = self.X
+        XA = jnp.einsum("ij,kjl->kil", X, As)
+        XAt = jnp.swapaxes(XA, -1, -2)
+
+        def kron(a, b):  # a (r, r), b (k, d, d) -> (k, r d, r d)
+            r, d = a.shape[0], b.shape[-1]
+            return jnp.einsum("ij,kab->kiajb", a, b).reshape(b.shape[0], r * d, r * d)
+
+        k = As.shape[0]
+        reg = kron(self.LR, jnp.broadcast_to(X, (k,) + X.shape)) + kron(self.MR, XAt) + kron(self.MR.T, XA)
+        reg = 0.5 * (reg + jnp.swapaxes(reg, -1, -2))
+        lyap = 0.5 * (XAt + XA + jnp.swapaxes(XAt + XA, -1, -2))
+        return -reg / self.xnorm, -lyap / self.xnorm
+
+    def _margin_and_logdet(self, params):
+        R, Ly = self.lmi_blocks(params)
+        er, el = jnp.linalg.eigvalsh(R), jnp.linalg.eigvalsh(Ly)
+        margin = jnp.minimum(jnp.min(er), jnp.min(el))
+        inside = margin > 0
+        safe = lambda e: jnp.where(inside, e, 1.0)  # noqa: E731
+        logdet = jnp.sum(jnp.log(safe(er))) + jnp.sum(jnp.log(safe(el)))
+        margin = jnp.where(jnp.isfinite(margin), margin, -jnp.inf)
+        return margin, jnp.where(inside, logdet, -jnp.inf)
+
+    def margin(self, params):
+        return self._margin_and_logdet(params)[0]
+
+    def barrier(self, params):
+        return -self._margin_and_logdet(params)[1]
+
+    def certificate(self, params) -> np.ndarray:
+        return np.asarray(self.X)
+
+    def certify(self, params):
+        from ..observer import TakagiSugenoObserver
+        from ._takagi_sugeno import _lyapunov_recheck, TakagiSugenoObserverDesign
+
+        p = {k: np.asarray(v, dtype=float) for k, v in self.design_params(params).items()}
+        X = np.asarray(self.X)
+        mats, report = verify_structure_design(self.structure, p, self.region, X)
+        report = _lyapunov_recheck(report, X, mats)
+        obs = TakagiSugenoObserver(mats.N, mats.J, mats.F, mats.H, mats.S, mats.G, mats.M, mats.P, mats.Q,
+                                   np.asarray(self.Wu), np.asarray(self.Wy), mats.T, self.membership, kind=self.kind)
+        return TakagiSugenoObserverDesign(
+            observer=obs, kind=self.kind, region=self.region, structure=self.structure, params=p,
+            T=np.asarray(mats.T), K=np.asarray(mats.K), Z_eff=np.asarray(mats.Z_eff), X=X, report=report,
+            solver={"parameterization": type(self).__name__},
+        )  # fmt: skip
+
+
+def certify(parameterization: AbstractParameterization, params):
+    """The verified design of `params` under `parameterization` (host, float64).
+
+    Equivalent to ``parameterization.certify(params)``: residuals of a.–d. (≤ 1e-8
+    relative), eigenvalues in the region, and the region LMI at the certificate are checked
+    by `fojax.design.verify`; a failure raises `fojax.DesignVerificationError`.
+    """
+    if not isinstance(parameterization, AbstractParameterization):
+        raise InputError(f"certify needs an AbstractParameterization (e.g. fojax.design.SteinDisk(design)), got "
+                         f"{type(parameterization).__name__}.")
+    return parameterization.certify(params)
