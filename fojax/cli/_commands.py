@@ -570,7 +570,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
     report = reports[0]
     if cfg.is_takagi_sugeno:  # one verdict per rule
         report = dataclasses.replace(report, verdict="; ".join(
-            f"rule {i + 1}: {r.verdict}" for i, r in enumerate(reports)))
+            f"rule {i + 1}: {r.verdict.rstrip('.')}" for i, r in enumerate(reports)) + ".")
     out.say(f"structure: {report.verdict}")
     design_fn = design_ts_observer if cfg.is_takagi_sugeno else design_functional_observer
     from ..config import ObserverSpec
