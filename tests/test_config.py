@@ -14,7 +14,8 @@ from fojax.design import Disk, HalfPlane, Intersection, Sector
 
 EXAMPLES = [
     "example_3_1_2", "example_3_1_3", "example_3_3_7", "example_4_1_3",
-    "example_4_2_2", "example_4_3_2", "example_4_4_2", "robot_arm_ts",
+    "example_4_2_2", "example_4_3_2", "example_4_4_2", "finite_time_3_1_2", "robot_arm_ts",
+    "unknown_input_4_1_3",
 ]
 
 

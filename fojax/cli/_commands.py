@@ -244,20 +244,17 @@ def design(
             try:
                 with out.step(
                     f"designing observer '{spec.name}' ({spec.kind}, error poles in "
-                    f"{spec.region.describe()}): structure checks, LMI solve, float64 verification"
+                    f"{_region_words(spec)}): structure checks, LMI solve, float64 verification"
                 ):
-                    d = design_fn(
-                        sys_, L, kind=spec.kind, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1,
-                        **spec.design_kwargs(),
-                    )
+                    d = _design_observer(design_fn, sys_, L, spec)
             except FojaxError as err:  # this observer failed; design the others
                 kind = type(err).__name__
                 print(f"fojax: observer '{spec.name}': {kind}: {_one_line(err)}", file=sys.stderr, flush=True)
                 failed[spec.name] = (kind, " ".join(str(err).split()))
-                rows.append([spec.name, spec.kind, "-", "-", spec.region.describe(), float("nan"),
+                rows.append([spec.name, spec.kind, "-", "-", _region_words(spec), float("nan"),
                              float("nan"), f"FAILED ({kind})"])
                 summary.append({"name": spec.name, "kind": spec.kind, "status": "failed",
-                                "region": spec.region.describe(), "error": kind, "message": str(err)})
+                                "region": _region_words(spec), "error": kind, "message": str(err)})
                 continue
             out.say(f"  {d}")
             path = save_design(
@@ -266,24 +263,25 @@ def design(
                 overwrite=overwrite,
                 metadata={"config": str(config_path), "config_name": cfg.name, "observer": spec.name},
             )
+            view = _DesignView.of(d)
             png = plot_poles(
                 folder / f"poles-{spec.name}.png",
-                d.report.eigenvalues,
-                d.region,
-                title=f"{cfg.name}: error poles of '{spec.name}' ({spec.kind})",
+                view.eigenvalues,
+                view.region,
+                title=f"{cfg.name}: error poles of '{spec.name}' ({spec.kind})" + view.title_note,
                 overwrite=overwrite,
             )
-            eig = np.asarray(d.report.eigenvalues)
+            eig = np.asarray(view.eigenvalues)
             rows.append(
-                [spec.name, spec.kind, d.observer.q0, d.observer.q1, d.region.describe(),
+                [spec.name, spec.kind, view.q0, view.q1, view.region_words,
                  float(np.max(eig.real)) if eig.size else float("nan"),
-                 float(d.report.relative_residual), d.report.passed]
+                 view.relative_residual, view.passed]
             )
             figures[f"Error poles of '{spec.name}'"] = png
             files[f"design of '{spec.name}' (fojax.results.load_design)"] = path
             summary.append({"name": spec.name, "file": path.name,
-                            "status": "verified" if d.report.passed else "not verified",
-                            **d.report.to_dict(), "kind": spec.kind, "q0": d.observer.q0, "q1": d.observer.q1,
+                            "status": "verified" if view.passed else "not verified",
+                            **view.report, "kind": spec.kind, "q0": view.q0, "q1": view.q1,
                             **({"hinf": d.hinf.to_dict()} if getattr(d, "hinf", None) is not None else {})})
             out.say(f"  saved {path}")
     except BaseException as err:  # a bug or an interrupt: say so in the folder, then stop
@@ -331,6 +329,54 @@ def _hinf_table(summary) -> dict:
     headers = ["observer", "γ (certified bound)", "‖T‖∞ (SLICOT AB13DD)", "peak ω [rad/s]",
                "tightness γ/‖T‖∞", "‖T‖∞ of the region-only design"]
     return {"H∞ bounds (d = [w; ν] → ẑ − z)": (headers, rows)}
+
+
+def _region_words(spec) -> str:
+    if spec.kind == "finite-time":
+        return " and ".join(r.describe() for r in spec.regions)
+    return spec.region.describe()
+
+
+def _design_observer(design_fn, sys_, L, spec):
+    """Design one ``[[observer]]``: `design_fn` (LTI or T-S) for the generalized, PI and
+    proportional kinds; the unknown-input (§3.2) and finite-time (§3.1.2) routines for theirs."""
+    from ..design import design_finite_time_observer, design_unknown_input_observer
+
+    if spec.kind == "unknown-input":
+        return design_unknown_input_observer(sys_, spec.D, L, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1)
+    if spec.kind == "finite-time":
+        return design_finite_time_observer(sys_, L, h=spec.delay, regions=spec.regions, R=spec.R, q0=spec.q0,
+                                           q1=spec.q1, method=spec.method)
+    return design_fn(sys_, L, kind=spec.kind, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1,
+                     **spec.design_kwargs())
+
+
+class _DesignView:
+    """What `fojax design` prints, plots and records of a design: one verification report,
+    or, for a finite-time observer, its two designs' together (both must pass)."""
+
+    def __init__(self, eigenvalues, region, region_words, q0, q1, relative_residual, passed, report,
+                 title_note=""):
+        self.eigenvalues, self.region, self.region_words = eigenvalues, region, region_words
+        self.q0, self.q1, self.relative_residual, self.passed = q0, q1, relative_residual, passed
+        self.report, self.title_note = report, title_note
+
+    @classmethod
+    def of(cls, d):
+        from ..design import FiniteTimeObserverDesign
+
+        if isinstance(d, FiniteTimeObserverDesign):
+            d1, d2 = d.designs
+            eig = np.concatenate([np.asarray(d1.report.eigenvalues), np.asarray(d2.report.eigenvalues)])
+            return cls(eig, None, f"{d1.region.describe()} and {d2.region.describe()}", d1.observer.q0,
+                       d1.observer.q1, max(float(d1.report.relative_residual), float(d2.report.relative_residual)),
+                       bool(d1.report.passed and d2.report.passed),
+                       {"observer_1": d1.report.to_dict(), "observer_2": d2.report.to_dict(), "h": float(d.h),
+                        "reconstruction_rcond": float(d.reconstruction_rcond),
+                        "reconstruction_residual": float(d.reconstruction_residual)},
+                       title_note=f"\nboth observers, in {d1.region.describe()} and {d2.region.describe()}; h = {d.h:g}")
+        return cls(d.report.eigenvalues, d.region, d.region.describe(), d.observer.q0, d.observer.q1,
+                   float(d.report.relative_residual), bool(d.report.passed), d.report.to_dict())
 
 
 def _default_region():
@@ -413,8 +459,17 @@ def study(
     else:
         path = config_path if config_path is not None else str(example_path("example_3_3_7"))
         cfg = load_config(path)
-    if cfg.is_takagi_sugeno:
-        raise ConfigError(path, "takagi_sugeno", "studies of Takagi-Sugeno models are not available from config files yet.")
+    from ..config._load import SPECIAL_KINDS
+
+    special = [(i, o.kind) for i, o in enumerate(cfg.observers) if o.kind in SPECIAL_KINDS]
+    if special:
+        i, kind = special[0]
+        raise ConfigError(path, f"observer[{i}].kind", f"'{kind}' observers have no Monte Carlo study yet "
+                          "(the study compares z estimates of generalized/PI/proportional observers); "
+                          f"use `fojax design {path}` to design and verify it.")
+    if cfg.is_takagi_sugeno and cfg.has_faults:
+        raise ConfigError(path, "faults", "fault estimation for Takagi-Sugeno models is not available; remove "
+                          "[faults] to study Takagi-Sugeno functional observers of z = L x.")
     spec = cfg.study or StudySpec()
     tspec = cfg.tuning or TuningSpec()
     if resume is None:
@@ -521,9 +576,11 @@ def _resume_folder(folder, config_path, out_dir, given: dict):
 def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bool) -> int:
     """The body of `study` (after the results folder is set up); `plan` is the
     `fojax.cli._study_samples.SamplePlan` announced and recorded by `study`."""
+    import dataclasses
+
     from .. import studies
     from ..analysis import structure_report
-    from ..design import design_functional_observer
+    from ..design import design_functional_observer, design_ts_observer
     from ..results import (
         plot_error_distributions,
         plot_estimates,
@@ -536,8 +593,13 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
     from . import _study_samples as ss
 
     ow = resumed  # a resumed run replaces the files it regenerates
-    report = structure_report(cfg.system(), cfg.L)
+    reports = [structure_report(sys_, cfg.L) for sys_ in cfg.rule_systems()]
+    report = reports[0]
+    if cfg.is_takagi_sugeno:  # one verdict per rule
+        report = dataclasses.replace(report, verdict="; ".join(
+            f"rule {i + 1}: {r.verdict.rstrip('.')}" for i, r in enumerate(reports)) + ".")
     out.say(f"structure: {report.verdict}")
+    design_fn = design_ts_observer if cfg.is_takagi_sugeno else design_functional_observer
     from ..config import ObserverSpec
 
     specs = cfg.observers or (ObserverSpec("generalized", "generalized", _default_region()),)
@@ -551,8 +613,8 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
             files[f"design of '{o.name}'"] = saved
         else:
             with out.step(f"designing '{o.name}' ({o.kind}, {o.region.describe()}) by LMI"):
-                d = design_functional_observer(cfg.design_system(), cfg.design_L(), kind=o.kind,
-                                               region=o.region, R=o.R, q0=o.q0, q1=o.q1, **o.design_kwargs())
+                d = design_fn(cfg.design_system(), cfg.design_L(), kind=o.kind,
+                              region=o.region, R=o.R, q0=o.q0, q1=o.q1, **o.design_kwargs())
             files[f"design of '{o.name}'"] = save_design(d, saved, overwrite=ow,
                                                          metadata={"config": path, "observer": o.name})
         check_interrupted()
@@ -574,9 +636,10 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
 
         train = ss.make_training_study(cfg, spec.seed + 1, plan, T, spec.dt)
         heldout_small = ss.make_training_study(cfg, spec.seed + 2, plan, T, spec.dt)
-        tunable = [nm for nm, d in designs.items() if d.kind == "generalized" and isinstance(d.region, Disk)]
+        tunable = [nm for nm, d in designs.items() if _tunable(cfg, d, Disk)]
         if not tunable:
-            tuning_note = "Tuning: no generalized observer with a disk region to tune."
+            tuning_note = ("Tuning: no generalized or proportional observer to tune." if cfg.is_takagi_sugeno
+                           else "Tuning: no generalized observer with a disk region to tune.")
         elif plan.deterministic:
             tuning_note = (
                 f"Tuning: {', '.join(tunable)} tuned for {n_steps} Adam steps (learning rate "
@@ -600,10 +663,10 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                     f"steps {done + 1}..{n_steps} (resumed from the checkpoint at step {done})")
             with out.step(f"tuning '{nm}': {what} on {train.num_samples} training "
                           "samples (compiling the gradient first)"):
-                tr = tuning.tune(designs[nm], train, heldout=heldout_small, steps=n_steps,
-                                 optimizer=tuning.shared_optimizer("adam", learning_rate=tspec.learning_rate),
-                                 eval_every=max(1, n_steps // 10), callback=_after_step,
-                                 checkpoint=checkpoint, resume=resumed, quiet=out.quiet)
+                tr = _tune(tuning, cfg, designs[nm], train, heldout=heldout_small, steps=n_steps,
+                           optimizer=tuning.shared_optimizer("adam", learning_rate=tspec.learning_rate),
+                           eval_every=max(1, n_steps // 10), callback=_after_step,
+                           checkpoint=checkpoint, resume=resumed, quiet=out.quiet)
             tuned_name = f"{nm}-tuned"
             designs[tuned_name] = tr.design
             tuned_pairs[tuned_name] = nm
@@ -774,6 +837,30 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                 f"{row[6]:+.1f} %; sum of mean peaks {row[7]:.4g} -> {row[8]:.4g}, {row[9]:+.1f} %")
     out.say(f"\nresults: {folder} (report: {rep.name})")
     return 0 if all(d.report.passed for d in designs.values()) else 1
+
+
+def _tunable(cfg, design, Disk) -> bool:
+    """Which designs `fojax study` tunes: LTI generalized designs with a disk region
+    (`fojax.tuning.tune`); every generalized or proportional Takagi–Sugeno design
+    (`fojax.tune` with the common certificate of any region)."""
+    if cfg.is_takagi_sugeno:
+        return design.kind in ("generalized", "proportional")
+    return design.kind == "generalized" and isinstance(design.region, Disk)
+
+
+#: Barrier weight of the T-S tuning of `fojax study` (tests/test_tuning_ts.py uses the same).
+TS_BARRIER = 1e-3
+
+
+def _tune(tuning, cfg, design, train, **kw):
+    """The one tuning call of `fojax study`. A Takagi–Sugeno study simulates a nonlinear
+    (or T-S) plant with diffrax's explicit Tsit5 (not stiff: error poles in the designed
+    region), as the Monte Carlo run below does."""
+    if cfg.is_takagi_sugeno:
+        import diffrax
+
+        kw.update(solver=diffrax.Tsit5(), barrier=TS_BARRIER)
+    return tuning.tune(design, train, **kw)  # LTI and T-S designs: one `tune`
 
 
 def _after_step(step, record):

@@ -100,10 +100,26 @@ def plan_samples(cfg, requested: int, horizon: float, seed: int) -> SamplePlan:
         random.append(f"the fault scenario: one of the {nf} faults (uniformly chosen) steps at an onset "
                       f"uniform in [{lo:g}, {hi:g}] s to a magnitude |a| uniform in "
                       f"[{FAULT_MAGNITUDE[0]:g}, {FAULT_MAGNITUDE[1]:g}] with a random sign; the others stay 0")
+    if cfg.parameter_spread:
+        nl = cfg.takagi_sugeno["plant"]
+        random.append(f"the physical parameters of the nonlinear plant '{nl}' ([uncertainty] parameters), "
+                      "constant in time, each nominal * (1 + s U(-1, 1)) with "
+                      + ", ".join(f"{k}: s = {v:g}" for k, v in cfg.parameter_spread.items()))
     x0 = _x0(cfg)
-    fixed.append(f"the plant's initial state x0 = [{', '.join(f'{v:g}' for v in x0)}] "
+    if cfg.x0_spread is not None and (cfg.x0_spread > 0).any():
+        random.append("the plant's initial state: x0 = [" + ", ".join(f"{v:g}" for v in x0)
+                      + "] + U(-spread, spread) per state, spread = ["
+                      + ", ".join(f"{v:g}" for v in cfg.x0_spread) + "] ([initial_state]; projected onto the "
+                      "algebraic constraints by the simulation)")
+    if cfg.is_takagi_sugeno:
+        fixed.append("the plant: " + (f"the nonlinear model '{cfg.takagi_sugeno['plant']}' "
+                                      "([takagi_sugeno] plant)" if cfg.takagi_sugeno.get("plant")
+                                      else "the Takagi-Sugeno model itself"))
+    if not any(r.startswith("the plant's initial state") for r in random):
+        fixed.append(f"the plant's initial state x0 = [{', '.join(f'{v:g}' for v in x0)}] "
                  f"({'[model] x0' if cfg.x0 is not None else 'fojax default 0.5 per state'}; projected onto "
-                 "the algebraic constraints by the simulation) and every observer's zero initial state")
+                 "the algebraic constraints by the simulation)")
+    fixed.append("every observer's zero initial state")
     fixed.append("the input u(t) = sin(t) on every input channel")
     if random:
         run = requested
@@ -134,7 +150,10 @@ def plan_samples(cfg, requested: int, horizon: float, seed: int) -> SamplePlan:
 
 
 def _short(description: str) -> str:
-    return "δ" if description.startswith("the uncertainty") else "fault scenario"
+    for start, word in (("the uncertainty", "δ"), ("the physical", "parameters"), ("the plant's initial", "x0")):
+        if description.startswith(start):
+            return word
+    return "fault scenario"
 
 
 # ------------------------------------------------------------------------ studies
@@ -151,6 +170,12 @@ def make_study(cfg, seed: int, count: int, horizon: float, dt: float):
     k_u, k_f = jax.random.split(jax.random.PRNGKey(seed))
     plant = cfg.plant()
     families, prefix = [], ("plant",)
+    if cfg.is_takagi_sugeno:  # physical parameters (δ key) and x0 (fault key), drawn jointly
+        if cfg.parameter_spread:
+            families.append(studies.parameter_uncertainty(k_u, count, plant.theta, cfg.parameter_spread))
+        if cfg.x0_spread is not None and (cfg.x0_spread > 0).any():
+            sp = jnp.asarray(cfg.x0_spread)
+            families.append(studies.initial_conditions(k_f, count, _x0(cfg), bounds=(-sp, sp)))
     if cfg.has_faults:
         nf = _nf(cfg)
         plant = studies.FaultyPlant(plant, cfg.Fa, cfg.Fs, fault=studies.FaultProfile(jnp.zeros(nf)))
@@ -233,6 +258,10 @@ def describe_samples(study, cfg, observers: dict) -> dict:
     (plants, x0s, x0c), u = _read_back(study, iu, jf)
     out = {"ts": np.asarray(study.ts), "u": np.asarray(u), "x0": np.asarray(x0s), "x0_consistent": np.asarray(x0c)}
     base = plants
+    theta = getattr(plants, "theta", None)  # a nonlinear plant's physical parameters
+    if isinstance(theta, dict):
+        for name, val in theta.items():
+            out[f"theta/{name}"] = np.broadcast_to(np.asarray(val), (N,)).copy()
     if isinstance(plants, FaultyPlant):
         f = plants.fault
         amp = np.broadcast_to(np.asarray(f.amplitude), (N, f.amplitude.shape[-1]))
@@ -279,6 +308,10 @@ def summarize_samples(arrays: dict) -> dict:
     """Ranges of the drawn values (JSON-able): counts, min/max of δ, fault magnitudes and onsets,
     how many samples have each fault."""
     s: dict = {"samples": int(arrays["x0"].shape[0])}
+    for key in sorted(k for k in arrays if k.startswith("theta/")):
+        d = arrays[key]
+        if np.ptp(d) > 0:
+            s.setdefault("parameters", {})[key[len("theta/"):]] = [float(d.min()), float(d.max())]
     if "delta" in arrays:
         d = arrays["delta"]
         s["delta_min"], s["delta_max"] = d.min(axis=0).tolist(), d.max(axis=0).tolist()
@@ -302,6 +335,9 @@ def describe_in_words(summary: dict, what: str) -> str:
     if "delta_min" in summary:
         parts.append("δ drawn in [" + ", ".join(f"{lo:.3g}..{hi:.3g}" for lo, hi in
                                                 zip(summary["delta_min"], summary["delta_max"])) + "]")
+    if "parameters" in summary:
+        parts.append("parameters drawn in " + ", ".join(f"{k} {lo:.4g}..{hi:.4g}" for k, (lo, hi)
+                                                        in summary["parameters"].items()))
     if "fault_magnitude_min" in summary:
         per = ", ".join(f"{k}: {v}" for k, v in summary["samples_per_fault"].items())
         parts.append(f"fault magnitudes |a| {summary['fault_magnitude_min']:.3g}..{summary['fault_magnitude_max']:.3g}, "

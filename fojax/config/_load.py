@@ -34,10 +34,22 @@ examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
     index = 1                            # output index i (0-based)
     lower = -0.217                       # rho range [lower, upper] of the sector membership
     upper = 1.0
+    plant = "robot_arm"                  # optional: the nonlinear model `fojax study` simulates
+                                         # (the rules are checked to be its sector form)
+    # a T-S model's [uncertainty] is `parameters = { k = 0.2, ... }` (relative spreads of
+    # that nonlinear plant's physical parameters), not dA/profile
+
+    [initial_state]                      # optional, T-S models: x0 + U(-spread, spread)
+    spread = [0.05, 0, 0.1, 0, 0]        # (n,) or one number
 
     [[observer]]                         # zero or more (default: one generalized observer)
     name = "FGDO"                        # optional
-    kind = "generalized"                 # "generalized", "PI" or "proportional"
+    kind = "generalized"                 # "generalized", "PI", "proportional", or (LTI, no
+                                         # [faults]) "unknown-input" / "finite-time":
+    D = [[...]]                          # unknown-input: (n, l) directions, E x' = ... + D d
+    delay = 0.5                          # finite-time: h; and two separated disks
+    regions = [{ center = -5.0, radius = 0.5 }, { center = -2.0, radius = 0.5 }]
+    method = "auto"                      # finite-time: "auto", "lmi" or "place"
     region = { disk = { center = -2.0, radius = 1.0 }, decay = 0.5, damping = 0.7 }
         # any non-empty subset; several parts are intersected. Default: disk(-2, 1).
     q0 = 2                               # optional observer order, or
@@ -77,22 +89,32 @@ from .._errors import ConfigError, RegionError
 from .._io import name_problem, NAME_RULE, suggest_name
 
 
-KINDS = ("generalized", "PI", "proportional")
+KINDS = ("generalized", "PI", "proportional", "unknown-input", "finite-time")
+#: Kinds designed by their own routine (`fojax.design.design_unknown_input_observer`,
+#: `fojax.design.design_finite_time_observer`), for LTI models without [faults].
+SPECIAL_KINDS = ("unknown-input", "finite-time")
+FINITE_TIME_METHODS = ("auto", "lmi", "place")
 PROFILE_KINDS = ("constant", "uniform", "sine")
 PREMISES = ("sinc", "output")
 
-_TOP = {"name", "description", "model", "faults", "uncertainty", "takagi_sugeno", "observer", "study", "tuning"}
+_TOP = {"name", "description", "model", "faults", "uncertainty", "initial_state", "takagi_sugeno", "observer",
+        "study", "tuning"}
 _MODEL = {"E", "A", "B", "C", "L", "feedback", "x0"}
 _MODEL_REQUIRED = ("E", "A", "B", "C", "L")
 _FAULTS = {"Fa", "Fs", "ramp", "estimate_faults"}
-_UNCERTAINTY = {"dA", "profile"}
+_UNCERTAINTY = {"dA", "profile", "parameters"}
+_INITIAL_STATE = {"spread"}
 _PROFILE = {
     "constant": {"kind", "value"},
     "uniform": {"kind", "bound"},
     "sine": {"kind", "amplitude", "omega", "phase"},
 }
-_TS = {"premise", "index", "lower", "upper"}
-_OBSERVER = {"name", "kind", "region", "R", "q0", "q1", "objective", "Bw", "Dv"}
+_TS = {"premise", "index", "lower", "upper", "plant"}
+#: Nonlinear models a T-S file can name as its simulated plant (``[takagi_sugeno] plant``):
+#: name -> (the `fojax.models` nonlinear example, its T-S form); see `Config.plant`.
+NONLINEAR_PLANTS = ("robot_arm",)
+_OBSERVER = {"name", "kind", "region", "R", "q0", "q1", "objective", "Bw", "Dv", "D", "delay", "regions",
+             "method"}
 OBJECTIVES = ("region", "hinf")
 _REGION = {"disk", "decay", "damping"}
 _DISK = {"center", "radius"}
@@ -116,6 +138,10 @@ class ObserverSpec:
     objective: str = "region"
     Bw: np.ndarray | None = None
     Dv: np.ndarray | None = None
+    D: np.ndarray | None = None  # kind = "unknown-input": (n, l) unknown-input directions
+    delay: float | None = None  # kind = "finite-time": the delay h
+    regions: tuple | None = None  # kind = "finite-time": two disks
+    method: str | None = None  # kind = "finite-time": "auto", "lmi" or "place"
 
     def design_kwargs(self) -> dict:
         """The ``objective`` keywords of `fojax.design.design_functional_observer`
@@ -175,6 +201,8 @@ class Config:
     study: StudySpec | None
     tuning: TuningSpec | None
     raw: dict
+    parameter_spread: dict | None = None
+    x0_spread: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -243,10 +271,25 @@ class Config:
         bottom = np.hstack([np.zeros((nf, n)), np.eye(nf), np.zeros((nf, extra - nf))])
         return np.vstack([top, bottom])
 
+    def nonlinear_model(self):
+        """The `fojax.models` example named by ``[takagi_sugeno] plant`` (a `ThesisExample`
+        whose `system` is the nonlinear model; its `theta` holds the physical parameters
+        that ``[uncertainty] parameters`` perturbs), or None."""
+        name = (self.takagi_sugeno or {}).get("plant")
+        if name is None:
+            return None
+        from ..models import robot_arm
+
+        return {"robot_arm": robot_arm}[name]()
+
     def plant(self):
-        """The simulated plant: `system`, wrapped in a `fojax.UncertainDescriptorSystem`
+        """The simulated plant. For a Takagi–Sugeno model with ``[takagi_sugeno] plant``,
+        that nonlinear model (`nonlinear_model`; the file's rules are checked at load to be
+        its exact sector form), else the `fojax.TakagiSugenoSystem`. Otherwise `system`, wrapped in a `fojax.UncertainDescriptorSystem`
         when ``[uncertainty]`` is given (constant profiles use ``value``, sine profiles
         the `fojax.Sine` signal, uniform profiles the nominal ``δ = 0``)."""
+        if self.is_takagi_sugeno and self.takagi_sugeno.get("plant") is not None:
+            return self.nonlinear_model().system
         sys_ = self.system()
         if self.dA is None:
             return sys_
@@ -522,8 +565,17 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
             estimate_faults = v.boolean("faults.estimate_faults", f["estimate_faults"])
 
     dA = profile = None
+    parameter_spread = None
     if "uncertainty" in data:
-        u = v.table("uncertainty", data["uncertainty"], _UNCERTAINTY, required=("dA",))
+        if ts_raw is not None:  # T-S: relative spreads of the nonlinear plant's parameters
+            parameter_spread = _parameter_spread(v, data["uncertainty"], ts_raw)
+        u = v.table("uncertainty", data["uncertainty"], _UNCERTAINTY,
+                    required=("dA",) if ts_raw is None else ())
+        if "parameters" in u and ts_raw is None:
+            raise v.err("uncertainty.parameters", "is for Takagi-Sugeno models with [takagi_sugeno] plant "
+                        "(relative spreads of the nonlinear plant's physical parameters); an LTI model's "
+                        "uncertainty is given by dA and profile.")
+    if "uncertainty" in data and "dA" in data["uncertainty"]:
         dA = v.array("uncertainty.dA", u["dA"], (2, 3), "a list of n x n matrices")
         if dA.ndim == 2:
             dA = dA[None]
@@ -561,8 +613,12 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
         if A.shape[0] != 2:
             raise v.err("model.A", f"has {A.shape[0]} rule matrices; the sector membership of [takagi_sugeno] has 2 rules.")
         ts = {"premise": premise, "index": int(index), "lower": float(lo), "upper": float(hi)}
-    if dA is not None and ts is not None:
-        raise v.err("uncertainty", "is not supported together with [takagi_sugeno].")
+        if "plant" in t:
+            ts["plant"] = v.string("takagi_sugeno.plant", t["plant"], NONLINEAR_PLANTS)
+            _check_nonlinear_plant(v, ts, E, A, B, C)
+    x0_spread = None
+    if "initial_state" in data:
+        x0_spread = _initial_state(v, data["initial_state"], n, ts_raw is not None)
 
     n_design = n
     if Fa is not None or Fs is not None:
@@ -596,7 +652,11 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
                 raise v.err(_join(key, "q1"), f"is {q1}; a proportional observer has q1 = 0.")
         objective, Bw, Dv = _objective(v, key, o, n, n_design, p, ts is not None)
         oname = v.file_name(_join(key, "name"), o["name"], f"observer_{i + 1}") if "name" in o else f"{kind}-{i + 1}"
-        observers.append(ObserverSpec(oname, kind, region, R, q0, q1, objective, Bw, Dv))
+        special = _special_observer(v, key, o, kind, n, ts_raw is not None, Fa is not None or Fs is not None)
+        if objective != "region" and kind in ("unknown-input", "finite-time"):
+            raise v.err(_join(key, "objective"), f"is {objective!r}; objective = \"hinf\" is for the generalized, PI "
+                        f"and proportional kinds, not {kind!r}: remove the key.")
+        observers.append(ObserverSpec(oname, kind, region, R, q0, q1, objective, Bw, Dv, **special))
     _check_observer_names(v, [o.name for o in observers])
 
     study = None
@@ -628,8 +688,139 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
         path=file, name=name, description=description, E=E, A=A, B=B, C=C, L=L,
         feedback=feedback, x0=x0, Fa=Fa, Fs=Fs, ramp=ramp, estimate_faults=estimate_faults,
         dA=dA, profile=profile, takagi_sugeno=ts, observers=tuple(observers), study=study,
-        tuning=tuning, raw=data,
+        tuning=tuning, raw=data, parameter_spread=parameter_spread, x0_spread=x0_spread,
     )
+
+
+def _special_observer(v: _V, key: str, o: dict, kind: str, n: int, ts: bool, faults: bool) -> dict:
+    """The keys of ``kind = "unknown-input"`` (``D``) and ``kind = "finite-time"``
+    (``delay``, ``regions``, ``method``); refused for the other kinds."""
+    own = {"unknown-input": ("D",), "finite-time": ("delay", "regions", "method")}
+    for k in ("D", "delay", "regions", "method"):
+        if k in o and k not in own.get(kind, ()):
+            owner = next(kk for kk, keys in own.items() if k in keys)
+            raise v.err(_join(key, k), f"is a key of kind = '{owner}' observers; this observer has kind = '{kind}'.")
+    if kind not in SPECIAL_KINDS:
+        return {}
+    if ts or faults:
+        raise v.err(_join(key, "kind"), f"'{kind}' observers are designed for LTI models without "
+                    f"[{'takagi_sugeno' if ts else 'faults'}]; use 'generalized', 'PI' or 'proportional'.")
+    if "region" in o and kind == "finite-time":
+        raise v.err(_join(key, "region"), "a finite-time observer has two regions: give regions = "
+                    "[{ center = c1, radius = r1 }, { center = c2, radius = r2 }] instead.")
+    if kind == "unknown-input":
+        if "D" not in o:
+            raise v.err(_join(key, "D"), "missing: an unknown-input observer needs D, the (n, l) matrix "
+                        "of unknown-input directions (E x' = A x + B u + D d).")
+        D = v.array(_join(key, "D"), o["D"], 2, "an n x l matrix")
+        if D.shape[0] != n:
+            raise v.err(_join(key, "D"), f"has shape {D.shape}, expected ({n}, l) (one row per state, n = {n}).")
+        return {"D": D}
+    if "delay" not in o:
+        raise v.err(_join(key, "delay"), "missing: a finite-time observer needs its delay h > 0 "
+                    "(the estimate is exact for t >= h).")
+    h = float(v.number(_join(key, "delay"), o["delay"], positive=True))
+    from ..design import Disk
+
+    regions = (Disk(-5.0, 0.5), Disk(-2.0, 0.5))
+    if "regions" in o:
+        rk = _join(key, "regions")
+        r = o["regions"]
+        if not isinstance(r, list) or len(r) != 2:
+            raise v.err(rk, f"expected two disks [{{ center = c1, radius = r1 }}, {{ center = c2, radius = r2 }}], got {r!r}.")
+        disks = []
+        for j, d in enumerate(r):
+            dk = f"{rk}[{j}]"
+            d = v.table(dk, d, _DISK, required=("center", "radius"))
+            c = v.number(_join(dk, "center"), d["center"])
+            rad = v.number(_join(dk, "radius"), d["radius"], positive=True)
+            if c + rad >= 0:
+                raise v.err(dk, f"disk(center={c}, radius={rad}) reaches into the closed right half-plane; "
+                            "expected center + radius < 0.")
+            disks.append(Disk(c, rad))
+        (c1, r1), (c2, r2) = ((float(d.center), float(d.radius)) for d in disks)
+        if not (c1 + r1 < c2 - r2 or c2 + r2 < c1 - r1):
+            raise v.err(rk, f"the disks ({c1}, {r1}) and ({c2}, {r2}) overlap along the real axis; the two "
+                        "observers' eigenvalues must be separated (Lemma 6).")
+        regions = tuple(disks)
+    method = v.string(_join(key, "method"), o["method"], FINITE_TIME_METHODS) if "method" in o else "auto"
+    return {"delay": h, "regions": regions, "method": method}
+
+
+def _parameter_spread(v: _V, u, ts_raw) -> dict:
+    """``[uncertainty]`` of a T-S model: ``parameters = { name = spread, ... }``."""
+    u = v.table("uncertainty", u, _UNCERTAINTY)
+    if "dA" in u or "profile" in u:
+        key = "uncertainty.dA" if "dA" in u else "uncertainty.profile"
+        raise v.err(key, "is for LTI models; the uncertainty of a Takagi-Sugeno model is given as "
+                    "relative spreads of its nonlinear plant's parameters: [takagi_sugeno] plant = "
+                    "'robot_arm' and [uncertainty] parameters = { k = 0.2, m = 0.2, J_l = 0.2 }.")
+    if "parameters" not in u:
+        raise v.err("uncertainty.parameters", "missing: the uncertainty of a Takagi-Sugeno model is "
+                    "parameters = { name = relative spread, ... } (e.g. { k = 0.2 }).")
+    if not isinstance(ts_raw, dict) or "plant" not in ts_raw:
+        raise v.err("uncertainty.parameters", "needs [takagi_sugeno] plant (the nonlinear model whose "
+                    f"parameters are uncertain; one of {', '.join(map(repr, NONLINEAR_PLANTS))}).")
+    pk = "uncertainty.parameters"
+    table = u["parameters"]
+    if not isinstance(table, dict) or not table:
+        raise v.err(pk, f"expected a non-empty table {{ name = spread, ... }}, got {table!r}.")
+    plant = v.string("takagi_sugeno.plant", ts_raw["plant"], NONLINEAR_PLANTS)
+    names = set(_nonlinear_parameters(plant))
+    v.table(pk, table, names)
+    out = {}
+    for name, val in table.items():
+        s = v.number(_join(pk, name), val, nonneg=True)
+        if s >= 1:
+            raise v.err(_join(pk, name), f"is {s}; expected a relative spread in [0, 1) (the parameter is "
+                        "nominal * (1 + spread * U(-1, 1)) and must keep its sign).")
+        out[name] = float(s)
+    return out
+
+
+def _initial_state(v: _V, value, n: int, takagi_sugeno: bool) -> np.ndarray:
+    """``[initial_state] spread``: ``(n,)`` half-widths (or one number for every state)."""
+    t = v.table("initial_state", value, _INITIAL_STATE, required=("spread",))
+    if not takagi_sugeno:
+        raise v.err("initial_state", "is only available for Takagi-Sugeno models so far (LTI studies "
+                    "draw delta and faults, not x0); remove it.")
+    key = "initial_state.spread"
+    if isinstance(t["spread"], list):
+        sp = v.array(key, t["spread"], 1, "a vector")
+        v.shape(key, sp, (n,), f"one half-width per state, n = {n}")
+    else:
+        sp = np.full((n,), float(v.number(key, t["spread"])))
+    if (sp < 0).any():
+        raise v.err(key, f"has a negative entry {sp.min()}; expected half-widths >= 0.")
+    return sp
+
+
+def _nonlinear_parameters(name: str) -> tuple:
+    from ..models import _robot_arm
+
+    return {"robot_arm": _robot_arm.PARAMETERS}[name]
+
+
+def _check_nonlinear_plant(v: _V, ts: dict, E, A, B, C) -> None:
+    """``[takagi_sugeno] plant``: the file's rule matrices and membership must be the sector
+    form of that nonlinear model (so the T-S observers are designed for the plant simulated)."""
+    from ..models import _robot_arm
+
+    m = {"robot_arm": _robot_arm.ts_matrices}[ts["plant"]]()
+    B_ref = m["B"] if B.ndim == 2 else np.broadcast_to(m["B"], B.shape)
+    if ts["premise"] != "sinc" or ts["index"] != 1:
+        raise v.err("takagi_sugeno.premise", f"is {ts['premise']!r} on output {ts['index']}; the sector form "
+                    f"of '{ts['plant']}' has premise = 'sinc', index = 1 (rho = sin(y[1])/y[1]).")
+    ref = {"model.E": (E, m["E"]), "model.A": (A, m["A"]), "model.B": (B, B_ref), "model.C": (C, m["C"]),
+           "takagi_sugeno.lower": (np.array(ts["lower"]), np.array(m["rho_min"])),
+           "takagi_sugeno.upper": (np.array(ts["upper"]), np.array(m["rho_max"]))}
+    for key, (mine, theirs) in ref.items():
+        theirs = np.asarray(theirs, dtype=float)
+        if mine.shape != theirs.shape or not np.allclose(mine, theirs, rtol=1e-9, atol=1e-12):
+            raise v.err(key, f"differs from the Takagi-Sugeno form of the nonlinear plant "
+                        f"'{ts['plant']}' (fojax.models.{ts['plant']}_ts(): {np.array2string(theirs, precision=6)}); "
+                        "the observers would be designed for another plant than the one simulated. "
+                        "Use that model's matrices or remove [takagi_sugeno] plant.")
 
 
 #: Files `fojax study` writes beside the observers' ``<name>.npz`` (an observer of that name

@@ -220,6 +220,32 @@ def robot_arm(
     )
 
 
+def ts_matrices(params: dict | None = None, x3_bound: float | None = None) -> dict:
+    r"""The sector T-S form of `robot_arm` in NumPy (host; no JAX, no float64 mode needed):
+    ``E``, ``A`` ``(2, 5, 5)`` $= [A(\underline\rho), A(\bar\rho)]$, ``B``, ``C``, ``rho_min``,
+    ``rho_max`` for the physical `params` (default Table 3.1). `robot_arm_ts` builds its
+    system from these; `fojax.config` checks a model file's ``[takagi_sugeno] plant`` with them."""
+    p = dict(_TABLE_3_1, **(params or {}))
+    rho_min, rho_max = _rho_range(x3_bound)
+
+    def A_of(rho):
+        return [
+            [0, 1, 0, 0, 0],
+            [-p["k"] / p["J_m"], -p["beta"] / p["J_m"], p["k"] / p["J_m"], 0, 0],
+            [0, 0, 0, 1, 0],
+            [p["k"] / p["J_l"], 0, -(p["k"] + p["l_c"] * p["m"] * p["g"] * rho) / p["J_l"], 0, 0],
+            [0, 0, p["l"] * rho, 0, -1],
+        ]
+
+    return dict(E=np.array(_E, dtype=float), A=np.array([A_of(rho_min), A_of(rho_max)], dtype=float),
+                B=np.array([[0], [p["K_tau"] / p["J_m"]], [0], [0], [0]], dtype=float),
+                C=np.array(_C, dtype=float), rho_min=rho_min, rho_max=rho_max)
+
+
+#: Names of `robot_arm`'s physical parameters (the entries of its `theta`).
+PARAMETERS = tuple(_TABLE_3_1)
+
+
 def robot_arm_ts(
     J_m: float = 0.01,
     J_l: float = 0.08,
@@ -278,19 +304,10 @@ def robot_arm_ts(
     `L`, `R`, `x0`, `delta_k`, `omega_k` and printed observer gains as `robot_arm`.
     """
     params = dict(J_m=J_m, J_l=J_l, m=m, l_c=l_c, k=k, beta=beta, K_tau=K_tau, l=l, g=g)
-    rho_min, rho_max = _rho_range(x3_bound)
-
-    def A_of(rho):
-        return [
-            [0, 1, 0, 0, 0],
-            [-k / J_m, -beta / J_m, k / J_m, 0, 0],
-            [0, 0, 0, 1, 0],
-            [k / J_l, 0, -(k + l_c * m * g * rho) / J_l, 0, 0],
-            [0, 0, l * rho, 0, -1],
-        ]
-
-    A = _array([A_of(rho_min), A_of(rho_max)])
-    B = _array([[0], [K_tau / J_m], [0], [0], [0]])
+    mats = ts_matrices(params, x3_bound)
+    rho_min, rho_max = mats["rho_min"], mats["rho_max"]
+    A = _array(mats["A"])
+    B = _array(mats["B"])
     membership = SectorMembership(SincPremise(1), rho_min, rho_max)
     system = TakagiSugenoSystem(_array(_E), A, B, _array(_C), membership)
     A1 = _array(

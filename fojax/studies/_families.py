@@ -158,11 +158,13 @@ def initial_conditions(key, count: int, mean, std=0.0, bounds=None, path=("x0",)
     r"""Initial states ``x0 = mean + std ⊙ N(0, I)`` or, with `bounds` ``(lo, hi)``, uniform
     ``mean + U(lo, hi)`` (arrays broadcastable to ``(n,)``)."""
     mean = jnp.asarray(mean, dtype=jnp.float64)
+    # explicit leading sample axis (no implicit rank promotion: (count, n) with (n,))
     if bounds is None:
-        x = mean + jnp.asarray(std) * jax.random.normal(key, (count,) + mean.shape, dtype=jnp.float64)
+        std = jnp.broadcast_to(jnp.asarray(std, dtype=jnp.float64), mean.shape)
+        x = mean[None] + std[None] * jax.random.normal(key, (count,) + mean.shape, dtype=jnp.float64)
     else:
-        lo, hi = (jnp.broadcast_to(jnp.asarray(b, dtype=jnp.float64), mean.shape) for b in bounds)
-        x = mean + jax.random.uniform(key, (count,) + mean.shape, dtype=jnp.float64) * (hi - lo) + lo
+        lo, hi = (jnp.broadcast_to(jnp.asarray(b, dtype=jnp.float64), mean.shape)[None] for b in bounds)
+        x = mean[None] + jax.random.uniform(key, (count,) + mean.shape, dtype=jnp.float64) * (hi - lo) + lo
     return Family(x, path)
 
 
