@@ -41,7 +41,7 @@ def e_perp(E, tol: float | None = None) -> np.ndarray:
     return left_null_space(E, tol)
 
 
-def is_regular(sys, A=None, *, tol: float | None = None) -> bool:
+def is_regular(sys, A=None, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""Whether the pencil is regular: $\det(sE - A) \not\equiv 0$ (thesis Def. 2.1.1).
 
     Host-only. Decided by the orthogonal deflation of the infinite eigenvalues
@@ -63,7 +63,7 @@ def is_regular(sys, A=None, *, tol: float | None = None) -> bool:
     **Returns:** ``True`` or ``False`` (``True`` for ``n = 0``). Never raises for a
     singular pencil.
     """
-    p = as_pencil(sys, A, fname="is_regular")
+    p = as_pencil(sys, A, fname="is_regular", balance=balance)
     return deflate(p, tol).failed is None
 
 
@@ -95,7 +95,7 @@ def _sort_poles(z: np.ndarray) -> np.ndarray:
     return z[np.lexsort((z.imag, np.round(z.real / scale, 9)))]
 
 
-def finite_poles(sys, A=None, *, tol: float | None = None) -> np.ndarray:
+def finite_poles(sys, A=None, *, tol: float | None = None, balance: bool = True) -> np.ndarray:
     r"""Finite generalized eigenvalues of $(E, A)$: the roots of $\det(sE - A)$.
 
     Host-only. The infinite eigenvalues are first removed by the orthogonal deflation
@@ -117,11 +117,11 @@ def finite_poles(sys, A=None, *, tol: float | None = None) -> np.ndarray:
 
     **Raises:** `fojax.IrregularSystemError` when the pencil is singular (no poles exist).
     """
-    p = as_pencil(sys, A, fname="finite_poles")
+    p = as_pencil(sys, A, fname="finite_poles", balance=balance)
     return _sort_poles(_poles_normalized(p, tol, "finite_poles") * p.pole_scale)
 
 
-def nilpotency_index(sys, A=None, *, tol: float | None = None) -> int:
+def nilpotency_index(sys, A=None, *, tol: float | None = None, balance: bool = True) -> int:
     r"""The nilpotency index $\nu$ of $N$ in the Weierstrass form (the DAE index).
 
     Convention: $\nu = 0$ when $E$ is invertible (no $N$ block, an ODE); $\nu = 1$ for a
@@ -138,11 +138,11 @@ def nilpotency_index(sys, A=None, *, tol: float | None = None) -> int:
 
     **Raises:** `fojax.IrregularSystemError` for a singular pencil.
     """
-    p = as_pencil(sys, A, fname="nilpotency_index")
+    p = as_pencil(sys, A, fname="nilpotency_index", balance=balance)
     return require_regular(p, "nilpotency_index", tol).index
 
 
-def is_impulse_free(sys, A=None, *, tol: float | None = None) -> bool:
+def is_impulse_free(sys, A=None, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""Whether the regular system has no impulsive modes.
 
     Equivalent conditions (thesis §2.1.2, Dai 1989): $N = 0$ in the Weierstrass form;
@@ -158,7 +158,7 @@ def is_impulse_free(sys, A=None, *, tol: float | None = None) -> bool:
     **Raises:** `fojax.IrregularSystemError` for a singular pencil (impulse-freeness is
     defined for regular systems only; `is_admissible` answers ``False`` instead).
     """
-    p = as_pencil(sys, A, fname="is_impulse_free")
+    p = as_pencil(sys, A, fname="is_impulse_free", balance=balance)
     return require_regular(p, "is_impulse_free", tol).index <= 1
 
 
@@ -176,6 +176,7 @@ def is_stable(
     margin: float = 0.0,
     axis_tol: float = AXIS_TOL,
     tol: float | None = None,
+    balance: bool = True,
 ) -> bool:
     r"""Whether every finite pole satisfies $\mathrm{Re}\,\lambda < -\text{margin}$.
 
@@ -199,7 +200,7 @@ def is_stable(
 
     **Raises:** `fojax.IrregularSystemError` for a singular pencil.
     """
-    p = as_pencil(sys, A, fname="is_stable")
+    p = as_pencil(sys, A, fname="is_stable", balance=balance)
     poles = _poles_normalized(p, tol, "is_stable") * p.pole_scale
     return _stable_np(poles, float(margin), float(axis_tol))
 
@@ -211,6 +212,7 @@ def is_admissible(
     margin: float = 0.0,
     axis_tol: float = AXIS_TOL,
     tol: float | None = None,
+    balance: bool = True,
 ) -> bool:
     r"""Whether $(E, A)$ is admissible: regular, impulse-free and stable.
 
@@ -220,7 +222,7 @@ def is_admissible(
 
     **Returns:** ``True`` or ``False``; ``False`` (no error) for a singular pencil.
     """
-    p = as_pencil(sys, A, fname="is_admissible")
+    p = as_pencil(sys, A, fname="is_admissible", balance=balance)
     d = deflate(p, tol)
     if d.failed is not None or d.index > 1:
         return False
