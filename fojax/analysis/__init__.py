@@ -14,8 +14,8 @@ uncertain samples): `impulse_free_margin`, `slow_matrix_index1`,
 
 **Units do not matter: balancing first.** Every host function first balances the
 system by an exact power-of-two diagonal scaling of equations and states,
-``(D_l E D_r, D_l A D_r, D_l B, C D_r)`` (factors of SLICOT ``TG01AD``, or ``TB01ID``
-when ``E = I``, rounded to powers of two so that no rounding is added; see
+``(D_l E D_r, D_l A D_r, D_l B, C D_r)`` (Ward's least-squares balancing, or SLICOT
+``TB01ID`` when ``E = I``, with powers of two so that no rounding is added; see
 `balance_system`). It changes no rank, eigenvalue, index or zero; ``balance=False``
 turns it off, and `structure_report` shows the scaling applied.
 
