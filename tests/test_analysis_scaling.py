@@ -246,3 +246,42 @@ def test_ward_least_squares_is_at_least_as_balanced_as_tg01ad():
         worse.append(objective(E, A, B, C, ours) - objective(E, A, B, C, ref))
         assert worse[-1] <= nnz, worse[-1]
     assert np.median(worse) <= 0
+
+
+# ------------------------------------------------------------------ one verdict, every layer
+
+
+def test_every_layer_takes_the_analysis_verdict_on_a_badly_scaled_ode():
+    """E = diag(1, 2^-40), A = diag(-1, -2^-40): an ODE with poles [-1, -1] (exact).
+    Before: design's check_regular called it irregular-free but control's reduce_host
+    split E at the unbalanced rank 1 and silently returned a 1-state model (pole -1 only),
+    and simulation called it impulsive. Now the host split is analysis's: 2 slow states;
+    simulation, whose traced split cannot balance, refuses with a typed InputError naming
+    the scaling instead of simulating a wrong model."""
+    from fojax.control._stepping import reduce_host
+    from fojax.design._conditions import check_regular
+    from fojax.simulation._reduction import check_index1_host
+
+    E, A = np.diag([1.0, 2.0**-40]), np.diag([-1.0, -(2.0**-40)])
+    sp = fa.index1_split(E, A)
+    assert sp.rank == 2 and sp.regular and sp.index == 0 and sp.impulse_free
+    check_regular(E, A, fname="test")  # no error: regular, as fa.is_regular says
+    As, _, _, _, _ = reduce_host(E, A, np.ones((2, 1)))
+    assert_eigenvalues_match(np.linalg.eigvals(As), fa.finite_poles(E, A), rtol=1e-12)
+    assert_eigenvalues_match(np.linalg.eigvals(As), [-1.0, -1.0], rtol=1e-12)
+    with pytest.raises(fojax.InputError, match="too badly scaled for simulation"):
+        check_index1_host(E, A)
+    check_index1_host(np.eye(2), A)  # the same model in balanced units is accepted
+
+
+def test_index1_split_verdicts_match_analysis():
+    """On the random systems of the property test: index1_split's (regular, index, rank)
+    are is_regular's, nilpotency_index's and structure_report's rank_E."""
+    rng = np.random.default_rng(11)
+    for _ in range(40):
+        (E, A, B, C), truth = _random_system(rng)
+        sp = fa.index1_split(E, A)
+        assert sp.regular == fa.is_regular(E, A) == truth["regular"]
+        if sp.regular:
+            assert sp.index == fa.nilpotency_index(E, A) == truth["index"]
+            assert sp.rank == np.linalg.matrix_rank(E)  # integer data: exact rank

@@ -89,6 +89,7 @@ from ._pencil import (
     nilpotency_index as nilpotency_index,
 )
 from ._report import structure_report as structure_report, StructureReport as StructureReport
+from ._split import index1_split as index1_split, Index1Split as Index1Split
 from ._traced import (
     functional_observability_gap as functional_observability_gap,
     impulse_free_margin as impulse_free_margin,
