@@ -52,6 +52,7 @@ from jaxtyping import Array, Float
 from .._errors import ImpulsiveSystemError, InputError, IrregularSystemError, ShapeError
 from .._linalg import rank as _host_rank, RANK_ATOL, RANK_RTOL
 from .._small_linalg import solve_small
+from ..analysis._traced import svd_split as svd_split, SVDSplit as SVDSplit
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..plant._descriptor import DescriptorSystem
 from ..plant._signals import Constant, Zero
@@ -165,35 +166,8 @@ def check_index1_host(E, J, *, jacobian_name: str = "A", where: str = "") -> Non
 # --------------------------------------------------------------------------- traced split
 
 
-class SVDSplit(eqx.Module):
-    r"""Full SVD coordinates of ``E`` with a slow mask (traceable, static shapes).
-
-    ``x = V z``; ``slow[i] = 1`` where ``σ_i`` counts as non-zero, else ``0``;
-    ``sigma`` holds ``σ_i`` on slow components and ``1`` on fast ones.
-    """
-
-    U: Float[Array, "n n"]
-    V: Float[Array, "n n"]
-    sigma: Float[Array, " n"]
-    slow: Float[Array, " n"]
-
-    @property
-    def fast(self):
-        return 1.0 - self.slow
-
-    def newton_matrix(self, J):
-        """``D_f J D_f + D_s``: Jacobian of the algebraic part w.r.t. the fast components."""
-        return J * self.fast[None, :] * self.fast[:, None] + jnp.diag(self.slow)
-
-
-def svd_split(E) -> SVDSplit:
-    """SVD split of ``stop_gradient(E)`` with the fojax rank tolerance (traceable)."""
-    E = lax.stop_gradient(jnp.asarray(E))
-    U, s, Vt = jnp.linalg.svd(E, full_matrices=True)
-    tol = jnp.maximum(RANK_RTOL * s[0], RANK_ATOL)
-    slow = (s > tol).astype(E.dtype)
-    sigma = jnp.where(s > tol, s, 1.0)
-    return SVDSplit(U, Vt.T, sigma, slow)
+# SVDSplit / svd_split live in fojax.analysis._traced (analysis owns the split of E);
+# imported above and re-exported here for the simulation and studies modules.
 
 
 def _sg(tree):
