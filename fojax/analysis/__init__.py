@@ -34,6 +34,11 @@ to override it. The design layer calls these same functions (`is_regular`'s defl
 Stability uses a separate imaginary-axis tolerance ``AXIS_TOL = 1e-9`` (see
 `is_stable`).
 
+**The index-1 split of (E, A) lives here.** `index1_split` (host: the SVD coordinates of
+``E`` split at analysis's rank, with `is_regular`/`nilpotency_index`'s verdict) is what
+control (`reduce_host`, state feedback) and simulation (`check_index1_host`) call;
+`fojax.analysis._traced.svd_split` is its traceable twin for code under ``jit``.
+
 **Kronecker structure and zeros** (reference-software analysis, SLICOT ``AG08BD``):
 `kronecker_structure` (square or non-square pencils: normal rank, minimal indices,
 infinite elementary divisors, finite eigenvalues), `system_zeros` (invariant zeros of
