@@ -285,3 +285,32 @@ def test_index1_split_verdicts_match_analysis():
         if sp.regular:
             assert sp.index == fa.nilpotency_index(E, A) == truth["index"]
             assert sp.rank == np.linalg.matrix_rank(E)  # integer data: exact rank
+
+
+def test_e_perp_decides_rank_e_after_balancing():
+    """E = diag(1, 2^-40, 0) has rank 2 exactly: one row in E⊥ (was two without
+    balancing, which made E⊥A contain an equation of the dynamics)."""
+    E = np.diag([1.0, 2.0**-40, 0.0])
+    N = fa.e_perp(E)
+    assert N.shape == (1, 3) and np.allclose(np.abs(N), [[0.0, 0.0, 1.0]], atol=0)
+    assert fa.e_perp(E, balance=False).shape == (2, 3)
+
+
+def test_functional_observability_does_not_change_under_scalings():
+    """Assumption 1 for random L on the random systems, with equations, states (and L's
+    columns with them) scaled by 2^k, |k| <= 40: the same verdict (the rank pair is
+    invariant: L D_r, D_l E D_r, ... have the ranks of L, E, ...)."""
+    rng = np.random.default_rng(5)
+    seen = set()
+    for _ in range(60):
+        (E, A, B, C), truth = _random_system(rng)
+        n = E.shape[0]
+        L = rng.integers(-2, 3, (int(rng.integers(1, 3)), n)).astype(float)
+        v0 = fa.is_functionally_observable(fojax.DescriptorSystem(E, A, B, C), L)
+        el, er = rng.integers(-40, 41, n), rng.integers(-40, 41, n)
+        Es, As, Bs, Cs = _scaled(E, A, B, C, el, er)
+        v1 = fa.is_functionally_observable(fojax.DescriptorSystem(Es, As, Bs, Cs),
+                                           L * _two(er)[None, :])  # fmt: skip
+        assert v0 == v1
+        seen.add(v0)
+    assert seen == {True, False}

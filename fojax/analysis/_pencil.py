@@ -13,6 +13,7 @@ from .._dtype import as_matrix, to_numpy
 from .._errors import IrregularSystemError
 from .._linalg import left_null_space
 from ..plant import DescriptorSystem
+from ._balance import apply_scaling, scaling_of
 from ._common import as_pencil, deflate, Deflation, Pencil, require_regular
 
 
@@ -21,7 +22,7 @@ from ._common import as_pencil, deflate, Deflation, Pencil, require_regular
 AXIS_TOL = 1e-9
 
 
-def e_perp(E, tol: float | None = None) -> np.ndarray:
+def e_perp(E, tol: float | None = None, *, balance: bool = True) -> np.ndarray:
     r"""The thesis's $E^\perp$: orthonormal rows spanning the left null space of `E`.
 
     $E^\perp E = 0$ and $E^\perp (E^\perp)^T = I$. Host-only (SVD with a rank decision).
@@ -30,7 +31,11 @@ def e_perp(E, tol: float | None = None) -> np.ndarray:
 
     - `E`: an ``(n, n)`` matrix, or a `fojax.DescriptorSystem` (its ``E`` is used).
     - `tol`: absolute singular-value threshold overriding the fojax rank tolerance
-      (``max(RANK_RTOL * s_max, RANK_ATOL)``, see `fojax._linalg`).
+      (``max(RANK_RTOL * s_max, RANK_ATOL)``, see `fojax._linalg`), applied to the
+      balanced ``E``.
+    - `balance`: the rank of ``E`` is decided on ``D_l E D_r`` (exact powers of two,
+      `balance_system`); the null space found there is mapped back (``N D_l``, then
+      orthonormalised: still ``E⊥ E = 0``). ``False`` decides on the raw ``E``.
 
     **Returns:** a float64 NumPy array of shape ``(n - rank E, n)``; ``(0, n)`` when `E`
     is invertible (and ``(0, 0)`` when ``n = 0``).
@@ -38,7 +43,15 @@ def e_perp(E, tol: float | None = None) -> np.ndarray:
     if isinstance(E, DescriptorSystem):
         E = E.E
     E = to_numpy(as_matrix("E", E))
-    return left_null_space(E, tol)
+    sc = scaling_of(E, np.zeros_like(E), balance=balance)
+    if sc.identity:
+        return left_null_space(E, tol)
+    dl = sc.left
+    Nb = left_null_space(apply_scaling(sc, E, E)[0], tol)
+    if Nb.shape[0] == 0:
+        return Nb
+    Q, _ = np.linalg.qr((Nb * dl[None, :]).T)
+    return Q.T.copy()
 
 
 def is_regular(sys, A=None, *, tol: float | None = None, balance: bool = True) -> bool:
