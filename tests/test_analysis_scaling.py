@@ -314,3 +314,15 @@ def test_functional_observability_does_not_change_under_scalings():
         assert v0 == v1
         seen.add(v0)
     assert seen == {True, False}
+
+
+def test_balance_system_is_an_exact_power_of_two_equivalence():
+    """The balanced matrices are exactly D_l E D_r, ... (bit for bit: powers of two), the
+    exponents are integers, and balancing undoes a scaling of the issue's 2^36 size."""
+    E, A = np.diag([1.0, 1e-11]), np.diag([-1.0, -1e-11])
+    b = fa.balance_system(E, A)
+    dl, dr = b.scaling.left, b.scaling.right
+    assert np.array_equal(b.E, dl[:, None] * E * dr) and np.array_equal(b.A, dl[:, None] * A * dr)
+    assert np.array_equal(np.log2(dl), np.rint(np.log2(dl)))
+    assert np.max(np.abs(b.E)) / np.min(np.abs(b.E[b.E != 0])) < 4.0
+    assert fa.balance_system(E, A, balance=False).scaling.identity
