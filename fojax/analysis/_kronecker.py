@@ -284,9 +284,12 @@ def properness(sys: DescriptorSystem, *, tol: float | None = None,
     ``D`` does not affect properness. Raises `fojax.IrregularSystemError` for a singular
     pencil (no transfer function).
     """
+    from ._common import as_system, require_regular
     from ._weierstrass import weierstrass_form
 
     _system(sys, None, "properness")
+    if require_regular(as_system(sys, "properness", balance), "properness", tol).index <= 1:
+        return Properness(True, (), ())  # N = 0: no polynomial part
     w = weierstrass_form(sys, tol=tol, balance=balance)
     mk, ref = [], []
     if w.n2:
