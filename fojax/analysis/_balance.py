@@ -153,7 +153,8 @@ def _ward_exponents(E, A, B, C) -> tuple[np.ndarray, np.ndarray]:
     does not pull the states' exponents. Exact zeros are left out (as ``TG01AD`` with
     ``thresh = 0``: a relative threshold would drop the small entries of a badly scaled
     model, the ones balancing must see). The normal equations (size ``l + n + 4``) are
-    solved by `numpy.linalg.lstsq` (minimum norm, which fixes the free common shifts).
+    solved for their minimum-norm solution (symmetric eigen-decomposition; the minimum
+    norm fixes the free common shifts).
     """
     l, n = E.shape
     N = l + n + 4
@@ -186,7 +187,11 @@ def _ward_exponents(E, A, B, C) -> tuple[np.ndarray, np.ndarray]:
         if M is E or M is A:
             G[L, R] += k
             G[R, L] += k.T
-    x = np.linalg.lstsq(G, rhs, rcond=None)[0]
+    # Minimum-norm solution through the eigen-decomposition of the symmetric PSD G
+    # (the null directions are the free common shifts).
+    w, V = np.linalg.eigh(G)
+    keep = w > 1e-9 * max(float(w[-1]), 1.0)
+    x = V[:, keep] @ ((V[:, keep].T @ rhs) / w[keep])
     e = np.clip(np.rint(x[: l + n]), -_MAX_EXP, _MAX_EXP).astype(int)
     return e[:l], e[l:]
 
