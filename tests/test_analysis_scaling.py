@@ -326,3 +326,21 @@ def test_balance_system_is_an_exact_power_of_two_equivalence():
     assert np.array_equal(np.log2(dl), np.rint(np.log2(dl)))
     assert np.max(np.abs(b.E)) / np.min(np.abs(b.E[b.E != 0])) < 4.0
     assert fa.balance_system(E, A, balance=False).scaling.identity
+
+
+def test_example_4_1_3_in_tiny_units_of_x4_is_regular_again():
+    """Stop 20's known consequence: thesis example 4.1.3 with x4 in units of 2^-34 was
+    refused by design as irregular (unit-dependent verdict). Now analysis and design's
+    check_regular accept it, with the poles of the unscaled model."""
+    import tomllib
+    from importlib.resources import files
+
+    from fojax.design._conditions import check_regular
+
+    d = tomllib.loads(files("fojax.examples").joinpath("example_4_1_3.toml").read_text())
+    E, A = (np.array(d["model"][k], float) for k in ("E", "A"))
+    dr = np.array([1.0, 1.0, 1.0, 2.0**-34])
+    assert not fa.is_regular(E * dr, A * dr, balance=False)  # the old verdict
+    assert fa.is_regular(E * dr, A * dr)
+    check_regular(E * dr, A * dr, fname="test")
+    assert_eigenvalues_match(fa.finite_poles(E * dr, A * dr), fa.finite_poles(E, A), rtol=1e-10)
