@@ -150,9 +150,12 @@ def _ward_exponents(E, A, B, C) -> tuple[np.ndarray, np.ndarray]:
     and ``C`` (no $\ell_i$), with one free offset $o_X$ per block. The offsets make the
     exponents independent of the scale of each block, which the analysis removes anyway
     (each block is divided by its norm): so ``C`` in huge units or ``E`` in tiny ones
-    does not pull the states' exponents. Exact zeros are left out (as ``TG01AD`` with
-    ``thresh = 0``: a relative threshold would drop the small entries of a badly scaled
-    model, the ones balancing must see). The normal equations (size ``l + n + 4``) are
+    does not pull the states' exponents. Exact zeros are left out and so are round-off
+    entries: at most ``2^-52 max(l, n)`` times the largest entry of both their row and
+    their column within the block (a threshold relative to the whole block would drop the
+    small entries of a badly scaled model, the ones balancing must see; one relative to
+    the row and the column keeps them, since an exact scaling changes a row and a column
+    together). The normal equations (size ``l + n + 4``) are
     solved for their minimum-norm solution (symmetric eigen-decomposition; the minimum
     norm fixes the free common shifts).
     """
@@ -162,8 +165,17 @@ def _ward_exponents(E, A, B, C) -> tuple[np.ndarray, np.ndarray]:
     rhs = np.zeros(N)
     L, R = slice(0, l), slice(l, l + n)
 
+    tau = 2.0**-52 * max(l, n, 1)
+
     def nz(M):
-        mask = M != 0
+        # Round-off entries (at most tau times the largest entry of BOTH their row and
+        # their column in the block, e.g. 1e-19 next to 1e4 left by a product that should
+        # be zero) are left out: balancing would blow them up to the size of the data.
+        a = np.abs(M)
+        rmax = a.max(axis=1, keepdims=True)
+        cmax = a.max(axis=0, keepdims=True)
+        mask = (a > tau * rmax) | (a > tau * cmax) if M.ndim == 2 and M.size else a > 0
+        mask &= a > 0
         lg = np.where(mask, np.log2(np.where(mask, np.abs(M), 1.0)), 0.0)
         return mask.astype(float), lg
 
