@@ -154,8 +154,9 @@ def _ward_exponents(E, A, B, C) -> tuple[np.ndarray, np.ndarray]:
     entries: at most ``2^-52 max(l, n)`` times the largest entry of both their row and
     their column within the block (a threshold relative to the whole block would drop the
     small entries of a badly scaled model, the ones balancing must see; one relative to
-    the row and the column keeps them, since an exact scaling changes a row and a column
-    together). The normal equations (size ``l + n + 4``) are
+    the row and the column keeps most of them, since an exact scaling changes a row and a
+    column together). This is a heuristic: no rule tells round-off from a genuinely tiny
+    entry in general; `tests/test_analysis_scaling.py` measures it on both kinds. The normal equations (size ``l + n + 4``) are
     solved for their minimum-norm solution (symmetric eigen-decomposition; the minimum
     norm fixes the free common shifts).
     """
