@@ -190,14 +190,14 @@ def _same_poles(z, truth):
 
 
 def test_verdicts_and_poles_do_not_change_under_power_of_two_scalings():
-    """300 random systems (n <= 9) with exactly known structure, each also under a random
+    """200 random systems (n <= 9) with exactly known structure, each also under a random
     exact scaling of equations and states by 2^k, |k| <= 40. Every verdict (regularity,
     n1, index, R/I observability and controllability) and every pole (relative 1e-8)
     must agree; regularity, n1, index and poles also with the construction (repeated
     poles: see `_same_poles`)."""
     rng = np.random.default_rng(20261126)
     changed_without_balancing = 0
-    for trial in range(300):
+    for trial in range(200):
         (E, A, B, C), truth = _random_system(rng)
         n = E.shape[0]
         v0, z0 = _verdicts(E, A, B, C)
@@ -211,7 +211,7 @@ def test_verdicts_and_poles_do_not_change_under_power_of_two_scalings():
         assert v1 == v0, (trial, v0, v1, el, er)
         if truth["regular"]:
             _same_poles(z1, truth["poles"])
-        if trial < 60:  # the test has teeth: without balancing, verdicts change
+        if trial < 40:  # the test has teeth: without balancing, verdicts change
             p = as_system(fojax.DescriptorSystem(*scaled), "t", balance=False)
             changed_without_balancing += (deflate(p, None).failed is None) != v0["regular"] or (
                 v0["regular"] and deflate(p, None).n1 != v0["n1"])
