@@ -9,6 +9,16 @@ versions (prefix ``j``) are traceable and differentiable where the rank is fixed
 overall scale of a matrix; the absolute floor makes a matrix of round-off
 (e.g. ``1e-17``) count as zero. Both can be overridden per call with ``tol=``
 (an absolute threshold).
+
+**Relative to what.** ``s_max`` is the largest singular value of the matrix whose rank
+is decided. Host analysis (`fojax.analysis`, and the design layer through it) never
+applies the rule to raw user data: it first balances the system by an exact
+power-of-two diagonal scaling of equations and states (`fojax.analysis.balance_system`),
+then divides each block ``E``, ``A``, ``B``, ``C``, ``L`` by its spectral norm, and
+only then decides ranks of the block matrices built from them. So a verdict does not
+change with the units of the equations or the states. SLICOT's ``AG08BD``
+(`fojax.kronecker_structure`) gets the same data with ``tol = RANK_RTOL``. This is the
+one place the rule is defined; `fojax.analysis` documents how it is applied.
 """
 
 from __future__ import annotations

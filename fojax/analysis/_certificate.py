@@ -70,6 +70,7 @@ def admissibility_certificate(
     eps: float = 1e-8,
     max_iters: int = 200_000,
     tol: float | None = None,
+    balance: bool = True,
 ) -> AdmissibilityCertificate:
     r"""Solve and verify the strict LMI certificate of admissibility (Theorem 2.1.3).
 
@@ -115,7 +116,7 @@ def admissibility_certificate(
     """
     import cvxpy as cp
 
-    p = as_pencil(sys, A, fname="admissibility_certificate")
+    p = as_pencil(sys, A, fname="admissibility_certificate", balance=balance)
     n = p.n
     if n == 0:
         z = np.zeros((0, 0))
@@ -171,7 +172,16 @@ def admissibility_certificate(
     Xv = np.asarray(X.value, dtype=float)
     Xv = _sym(Xv)
     Phiv = np.asarray(Phi.value, dtype=float) if Phi is not None else np.zeros((0, n))
-    P = Xv @ En + S @ Phiv
+    # Back from the balanced, normalised pencil (Dl E Dr / e, Dl A Dr / a) to (E, A):
+    # P = Dl Pb Dr^-1 gives E^T P = e Dr^-1 (Eb^T Pb) Dr^-1 (a congruence, so the
+    # conditions carry over), and P = X E + S Phi with X = Dl Xb Dl / e, S Phi = Dl Sb Phi_b Dr^-1.
+    dl, dr = p.scaling.left, p.scaling.right
+    e = float(np.linalg.norm(dl[:, None] * p.E * dr[None, :], 2)) or 1.0
+    Xv = _sym(dl[:, None] * Xv * dl[None, :] / e)
+    if k:
+        S, R = np.linalg.qr(dl[:, None] * S)
+        Phiv = (R @ Phiv) / dr[None, :]
+    P = Xv @ p.E + S @ Phiv
 
     # float64 re-check on the ORIGINAL matrices.
     E, A_ = p.E, p.A

@@ -1,8 +1,9 @@
 """Input handling and rank helpers shared by the host-side analysis functions.
 
 Every host function first turns its argument into float64 NumPy matrices, then
-*normalises* them: ``E``, ``A``, ``B``, ``C`` are each divided by their spectral
-norm (a zero matrix is left alone). Normalisation changes neither ranks nor the
+*balances* them by an exact power-of-two diagonal scaling of equations and states
+(`fojax.analysis._balance`; ``balance=False`` skips it), then *normalises* them:
+``E``, ``A``, ``B``, ``C`` are each divided by their spectral norm (a zero matrix is left alone). Normalisation changes neither ranks nor the
 sign of any pole (the finite poles of ``(E/e, A/a)`` are those of ``(E, A)``
 multiplied by ``e/a > 0``), but it makes the single relative rank tolerance of
 `fojax._linalg` meaningful for block matrices such as ``[[E, A], [0, E]]`` whose
@@ -20,6 +21,7 @@ from .._dtype import as_matrix, to_numpy
 from .._errors import InputError, IrregularSystemError, ShapeError
 from .._linalg import _threshold, RANK_ATOL, RANK_RTOL
 from ..plant import DescriptorSystem
+from ._balance import apply_scaling, Scaling, scaling_of
 
 
 def crank(M, tol: float | None = None) -> int:
@@ -46,7 +48,10 @@ def _unit(M: np.ndarray) -> tuple[np.ndarray, float]:
 
 @dataclass(frozen=True)
 class Pencil:
-    """Host copy of a system, raw and normalised (internal)."""
+    """Host copy of a system: raw (``E``...), and balanced then normalised (``En``...).
+
+    ``En = D_l E D_r / ‖D_l E D_r‖`` etc. with the power-of-two `scaling`.
+    """
 
     E: np.ndarray
     A: np.ndarray
@@ -59,6 +64,7 @@ class Pencil:
     #: finite poles of (E, A) = pole_scale * finite poles of (En, An)
     pole_scale: float
     has_io: bool
+    scaling: Scaling | None = None
 
     @property
     def n(self) -> int:
@@ -86,10 +92,11 @@ def _host(name: str, M) -> np.ndarray:
     return M
 
 
-def as_pencil(sys, A=None, *, fname: str = "this function") -> Pencil:
+def as_pencil(sys, A=None, *, fname: str = "this function", balance: bool = True) -> Pencil:
     """Accept a `DescriptorSystem`, or raw matrices ``(E, A)``.
 
-    With raw matrices ``B`` and ``C`` are empty (``m = p = 0``).
+    With raw matrices ``B`` and ``C`` are empty (``m = p = 0``). The system is balanced
+    (`fojax.analysis._balance`, unless ``balance=False``) and then normalised.
     """
     if isinstance(sys, DescriptorSystem):
         if A is not None:
@@ -119,21 +126,23 @@ def as_pencil(sys, A=None, *, fname: str = "this function") -> Pencil:
         B = np.zeros((n, 0))
         C = np.zeros((0, n))
         has_io = False
-    En, e = _unit(E)
-    An, a = _unit(A_)
-    Bn, _ = _unit(B)
-    Cn, _ = _unit(C)
-    return Pencil(E, A_, B, C, En, An, Bn, Cn, a / e, has_io)
+    sc = scaling_of(E, A_, B, C, balance=balance)
+    Eb, Ab, Bb, Cb = apply_scaling(sc, E, A_, B, C)
+    En, e = _unit(Eb)
+    An, a = _unit(Ab)
+    Bn, _ = _unit(Bb)
+    Cn, _ = _unit(Cb)
+    return Pencil(E, A_, B, C, En, An, Bn, Cn, a / e, has_io, sc)
 
 
-def as_system(sys, fname: str) -> Pencil:
+def as_system(sys, fname: str, balance: bool = True) -> Pencil:
     """Like `as_pencil` but a `DescriptorSystem` is required (B and C are needed)."""
     if not isinstance(sys, DescriptorSystem):
         raise InputError(
             f"{fname} needs a fojax.DescriptorSystem (it uses B and/or C), got "
             f"{type(sys).__name__}. Build one with fojax.DescriptorSystem(E, A, B, C)."
         )
-    return as_pencil(sys, fname=fname)
+    return as_pencil(sys, fname=fname, balance=balance)
 
 
 @dataclass(frozen=True)

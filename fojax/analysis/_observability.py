@@ -28,6 +28,7 @@ import numpy as np
 
 from .._linalg import clusters, left_null_space, rank
 from ..plant import check_functional, DescriptorSystem
+from ._balance import apply_scaling, scaling_of
 from ._common import _unit, as_system, crank, Pencil, require_regular
 from ._pencil import _poles_normalized, AXIS_TOL
 
@@ -101,8 +102,8 @@ def _i_ctrl(p: Pencil, tol) -> bool:
     return crank(M, tol) == n + rank(p.En, tol)
 
 
-def _prep(sys, fname, tol) -> Pencil:
-    p = as_system(sys, fname)
+def _prep(sys, fname, tol, balance=True) -> Pencil:
+    p = as_system(sys, fname, balance)
     require_regular(p, fname, tol)
     return p
 
@@ -112,24 +113,25 @@ _ARGS = """
 
     - `sys`: a `fojax.DescriptorSystem`.
     - `tol`: absolute rank threshold overriding the fojax tolerance (applied to the
-      normalised matrices).
+      balanced, normalised matrices).
+    - `balance`: ``False`` skips the power-of-two balancing (`fojax.analysis.balance_system`).
 
     **Raises:** `fojax.IrregularSystemError` for a singular pencil.
 """
 
 
-def is_r_observable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+def is_r_observable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""R-observability (observable within the reachable set; Dai 1989).
 
     $\mathrm{rank}\begin{bmatrix}sE-A\\C\end{bmatrix} = n$ for every finite $s$,
     equivalently at every finite pole; equivalently the slow subsystem $(A_1, C_1)$ of
     the Weierstrass form is observable. True when there are no finite poles. Host-only.
     """
-    p = _prep(sys, "is_r_observable", tol)
+    p = _prep(sys, "is_r_observable", tol, balance)
     return _r_obs(p, tol, "is_r_observable")
 
 
-def is_i_observable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+def is_i_observable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""I-observability (impulse observability; Dai 1989).
 
     $\mathrm{rank}\begin{bmatrix}E&A\\0&E\\0&C\end{bmatrix} = n + \mathrm{rank}\,E$,
@@ -137,59 +139,59 @@ def is_i_observable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
     orders the block rows as $[E, A; 0, C; 0, E]$, which has the same rank). Every
     impulse-free system is I-observable. Host-only.
     """
-    p = _prep(sys, "is_i_observable", tol)
+    p = _prep(sys, "is_i_observable", tol, balance)
     return _i_obs(p, tol)
 
 
-def is_c_observable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+def is_c_observable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""C-observability (complete observability; Dai 1989, thesis Def. 2.1.7).
 
     R-observable and $\mathrm{rank}\begin{bmatrix}E\\C\end{bmatrix} = n$ (the latter is
     observability of the fast subsystem $(N, C_2)$). Implies S-observability. Host-only.
     """
-    p = _prep(sys, "is_c_observable", tol)
+    p = _prep(sys, "is_c_observable", tol, balance)
     return crank(np.vstack([p.En, p.Cn]), tol) == p.n and _r_obs(p, tol, "is_c_observable")
 
 
-def is_s_observable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+def is_s_observable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""S-observability (strong observability): R-observable and I-observable. Host-only."""
-    p = _prep(sys, "is_s_observable", tol)
+    p = _prep(sys, "is_s_observable", tol, balance)
     return _i_obs(p, tol) and _r_obs(p, tol, "is_s_observable")
 
 
-def is_r_controllable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+def is_r_controllable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""R-controllability (controllable within the reachable set; Dai 1989, thesis Def. 2.1.5).
 
     $\mathrm{rank}[sE-A,\;B] = n$ at every finite pole; equivalently $(A_1, B_1)$ is
     controllable. True when there are no finite poles. Host-only.
     """
-    p = _prep(sys, "is_r_controllable", tol)
+    p = _prep(sys, "is_r_controllable", tol, balance)
     return _r_ctrl(p, tol, "is_r_controllable")
 
 
-def is_i_controllable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+def is_i_controllable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""I-controllability (impulse controllability; Dai 1989, thesis Def. 2.1.6).
 
     $\mathrm{rank}\begin{bmatrix}E&0&0\\A&E&B\end{bmatrix} = n + \mathrm{rank}\,E$.
     Holds iff some state feedback $u = Kx$ makes $(E, A+BK)$ impulse-free. Every
     impulse-free system is I-controllable. Host-only.
     """
-    p = _prep(sys, "is_i_controllable", tol)
+    p = _prep(sys, "is_i_controllable", tol, balance)
     return _i_ctrl(p, tol)
 
 
-def is_c_controllable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+def is_c_controllable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""C-controllability (complete controllability; Dai 1989, thesis Def. 2.1.4).
 
     R-controllable and $\mathrm{rank}[E,\;B] = n$. Host-only.
     """
-    p = _prep(sys, "is_c_controllable", tol)
+    p = _prep(sys, "is_c_controllable", tol, balance)
     return crank(np.hstack([p.En, p.Bn]), tol) == p.n and _r_ctrl(p, tol, "is_c_controllable")
 
 
-def is_s_controllable(sys: DescriptorSystem, *, tol: float | None = None) -> bool:
+def is_s_controllable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""S-controllability (strong controllability): R- and I-controllable. Host-only."""
-    p = _prep(sys, "is_s_controllable", tol)
+    p = _prep(sys, "is_s_controllable", tol, balance)
     return _i_ctrl(p, tol) and _r_ctrl(p, tol, "is_s_controllable")
 
 
@@ -199,6 +201,7 @@ def is_detectable(
     impulse: bool = True,
     axis_tol: float = AXIS_TOL,
     tol: float | None = None,
+    balance: bool = True,
 ) -> bool:
     r"""Detectability of a regular descriptor system.
 
@@ -211,7 +214,7 @@ def is_detectable(
     ``impulse=False`` only the finite-mode condition (Dai's plain "detectable") is tested.
     Host-only.
     """
-    p = _prep(sys, "is_detectable", tol)
+    p = _prep(sys, "is_detectable", tol, balance)
     if impulse and not _i_obs(p, tol):
         return False
     return _r_obs(p, tol, "is_detectable", unstable_only=True, axis_tol=axis_tol)
@@ -223,6 +226,7 @@ def is_stabilizable(
     impulse: bool = True,
     axis_tol: float = AXIS_TOL,
     tol: float | None = None,
+    balance: bool = True,
 ) -> bool:
     r"""Stabilizability of a regular descriptor system (dual of `is_detectable`).
 
@@ -230,7 +234,7 @@ def is_stabilizable(
     $\mathrm{Re}\,s \ge 0$, and (default `impulse=True`) I-controllability; together they
     are equivalent to the existence of $K$ with $(E, A + BK)$ admissible. Host-only.
     """
-    p = _prep(sys, "is_stabilizable", tol)
+    p = _prep(sys, "is_stabilizable", tol, balance)
     if impulse and not _i_ctrl(p, tol):
         return False
     return _r_ctrl(p, tol, "is_stabilizable", unstable_only=True, axis_tol=axis_tol)
@@ -258,13 +262,15 @@ is_impulse_controllable = is_i_controllable
 
 
 def functional_rank_pair(E, A, C, L, *, D=None, output_only: bool = False,
-                         tol: float | None = None) -> tuple[int, int]:
+                         tol: float | None = None, balance: bool = True) -> tuple[int, int]:
     r"""``(rank [L; Γ], rank Γ)`` with $\Gamma = [E; E^\perp A; C]$ on normalised blocks (host-only).
 
     The one functional-observability rank test of fojax (`is_functionally_observable`,
     `structure_report` and every observer design call it). Each block is divided by its
-    spectral norm (``E``, ``A``, ``C``, ``L``, and ``D``) before the rank decisions, so
-    the verdict does not change with the units of the equations, outputs or functional.
+    spectral norm (``E``, ``A``, ``C``, ``L``, and ``D``) before the rank decisions, after
+    the exact power-of-two balancing of ``(E, A, C)`` (`fojax.analysis.balance_system`;
+    ``L`` is scaled with the states, ``D`` with the equations), so the verdict does not
+    change with the units of the equations, states, outputs or functional.
 
     **Arguments:**
 
@@ -273,8 +279,14 @@ def functional_rank_pair(E, A, C, L, *, D=None, output_only: bool = False,
       of $[E\;D]$ (the unknown-input observer, `fojax.design.design_unknown_input_observer`).
     - `output_only`: $\Gamma = [E; C]$ (the Takagi–Sugeno observer measures $y$ only).
     - `tol`: absolute rank threshold on the normalised blocks.
+    - `balance`: ``False`` skips the balancing.
     """
     E, A, C, L = (np.asarray(x, dtype=float) for x in (E, A, C, L))
+    sc = scaling_of(E, A, None, C, balance=balance)
+    E, A, _, C = apply_scaling(sc, E, A, None, C)
+    L = L * sc.right[None, :]
+    if D is not None:
+        D = sc.left[:, None] * np.asarray(D, dtype=float)
     En, An, Cn, Ln = (_unit(M)[0] for M in (E, A, C, L))
     if output_only:
         Gamma = np.vstack([En, Cn])
@@ -285,14 +297,16 @@ def functional_rank_pair(E, A, C, L, *, D=None, output_only: bool = False,
     return rank(np.vstack([Ln, Gamma]), tol), rank(Gamma, tol)
 
 
-def functional_ranks(sys: DescriptorSystem, L, *, tol: float | None = None) -> tuple[int, int]:
+def functional_ranks(sys: DescriptorSystem, L, *, tol: float | None = None,
+                     balance: bool = True) -> tuple[int, int]:
     r"""``(rank [L; E; E⊥A; C], rank [E; E⊥A; C])`` on normalised blocks (host-only)."""
-    p = as_system(sys, "is_functionally_observable")
+    p = as_system(sys, "is_functionally_observable", balance=False)
     L = np.asarray(check_functional(sys, L), dtype=float)
-    return functional_rank_pair(p.E, p.A, p.C, L, tol=tol)
+    return functional_rank_pair(p.E, p.A, p.C, L, tol=tol, balance=balance)
 
 
-def is_functionally_observable(sys: DescriptorSystem, L, *, tol: float | None = None) -> bool:
+def is_functionally_observable(sys: DescriptorSystem, L, *, tol: float | None = None,
+                               balance: bool = True) -> bool:
     r"""Assumption 1 (Darouach 2012): the functional $z = Lx$ is observable.
 
     $$\mathrm{rank}\begin{bmatrix}L\\E\\E^\perp A\\C\end{bmatrix}
@@ -310,5 +324,5 @@ def is_functionally_observable(sys: DescriptorSystem, L, *, tol: float | None = 
     - `tol`: absolute rank threshold overriding the fojax tolerance (applied to the
       normalised blocks ``L/‖L‖``, ``E/‖E‖``, ``E⊥A/‖A‖``, ``C/‖C‖``).
     """
-    a, b = functional_ranks(sys, L, tol=tol)
+    a, b = functional_ranks(sys, L, tol=tol, balance=balance)
     return a == b

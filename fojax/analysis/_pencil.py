@@ -13,6 +13,7 @@ from .._dtype import as_matrix, to_numpy
 from .._errors import IrregularSystemError
 from .._linalg import left_null_space
 from ..plant import DescriptorSystem
+from ._balance import apply_scaling, scaling_of
 from ._common import as_pencil, deflate, Deflation, Pencil, require_regular
 
 
@@ -21,7 +22,7 @@ from ._common import as_pencil, deflate, Deflation, Pencil, require_regular
 AXIS_TOL = 1e-9
 
 
-def e_perp(E, tol: float | None = None) -> np.ndarray:
+def e_perp(E, tol: float | None = None, *, balance: bool = True) -> np.ndarray:
     r"""The thesis's $E^\perp$: orthonormal rows spanning the left null space of `E`.
 
     $E^\perp E = 0$ and $E^\perp (E^\perp)^T = I$. Host-only (SVD with a rank decision).
@@ -30,7 +31,11 @@ def e_perp(E, tol: float | None = None) -> np.ndarray:
 
     - `E`: an ``(n, n)`` matrix, or a `fojax.DescriptorSystem` (its ``E`` is used).
     - `tol`: absolute singular-value threshold overriding the fojax rank tolerance
-      (``max(RANK_RTOL * s_max, RANK_ATOL)``, see `fojax._linalg`).
+      (``max(RANK_RTOL * s_max, RANK_ATOL)``, see `fojax._linalg`), applied to the
+      balanced ``E``.
+    - `balance`: the rank of ``E`` is decided on ``D_l E D_r`` (exact powers of two,
+      `balance_system`); the null space found there is mapped back (``N D_l``, then
+      orthonormalised: still ``E⊥ E = 0``). ``False`` decides on the raw ``E``.
 
     **Returns:** a float64 NumPy array of shape ``(n - rank E, n)``; ``(0, n)`` when `E`
     is invertible (and ``(0, 0)`` when ``n = 0``).
@@ -38,10 +43,18 @@ def e_perp(E, tol: float | None = None) -> np.ndarray:
     if isinstance(E, DescriptorSystem):
         E = E.E
     E = to_numpy(as_matrix("E", E))
-    return left_null_space(E, tol)
+    sc = scaling_of(E, np.zeros_like(E), balance=balance)
+    if sc.identity:
+        return left_null_space(E, tol)
+    dl = sc.left
+    Nb = left_null_space(apply_scaling(sc, E, E)[0], tol)
+    if Nb.shape[0] == 0:
+        return Nb
+    Q, _ = np.linalg.qr((Nb * dl[None, :]).T)
+    return Q.T.copy()
 
 
-def is_regular(sys, A=None, *, tol: float | None = None) -> bool:
+def is_regular(sys, A=None, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""Whether the pencil is regular: $\det(sE - A) \not\equiv 0$ (thesis Def. 2.1.1).
 
     Host-only. Decided by the orthogonal deflation of the infinite eigenvalues
@@ -63,7 +76,7 @@ def is_regular(sys, A=None, *, tol: float | None = None) -> bool:
     **Returns:** ``True`` or ``False`` (``True`` for ``n = 0``). Never raises for a
     singular pencil.
     """
-    p = as_pencil(sys, A, fname="is_regular")
+    p = as_pencil(sys, A, fname="is_regular", balance=balance)
     return deflate(p, tol).failed is None
 
 
@@ -95,7 +108,7 @@ def _sort_poles(z: np.ndarray) -> np.ndarray:
     return z[np.lexsort((z.imag, np.round(z.real / scale, 9)))]
 
 
-def finite_poles(sys, A=None, *, tol: float | None = None) -> np.ndarray:
+def finite_poles(sys, A=None, *, tol: float | None = None, balance: bool = True) -> np.ndarray:
     r"""Finite generalized eigenvalues of $(E, A)$: the roots of $\det(sE - A)$.
 
     Host-only. The infinite eigenvalues are first removed by the orthogonal deflation
@@ -117,11 +130,11 @@ def finite_poles(sys, A=None, *, tol: float | None = None) -> np.ndarray:
 
     **Raises:** `fojax.IrregularSystemError` when the pencil is singular (no poles exist).
     """
-    p = as_pencil(sys, A, fname="finite_poles")
+    p = as_pencil(sys, A, fname="finite_poles", balance=balance)
     return _sort_poles(_poles_normalized(p, tol, "finite_poles") * p.pole_scale)
 
 
-def nilpotency_index(sys, A=None, *, tol: float | None = None) -> int:
+def nilpotency_index(sys, A=None, *, tol: float | None = None, balance: bool = True) -> int:
     r"""The nilpotency index $\nu$ of $N$ in the Weierstrass form (the DAE index).
 
     Convention: $\nu = 0$ when $E$ is invertible (no $N$ block, an ODE); $\nu = 1$ for a
@@ -138,11 +151,11 @@ def nilpotency_index(sys, A=None, *, tol: float | None = None) -> int:
 
     **Raises:** `fojax.IrregularSystemError` for a singular pencil.
     """
-    p = as_pencil(sys, A, fname="nilpotency_index")
+    p = as_pencil(sys, A, fname="nilpotency_index", balance=balance)
     return require_regular(p, "nilpotency_index", tol).index
 
 
-def is_impulse_free(sys, A=None, *, tol: float | None = None) -> bool:
+def is_impulse_free(sys, A=None, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""Whether the regular system has no impulsive modes.
 
     Equivalent conditions (thesis §2.1.2, Dai 1989): $N = 0$ in the Weierstrass form;
@@ -158,7 +171,7 @@ def is_impulse_free(sys, A=None, *, tol: float | None = None) -> bool:
     **Raises:** `fojax.IrregularSystemError` for a singular pencil (impulse-freeness is
     defined for regular systems only; `is_admissible` answers ``False`` instead).
     """
-    p = as_pencil(sys, A, fname="is_impulse_free")
+    p = as_pencil(sys, A, fname="is_impulse_free", balance=balance)
     return require_regular(p, "is_impulse_free", tol).index <= 1
 
 
@@ -176,6 +189,7 @@ def is_stable(
     margin: float = 0.0,
     axis_tol: float = AXIS_TOL,
     tol: float | None = None,
+    balance: bool = True,
 ) -> bool:
     r"""Whether every finite pole satisfies $\mathrm{Re}\,\lambda < -\text{margin}$.
 
@@ -199,7 +213,7 @@ def is_stable(
 
     **Raises:** `fojax.IrregularSystemError` for a singular pencil.
     """
-    p = as_pencil(sys, A, fname="is_stable")
+    p = as_pencil(sys, A, fname="is_stable", balance=balance)
     poles = _poles_normalized(p, tol, "is_stable") * p.pole_scale
     return _stable_np(poles, float(margin), float(axis_tol))
 
@@ -211,6 +225,7 @@ def is_admissible(
     margin: float = 0.0,
     axis_tol: float = AXIS_TOL,
     tol: float | None = None,
+    balance: bool = True,
 ) -> bool:
     r"""Whether $(E, A)$ is admissible: regular, impulse-free and stable.
 
@@ -220,7 +235,7 @@ def is_admissible(
 
     **Returns:** ``True`` or ``False``; ``False`` (no error) for a singular pencil.
     """
-    p = as_pencil(sys, A, fname="is_admissible")
+    p = as_pencil(sys, A, fname="is_admissible", balance=balance)
     d = deflate(p, tol)
     if d.failed is not None or d.index > 1:
         return False

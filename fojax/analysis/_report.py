@@ -8,7 +8,16 @@ import numpy as np
 
 from .._linalg import rank
 from ..plant import DescriptorSystem
+from ._balance import Scaling
 from ._common import as_system, crank, deflate
+from ._kronecker import (
+    kronecker_structure,
+    KroneckerStructure,
+    mode_counts,
+    ModeCounts,
+    properness,
+    system_zeros,
+)
 from ._observability import (
     _i_ctrl,
     _i_obs,
@@ -55,6 +64,18 @@ class StructureReport:
     functionally_observable: bool | None
     functional_ranks: tuple[int, int] | None
     verdict: str
+    #: the power-of-two balancing applied before every rank decision (`balance_system`)
+    scaling: Scaling | None = None
+    #: Kronecker structure of the pencil (E, A) (SLICOT AG08BD), also for singular pencils
+    kronecker: KroneckerStructure | None = None
+    #: normal rank of sE - A
+    normal_rank: int | None = None
+    #: invariant zeros of (E, A, B, C, 0) (``None`` when m = 0 or p = 0)
+    invariant_zeros: np.ndarray | None = None
+    #: properness of C (sE - A)^{-1} B (``None`` for a singular pencil or m = 0 or p = 0)
+    proper: bool | None = None
+    #: dynamic / non-dynamic / impulsive / uncontrollable / unobservable mode counts
+    modes: ModeCounts | None = None
 
     def __str__(self) -> str:
         def yn(v):
@@ -88,6 +109,28 @@ class StructureReport:
                 else f"  (max Re = {self.max_real_part:.6g})"
             ),
             f"  admissible        {yn(self.admissible)}",
+        ]
+        if self.kronecker is not None:
+            k = self.kronecker
+            lines.append(
+                f"  Kronecker         normal rank {k.normal_rank}; minimal indices right "
+                f"{list(k.right_indices)} left {list(k.left_indices)}; infinite elementary "
+                f"divisors {list(k.infinite_divisors)}"
+            )
+        if self.modes is not None:
+            md = self.modes
+            lines.append(
+                f"  modes             {md.finite} dynamic, {md.nondynamic} non-dynamic, "
+                f"{md.impulsive} impulsive; {md.uncontrollable} uncontrollable, "
+                f"{md.unobservable} unobservable (finite)"
+            )
+        if self.invariant_zeros is not None:
+            lines.append(f"  invariant zeros   {poles_str(self.invariant_zeros)}")
+        if self.proper is not None:
+            lines.append(f"  proper           {' ' + yn(self.proper)}")
+        if self.scaling is not None:
+            lines.append(f"  scaling           {self.scaling}")
+        lines += [
             "  observability     "
             f"C {yn(self.c_observable)} | R {yn(self.r_observable)} | "
             f"I {yn(self.i_observable)} | S {yn(self.s_observable)} | "
@@ -176,6 +219,7 @@ def structure_report(
     *,
     tol: float | None = None,
     axis_tol: float = AXIS_TOL,
+    balance: bool = True,
 ) -> StructureReport:
     """Compute every structural property of `sys` at once (host-only).
 
@@ -191,10 +235,16 @@ def structure_report(
     - `L`: optional ``(q, n)`` functional matrix.
     - `tol`: absolute rank threshold (fojax tolerance by default, see `fojax._linalg`).
     - `axis_tol`: imaginary-axis tolerance of `is_stable`.
+    - `balance`: ``False`` skips the power-of-two balancing (`balance_system`); the
+      report's `scaling` says what was applied.
+
+    Also reported: the Kronecker structure and normal rank of ``sE - A``, the invariant
+    zeros of ``(E, A, B, C, 0)``, properness and the mode counts (`kronecker_structure`,
+    `system_zeros`, `properness`, `mode_counts`; SLICOT ``AG08BD``).
 
     **Returns:** a `StructureReport`; ``print(report)`` gives a readable summary.
     """
-    pn = as_system(sys, "structure_report")
+    pn = as_system(sys, "structure_report", balance)
     n = pn.n
     r: dict = dict(
         n=n,
@@ -221,11 +271,20 @@ def structure_report(
         q=None,
         functionally_observable=None,
         functional_ranks=None,
+        scaling=pn.scaling,
     )
     d = deflate(pn, tol)
     r["regular"] = d.failed is None
+    if n:
+        ks = kronecker_structure(pn.E, pn.A, balance=balance)
+        r["kronecker"], r["normal_rank"] = ks, ks.normal_rank
+        r["modes"] = mode_counts(sys, balance=balance)
+        if r["m"] and r["p"]:
+            r["invariant_zeros"] = system_zeros(sys, balance=balance).invariant_zeros
+            if r["regular"]:
+                r["proper"] = properness(sys, tol=tol, balance=balance).proper
     if L is not None:
-        fr = functional_ranks(sys, L, tol=tol)
+        fr = functional_ranks(sys, L, tol=tol, balance=balance)
         r["q"] = int(np.shape(L)[0])
         r["functional_ranks"] = fr
         r["functionally_observable"] = fr[0] == fr[1]

@@ -19,9 +19,12 @@ numbers for the caller to threshold.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
+from jaxtyping import Array, Float
 
 from .._errors import InputError, ShapeError
 from .._linalg import jpinv, rank, RANK_ATOL, RANK_RTOL
@@ -206,3 +209,44 @@ def regular_at(E, A, s):
         return jnp.asarray(True)
     sv = jnp.linalg.svd(s * E - A, compute_uv=False)
     return sv[-1] > jnp.maximum(RANK_RTOL * sv[0], RANK_ATOL)
+
+
+# --------------------------------------------------------------------------- traced split of E
+
+
+class SVDSplit(eqx.Module):
+    r"""Full SVD coordinates of ``E`` with a slow mask (traceable, static shapes).
+
+    ``x = V z``; ``slow[i] = 1`` where ``σ_i`` counts as non-zero, else ``0``;
+    ``sigma`` holds ``σ_i`` on slow components and ``1`` on fast ones.
+    """
+
+    U: Float[Array, "n n"]
+    V: Float[Array, "n n"]
+    sigma: Float[Array, " n"]
+    slow: Float[Array, " n"]
+
+    @property
+    def fast(self):
+        return 1.0 - self.slow
+
+    def newton_matrix(self, J):
+        """``D_f J D_f + D_s``: Jacobian of the algebraic part w.r.t. the fast components."""
+        return J * self.fast[None, :] * self.fast[:, None] + jnp.diag(self.slow)
+
+
+def svd_split(E) -> SVDSplit:
+    """SVD split of ``stop_gradient(E)`` with the fojax rank tolerance (traceable).
+
+    The traced twin of the host `fojax.analysis.index1_split` (used by simulation and
+    studies under ``jit``): the rule of `fojax._linalg` on the raw ``E``, without
+    balancing (a rank decision under tracing cannot change shapes, so it cannot use
+    data-dependent scalings); `fojax.simulate`'s host check refuses data on which the
+    two disagree.
+    """
+    E = lax.stop_gradient(jnp.asarray(E))
+    U, s, Vt = jnp.linalg.svd(E, full_matrices=True)
+    tol = jnp.maximum(RANK_RTOL * s[0], RANK_ATOL)
+    slow = (s > tol).astype(E.dtype)
+    sigma = jnp.where(s > tol, s, 1.0)
+    return SVDSplit(U, Vt.T, sigma, slow)

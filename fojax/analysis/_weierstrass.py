@@ -49,7 +49,7 @@ class WeierstrassForm:
         return f"WeierstrassForm(n1={self.n1}, n2={self.n2}, index={self.index}, residuals: {res})"
 
 
-def weierstrass_form(sys, A=None, *, tol: float | None = None) -> WeierstrassForm:
+def weierstrass_form(sys, A=None, *, tol: float | None = None, balance: bool = True) -> WeierstrassForm:
     r"""Weierstrass canonical form of a regular pencil (thesis eq. 2.16).
 
     Host-only. Algorithm: (i) orthogonal deflation of the infinite eigenvalues of the
@@ -76,7 +76,7 @@ def weierstrass_form(sys, A=None, *, tol: float | None = None) -> WeierstrassFor
 
     **Raises:** `fojax.IrregularSystemError` for a singular pencil (no such form exists).
     """
-    p = as_pencil(sys, A, fname="weierstrass_form")
+    p = as_pencil(sys, A, fname="weierstrass_form", balance=balance)
     d = require_regular(p, "weierstrass_form", tol)
     n, m, q = p.n, p.B.shape[1], p.C.shape[0]
     n1 = d.n1
@@ -139,12 +139,13 @@ def weierstrass_form(sys, A=None, *, tol: float | None = None) -> WeierstrassFor
         D[n1:, n1:] = np.linalg.inv(Ainf)
     P_ = D @ Pl
 
-    # Undo the normalisation E = e En, A = a An.
-    e = float(np.linalg.norm(p.E, 2)) or 1.0
-    a = float(np.linalg.norm(p.A, 2)) or 1.0
+    # Undo the normalisation Dl E Dr = e En, Dl A Dr = a An and the balancing Dl, Dr.
+    dl, dr = p.scaling.left, p.scaling.right
+    e = float(np.linalg.norm(dl[:, None] * p.E * dr[None, :], 2)) or 1.0
+    a = float(np.linalg.norm(dl[:, None] * p.A * dr[None, :], 2)) or 1.0
     scale = np.concatenate([np.full(n1, 1.0 / e), np.full(n2, 1.0 / a)])
-    P = scale[:, None] * P_
-    Q = Qr
+    P = scale[:, None] * P_ * dl[None, :]
+    Q = dr[:, None] * Qr
     A1 = (a / e) * A1_
     N = (e / a) * N_
 

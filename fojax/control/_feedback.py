@@ -175,11 +175,13 @@ def _decay_of(region: AbstractRegion) -> float:
 
 def _svd_coordinates(E, A, B):
     """``Ẽ = diag(I_r, 0) = Ul E V``, ``Ã = Ul A V``, ``B̃ = Ul B`` (restricted equivalence)."""
+    from ..analysis._split import index1_split
+
     n = E.shape[0]
-    U, s, Vt = np.linalg.svd(E)
-    r = rank(E)
+    sp = index1_split(E, A, fname="design_state_feedback")  # fojax.analysis's rank of E
+    r, s, U = sp.rank, sp.s, sp.U
     Ul = np.diag(np.concatenate([1.0 / s[:r], np.ones(n - r)])) @ U.T
-    V = Vt.T
+    V = sp.Vt.T
     return r, Ul @ A @ V, Ul @ B, V
 
 

@@ -37,7 +37,6 @@ import scipy.linalg
 from jax import lax
 
 from .._errors import ImpulsiveSystemError, InputError
-from .._linalg import rank
 
 
 #: Gauss–Legendre nodes per grid interval.
@@ -51,15 +50,17 @@ def reduce_host(E, A, B):
 
     Raises `fojax.ImpulsiveSystemError` when $\tilde A_{22}$ is singular (index > 1).
     """
+    from ..analysis._split import index1_split
+
     E, A, B = (np.asarray(x, dtype=float) for x in (E, A, B))
     n = E.shape[0]
-    U, s, Vt = np.linalg.svd(E)
-    r = rank(E)
-    U1, U2, V1, V2 = U[:, :r], U[:, r:], Vt[:r].T, Vt[r:].T
-    A11, A12, A21, A22 = U1.T @ A @ V1, U1.T @ A @ V2, U2.T @ A @ V1, U2.T @ A @ V2
+    sp = index1_split(E, A, fname="reduce_host")  # fojax.analysis's rank and verdict
+    r, s = sp.rank, sp.s
+    U1, U2, V1, V2 = sp.U1, sp.U2, sp.V1, sp.V2
+    A11, A12, A21, A22 = sp.blocks(A)
     B1, B2 = U1.T @ B, U2.T @ B
     if n - r:
-        if rank(A22) < n - r:
+        if not sp.impulse_free:
             raise ImpulsiveSystemError(
                 "the loop is not impulse-free: U2ᵀ A V2 (the algebraic block) is singular, so the "
                 "algebraic variables are not determined (index > 1). Check the design "

@@ -52,6 +52,7 @@ from jaxtyping import Array, Float
 from .._errors import ImpulsiveSystemError, InputError, IrregularSystemError, ShapeError
 from .._linalg import rank as _host_rank, RANK_ATOL, RANK_RTOL
 from .._small_linalg import solve_small
+from ..analysis._traced import svd_split as svd_split, SVDSplit as SVDSplit
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..plant._descriptor import DescriptorSystem
 from ..plant._signals import Constant, Zero
@@ -98,23 +99,6 @@ def static_rank(E, rank_E: int | None) -> int:
     return _host_rank(np.asarray(E))
 
 
-def _pencil_regularity(E: np.ndarray, J: np.ndarray) -> float:
-    """Largest normalised smallest singular value of ``sE - J`` over a few complex ``s``.
-
-    For an irregular pencil ``det(sE - J) ≡ 0`` and the result is round-off; for a
-    regular pencil it is O(1) unless every sample happens to sit on an eigenvalue.
-    """
-    nE = max(np.linalg.norm(E, 2), 1e-300)
-    nJ = np.linalg.norm(J, 2)
-    radius = nJ / nE if nJ > 0 else 1.0
-    best = 0.0
-    for theta in (0.7297, 2.1133, 4.0019):
-        s = radius * np.exp(1j * theta) * 1.1373
-        smin = np.linalg.svd(s * E - J, compute_uv=False)[-1]
-        best = max(best, float(smin / (abs(s) * nE + nJ)))
-    return best
-
-
 def check_index1_host(E, J, *, jacobian_name: str = "A", where: str = "") -> None:
     """Refuse irregular or impulsive (index > 1) pencils ``(E, J)``; host (NumPy) check.
 
@@ -126,38 +110,52 @@ def check_index1_host(E, J, *, jacobian_name: str = "A", where: str = "") -> Non
 
     **Raises:** `fojax.IrregularSystemError` if ``sE − J`` is singular for every ``s``;
     `fojax.ImpulsiveSystemError` if the pencil is regular but ``Ã22 = U2ᵀ J V2`` is
-    singular.
+    singular. Both verdicts are `fojax.analysis`'s (`fojax.analysis._split.index1_split`:
+    `is_regular`, `nilpotency_index` on the balanced pencil), so simulation, design and
+    analysis agree.
     """
+    from ..analysis._split import index1_split
+
     E = np.asarray(E, dtype=float)
     J = np.asarray(J, dtype=float)
     n = E.shape[0]
-    r = _host_rank(E)
-    q = n - r
-    if q == 0:
-        return
     if not np.all(np.isfinite(J)):
         raise InputError(f"{jacobian_name}{where} contains non-finite entries.")
-    U, _, Vt = np.linalg.svd(E)
-    A22 = U[:, r:].T @ J @ Vt[r:].T
-    smin = float(np.linalg.svd(A22, compute_uv=False)[-1])
-    scale = max(float(np.linalg.norm(J, 2)), float(np.linalg.norm(E, 2)))
-    tol = max(RANK_RTOL * scale, RANK_ATOL)
-    if smin > tol:
+    # The verdict is fojax.analysis's (balanced, the fojax rank rule): the same as
+    # fojax.is_regular / fojax.is_impulse_free on (E, J).
+    sp = index1_split(E, J, fname="simulate")
+    if sp.impulse_free:
+        r_raw = _host_rank(E)
+        if r_raw != sp.rank:
+            # The traced split (svd_split) decides rank E on the raw, unbalanced E; it must
+            # not treat a dynamic state as algebraic (or the reverse).
+            raise InputError(
+                f"E is too badly scaled for simulation: fojax.analysis (after exact "
+                f"power-of-two balancing) finds rank E = {sp.rank}, but the simulation's "
+                f"SVD split of the unbalanced E sees rank {r_raw} (singular values "
+                f"{np.array2string(sp.s, precision=2)}). Rescale the states or equations "
+                "(e.g. by the powers of two fojax.balance_system(E, A).scaling reports) so "
+                "that the singular values of E are comparable."
+            )
         return
-    reg = _pencil_regularity(E, J)
-    if reg <= RANK_RTOL:
+    if not sp.regular:
         raise IrregularSystemError(
-            f"The pencil sE − {jacobian_name}{where} is singular for every s (largest "
-            f"normalised smallest singular value of sE − {jacobian_name} over sample "
-            f"points s: {reg:.1e}): the system is not regular, so its solution is not "
-            "unique (or does not exist). fojax simulates regular index-1 systems only. "
-            "Check the model for redundant or missing equations: the pencil needs "
-            "det(sE − A) ≢ 0."
+            f"The pencil sE − {jacobian_name}{where} is singular for every s "
+            f"(fojax.analysis.is_regular is False: {sp.failed}): the system is not regular, "
+            "so its solution is not unique (or does not exist). fojax simulates regular "
+            "index-1 systems only. Check the model for redundant or missing equations: the "
+            "pencil needs det(sE − A) ≢ 0."
         )
+    r = sp.rank
+    q = n - r
+    smin = float(np.linalg.svd(sp.blocks(J)[3], compute_uv=False)[-1])
+    tol = max(RANK_RTOL * max(float(np.linalg.norm(J, 2)), float(np.linalg.norm(E, 2))),
+              RANK_ATOL)  # fmt: skip
     raise ImpulsiveSystemError(
         f"Ã22 = U2ᵀ {jacobian_name} V2 (the {q}×{q} algebraic block of {jacobian_name}{where} "
         f"in the SVD coordinates of E, rank E = {r}) is singular (smallest singular value "
-        f"{smin:.2e} ≤ tolerance {tol:.1e}): the system has impulsive modes (index > 1); "
+        f"{smin:.2e}, unbalanced scale {tol:.1e}; fojax.analysis.nilpotency_index = "
+        f"{sp.index}): the system has impulsive modes (index > 1); "
         "fojax simulates index-1 systems only, whose algebraic equations can be solved "
         "for the fast variables. Make the system impulse-free (e.g. a feedback u = Kx with "
         "U2ᵀ(A + BK)V2 nonsingular, or a model whose constraints determine the algebraic "
@@ -168,35 +166,8 @@ def check_index1_host(E, J, *, jacobian_name: str = "A", where: str = "") -> Non
 # --------------------------------------------------------------------------- traced split
 
 
-class SVDSplit(eqx.Module):
-    r"""Full SVD coordinates of ``E`` with a slow mask (traceable, static shapes).
-
-    ``x = V z``; ``slow[i] = 1`` where ``σ_i`` counts as non-zero, else ``0``;
-    ``sigma`` holds ``σ_i`` on slow components and ``1`` on fast ones.
-    """
-
-    U: Float[Array, "n n"]
-    V: Float[Array, "n n"]
-    sigma: Float[Array, " n"]
-    slow: Float[Array, " n"]
-
-    @property
-    def fast(self):
-        return 1.0 - self.slow
-
-    def newton_matrix(self, J):
-        """``D_f J D_f + D_s``: Jacobian of the algebraic part w.r.t. the fast components."""
-        return J * self.fast[None, :] * self.fast[:, None] + jnp.diag(self.slow)
-
-
-def svd_split(E) -> SVDSplit:
-    """SVD split of ``stop_gradient(E)`` with the fojax rank tolerance (traceable)."""
-    E = lax.stop_gradient(jnp.asarray(E))
-    U, s, Vt = jnp.linalg.svd(E, full_matrices=True)
-    tol = jnp.maximum(RANK_RTOL * s[0], RANK_ATOL)
-    slow = (s > tol).astype(E.dtype)
-    sigma = jnp.where(s > tol, s, 1.0)
-    return SVDSplit(U, Vt.T, sigma, slow)
+# SVDSplit / svd_split live in fojax.analysis._traced (analysis owns the split of E);
+# imported above and re-exported here for the simulation and studies modules.
 
 
 def _sg(tree):
@@ -501,11 +472,12 @@ def host_initial_checks(plant, x0, t0, u: AbstractSignal, *, strict: bool, tol: 
         name = "∂f/∂x"
         where = f" at the initial point (t0 = {float(t0):g}, given x0)"
     check_index1_host(E, J, jacobian_name=name, where=where)
-    r = _host_rank(E)
-    if r == E.shape[0]:
+    from ..analysis._split import index1_split
+
+    sp = index1_split(E, J, fname="consistency_residual")
+    if sp.rank == E.shape[0]:
         return 0.0
-    U = np.linalg.svd(E)[0]
-    res = float(np.linalg.norm(U[:, r:].T @ f0))
+    res = float(np.linalg.norm(sp.U2.T @ f0))
     if strict and res > tol:
         raise InconsistentInitialConditionError(res, tol)
     return res
