@@ -103,8 +103,8 @@ class _Fixed(eqx.Module):
     A2: jax.Array
     Z: jax.Array
     Yperp: jax.Array
-    center: float = eqx.field(static=True)
-    radius: float = eqx.field(static=True)
+    center: jax.Array  # the disk's numbers are leaves: a new Disk reuses the compiled step
+    radius: jax.Array
     rank: int = eqx.field(static=True)
     kind: str = eqx.field(static=True)
     mode: str = eqx.field(static=True, default="disk")
@@ -242,7 +242,8 @@ def initial_parameters(design: FunctionalObserverDesign, region: Disk | None = N
         tune_Z = True if tune_Z is None else bool(tune_Z)
         p = {k: jnp.asarray(np.asarray(v)) for k, v in design.params.items()}
         fx = _Fixed(s, jnp.zeros((0, 0)), jnp.zeros((0, 0)), jnp.zeros((0, 0)), jnp.zeros((0, 0)), p["Z"],
-                    jnp.zeros((0, 0)), float(region.center), float(region.radius), 0, design.kind, "direct",
+                    jnp.zeros((0, 0)), jnp.asarray(float(region.center)), jnp.asarray(float(region.radius)), 0,
+                    design.kind, "direct",
                     () if tune_Z else ("Z",))
         if design.kind == "proportional":  # no v-dynamics: Y2, J, G are empty
             p = {k: v for k, v in p.items() if v.size}
@@ -287,7 +288,7 @@ def initial_parameters(design: FunctionalObserverDesign, region: Disk | None = N
     if tune_Z:
         params["Z"] = jnp.asarray(Z)
     fx = _Fixed(s, jnp.asarray(X), jnp.asarray(N1), jnp.asarray(N2), jnp.asarray(A2), jnp.asarray(Z),
-                jnp.asarray(Lx.T @ Y), float(al), float(tau), k, design.kind)
+                jnp.asarray(Lx.T @ Y), jnp.asarray(float(al)), jnp.asarray(float(tau)), k, design.kind)
     return fx, params
 
 
