@@ -29,7 +29,10 @@ from .._errors import RegionError
 
 
 class AbstractRegion(eqx.Module):
-    """An LMI region. Parameters are Python floats (static configuration)."""
+    """An LMI region. Its numbers are `numpy.float64` leaves (not static fields): they
+    behave as Python floats on the host (LMI code, reports, JSON, equality, hashing), and
+    `equinox.filter_jit` traces them as data, so a region with new numbers reuses compiled
+    code (a static float recompiled the tuning step for every new `Disk`)."""
 
     @abc.abstractmethod
     def characteristic(self) -> tuple[np.ndarray, np.ndarray]:
@@ -79,8 +82,8 @@ class AbstractRegion(eqx.Module):
 class Disk(AbstractRegion):
     r"""Disk $\mathcal Q(\alpha, \tau)$ centred at $(\alpha, 0)$ with radius $\tau$ (Lemma 5)."""
 
-    center: float = eqx.field(static=True)
-    radius: float = eqx.field(static=True)
+    center: float
+    radius: float
 
     def __init__(self, center: float, radius: float):
         center, radius = float(center), float(radius)
@@ -95,7 +98,7 @@ class Disk(AbstractRegion):
                 f"(rightmost point {center + radius}); observer error dynamics would not be stable. "
                 "Choose center + radius < 0."
             )
-        self.center, self.radius = center, radius
+        self.center, self.radius = np.float64(center), np.float64(radius)
 
     def characteristic(self):
         a, r = self.center, self.radius
@@ -117,19 +120,19 @@ class Disk(AbstractRegion):
         return complex(self.center)
 
     def to_dict(self):
-        return {"type": "disk", "center": self.center, "radius": self.radius}
+        return {"type": "disk", "center": float(self.center), "radius": float(self.radius)}
 
 
 class HalfPlane(AbstractRegion):
     r"""$\{\operatorname{Re} s < -\sigma\}$: decay rate at least $\sigma \ge 0$."""
 
-    decay: float = eqx.field(static=True)
+    decay: float
 
     def __init__(self, decay: float = 0.0):
         decay = float(decay)
         if not math.isfinite(decay) or decay < 0:
             raise RegionError(f"HalfPlane needs a decay rate >= 0; got decay={decay}.")
-        self.decay = decay
+        self.decay = np.float64(decay)
 
     def characteristic(self):
         return np.array([[2.0 * self.decay]]), np.array([[1.0]])
@@ -147,7 +150,7 @@ class HalfPlane(AbstractRegion):
         return complex(-self.decay - max(1.0, self.decay))
 
     def to_dict(self):
-        return {"type": "halfplane", "decay": self.decay}
+        return {"type": "halfplane", "decay": float(self.decay)}
 
 
 class Sector(AbstractRegion):
@@ -157,13 +160,13 @@ class Sector(AbstractRegion):
     $\cos\theta = \zeta_{\min}$.
     """
 
-    damping: float = eqx.field(static=True)
+    damping: float
 
     def __init__(self, damping: float):
         damping = float(damping)
         if not (0.0 < damping < 1.0):
             raise RegionError(f"Sector needs a damping ratio in (0, 1); got damping={damping}.")
-        self.damping = damping
+        self.damping = np.float64(damping)
 
     def characteristic(self):
         th = math.acos(self.damping)
@@ -186,7 +189,7 @@ class Sector(AbstractRegion):
         return complex(-1.0)
 
     def to_dict(self):
-        return {"type": "sector", "damping": self.damping}
+        return {"type": "sector", "damping": float(self.damping)}
 
 
 class Intersection(AbstractRegion):

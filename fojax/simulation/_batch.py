@@ -371,7 +371,7 @@ class _ModelProblem(eqx.Module):
 _DIFF_MAX_SQUARINGS = 24
 
 
-def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False):
+def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_loop=None):
     r"""One block of samples (leading axis ``b`` of every leaf of ``p``): the problem's
     reduction, batch last.
 
@@ -391,6 +391,11 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False):
     time loop is the same `jax.lax.scan`. (This replaced `expm_small` under `jax.vmap`:
     on the default §3.3.7 study at B = 1,000 the study_loss value_and_grad compiled in
     ~5.2 s instead of 6.6-8.7 s and ran 2.2-2.3 s instead of 2.5-2.7 s.)
+
+    `time_loop` (with ``basis=None``): a replacement of the time loop,
+    ``time_loop(problem, Phi, w0, G, jv, kon, ts) -> (acc, w_end)`` (``jv``/``kon``
+    ``None`` without jumps), e.g. `fojax.studies._adjoint.linear_recurrence_reduce`, whose
+    custom VJP is the adjoint recurrence; the reduction's `final` is applied here.
     """
     expm = (lambda M: expm_last(M, max_squarings=_DIFF_MAX_SQUARINGS)) if differentiable else expm_last  # noqa: E731
     # the unrolled FMA matvec (N column FMAs) is the fastest forward step (N = 22, 256
@@ -461,6 +466,10 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False):
         o = outputs(w)
         return (w, problem.update(acc, o, k, ts)), (o if problem.keep else None)
 
+    if time_loop is not None and basis is None and not problem.keep:
+        acc, w_end = time_loop(problem, Phi, w0, G, jv if jumps is not None else None,
+                               kon if jumps is not None else None, ts)
+        return problem.final(acc, matvec(G, w0), matvec(G, w_end), ts, h, ok)
     o0 = outputs(w0)
     (w_end, acc), traj = lax.scan(step, (w0, problem.init(o0)), jnp.arange(1, T))
     out = problem.final(acc, o0, outputs(w_end), ts, h, ok)

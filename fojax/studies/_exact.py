@@ -39,6 +39,7 @@ from ..simulation._reduction import (
     SVDSplit,
 )
 from ..simulation._simulate import UNIFORM_GRID_RTOL
+from ._adjoint import linear_recurrence_reduce
 from ._wrappers import FaultProfile, FaultyPlant
 
 
@@ -311,5 +312,7 @@ def sample_metrics_traced(study, observers, settle_tol):
     idx = (k // study.num_scenarios, k % study.num_scenarios)
     ts = study.ts
     h = (ts[-1] - ts[0]) / (ts.shape[0] - 1)
-    mets, ok = _block_kernel(problem, idx, h, ts, None, differentiable=True)
+    mets, ok = _block_kernel(problem, idx, h, ts, None, differentiable=True,
+                             time_loop=lambda pr, Phi, w0, G, jv, kon, ts: linear_recurrence_reduce(
+                                 (Phi, w0, G, jv, ts), pr, kon))
     return mets, ok

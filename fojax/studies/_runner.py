@@ -520,7 +520,10 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     With ``cfg.method`` ``"auto"`` or ``"exact"`` and a study of LTI samples with known
     signals (the types `run_study`'s exact engine accepts; a traced grid is assumed
     uniform), every sample runs on the exact batch-last kernel in one reverse-differentiable
-    block (`fojax.studies._exact.sample_metrics_traced`); otherwise each sample runs
+    block (`fojax.studies._exact.sample_metrics_traced`; its reverse mode is the adjoint
+    recurrence of `fojax.studies._adjoint`, checkpointed, so memory does not grow with the
+    number of time steps; like `jax.grad`, it takes the derivative of $|e|$ as
+    $\mathrm{sign}(e)$, 0 at 0); otherwise each sample runs
     `fojax.simulate` under `jax.vmap`.
     """
     if loss not in ("iae", "ise"):

@@ -1,0 +1,150 @@
+"""The adjoint (custom VJP) of the exact kernel's time loop, `fojax.studies._adjoint`.
+
+Oracles: (1) a plain `jax.lax.scan` of the same recurrence written here, differentiated
+by `jax.grad` (what `study_loss` used before the custom VJP); (2) a NumPy loop for the
+forward values; (3) central finite differences; (4) `study_loss` on a study with jumps (a
+step input between grid points) with the kernel's former time loop, through `jax.grad`.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fojax
+from fojax import studies as S
+from fojax.design import design_functional_observer, Disk
+from fojax.studies import _exact
+from fojax.studies._adjoint import linear_recurrence_reduce
+
+
+class _Metrics(eqx.Module):
+    """`run_study`'s accumulators (the ones `study_loss` differentiates)."""
+
+    settle_tol: jax.Array
+    init = _exact.StudyProblem.init
+    update = _exact.StudyProblem.update
+
+
+N, B, T, K, J = 4, 3, 12, 2, 2
+PROB = _Metrics(jnp.asarray(0.3))
+
+
+@pytest.fixture(scope="module")
+def data():
+    k = jax.random.split(jax.random.PRNGKey(3), 5)
+    Phi = 0.9 * jnp.eye(N)[:, :, None] + 0.1 * jax.random.normal(k[0], (N, N, B))
+    w0 = jax.random.normal(k[1], (N, B))
+    G = jax.random.normal(k[2], (K, N, B))
+    jv = jax.random.normal(k[3], (J, N, B))
+    kon = jnp.array([[3, 11, -1], [7, 5, 1]])  # (J, B): jumps at steps 1 .. n = 11, -1 none
+    ts = jnp.linspace(0.0, 1.1, T)
+    return (Phi, w0, G, jv, ts), kon
+
+
+def plain(diff, kon):
+    """The recurrence as a plain scan (the oracle)."""
+    Phi, w0, G, jv, ts = diff
+    acc = PROB.init(jnp.einsum("kib,ib->kb", G, w0))
+
+    def step(c, k):
+        w, acc = c
+        w = jnp.einsum("ijb,jb->ib", Phi, w) + jnp.einsum("jb,jib->ib", (kon == k).astype(w.dtype), jv)
+        return (w, PROB.update(acc, jnp.einsum("kib,ib->kb", G, w), k, ts)), None
+
+    (w, acc), _ = jax.lax.scan(step, (w0, acc), jnp.arange(1, T))
+    return acc, w
+
+
+def scalar(out):
+    (s1, s2, s3, peak, _), w = out
+    return jnp.sum(s1) + 0.7 * jnp.sum(s2) - 0.3 * jnp.sum(s3) + 0.2 * jnp.sum(peak) + jnp.sum(jnp.sin(w))
+
+
+def test_forward_matches_numpy_loop(data):
+    diff, kon = data
+    (s1, s2, s3, peak, last), w = linear_recurrence_reduce(diff, PROB, kon, segment=5)
+    Phi, w0, G, jv, ts = (np.asarray(x) for x in diff)
+    kon = np.asarray(kon)
+    for b in range(B):
+        w_ = w0[:, b].copy()
+        os_ = [G[:, :, b] @ w_]
+        for k in range(1, T):
+            w_ = Phi[:, :, b] @ w_ + sum(jv[j, :, b] for j in range(J) if kon[j, b] == k)
+            os_.append(G[:, :, b] @ w_)
+        o = np.abs(np.array(os_))
+        np.testing.assert_allclose(w[:, b], w_, rtol=1e-12)
+        np.testing.assert_allclose(s1[:, b], o[1:].sum(0), rtol=1e-12)
+        np.testing.assert_allclose(s2[:, b], (o[1:] ** 2).sum(0), rtol=1e-12)
+        np.testing.assert_allclose(s3[:, b], ((ts[1:] - ts[0])[:, None] * o[1:]).sum(0), rtol=1e-12)
+        np.testing.assert_allclose(peak[:, b], o.max(0), rtol=1e-12)
+        above = np.nonzero(o > 0.3)
+        lastk = [max([k for k, i in zip(*above) if i == r], default=-1) for r in range(K)]
+        np.testing.assert_array_equal(last[:, b], lastk)
+
+
+@pytest.mark.parametrize("segment", [None, 1, 5, 11, 20])
+def test_grad_equals_jax_grad_of_plain_scan(data, segment):
+    # every checkpoint layout: padding steps (5, 20), one segment (11), one step per segment (1)
+    diff, kon = data
+    g = jax.jit(jax.grad(lambda d: scalar(linear_recurrence_reduce(d, PROB, kon, segment))))(diff)
+    g0 = jax.grad(lambda d: scalar(plain(d, kon)))(diff)
+    for a, b in zip(g, g0):
+        np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12 * float(jnp.max(jnp.abs(b))))
+
+
+def test_grad_matches_central_differences(data):
+    diff, kon = data
+    f = jax.jit(lambda d: scalar(linear_recurrence_reduce(d, PROB, kon, 4)))
+    g = jax.grad(f)(diff)
+    keys = jax.random.split(jax.random.PRNGKey(11), 4)
+    eps = 1e-6
+    for i in range(4):  # Phi, w0, G, jv along a random direction
+        v = jax.random.normal(keys[i], diff[i].shape)
+        up = tuple(x + eps * v if k == i else x for k, x in enumerate(diff))
+        dn = tuple(x - eps * v if k == i else x for k, x in enumerate(diff))
+        fd = (f(up) - f(dn)) / (2 * eps)
+        an = jnp.sum(g[i] * v)
+        assert abs(float(an - fd)) <= 1e-6 * max(1.0, abs(float(fd))), (i, float(an), float(fd))
+
+
+def test_vmap_of_grad_equals_per_element_grad(data):
+    diff, kon = data
+    scale = jnp.array([0.5, 1.0, 1.3])
+
+    def loss(c):
+        Phi, w0, G, jv, ts = diff
+        return scalar(linear_recurrence_reduce((c * Phi, w0, G, jv, ts), PROB, kon, 5))
+
+    gv = jax.jit(jax.vmap(jax.grad(loss)))(scale)
+    g1 = jax.jit(jax.grad(loss))
+    for c, gc in zip(scale, gv):
+        np.testing.assert_allclose(gc, g1(c), rtol=1e-12)
+
+
+def test_study_loss_with_jumps_equals_former_reverse_mode(monkeypatch):
+    # a step input between grid points (a jump of the exosystem state): study_loss's
+    # gradient with the adjoint equals jax.grad through the kernel's own scan
+    ex = fojax.models.example_3_3_7()
+    d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
+    dA = np.zeros((1, 9, 9))
+    dA[0, :6, :6] = ex.dA
+    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    x0 = jnp.zeros(9).at[:6].set(0.5)
+    k1, k2 = jax.random.split(jax.random.PRNGKey(2))
+    study = S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, fojax.Step(jnp.array([0.4, -0.3]), 0.33),
+                    uncertainty=(S.constant_delta(k1, 2, 1, bounds=(-0.3, 0.3)),),
+                    scenarios=(S.constant_faults(k2, 2, x0, 3),))
+    dyn, st = eqx.partition(d.observer, eqx.is_inexact_array)
+
+    def vg(loss):
+        return jax.jit(jax.value_and_grad(lambda p: S.study_loss(study, eqx.combine(p, st), loss=loss)))(dyn)
+
+    v1, g1 = vg("iae")
+    orig = _exact._block_kernel
+    monkeypatch.setattr(_exact, "_block_kernel", lambda *a, time_loop=None, **k: orig(*a, **k))
+    v0, g0 = vg("iae")
+    assert np.isclose(float(v1), float(v0), rtol=1e-13)
+    for a, b in zip(jax.tree.leaves(g1), jax.tree.leaves(g0)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12 * float(jnp.max(jnp.abs(b))))

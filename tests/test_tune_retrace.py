@@ -1,0 +1,75 @@
+"""Data are leaves: tuning with new numbers (region, δ range, key, gains) reuses the compiled step.
+
+Oracles: the trace counters of the jitted tuning step and of the differentiable study loss
+(`fojax.tuning.TRACE_COUNTS`, `fojax.studies._exact.TRACE_COUNTS`), and
+`equinox.debug.assert_max_traces`; for the regions' host behaviour, the values given to
+the constructors (equality, hashing, JSON round trip).
+"""
+
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fojax
+from fojax import studies as S, tuning
+from fojax.design import design_functional_observer, Disk, HalfPlane, region_from_dict, Sector
+from fojax.studies import _exact
+
+
+@pytest.fixture(scope="module")
+def setup():
+    ex = fojax.models.example_3_3_7()
+    dA = np.zeros((1, 9, 9))
+    dA[0, :6, :6] = ex.dA
+    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    x0 = jnp.zeros(9).at[:6].set(0.5)
+
+    def study(seed, bounds):
+        k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
+        return S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, None,
+                       uncertainty=(S.constant_delta(k1, 2, 1, bounds=bounds),),
+                       scenarios=(S.constant_faults(k2, 2, x0, 3),))
+
+    return ex, study
+
+
+def test_regions_numbers_are_leaves_with_float_host_behaviour():
+    d = Disk(-2.5, 1.2)
+    assert d == Disk(-2.5, 1.2) and d != Disk(-2.0, 1.0) and hash(d) == hash(Disk(-2.5, 1.2))
+    assert d.describe() == "disk centred at -2.5 with radius 1.2"
+    for r in (d, HalfPlane(0.5), Sector(0.7), d & HalfPlane(1.0)):
+        assert region_from_dict(json.loads(json.dumps(r.to_dict()))) == r
+        assert all(eqx.is_array(x) for x in jax.tree.leaves(r))
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def shift(region, z):
+        return z - region.center + region.radius
+
+    assert float(shift(Disk(-2.0, 1.0), 0.0)) == 3.0
+    assert float(shift(Disk(-2.5, 1.2), 0.0)) == 3.7  # new numbers: no second trace
+
+
+def test_tune_with_new_region_delta_range_key_and_gains_does_not_retrace(setup):
+    ex, study = setup
+    d1 = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
+    d2 = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.5, 1.2))
+    assert not np.allclose(d1.params["Y1"], d2.params["Y1"])  # other gains
+    tuning.tune(d1, study(0, (-0.3, 0.3)), steps=1, method="exact")  # compiles the step once
+    steps, losses = tuning.TRACE_COUNTS["tune_step"], _exact.TRACE_COUNTS["study_loss_exact"]
+    runs = [
+        dict(design=d1, train_study=study(0, (-0.3, 0.3)), region=Disk(-2.1, 1.5)),  # new region numbers
+        dict(design=d1, train_study=study(1, (-0.8, 0.5))),  # new δ range and samples
+        dict(design=d1, train_study=study(0, (-0.3, 0.3)), key=jax.random.PRNGKey(5)),  # new key
+        dict(design=d2, train_study=study(0, (-0.3, 0.3))),  # new gains, new region (the design's)
+    ]
+    for kw in runs:
+        res = tuning.tune(steps=1, method="exact", **kw)
+        assert np.isfinite(res.history["train_loss"][0])
+        assert res.design.report.passed
+    assert tuning.TRACE_COUNTS["tune_step"] == steps
+    assert _exact.TRACE_COUNTS["study_loss_exact"] == losses
