@@ -54,7 +54,7 @@ from .._errors import InputError, ShapeError
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
-from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, run_batched
+from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, gather_across_processes, run_batched
 from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
 from ._families import Family
 from ._wrappers import FaultyPlant
@@ -235,10 +235,9 @@ def _run_chunk(study, observers, iu, jf, cfg: SimConfig, keep_errors: bool, mesh
     # shard_map: every device runs its own vmapped simulation on its slice of the batch
     # (no cross-device collective inside the adaptive time loop).
     batch = PartitionSpec("batch")
-    return jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec(), batch, batch), out_specs=batch,
-                         check_vma=False)(
-        dyn, iu, jf
-    )
+    out = jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec(), batch, batch), out_specs=batch,
+                        check_vma=False)(dyn, iu, jf)
+    return gather_across_processes(out, mesh)  # a global mesh: every process gets every sample
 
 
 def _mesh(devices):
@@ -461,6 +460,7 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
     # trajectories for the quantile bands are (T, K) per sample: smaller chunks bound memory
     default = DEFAULT_CHUNK // 2 if keep else DEFAULT_CHUNK
     chunk = min(B, default) if chunk_size is None else int(chunk_size)
+    devices = jax.devices() if devices is None else devices  # all processes' devices, as `_mesh`
     out, layout = run_batched(problem, idx, study.ts, chunk_size=chunk, block=DEFAULT_BLOCK, devices=devices,
                               basis=basis)
     if keep:
