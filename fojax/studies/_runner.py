@@ -57,6 +57,13 @@ from ..simulation import simulate
 from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, gather_across_processes, run_batched
 from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
 from ._families import Family
+from ._sharding import (
+    check_same_on_every_process,
+    distributed_errors,
+    per_sample,
+    sample_mesh,
+    spans_processes,
+)
 from ._wrappers import FaultyPlant
 
 
@@ -177,6 +184,9 @@ class SimConfig:
     max_steps: int = 100_000
     settle_tol: float = 0.05
     solver: object = None  # a diffrax solver (hashable module) or None: simulate's default
+    # `study_loss` / `tune`: devices the samples are spread over (e.g. jax.devices() of a
+    # jax.distributed run; fojax.studies._sharding), None: one block on the default device
+    devices: tuple | None = None
 
 
 def error_metrics(ts, e, settle_tol: float = 0.05) -> dict[str, Array]:
@@ -351,7 +361,11 @@ def run_study(
       multiple of the number of devices. The last chunk is padded, so one compilation
       serves every chunk.
     - `devices`: devices of the 1-d mesh the batch axis is sharded over (default
-      `jax.devices()`).
+      `jax.devices()`: after `jax.distributed.initialize`, the devices of every process,
+      each process computing its share; every process then receives the whole result,
+      bit-identical to a one-device run, and the processes must pass the same study and
+      observers (checked; `fojax.DistributedError` otherwise, and when another process
+      dies). See ``docs/distributed.md``.
     - `quantiles`: levels of the time-wise error quantiles (``()``: none; then the
       per-chunk errors are not kept on the host).
     - `settle_tol`: tolerance of the settling time.
@@ -392,10 +406,19 @@ def run_study(
     cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps),
                     settle_tol=float(settle_tol), solver=solver)
     keep = len(quantiles) > 0
-    if method in ("auto", "exact"):
-        prepared, _reason = exact_problem(study, observers, settle_tol, keep)
-        if prepared is not None:
-            return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices)
+    if spans_processes(devices):  # a global mesh (jax.distributed): same inputs everywhere
+        check_same_on_every_process((study, observers), "run_study")
+    with distributed_errors("run_study"):
+        if method in ("auto", "exact"):
+            prepared, _reason = exact_problem(study, observers, settle_tol, keep)
+            if prepared is not None:
+                return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices)
+        return _run_vmap(study, observers, names, quantiles, cfg, chunk_size, devices, keep, solver, quiet)
+
+
+def _run_vmap(study, observers, names, quantiles, cfg: SimConfig, chunk_size, devices, keep, solver,
+              quiet) -> StudyResult:
+    """`run_study` on the ``"vmap-simulate"`` engine (`fojax.simulate` per sample)."""
     mesh, batch_sh, rep_sh = _mesh(devices)
     ndev = mesh.devices.size
     B = study.num_samples
@@ -447,7 +470,7 @@ def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, **attrs) -> 
         "quantile": np.asarray(quantiles, dtype=float),
         "time": np.asarray(study.ts),
     }
-    merged = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "solver"}
+    merged = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("solver", "devices")}
     merged.update(attrs)
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=merged)
 
@@ -499,20 +522,29 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     uniform), every sample runs on the exact batch-last kernel in one reverse-differentiable
     block (`fojax.studies._exact.sample_metrics_traced`); otherwise each sample runs
     `fojax.simulate` under `jax.vmap`.
+
+    With ``cfg.devices`` (e.g. ``jax.devices()`` after `jax.distributed.initialize`: all
+    processes' devices) the samples are spread over those devices, each computing its own;
+    the loss and its gradient with respect to the observer are bit-identical to
+    ``cfg.devices=None`` (one device): see `fojax.studies._sharding`.
     """
     if loss not in ("iae", "ise"):
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
     w = jnp.full((study.num_signals,), 1.0 / study.num_signals) if weights is None else jnp.asarray(weights)
+    mesh = sample_mesh(cfg.devices)
     if cfg.method in ("auto", "exact") and traced_qualifies(study, (observer,)):
         # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
-        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol)
+        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh)
         per = w @ mets[METRICS.index(loss)]  # (B,)
         return jnp.mean(per) if quantile is None else jnp.quantile(per, quantile)
     iu, jf = (jnp.asarray(a) for a in _indices(study))
 
-    def one(i, j):
-        (e,), _ = sample_errors(study, (observer,), i, j, cfg)
-        return error_metrics(study.ts, e, cfg.settle_tol)[loss] @ w
+    def local(study, p):
+        def one(i, j, obs):
+            (e,), _ = sample_errors(study, (obs,), i, j, cfg)
+            return error_metrics(study.ts, e, cfg.settle_tol)[loss] @ w
 
-    per = jax.vmap(one)(iu, jf)
+        return jax.vmap(one)(*p)
+
+    per = per_sample(local, study, observer, iu, jf, mesh)
     return jnp.mean(per) if quantile is None else jnp.quantile(per, quantile)

@@ -85,6 +85,7 @@ from ..design._functional import build_observer, verify_structure_design
 from ..design._gain_parameterization import contraction, disk_gain
 from ..design._parameterization import error_dynamics, observer_matrices
 from ..studies._runner import SimConfig, Study, study_loss
+from ..studies._sharding import check_same_on_every_process, distributed_errors, spans_processes
 from ._loop import backtracked_update, check_extra_loss, run_loop
 from ._optimizer import shared_optimizer
 
@@ -376,6 +377,7 @@ def tune(
     max_steps: int = 100_000,
     callback: Callable | None = None,
     quiet: bool = True,
+    devices=None,
 ) -> TuneResult:
     r"""Tune the free parameters of a functional-observer design by gradient descent.
 
@@ -415,6 +417,12 @@ def tune(
     - `method`, `rtol`, `atol`, `max_steps`: simulation options (`fojax.simulate`).
     - `callback`: called as ``callback(step, record)`` after every step.
     - `quiet`: no progress bar.
+    - `devices`: spread the training samples over these devices (e.g. ``jax.devices()``
+      after `jax.distributed.initialize`: every process's devices; each process computes
+      its share of the loss and gradient). The iterates are bit-identical to the default
+      (``None``: one device), see `fojax.studies._sharding`. Every process runs the same
+      `tune` call (checked; `fojax.DistributedError` otherwise or when another dies);
+      with `checkpoint`, give each process its own path or let only process 0's file count.
 
     **Returns:** a `TuneResult`.
     """
@@ -427,7 +435,10 @@ def tune(
     optimizer = shared_optimizer("adam", learning_rate=1e-2) if optimizer is None else optimizer
     opt_state = optimizer.init(params)
     key = jax.random.PRNGKey(0) if key is None else key
-    cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps))
+    cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps),
+                    devices=None if devices is None else tuple(devices))
+    if devices is not None and spans_processes(devices):
+        check_same_on_every_process((params, train_study, heldout), "tune")
     w = None if weights is None else jnp.asarray(weights, dtype=jnp.float64)
     path = None if checkpoint is None else os.fspath(checkpoint)
 
@@ -438,16 +449,17 @@ def tune(
                                                        parameterization=parameterization)[1])
                        if heldout else None)
 
-    params, history = run_loop(
-        params, opt_state, key, steps=steps, step=_step,
-        step_args=(fx, train_study, optimizer, loss, quantile, w, cfg, float(min_margin), int(max_backtracks),
-                   float(barrier), extra_loss),
-        host_check=lambda p: _host_check(fx, p, region),
-        heldout_loss=heldout_loss if heldout is not None else None, eval_every=eval_every,
-        callback=callback, callback_params=False, path=path, resume=resume,
-        checkpoint_every=checkpoint_every, quiet=quiet, desc="tune",
-    )  # fmt: skip
-    final_heldout = heldout_loss(params) if heldout is not None else None
+    with distributed_errors("tune"):
+        params, history = run_loop(
+            params, opt_state, key, steps=steps, step=_step,
+            step_args=(fx, train_study, optimizer, loss, quantile, w, cfg, float(min_margin), int(max_backtracks),
+                       float(barrier), extra_loss),
+            host_check=lambda p: _host_check(fx, p, region),
+            heldout_loss=heldout_loss if heldout is not None else None, eval_every=eval_every,
+            callback=callback, callback_params=False, path=path, resume=resume,
+            checkpoint_every=checkpoint_every, quiet=quiet, desc="tune",
+        )  # fmt: skip
+        final_heldout = heldout_loss(params) if heldout is not None else None
     tuned = _verified_design(design, fx, params, region, dict(loss=loss, quantile=quantile, steps=steps,
                                                                tune_Z=tune_Z, parameterization=parameterization,
                                                                barrier=barrier, extra_loss=_name(extra_loss)))
