@@ -8,6 +8,7 @@ itself (SIGKILL) after the run and the others run the study again: each must sto
 `fojax.DistributedError`, written to ``OUT.error``.
 """
 
+import collections
 import os
 import signal
 import sys
@@ -26,11 +27,12 @@ from fojax import studies as S, tuning  # noqa: E402
 
 
 SIGNALS = ("z1", "z2", "f1", "f2", "f3")
+TRACES = collections.Counter()
 
 
 def studies():
     """Evaluation (7 samples: padded on 2, 3 or 4 devices) and training (2 x 3) studies
-    of the §3.3.7 plant with a constant δ, constant faults and a sine input."""
+    of the §3.3.7 plant with a constant δ, faults and a sine input."""
     ex = fojax.models.example_3_3_7()
     dA = np.zeros((1, 9, 9))
     dA[0, :6, :6] = ex.dA
@@ -40,11 +42,13 @@ def studies():
     ts = jnp.linspace(0.0, 1.0, 21)
     k1, k2, k3, k4 = jax.random.split(jax.random.PRNGKey(3), 4)
 
-    def study(kd, kf, nu, nf):
+    def study(kd, kf, nu, nf, u=u):
         return S.Study(plant, x0, ts, ex.L_aug, u, uncertainty=(S.constant_delta(kd, nu, 1, bounds=(-1.0, 1.0)),),
                        scenarios=(S.constant_faults(kf, nf, x0, 3),), signal_names=SIGNALS)
 
-    return study(k1, k2, 7, 1), study(k3, k4, 2, 3)
+    # evaluation: the input also steps between grid points (t = 0.37: the exact engine's jumps)
+    evaluation = study(k1, k2, 7, 1, u=u + fojax.Step(jnp.array([0.5, -0.3]), 0.37))
+    return evaluation, study(k3, k4, 2, 3)
 
 
 def study_and_tuning(design, devices, loss_devices, steps=3):
@@ -56,6 +60,7 @@ def study_and_tuning(design, devices, loss_devices, steps=3):
     import optax
 
     from fojax.studies._runner import SimConfig
+    from fojax.studies._sharding import replicate
 
     ev, train = studies()
     res = S.run_study(ev, design.observer, devices=devices, quantiles=(0.1, 0.5, 0.9), quiet=True)
@@ -66,12 +71,14 @@ def study_and_tuning(design, devices, loss_devices, steps=3):
 
     @eqx.filter_jit
     def step(params, state):
+        TRACES["step"] += 1
         loss, grads = eqx.filter_value_and_grad(
             lambda p: S.study_loss(train, tuning.observer_from_parameters(fx, p)[0], cfg=cfg))(params)
         updates, state = opt.update(grads, state, params)
         return loss, grads, optax.apply_updates(params, updates), state
 
     state = opt.init(params)
+    params, state = replicate((params, state), None if loss_devices is None else tuple(loss_devices))
     losses = []
     for k in range(steps):
         loss, grads, params, state = step(params, state)
@@ -79,6 +86,7 @@ def study_and_tuning(design, devices, loss_devices, steps=3):
         out.update({f"grad{k}:{name}": np.asarray(v) for name, v in grads.items()})
     out["train_loss"] = np.asarray(losses)
     out.update({f"param:{k}": np.asarray(v) for k, v in params.items()})
+    out["step_traces"] = np.asarray(TRACES["step"])  # 1: new parameters never recompile
     out["engine"] = np.asarray(res.attrs["engine"])
     out["num_devices"] = np.asarray(res.attrs["num_devices"])
     return out

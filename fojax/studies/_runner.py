@@ -63,6 +63,7 @@ from ._sharding import (
     per_sample,
     sample_mesh,
     spans_processes,
+    sum_rows,
 )
 from ._wrappers import FaultyPlant
 
@@ -536,7 +537,7 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
         # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
         mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh)
         per = w @ mets[METRICS.index(loss)]  # (B,)
-        return jnp.mean(per) if quantile is None else jnp.quantile(per, quantile)
+        return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
     iu, jf = (jnp.asarray(a) for a in _indices(study))
 
     def local(study, p):
@@ -547,4 +548,4 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
         return jax.vmap(one)(*p)
 
     per = per_sample(local, study, observer, iu, jf, mesh)
-    return jnp.mean(per) if quantile is None else jnp.quantile(per, quantile)
+    return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)

@@ -85,7 +85,12 @@ from ..design._functional import build_observer, verify_structure_design
 from ..design._gain_parameterization import contraction, disk_gain
 from ..design._parameterization import error_dynamics, observer_matrices
 from ..studies._runner import SimConfig, Study, study_loss
-from ..studies._sharding import check_same_on_every_process, distributed_errors, spans_processes
+from ..studies._sharding import (
+    check_same_on_every_process,
+    distributed_errors,
+    replicate,
+    spans_processes,
+)
 from ._loop import backtracked_update, check_extra_loss, run_loop
 from ._optimizer import shared_optimizer
 
@@ -439,6 +444,8 @@ def tune(
                     devices=None if devices is None else tuple(devices))
     if devices is not None and spans_processes(devices):
         check_same_on_every_process((params, train_study, heldout), "tune")
+    # on the mesh from the first step on (the step's outputs are): one compilation
+    params, opt_state = replicate((params, opt_state), devices)
     w = None if weights is None else jnp.asarray(weights, dtype=jnp.float64)
     path = None if checkpoint is None else os.fspath(checkpoint)
 
