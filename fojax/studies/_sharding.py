@@ -42,6 +42,7 @@ from jax import lax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._errors import DistributedError, InputError
+from ..simulation._batch import spans_processes as mesh_spans_processes
 
 
 AXIS = "batch"
@@ -144,7 +145,7 @@ def spans_processes(devices) -> bool:
     """Whether `devices` (a sequence of `jax.Device`, or ``None``: ``jax.devices()``)
     include devices of other processes."""
     devices = jax.devices() if devices is None else devices
-    return any(d.process_index != jax.process_index() for d in devices)
+    return mesh_spans_processes(Mesh(np.asarray(list(devices)), (AXIS,)))
 
 
 def check_same_on_every_process(tree, what: str) -> None:
