@@ -31,6 +31,7 @@ from ._errors import (
     DataRangeError as DataRangeError,
     DesignVerificationError as DesignVerificationError,
     DetectabilityError as DetectabilityError,
+    DistributedError as DistributedError,
     ExistenceConditionError as ExistenceConditionError,
     Float64RequiredError as Float64RequiredError,
     FojaxError as FojaxError,

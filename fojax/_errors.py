@@ -217,3 +217,12 @@ class UnsafePathError(InputError):
             f"{folder}; fojax never writes outside the folder you chose. Use a plain file name "
             "(letters, digits, '.', '_', '-') for every name that becomes a file."
         )
+
+
+class DistributedError(FojaxError, RuntimeError):
+    """A multi-process run (`jax.distributed.initialize`) failed on another process, or
+    the processes were not given the same inputs.
+
+    Raised on every process that is still alive: the message says which process and what
+    the runtime reported (a collective that lost its peer, a heartbeat timeout), and how
+    to continue (restart every process; ``fojax study --resume FOLDER``)."""

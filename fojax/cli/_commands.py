@@ -413,6 +413,7 @@ def study(
     steps: int | None = None,
     resume: str | None = None,
     quiet: bool = False,
+    distributed: bool = False,
 ) -> int:
     """``fojax study``: structure check, LMI designs, Monte Carlo study, figures and report.
 
@@ -438,7 +439,16 @@ def study(
     SIGINT/SIGTERM stop the study with exit code 130/143 and leave the folder consistent
     (every file is written atomically; a signal arriving while a tuning checkpoint is
     being written takes effect once that write is complete).
+
+    With `distributed` (``--distributed``, after `fojax.cli._distributed.initialize`) the
+    samples are spread over every process's devices; only process 0 writes the folder.
     """
+    if distributed:
+        from ._distributed import process_folders
+
+        with process_folders(out_dir, resume) as (out_dir, resume, worker):
+            return study(config_path, out_dir, samples=samples, horizon=horizon, steps=steps, resume=resume,
+                         quiet=quiet or bool(worker))
     if not _studies_available():
         raise _Unavailable(
             "fojax study is not available yet: the Monte Carlo study runner (fojax.studies) is "
@@ -590,7 +600,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         write_report,
     )
     from ..results._io import atomic_write_json, atomic_write_npz
-    from . import _study_samples as ss
+    from . import _distributed, _study_samples as ss
 
     ow = resumed  # a resumed run replaces the files it regenerates
     reports = [structure_report(sys_, cfg.L) for sys_ in cfg.rule_systems()]
@@ -666,7 +676,8 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                 tr = _tune(tuning, cfg, designs[nm], train, heldout=heldout_small, steps=n_steps,
                            optimizer=tuning.shared_optimizer("adam", learning_rate=tspec.learning_rate),
                            eval_every=max(1, n_steps // 10), callback=_after_step,
-                           checkpoint=checkpoint, resume=resumed, quiet=out.quiet)
+                           checkpoint=checkpoint, resume=resumed, quiet=out.quiet,
+                           devices=_distributed.tuning_devices())
             tuned_name = f"{nm}-tuned"
             designs[tuned_name] = tr.design
             tuned_pairs[tuned_name] = nm

@@ -240,6 +240,11 @@ def _run(argv: list[str] | None) -> int:
                    "options are reused, the tuning continues from its checkpoint, the files the run "
                    "regenerates are replaced (CONFIG, --samples, --horizon, --steps, if given, must "
                    "match the first run)")
+    p.add_argument("--distributed", action="store_true",
+                   help="one study over several processes/hosts (jax.distributed): start this same "
+                   "command on every process with JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, "
+                   "JAX_PROCESS_ID set (not needed under SLURM); only process 0 writes the results "
+                   "folder (see docs/distributed.md)")
     args = parser.parse_args(argv)
     if args.command is None:  # plain `fojax`: what it can do, not a 20-second demo
         parser.print_help()
@@ -253,8 +258,16 @@ def _run(argv: list[str] | None) -> int:
     if command == "examples":
         return _commands.examples(quiet=args.quiet)
     if command == "study":
-        _enable_x64()
         config = None if args.config is None else _commands.resolve_config(args.config)
+        if args.distributed:
+            from . import _distributed
+
+            _distributed.initialize()
+            _enable_x64()
+            return _distributed.run(lambda: _commands.study(
+                config, args.out, samples=args.samples, horizon=args.horizon, steps=args.steps,
+                resume=args.resume, quiet=args.quiet, distributed=True))
+        _enable_x64()
         return _commands.study(config, args.out, samples=args.samples, horizon=args.horizon,
                                steps=args.steps, resume=args.resume, quiet=args.quiet)
     _enable_x64()

@@ -40,6 +40,7 @@ from ..simulation._reduction import (
 )
 from ..simulation._simulate import UNIFORM_GRID_RTOL
 from ._adjoint import linear_recurrence_reduce
+from ._sharding import per_sample
 from ._wrappers import FaultProfile, FaultyPlant
 
 
@@ -146,7 +147,10 @@ class StudyProblem(eqx.Module):
     keep: bool = eqx.field(static=True, default=False)
 
     def joint(self, p):
-        i, j = p
+        # p = (i, j) or (i, j, observers): one copy of the observers per sample (`study_loss`
+        # on several devices: fojax.studies._sharding)
+        i, j = p[0], p[1]
+        observers = p[2] if len(p) > 2 else self.observers
         study = self.study
         plant, x0 = study.sample(i, j)
         base, Fa, Fs, fault = _unwrap(plant)
@@ -171,18 +175,18 @@ class StudyProblem(eqx.Module):
             jdv=_blkdiag(jdvu, jdvf),
         )
         Aj, w0, out_map, ok = joint_matrices(
-            base.E, A, jnp.concatenate([B, Fa], axis=1), C, self.observers, x0, self.split, self.r, exo
+            base.E, A, jnp.concatenate([B, Fa], axis=1), C, observers, x0, self.split, self.r, exo
         )
         ok = ok & jnp.all(base.E == self.E0)
         # errors ẑ_i − z as a linear map of [x; ξ_1; ...; v]
-        sizes = [o.state_size for o in self.observers]
+        sizes = [o.state_size for o in observers]
         L = study.L
         Hz = jnp.zeros((L.shape[0], nu_ + nf_))
         if study.fault_targets:
             L = jnp.concatenate([L, jnp.zeros((Hf.shape[0], n))], axis=0)
             Hz = jnp.concatenate([Hz, jnp.concatenate([jnp.zeros((Hf.shape[0], nu_)), Hf], axis=1)], axis=0)
         rows = []
-        for k, o in enumerate(self.observers):
+        for k, o in enumerate(observers):
             lm = o.linear_matrices()
             blocks = [lm.Dy @ C - L]
             blocks += [lm.C if k == kk else jnp.zeros((lm.C.shape[0], s)) for kk, s in enumerate(sizes)]
@@ -299,20 +303,28 @@ def traced_qualifies(study, observers) -> bool:
     return True
 
 
-def sample_metrics_traced(study, observers, settle_tol):
+def sample_metrics_traced(study, observers, settle_tol, mesh=None):
     """Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of every sample, exactly and
     reverse-differentiably (one block of all samples, `expm_last` with a fixed-length
     squaring scan, the masked full-size slow coordinates so that nothing needs ``rank E``
-    on the host). Traceable."""
+    on the host). With a `mesh` (`fojax.studies._sharding.sample_mesh`) the block is cut
+    over its devices, possibly of several processes; the values and their gradient are
+    bit-identical to one device (`fojax.studies._sharding`). Traceable."""
     TRACE_COUNTS["study_loss_exact"] += 1
     E0 = _unwrap(study.sample(0, 0)[0])[0].E
     split = svd_split(E0)
     problem = StudyProblem(study, tuple(observers), split, E0, jnp.asarray(settle_tol, dtype=jnp.float64), None)
     k = jnp.arange(study.num_samples)
-    idx = (k // study.num_scenarios, k % study.num_scenarios)
     ts = study.ts
     h = (ts[-1] - ts[0]) / (ts.shape[0] - 1)
-    mets, ok = _block_kernel(problem, idx, h, ts, None, differentiable=True,
-                             time_loop=lambda pr, Phi, w0, G, jv, kon, ts: linear_recurrence_reduce(
-                                 (Phi, w0, G, jv, ts), pr, kon))
-    return mets, ok
+
+    def local(shared, p):
+        problem, ts, h = shared
+        mets, ok = _block_kernel(problem, p, h, ts, None, differentiable=True,
+                                 time_loop=lambda pr, Phi, w0, G, jv, kon, ts: linear_recurrence_reduce(
+                                     (Phi, w0, G, jv, ts), pr, kon))
+        return jnp.moveaxis(mets, -1, 0), ok  # samples first
+
+    mets, ok = per_sample(local, (problem, ts, h), tuple(observers), k // study.num_scenarios,
+                          k % study.num_scenarios, mesh)
+    return jnp.moveaxis(mets, 0, -1), ok

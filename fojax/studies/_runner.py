@@ -56,10 +56,18 @@ from .._errors import InputError, ShapeError
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
-from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, run_batched
+from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, gather_across_processes, run_batched
 from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
 from ._exponential import exponential_problem
 from ._families import Family
+from ._sharding import (
+    check_same_on_every_process,
+    distributed_errors,
+    per_sample,
+    sample_mesh,
+    spans_processes,
+    sum_rows,
+)
 from ._wrappers import FaultyPlant
 
 
@@ -180,6 +188,9 @@ class SimConfig:
     max_steps: int = 100_000
     settle_tol: float = 0.05
     solver: object = None  # a diffrax solver (hashable module) or None: simulate's default
+    # `study_loss` / `tune`: devices the samples are spread over (e.g. jax.devices() of a
+    # jax.distributed run; fojax.studies._sharding), None: one block on the default device
+    devices: tuple | None = None
 
 
 def error_metrics(ts, e, settle_tol: float = 0.05) -> dict[str, Array]:
@@ -238,10 +249,9 @@ def _run_chunk(study, observers, iu, jf, cfg: SimConfig, keep_errors: bool, mesh
     # shard_map: every device runs its own vmapped simulation on its slice of the batch
     # (no cross-device collective inside the adaptive time loop).
     batch = PartitionSpec("batch")
-    return jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec(), batch, batch), out_specs=batch,
-                         check_vma=False)(
-        dyn, iu, jf
-    )
+    out = jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec(), batch, batch), out_specs=batch,
+                        check_vma=False)(dyn, iu, jf)
+    return gather_across_processes(out, mesh)  # a global mesh: every process gets every sample
 
 
 def _mesh(devices):
@@ -355,7 +365,11 @@ def run_study(
       multiple of the number of devices. The last chunk is padded, so one compilation
       serves every chunk.
     - `devices`: devices of the 1-d mesh the batch axis is sharded over (default
-      `jax.devices()`).
+      `jax.devices()`: after `jax.distributed.initialize`, the devices of every process,
+      each process computing its share; every process then receives the whole result,
+      bit-identical to a one-device run, and the processes must pass the same study and
+      observers (checked; `fojax.DistributedError` otherwise, and when another process
+      dies). See ``docs/distributed.md``.
     - `quantiles`: levels of the time-wise error quantiles (``()``: none; then the
       per-chunk errors are not kept on the host).
     - `settle_tol`: tolerance of the settling time.
@@ -407,17 +421,27 @@ def run_study(
     cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps),
                     settle_tol=float(settle_tol), solver=solver)
     keep = len(quantiles) > 0
-    if method in ("auto", "exact"):
-        prepared, _reason = exact_problem(study, observers, settle_tol, keep)
-        if prepared is not None:
-            return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices)
-    if method in ("auto", "exponential"):
-        prepared, _reason = exponential_problem(study, observers, settle_tol, keep, strict=method == "exponential")
-        if prepared is not None:
-            n_start, sub_start, substeps = prepared[0].schedule
-            return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, method="exponential",
-                              solver=f"ETDRK4, {substeps} steps per grid interval ({sub_start} in the first "
-                                     f"{n_start})", engine="exponential-batch")
+    if spans_processes(devices):  # a global mesh (jax.distributed): same inputs everywhere
+        check_same_on_every_process((study, observers), "run_study")
+    with distributed_errors("run_study"):
+        if method in ("auto", "exact"):
+            prepared, _reason = exact_problem(study, observers, settle_tol, keep)
+            if prepared is not None:
+                return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices)
+        if method in ("auto", "exponential"):
+            prepared, _reason = exponential_problem(study, observers, settle_tol, keep,
+                                                    strict=method == "exponential")
+            if prepared is not None:
+                n_start, sub_start, substeps = prepared[0].schedule
+                return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, method="exponential",
+                                  solver=f"ETDRK4, {substeps} steps per grid interval ({sub_start} in the first "
+                                         f"{n_start})", engine="exponential-batch")
+        return _run_vmap(study, observers, names, quantiles, cfg, chunk_size, devices, keep, solver, quiet)
+
+
+def _run_vmap(study, observers, names, quantiles, cfg: SimConfig, chunk_size, devices, keep, solver,
+              quiet) -> StudyResult:
+    """`run_study` on the ``"vmap-simulate"`` engine (`fojax.simulate` per sample)."""
     mesh, batch_sh, rep_sh = _mesh(devices)
     ndev = mesh.devices.size
     B = study.num_samples
@@ -469,7 +493,7 @@ def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, **attrs) -> 
         "quantile": np.asarray(quantiles, dtype=float),
         "time": np.asarray(study.ts),
     }
-    merged = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "solver"}
+    merged = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("solver", "devices")}
     merged.update(attrs)
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=merged)
 
@@ -484,6 +508,7 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
     # trajectories for the quantile bands are (T, K) per sample: smaller chunks bound memory
     default = DEFAULT_CHUNK // 2 if keep else DEFAULT_CHUNK
     chunk = min(B, default) if chunk_size is None else int(chunk_size)
+    devices = jax.devices() if devices is None else devices  # all processes' devices, as `_mesh`
     out, layout = run_batched(problem, idx, study.ts, chunk_size=chunk, block=DEFAULT_BLOCK, devices=devices,
                               basis=basis)
     if keep:
@@ -525,20 +550,29 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     number of time steps; like `jax.grad`, it takes the derivative of $|e|$ as
     $\mathrm{sign}(e)$, 0 at 0); otherwise each sample runs
     `fojax.simulate` under `jax.vmap`.
+
+    With ``cfg.devices`` (e.g. ``jax.devices()`` after `jax.distributed.initialize`: all
+    processes' devices) the samples are spread over those devices, each computing its own;
+    the loss and its gradient with respect to the observer are bit-identical to
+    ``cfg.devices=None`` (one device): see `fojax.studies._sharding`.
     """
     if loss not in ("iae", "ise"):
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
     w = jnp.full((study.num_signals,), 1.0 / study.num_signals) if weights is None else jnp.asarray(weights)
+    mesh = sample_mesh(cfg.devices)
     if cfg.method in ("auto", "exact") and traced_qualifies(study, (observer,)):
         # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
-        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol)
+        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh)
         per = w @ mets[METRICS.index(loss)]  # (B,)
-        return jnp.mean(per) if quantile is None else jnp.quantile(per, quantile)
+        return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
     iu, jf = (jnp.asarray(a) for a in _indices(study))
 
-    def one(i, j):
-        (e,), _ = sample_errors(study, (observer,), i, j, cfg)
-        return error_metrics(study.ts, e, cfg.settle_tol)[loss] @ w
+    def local(study, p):
+        def one(i, j, obs):
+            (e,), _ = sample_errors(study, (obs,), i, j, cfg)
+            return error_metrics(study.ts, e, cfg.settle_tol)[loss] @ w
 
-    per = jax.vmap(one)(iu, jf)
-    return jnp.mean(per) if quantile is None else jnp.quantile(per, quantile)
+        return jax.vmap(one)(*p)
+
+    per = per_sample(local, study, observer, iu, jf, mesh)
+    return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)

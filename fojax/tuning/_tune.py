@@ -70,6 +70,12 @@ from ..design._tunable import (
     unflatten,
 )
 from ..studies._runner import SimConfig, Study, study_loss
+from ..studies._sharding import (
+    check_same_on_every_process,
+    distributed_errors,
+    replicate,
+    spans_processes,
+)
 from ._loop import backtracked_update, check_extra_loss, run_loop
 from ._optimizer import shared_optimizer
 
@@ -236,6 +242,7 @@ def tune(
     solver=None,
     callback: Callable | None = None,
     quiet: bool = True,
+    devices=None,
 ) -> TuneResult:
     r"""Tune the free parameters of a functional-observer design by gradient descent.
 
@@ -274,6 +281,12 @@ def tune(
     - `callback`: called as ``callback(step, record)`` after every step; ``record`` is the
       step's history entry plus ``params`` (the current, accepted parameters).
     - `quiet`: no progress bar.
+    - `devices`: spread the training samples over these devices (e.g. ``jax.devices()``
+      after `jax.distributed.initialize`: every process's devices; each process computes
+      its share of the loss and gradient). The iterates are bit-identical to the default
+      (``None``: one device), see `fojax.studies._sharding`. Every process runs the same
+      `tune` call (checked; `fojax.DistributedError` otherwise or when another dies);
+      with `checkpoint`, give each process its own path or let only process 0's file count.
 
     **Returns:** a `TuneResult`.
 
@@ -300,7 +313,12 @@ def tune(
     optimizer = shared_optimizer("adam", learning_rate=1e-2) if optimizer is None else optimizer
     opt_state = optimizer.init(xi)
     key = jax.random.PRNGKey(0) if key is None else key
-    cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps), solver=solver)
+    cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps), solver=solver,
+                    devices=None if devices is None else tuple(devices))
+    if devices is not None and spans_processes(devices):
+        check_same_on_every_process((params0, train_study, heldout), "tune")
+    # on the mesh from the first step on (the step's outputs are): one compilation
+    xi, opt_state = replicate((xi, opt_state), devices)
     w = None if weights is None else jnp.asarray(weights, dtype=jnp.float64)
     path = None if checkpoint is None else os.fspath(checkpoint)
 
@@ -308,17 +326,18 @@ def tune(
         return float(_evaluate(p, par, heldout, loss, quantile, w, cfg))
 
     initial_heldout = heldout_loss(params0) if heldout is not None else None
-    xi, history = run_loop(
-        xi, opt_state, key, steps=steps, step=_step,
-        step_args=(coords, par, train_study, optimizer, loss, quantile, w, cfg, jnp.asarray(float(min_margin)),
-                   int(max_backtracks), jnp.asarray(barrier), extra_loss),
-        host_check=lambda x: par.host_check(coords.params(x)),
-        heldout_loss=(lambda x: heldout_loss(coords.params(x))) if heldout is not None else None,
-        eval_every=eval_every, callback=callback, to_params=coords.params, path=path, resume=resume,
-        checkpoint_every=checkpoint_every, quiet=quiet, desc="tune",
-    )  # fmt: skip
-    params = coords.params(xi)
-    final_heldout = heldout_loss(params) if heldout is not None else None
+    with distributed_errors("tune"):
+        xi, history = run_loop(
+            xi, opt_state, key, steps=steps, step=_step,
+            step_args=(coords, par, train_study, optimizer, loss, quantile, w, cfg, jnp.asarray(float(min_margin)),
+                       int(max_backtracks), jnp.asarray(barrier), extra_loss),
+            host_check=lambda x: par.host_check(coords.params(x)),
+            heldout_loss=(lambda x: heldout_loss(coords.params(x))) if heldout is not None else None,
+            eval_every=eval_every, callback=callback, to_params=coords.params, path=path, resume=resume,
+            checkpoint_every=checkpoint_every, quiet=quiet, desc="tune",
+        )  # fmt: skip
+        params = coords.params(xi)
+        final_heldout = heldout_loss(params) if heldout is not None else None
     tuned = par.certify(params)
     options = dict(loss=loss, quantile=quantile, steps=steps, tune_Z=tune_Z, barrier=barrier,
                    parameterization=type(par).__name__, precondition=precondition, extra_loss=_name(extra_loss),

@@ -1,0 +1,119 @@
+"""``fojax study --distributed``: one study over the processes of a `jax.distributed` run.
+
+Every process runs the same command on the same model file; JAX's own multi-process
+runtime joins them (`jax.distributed.initialize`), and `run_study` / `tune` spread the
+samples over the global mesh of every process's devices (`fojax.studies._sharding`).
+
+Environment (JAX's names; on SLURM, and the other clusters JAX detects, all may be left
+unset):
+
+- ``JAX_COORDINATOR_ADDRESS``: ``host:port`` of process 0 (read by JAX itself);
+- ``JAX_NUM_PROCESSES``, ``JAX_PROCESS_ID``: number of processes and this one's id;
+- ``FOJAX_HEARTBEAT_TIMEOUT`` (s, default 100, JAX's): a process silent this long counts as
+  dead and every other process stops with an error;
+- ``FOJAX_INITIALIZATION_TIMEOUT`` (s, default 300): how long to wait for all processes.
+
+Only process 0 writes the results folder. The others run the identical computation (the
+collectives need every process) in a private temporary folder that is deleted at the end;
+with ``--resume FOLDER`` they continue from a copy of process 0's FOLDER, which must be
+visible to every host (a shared file system, as on a cluster).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import sys
+import tempfile
+
+from .._errors import DistributedError, InputError
+
+
+ENV_INT = {
+    "JAX_NUM_PROCESSES": None,
+    "JAX_PROCESS_ID": None,
+    "FOJAX_HEARTBEAT_TIMEOUT": 100,
+    "FOJAX_INITIALIZATION_TIMEOUT": 300,
+}
+
+
+def _env_int(name):
+    raw = os.environ.get(name)
+    if raw is None or raw == "":
+        return ENV_INT[name]
+    try:
+        value = int(raw)
+    except ValueError:
+        value = -1
+    if value < 0 or (name == "JAX_NUM_PROCESSES" and value < 1):
+        raise InputError(f"environment variable {name}={raw!r}: expected a non-negative integer "
+                         f"({'>= 1' if name == 'JAX_NUM_PROCESSES' else 'process ids start at 0'}).")
+    return value
+
+
+def initialize() -> None:
+    """`jax.distributed.initialize` from the environment (module docstring); before any
+    JAX computation of the process."""
+    import jax
+
+    n, pid = _env_int("JAX_NUM_PROCESSES"), _env_int("JAX_PROCESS_ID")
+    if n is not None and pid is not None and pid >= n:
+        raise InputError(f"JAX_PROCESS_ID={pid} must be smaller than JAX_NUM_PROCESSES={n}.")
+    address = os.environ.get("JAX_COORDINATOR_ADDRESS") or None
+    try:
+        jax.distributed.initialize(
+            coordinator_address=address, num_processes=n, process_id=pid,
+            initialization_timeout=_env_int("FOJAX_INITIALIZATION_TIMEOUT"),
+            heartbeat_timeout_seconds=_env_int("FOJAX_HEARTBEAT_TIMEOUT"),
+        )
+    except (RuntimeError, ValueError) as err:
+        raise DistributedError(
+            f"--distributed: jax.distributed.initialize failed ({str(err).splitlines()[0][:300]}). Set "
+            "JAX_COORDINATOR_ADDRESS=host:port (process 0's host, a free port), JAX_NUM_PROCESSES and "
+            "JAX_PROCESS_ID on every process (unneeded under SLURM), and start every process."
+        ) from err
+
+
+@contextlib.contextmanager
+def process_folders(out_dir, resume):
+    """``(out_dir, resume, quiet)`` for this process: unchanged on process 0; on the others a
+    temporary folder (and a copy of the `resume` folder in it), removed at the end."""
+    import jax
+
+    if jax.process_index() == 0:
+        yield out_dir, resume, None
+        return
+    tmp = tempfile.mkdtemp(prefix=f"fojax-process{jax.process_index()}-")
+    try:
+        if resume is not None:
+            if not os.path.isdir(resume):
+                raise InputError(f"--resume {resume}: process {jax.process_index()} cannot see this folder; "
+                                 "--distributed --resume needs it on a file system every host mounts.")
+            copy = os.path.join(tmp, os.path.basename(os.path.normpath(resume)))
+            shutil.copytree(resume, copy)
+            resume = copy
+        yield os.path.join(tmp, "out"), resume, True
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def run(command) -> int:
+    """Run ``command()`` (the study) after `initialize`. A `fojax.DistributedError` (another
+    process died) ends this process at once with its one-line reason (exit code 2),
+    without JAX's shutdown barrier, which the dead process can never join."""
+    import jax
+
+    try:
+        return command()
+    except DistributedError as err:
+        print(f"fojax: error (process {jax.process_index()}): {err}", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(2)
+
+
+def tuning_devices():
+    """The devices `tune` spreads its samples over: all processes' in a distributed run."""
+    import jax
+
+    return jax.devices() if jax.process_count() > 1 else None
