@@ -35,7 +35,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import prefer_checkout  # noqa: E402
+from _common import machine_info, prefer_checkout  # noqa: E402
 
 
 prefer_checkout()
@@ -135,7 +135,8 @@ def main(argv=None) -> dict:
         "results": table, "verdict": verdict, "eval_run_s": t_eval,
         "loadavg_start": list(load_start), "loadavg_end": list(os.getloadavg()),
         "note": "measured under load (2 shared cores, 8 engineers): timings are not representative",
-        "versions": {"jax": jax.__version__, "python": sys.version.split()[0]},
+        "status": "complete",
+        "machine": {**machine_info(), "load_average_at_start": list(load_start)},
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
