@@ -418,3 +418,13 @@ def machine_lines(info: dict) -> list[str]:
         f"load average at start {tuple(round(x, 2) for x in la0)}, at end {tuple(round(x, 2) for x in la1)}",
         f"- Python {info.get('python')}; " + ", ".join(f"{k} {val}" for k, val in v.items()),
     ]
+
+
+def write_result(path, result: dict) -> None:
+    """Write a benchmark's result JSON atomically (a temporary file, then `os.replace`)."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(result, indent=1))
+    os.replace(tmp, out)
+    print("wrote", out)

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import sys
 import time
@@ -235,11 +234,7 @@ def main():
         machine=info, rows=rows, load_average_at_end=_common.load_average(),
         note="measured once on a shared 2-core machine under load from other jobs (see load averages)",
     )
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(args.out).with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1))
-    os.replace(tmp, args.out)
-    print("wrote", args.out)
+    _common.write_result(args.out, result)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -184,11 +183,7 @@ def main():
         note="measured under load: one run on a shared 2-core machine with other jobs running (see the load "
              "averages); the peer is timed on a subset of the samples and reported per sample",
     )
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(args.out).with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1))
-    os.replace(tmp, args.out)
-    print("wrote", args.out)
+    _common.write_result(args.out, result)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import sys
 import time
@@ -137,12 +136,7 @@ def main():
         note="measured once on a shared 2-core machine under load from other jobs (see load averages); "
              "CPU seconds are this process's",
     )
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1))
-    os.replace(tmp, out)
-    print("wrote", out)
+    _common.write_result(args.out, result)
 
 
 if __name__ == "__main__":

@@ -173,6 +173,13 @@ def _response_features(obs, rho, K):
     return jnp.concatenate(out)
 
 
+def _design_blocks(design, tune_Z: bool) -> dict:
+    """The design's nonempty parameter blocks ``Z, Y1, Y2, Y3, J, G`` as arrays (``Z`` only
+    with `tune_Z`): the parameters of `SteinDisk` and `CommonCertificate`."""
+    p = {k: jnp.asarray(np.asarray(v)) for k, v in design.params.items()}
+    return {k: v for k, v in p.items() if v.size and (tune_Z or k != "Z")}
+
+
 class AbstractParameterization(eqx.Module):
     """The protocol of a tunable parameterization (module docstring)."""
 
@@ -377,8 +384,7 @@ class SteinDisk(AbstractParameterization):
             )
 
     def init(self, design) -> dict:
-        p = {k: jnp.asarray(np.asarray(v)) for k, v in design.params.items()}
-        return {k: v for k, v in p.items() if v.size and (self.tune_Z or k != "Z")}
+        return _design_blocks(design, self.tune_Z)
 
     def design_params(self, params) -> dict:
         return _full(self.structure, params, self.Z)
@@ -570,8 +576,7 @@ class CommonCertificate(AbstractParameterization):
             )
 
     def init(self, design) -> dict:
-        p = {k: jnp.asarray(np.asarray(v)) for k, v in design.params.items()}
-        return {k: v for k, v in p.items() if v.size and (self.tune_Z or k != "Z")}
+        return _design_blocks(design, self.tune_Z)
 
     def design_params(self, params) -> dict:
         return _full(self.structure, params, self.Z, rules=self.structure.num_rules)
