@@ -167,13 +167,16 @@ def test_design_every_example(designed):
 
 def test_design_of_the_takagi_sugeno_example(designed):
     r, out = designed
+    assert r.returncode == 0, r.stderr  # waits for the run (the test may run alone: -k)
     (folder,) = out.glob("design-robot_arm_ts-*")
     d = load_design(folder / "generalized.npz")
     assert type(d) is TakagiSugenoObserverDesign and d.report.passed
     assert d.observer.num_rules == 2 and d.structure.psi == "output"  # w = y (eq. 3.152)
     # the functional of the config, estimated with every rule's error poles in the disk
     assert np.array_equal(d.L, np.eye(5)[[1, 3]])
-    assert np.all(np.abs(d.report.eigenvalues + 2.0) < 1.0) and d.report.eigenvalues.size == 8
+    # the file's generalized observer: R with 4 rows (q0 = q1 = 4), 2 rules -> 2 x 8 error poles
+    assert (d.observer.q0, d.observer.q1) == (4, 4)
+    assert np.all(np.abs(d.report.eigenvalues + 2.0) < 1.0) and d.report.eigenvalues.size == 16
     assert d.report.extra["lyapunov_max_eig"] < 0  # common certificate: time-varying weights
     # the verification is printed
     block = r.stdout.split("fojax design: robot_arm_ts")[1].split("results:")[0]
