@@ -388,3 +388,24 @@ def test_design_takes_the_rank_of_e_from_analysis():
     sol = fojax.simulate(fojax.DescriptorSystem(E, A, B, C), jnp.asarray(ex.x0), ts, observers=(d.observer,))
     err = np.abs(np.asarray(sol.estimates[0]) - np.asarray(sol.xs) @ L.T)
     assert err[np.asarray(ts) >= 15.0].max() < 1e-4 * max(1.0, err[0].max())
+
+
+def test_e_perp_with_unknown_inputs_is_unit_independent():
+    """`e_perp(E, D=D)` (the unknown-input observer's annihilator of [E D]): its number of
+    rows is n - rank [E D] by sympy's exact rank of the integer matrices, under exact
+    power-of-two scalings of the equations and states up to 2^±40, and it annihilates [E D]."""
+    rng = np.random.default_rng(7)
+    for trial in range(20):
+        n, l = 5, 1 + trial % 2
+        E = rng.integers(-3, 4, size=(n, n)).astype(float)
+        E[:, -2:] = 0.0  # rank E <= 3
+        D = rng.integers(-3, 4, size=(n, l)).astype(float)
+        exact = n - sympy.Matrix(np.hstack([E, D]).astype(int)).rank()
+        dl = 2.0 ** rng.integers(-40, 41, size=n)
+        dr = 2.0 ** rng.integers(-40, 41, size=n)
+        Es, Ds = dl[:, None] * E * dr[None, :], dl[:, None] * D
+        N = fa.e_perp(Es, D=Ds)
+        assert N.shape == (exact, n), (trial, N.shape, exact)
+        K = np.hstack([Es, Ds])  # orthonormal rows, normwise backward stable
+        assert np.linalg.norm(N @ K, 2) <= 1e-12 * np.linalg.norm(K, 2)
+        assert np.allclose(N @ N.T, np.eye(exact), atol=1e-12)
