@@ -361,3 +361,51 @@ def test_round_off_entries_do_not_steer_the_balancing():
     A0 = np.where(np.abs(A) < 1e-15, 0.0, A)
     assert fa.is_regular(E, A) and fa.nilpotency_index(E, A) == 1
     assert_eigenvalues_match(fa.finite_poles(E, A), np.linalg.eigvals(A0[1:, 1:]), rtol=1e-12)
+
+
+def test_design_takes_the_rank_of_e_from_analysis():
+    """Issue 15 item 2: design's E⊥ (the annihilator of E in w = [-E⊥Bu; y]) comes from
+    `fojax.analysis.e_perp`, so design and analysis agree on rank E under any units. Thesis
+    example 4.1.3 with one state in units of 2^-40: analysis (balanced) keeps rank E = 3;
+    the raw SVD of E saw rank 2 and gave design a second E⊥ row. Oracles: rank E of the
+    unscaled model (NumPy), and the observer of the scaled model, driven by the same u and
+    y, estimating z = L x of the plant in its original units (fojax.simulate)."""
+    import jax.numpy as jnp
+
+    ex = fojax.models.example_4_1_3()
+    E, A, B, C, L = (np.asarray(x) for x in (ex.E, ex.A + ex.B @ ex.L, ex.B, ex.C, ex.L))
+    n, r = E.shape[0], np.linalg.matrix_rank(E)
+    j = int(np.argmax(np.abs(E).sum(0)))
+    D = np.ones(n)
+    D[j] = 2.0**-40  # x = D x': state j in tiny units
+    scaled = fojax.DescriptorSystem(E * D, A * D, B, C * D)
+    assert fojax._linalg.left_null_space(E * D).shape[0] == n - r + 1  # the unbalanced rank decision
+    d = fojax.design_functional_observer(scaled, L * D, kind="proportional", region=fojax.Disk(-2.0, 1.0))
+    assert d.report.passed
+    assert d.structure.Eperp.shape[0] == n - r
+    assert np.abs(np.asarray(d.structure.Eperp) @ (E * D)).max() <= 1e-12
+    ts = jnp.linspace(0.0, 20.0, 1001)
+    sol = fojax.simulate(fojax.DescriptorSystem(E, A, B, C), jnp.asarray(ex.x0), ts, observers=(d.observer,))
+    err = np.abs(np.asarray(sol.estimates[0]) - np.asarray(sol.xs) @ L.T)
+    assert err[np.asarray(ts) >= 15.0].max() < 1e-4 * max(1.0, err[0].max())
+
+
+def test_e_perp_with_unknown_inputs_is_unit_independent():
+    """`e_perp(E, D=D)` (the unknown-input observer's annihilator of [E D]): its number of
+    rows is n - rank [E D] by sympy's exact rank of the integer matrices, under exact
+    power-of-two scalings of the equations and states up to 2^±40, and it annihilates [E D]."""
+    rng = np.random.default_rng(7)
+    for trial in range(20):
+        n, l = 5, 1 + trial % 2
+        E = rng.integers(-3, 4, size=(n, n)).astype(float)
+        E[:, -2:] = 0.0  # rank E <= 3
+        D = rng.integers(-3, 4, size=(n, l)).astype(float)
+        exact = n - sympy.Matrix(np.hstack([E, D]).astype(int)).rank()
+        dl = 2.0 ** rng.integers(-40, 41, size=n)
+        dr = 2.0 ** rng.integers(-40, 41, size=n)
+        Es, Ds = dl[:, None] * E * dr[None, :], dl[:, None] * D
+        N = fa.e_perp(Es, D=Ds)
+        assert N.shape == (exact, n), (trial, N.shape, exact)
+        K = np.hstack([Es, Ds])  # orthonormal rows, normwise backward stable
+        assert np.linalg.norm(N @ K, 2) <= 1e-12 * np.linalg.norm(K, 2)
+        assert np.allclose(N @ N.T, np.eye(exact), atol=1e-12)

@@ -14,7 +14,7 @@ from .._errors import IrregularSystemError
 from .._linalg import left_null_space
 from ..plant import DescriptorSystem
 from ._balance import apply_scaling, scaling_of
-from ._common import as_pencil, deflate, Deflation, Pencil, require_regular
+from ._common import _unit, as_pencil, deflate, Deflation, Pencil, require_regular
 
 
 #: Default tolerance of `is_stable`: a pole counts as on the imaginary axis (hence not
@@ -22,7 +22,7 @@ from ._common import as_pencil, deflate, Deflation, Pencil, require_regular
 AXIS_TOL = 1e-9
 
 
-def e_perp(E, tol: float | None = None, *, balance: bool = True) -> np.ndarray:
+def e_perp(E, tol: float | None = None, *, balance: bool = True, D=None) -> np.ndarray:
     r"""The thesis's $E^\perp$: orthonormal rows spanning the left null space of `E`.
 
     $E^\perp E = 0$ and $E^\perp (E^\perp)^T = I$. Host-only (SVD with a rank decision).
@@ -36,20 +36,33 @@ def e_perp(E, tol: float | None = None, *, balance: bool = True) -> np.ndarray:
     - `balance`: the rank of ``E`` is decided on ``D_l E D_r`` (exact powers of two,
       `balance_system`); the null space found there is mapped back (``N D_l``, then
       orthonormalised: still ``E⊥ E = 0``). ``False`` decides on the raw ``E``.
+    - `D`: ``(n, l)`` unknown-input directions: the rows then span the left null space of
+      $[E\;D]$ (the unknown-input observer's annihilator), decided on
+      ``[D_l E D_r / ‖·‖, D_l D / ‖·‖]`` (each block balanced and divided by its norm, as
+      `fojax.analysis.functional_rank_pair` does).
 
-    **Returns:** a float64 NumPy array of shape ``(n - rank E, n)``; ``(0, n)`` when `E`
-    is invertible (and ``(0, 0)`` when ``n = 0``).
+    **Returns:** a float64 NumPy array of shape ``(n - rank E, n)`` (``n - rank [E D]``
+    with `D`); ``(0, n)`` when `E` is invertible (and ``(0, 0)`` when ``n = 0``).
     """
     if isinstance(E, DescriptorSystem):
         E = E.E
     E = to_numpy(as_matrix("E", E))
     sc = scaling_of(E, np.zeros_like(E), balance=balance)
-    if sc.identity:
+    if D is not None:
+        D = to_numpy(as_matrix("D", D, rows=E.shape[0]))
+        Eb = E if sc.identity else apply_scaling(sc, E, E)[0]
+        Db = D if sc.identity else sc.left[:, None] * D
+        K = np.hstack([_unit(Eb)[0], _unit(Db)[0]])
+        Nb = left_null_space(K, tol)
+        if sc.identity or Nb.shape[0] == 0:
+            return Nb
+    elif sc.identity:
         return left_null_space(E, tol)
+    else:
+        Nb = left_null_space(apply_scaling(sc, E, E)[0], tol)
+        if Nb.shape[0] == 0:
+            return Nb
     dl = sc.left
-    Nb = left_null_space(apply_scaling(sc, E, E)[0], tol)
-    if Nb.shape[0] == 0:
-        return Nb
     Q, _ = np.linalg.qr((Nb * dl[None, :]).T)
     return Q.T.copy()
 

@@ -15,7 +15,7 @@ from .._errors import (
     LMIInfeasibleError,
     RegionError,
 )
-from .._linalg import left_null_space, row_space
+from .._linalg import row_space
 from ..observer._finite_time import FiniteTimeObserver
 from ..plant._descriptor import DescriptorSystem
 from . import _lmi
@@ -211,7 +211,9 @@ def design_finite_time_observer(
         return _design_ft(sys, L, R=None, q0=None, **kw)
     except (LMIInfeasibleError, DesignVerificationError, ExistenceConditionError) as first:
         E, A, C = (np.asarray(x) for x in (sys.E, sys.A, sys.C))
-        Ep = left_null_space(E)
+        from ..analysis._pencil import e_perp  # analysis decides the rank of E (balanced)
+
+        Ep = e_perp(E)
         R_full = row_space(np.vstack([E, Ep @ A, C]))
         try:
             return _design_ft(sys, L, R=R_full, q0=None, **kw)

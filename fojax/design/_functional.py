@@ -36,7 +36,7 @@ import numpy as np
 
 from .._dtype import require_x64
 from .._errors import InputError, LMIInfeasibleError, RankConditionError, ShapeError
-from .._linalg import left_null_space
+from ..analysis._pencil import e_perp as _e_perp  # analysis decides the rank of E (balanced)
 from ..observer._generalized import GeneralizedFunctionalObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
 from . import _lmi, _riccati
@@ -413,7 +413,7 @@ def prepare_structure(sys: DescriptorSystem, L, *, R=None, q0=None, q1=0, region
         A, B = np.asarray(A_rules), np.asarray(B_rules)
     L = np.asarray(check_functional(sys, L))
     if Eperp is None:
-        Eperp = left_null_space(E) if psi == "descriptor" else np.zeros((0, E.shape[0]))
+        Eperp = _e_perp(E) if psi == "descriptor" else np.zeros((0, E.shape[0]))
     As = A if A.ndim == 3 else A[None]
     for i, Ai in enumerate(As):
         check_regular(E, Ai, fname=fname,

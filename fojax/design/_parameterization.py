@@ -59,7 +59,7 @@ from jaxtyping import Array, Float
 
 from .._dtype import as_matrix
 from .._errors import ShapeError
-from .._linalg import jpinv, left_null_space, RANK_RTOL
+from .._linalg import jpinv, RANK_RTOL
 
 
 class FunctionalObserverStructure(eqx.Module):
@@ -188,7 +188,9 @@ def observer_structure(
     if psi == "output":
         Ep = jnp.zeros((0, n))
     elif Eperp is None:
-        Ep = jnp.asarray(left_null_space(np.asarray(E)))
+        from ..analysis._pencil import e_perp  # analysis decides the rank of E (balanced)
+
+        Ep = jnp.asarray(e_perp(np.asarray(E)))
     else:
         Ep = as_matrix("Eperp", Eperp, cols=n)
     Z0, PiZ, resid = _z_restriction(*(np.asarray(x) for x in (E, A, C, R, Ep)))

@@ -102,7 +102,7 @@ from .._errors import (
     RankConditionError,
     ShapeError,
 )
-from .._linalg import left_null_space, rank, row_space
+from .._linalg import rank, row_space
 from ..observer._unknown_input import UnknownInputObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
 from . import _lmi
@@ -514,7 +514,11 @@ def design_unknown_input_observer(
     L = np.asarray(check_functional(sys, L))
     check_data_range({"E": E, "A": A, "B": B, "C": C, "D": D, "L": L},
                      fname="design_unknown_input_observer")
-    Ep = left_null_space(np.hstack([E, D]))
+    from ..analysis._pencil import (
+        e_perp,  # analysis decides rank [E D] (balanced, blocks normalised)
+    )
+
+    Ep = e_perp(E, D=D)
     _check_functional_observability(E, A, C, L, Ep, D)
     if R is None:
         R = _choose_R(E, A, B, C, L, D, Ep, region, q0)
