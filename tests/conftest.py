@@ -73,7 +73,9 @@ def _release_compiled_code():
 #: by their number of tests and the one-test notebook modules ran last, alone — so this
 #: order is longest-processing-time-first scheduling.
 HEAVY_FIRST = (
+    "test_distributed.py",
     "test_simulation.py",
+    "test_cli_ts.py",
     "test_cli_config.py",
     "test_tuning_ts.py",
     "test_studies.py",

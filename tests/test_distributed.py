@@ -12,6 +12,7 @@ backend, gloo collectives, 1 or 2 forced host devices each) on free ports with b
 timeouts, and kill them all at the end.
 """
 
+import json
 import os
 import pathlib
 import socket
@@ -166,3 +167,60 @@ def test_study_distributed_refuses_bad_environment_before_joining(monkeypatch, c
         monkeypatch.setenv(k, v)
     assert main(["study", "--distributed", "--quiet"]) == 2
     assert message in capsys.readouterr().err
+
+
+def _differences(x, y, path=""):
+    """The paths at which two JSON values differ, but for the solver's wall-clock time."""
+    if isinstance(x, dict) and isinstance(y, dict):
+        return [d for k in sorted(set(x) | set(y)) for d in _differences(x.get(k), y.get(k), f"{path}/{k}")]
+    if path.endswith("/solve_time"):  # the solver's wall clock
+        return []
+    return [] if x == y else [(path, x, y)]
+
+
+def _study_folder(out: pathlib.Path) -> pathlib.Path:
+    (folder,) = [p for p in out.iterdir() if p.is_dir()]
+    return folder
+
+
+def test_fojax_study_distributed_writes_the_single_process_folder(tmp_path):
+    """`fojax study --distributed` on 2 local processes (one device each, the same command
+    line and --out, as on a cluster) against `fojax study` in one process: one results folder
+    (process 0's), and every array of every .npz in it equal bit for bit (metrics, samples,
+    designs, the tuning checkpoint)."""
+    args = ["study", "--samples", "3", "--horizon", "1", "--steps", "2", "--quiet"]
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=1",
+               JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{_free_port()}", JAX_NUM_PROCESSES="2",
+               FOJAX_INITIALIZATION_TIMEOUT="120", FOJAX_HEARTBEAT_TIMEOUT="60")
+    dist = tmp_path / "dist"
+    procs = [subprocess.Popen([sys.executable, "-m", "fojax.cli", *args, "--distributed", "--out", str(dist)],
+                              env=dict(env, JAX_PROCESS_ID=str(pid)), stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True) for pid in range(2)]
+    single = subprocess.run([sys.executable, "-m", "fojax.cli", *args, "--out", str(tmp_path / "single")],
+                            env=dict(os.environ, JAX_PLATFORMS="cpu",
+                                     XLA_FLAGS="--xla_force_host_platform_device_count=1"),
+                            capture_output=True, text=True, timeout=TIMEOUT)
+    outs = []
+    try:
+        for p in procs:
+            outs.append(p.communicate(timeout=TIMEOUT)[0])
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    assert single.returncode == 0, single.stderr[-3000:]
+    assert [p.returncode for p in procs] == [0, 0], [o[-3000:] for o in outs]
+    a, b = _study_folder(dist), _study_folder(tmp_path / "single")
+    names = sorted(p.name for p in b.glob("*.npz"))
+    assert names and names == sorted(p.name for p in a.glob("*.npz"))
+    for name in names:
+        with np.load(a / name, allow_pickle=False) as za, np.load(b / name, allow_pickle=False) as zb:
+            assert sorted(za.files) == sorted(zb.files), name
+            for k in zb.files:
+                x, y = za[k], zb[k]
+                if k == "__metadata__":  # the same record but for its creation time
+                    x, y = ({kk: v for kk, v in json.loads(str(m)).items() if kk != "created"} for m in (x, y))
+                    assert not _differences(x, y), (name, _differences(x, y))
+                    continue
+                assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=x.dtype.kind in "fc"), (name, k)
