@@ -263,24 +263,27 @@ def _pinv(xp, M):
 
 
 def left_null_projector(xp, M):
-    r"""$I - MM^+$ as $U_0U_0^\top$, $U_0$ the left singular vectors of `M` whose singular
-    value is at or below fojax's rank tolerance (``RANK_RTOL`` relative; traceable, shapes
-    static).
+    r"""$I - MM^+$, set to exactly zero when `M` has full row rank (fojax's rank rule on its
+    singular values: ``RANK_RTOL`` relative; traceable, shapes static).
 
-    *Why not* $I - MM^+$: when `M` has full row rank the projector is exactly zero here,
-    whereas $I - MM^+$ leaves rounding (~1e-16) that a large free parameter multiplies:
-    $Y_1N_3$ with $N_3 = (I - \Sigma\Sigma^+)[I;0]$ made the residual of condition a. grow
-    with $\|Y_1\|$ (1.3e-3 relative at 1e13). With the masked projector the residual
-    stays at rounding relative to the terms of each condition, for any parameter size.
+    *Why the zero:* when `M` has full row rank the projector is zero, but $I - MM^+$ leaves
+    rounding (~1e-16) that a large free parameter multiplies: $Y_1N_3$ with
+    $N_3 = (I - \Sigma\Sigma^+)[I;0]$ made the residual of condition a. grow with $\|Y_1\|$
+    (1.3e-3 relative at 1e13). *Why not* $U_0U_0^\top$ from the full SVD in general: its
+    trailing singular vectors depend on the LAPACK kernel more than $I - MM^+$ does (under
+    OpenBLAS's Sandybridge kernel the observers of thesis example 4.1.3 then met
+    conditions a.–d. only to ~1e-7 in simulation), so the rank-deficient case keeps
+    $I - MM^+$.
     """
     m = M.shape[0]
     if M.size == 0:
         return xp.eye(m)
-    U, sv, _ = xp.linalg.svd(M, full_matrices=True)
-    null = sv <= RANK_RTOL * sv[0]
-    mask = xp.concatenate([null, xp.ones((m - sv.shape[0],), dtype=bool)]) if m > sv.shape[0] else null
-    Um = U * xp.where(mask, 1.0, 0.0)[None, :]
-    return Um @ U.T
+    P = xp.eye(m) - M @ _pinv(xp, M)
+    if m > M.shape[1]:  # more rows than columns: never full row rank
+        return P
+    sv = xp.linalg.svd(M, compute_uv=False)
+    full_row_rank = xp.all(sv > RANK_RTOL * sv[0])
+    return xp.where(full_row_rank, xp.zeros_like(P), P)
 
 
 def pieces(s: FunctionalObserverStructure, xp=jnp) -> ParameterizationPieces:
