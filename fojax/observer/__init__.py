@@ -1,6 +1,7 @@
 """Observer modules: the thesis's matrices under the thesis's names."""
 
 from ._base import (
+    AbstractFunctionalObserver as AbstractFunctionalObserver,
     AbstractObserver as AbstractObserver,
     LinearObserverMatrices as LinearObserverMatrices,
 )

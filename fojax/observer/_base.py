@@ -18,6 +18,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._dtype import as_matrix
+
 
 class LinearObserverMatrices(NamedTuple):
     r"""``ξ̇ = A ξ + Bu u + By y``, ``ẑ = C ξ + Du u + Dy y``."""
@@ -57,3 +59,44 @@ class AbstractObserver(eqx.Module):
     def linear_matrices(self) -> LinearObserverMatrices | None:
         """The LTI realisation, or ``None`` for time-varying/nonlinear observers."""
         return None
+
+
+class AbstractFunctionalObserver(AbstractObserver):
+    r"""Abstract base of the functional observers of the thesis (generalized, unknown-input,
+    Takagi–Sugeno): a state $[\zeta; v; \dots]$ with $\zeta$ of size ``q0`` (`N`) and $v$ of size
+    ``q1`` (`G`), the measured vector $w = W_u u + W_y y$ and the estimate $\hat z = P\zeta + Qw$.
+    The matrices may carry a leading rule axis (Takagi–Sugeno); the sizes are read from the
+    trailing axes."""
+
+    N: eqx.AbstractVar[Array]
+    G: eqx.AbstractVar[Array]
+    P: eqx.AbstractVar[Array]
+    Wu: eqx.AbstractVar[Array]
+    Wy: eqx.AbstractVar[Array]
+
+    @property
+    def q0(self) -> int:
+        return self.N.shape[-1]
+
+    @property
+    def q1(self) -> int:
+        return self.G.shape[-1]
+
+    @property
+    def state_size(self) -> int:
+        return self.q0 + self.q1
+
+    @property
+    def output_size(self) -> int:
+        return self.P.shape[-2]
+
+    def measured(self, u, y):
+        """The measured vector $w = W_u u + W_y y$ the observer is driven by."""
+        return self.Wu @ u + self.Wy @ y
+
+
+def measurement_maps(Wu, Wy) -> tuple[Array, Array]:
+    """`Wu` ``(nw, m)`` and `Wy` ``(nw, p)`` as float64 matrices with the same number of rows
+    (a `ShapeError` naming `Wu` otherwise)."""
+    Wy = as_matrix("Wy", Wy)
+    return as_matrix("Wu", Wu, rows=Wy.shape[0]), Wy

@@ -8,10 +8,10 @@ from jaxtyping import Array, Float
 
 from .._dtype import as_matrix
 from .._errors import ShapeError
-from ._base import AbstractObserver, LinearObserverMatrices
+from ._base import AbstractFunctionalObserver, LinearObserverMatrices, measurement_maps
 
 
-class GeneralizedFunctionalObserver(AbstractObserver):
+class GeneralizedFunctionalObserver(AbstractFunctionalObserver):
     r"""Generalized functional observer (thesis eq. 3.5)
 
     $$\begin{aligned}
@@ -51,10 +51,8 @@ class GeneralizedFunctionalObserver(AbstractObserver):
         q0 = N.shape[0]
         if N.shape[1] != q0:
             raise ShapeError("N", (q0, q0), tuple(N.shape))
-        Wy = as_matrix("Wy", Wy)
-        nw, p = Wy.shape
-        Wu = as_matrix("Wu", Wu, rows=nw)
-        m = Wu.shape[1]
+        Wu, Wy = measurement_maps(Wu, Wy)
+        nw, m = Wu.shape
         G = as_matrix("G", G)
         q1 = G.shape[0]
         self.N = N
@@ -72,32 +70,12 @@ class GeneralizedFunctionalObserver(AbstractObserver):
             raise ValueError(f"kind must be 'generalized', 'PI' or 'proportional', got {kind!r}")
         self.kind = kind
 
-    # ------------------------------------------------------------------ sizes
-    @property
-    def q0(self) -> int:
-        return self.N.shape[-1]
-
-    @property
-    def q1(self) -> int:
-        return self.G.shape[-1]
-
-    @property
-    def state_size(self) -> int:
-        return self.q0 + self.q1
-
-    @property
-    def output_size(self) -> int:
-        return self.P.shape[-2]
-
     @property
     def error_matrix(self) -> Float[Array, "s s"]:
         r"""$\mathbb A = [N\;J;\;S\;G]$."""
         return jnp.block([[self.N, self.J], [self.S, self.G]])
 
     # --------------------------------------------------------------- dynamics
-    def measured(self, u, y):
-        return self.Wu @ u + self.Wy @ y
-
     def vector_field(self, t, xi, u, y):
         zeta, v = xi[: self.q0], xi[self.q0 :]
         w = self.measured(u, y)

@@ -9,7 +9,7 @@ from jaxtyping import Array, Float
 from .._dtype import as_float_array, as_matrix
 from .._errors import ShapeError
 from ..plant._takagi_sugeno import AbstractMembership
-from ._base import AbstractObserver
+from ._base import AbstractFunctionalObserver, measurement_maps
 from ._generalized import GeneralizedFunctionalObserver
 
 
@@ -27,7 +27,7 @@ def _stack(name, x, k, rows, cols):
     return x
 
 
-class TakagiSugenoObserver(AbstractObserver):
+class TakagiSugenoObserver(AbstractFunctionalObserver):
     r"""Rule-weighted generalized functional observer (thesis eq. 3.152)
 
     $$\begin{aligned}
@@ -80,10 +80,8 @@ class TakagiSugenoObserver(AbstractObserver):
         q0 = N.shape[1]
         if N.shape[2] != q0:
             raise ShapeError("N", (k, q0, q0), tuple(N.shape))
-        Wy = as_matrix("Wy", Wy)
-        nw, _ = Wy.shape
-        Wu = as_matrix("Wu", Wu, rows=nw)
-        m = Wu.shape[1]
+        Wu, Wy = measurement_maps(Wu, Wy)
+        nw, m = Wu.shape
         G = _stack("G", G, k, None, None)
         q1 = G.shape[1]
         self.N = N
@@ -108,22 +106,6 @@ class TakagiSugenoObserver(AbstractObserver):
         return self.N.shape[0]
 
     @property
-    def q0(self) -> int:
-        return self.N.shape[-1]
-
-    @property
-    def q1(self) -> int:
-        return self.G.shape[-1]
-
-    @property
-    def state_size(self) -> int:
-        return self.q0 + self.q1
-
-    @property
-    def output_size(self) -> int:
-        return self.P.shape[-2]
-
-    @property
     def error_matrices(self) -> Float[Array, "k s s"]:
         r"""$\mathbb A_i = [N_i\;J_i;\;S_i\;G_i]$ for every rule."""
         top = jnp.concatenate([self.N, self.J], axis=-1)
@@ -138,9 +120,6 @@ class TakagiSugenoObserver(AbstractObserver):
         )  # fmt: skip
 
     # --------------------------------------------------------------- dynamics
-    def measured(self, u, y):
-        return self.Wu @ u + self.Wy @ y
-
     def weights(self, u, y) -> Float[Array, " k"]:
         """Rule weights ``w(y, u)`` (the plant's membership functions)."""
         return self.membership(y, u)

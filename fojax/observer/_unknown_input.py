@@ -7,10 +7,10 @@ from jaxtyping import Array, Float
 
 from .._dtype import as_matrix
 from .._errors import ShapeError
-from ._base import AbstractObserver, LinearObserverMatrices
+from ._base import AbstractFunctionalObserver, LinearObserverMatrices, measurement_maps
 
 
-class UnknownInputObserver(AbstractObserver):
+class UnknownInputObserver(AbstractFunctionalObserver):
     r"""Generalized functional observer for $E\dot x = Ax + Bu + Dd$ (thesis eq. 3.110)
 
     $$\begin{aligned}
@@ -61,10 +61,8 @@ class UnknownInputObserver(AbstractObserver):
         q0 = N.shape[0]
         if N.shape[1] != q0:
             raise ShapeError("N", (q0, q0), tuple(N.shape))
-        Wy = as_matrix("Wy", Wy)
-        nw = Wy.shape[0]
-        Wu = as_matrix("Wu", Wu, rows=nw)
-        m = Wu.shape[1]
+        Wu, Wy = measurement_maps(Wu, Wy)
+        nw, m = Wu.shape
         G = as_matrix("G", G)
         q1 = G.shape[0]
         Delta = as_matrix("Delta", Delta, rows=q0)
@@ -87,24 +85,12 @@ class UnknownInputObserver(AbstractObserver):
 
     # ------------------------------------------------------------------ sizes
     @property
-    def q0(self) -> int:
-        return self.N.shape[-1]
-
-    @property
-    def q1(self) -> int:
-        return self.G.shape[-1]
-
-    @property
     def num_unknown_inputs(self) -> int:
         return self.Delta.shape[-1]
 
     @property
     def state_size(self) -> int:
         return self.q0 + self.q1 + self.num_unknown_inputs
-
-    @property
-    def output_size(self) -> int:
-        return self.P.shape[-2]
 
     @property
     def error_matrix(self) -> Float[Array, "s s"]:
@@ -119,9 +105,6 @@ class UnknownInputObserver(AbstractObserver):
         )
 
     # --------------------------------------------------------------- dynamics
-    def measured(self, u, y):
-        return self.Wu @ u + self.Wy @ y
-
     def _split(self, xi):
         q0, q1 = self.q0, self.q1
         return xi[..., :q0], xi[..., q0 : q0 + q1], xi[..., q0 + q1 :]
