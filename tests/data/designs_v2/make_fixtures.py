@@ -1,11 +1,25 @@
 """Wrote these v2 design files (format_version 2) with fojax at commit 964645a, before the generic
-format 3 of AbstractDesign.save. Kept as written: they test that old files still load. Do not re-run (needs that commit)."""
+format 3 of AbstractDesign.save. Kept as written: they test that old files still load. Do not
+re-run (needs that commit)."""
+import pathlib
+import subprocess
+
 import jax
-jax.config.update("jax_enable_x64", True)
-import numpy as np, fojax, pathlib, subprocess
-from fojax.design import (design_fault_estimator, design_finite_time_observer, design_ts_observer,
-                          design_unknown_input_observer, design_functional_observer, Disk)
+import numpy as np
+
+import fojax
+from fojax.design import (
+    design_fault_estimator,
+    design_finite_time_observer,
+    design_functional_observer,
+    design_ts_observer,
+    design_unknown_input_observer,
+    Disk,
+)
 from fojax.results import save_design
+
+
+jax.config.update("jax_enable_x64", True)
 out = pathlib.Path("tests/data/designs_v2")
 ex413 = fojax.models.example_4_1_3()
 E, A, B, C, L = (np.asarray(x) for x in (ex413.E, ex413.A, ex413.B, ex413.C, ex413.L))
