@@ -1,5 +1,6 @@
 """Design layer: parameterization (pure JAX), LMI regions, LMI design (cvxpy, host), verification."""
 
+from ._base import AbstractDesign as AbstractDesign
 from ._conditions import (
     check_detectability as check_detectability,
     check_functional_observability as check_functional_observability,

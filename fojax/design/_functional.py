@@ -40,6 +40,7 @@ from ..analysis._pencil import e_perp as _e_perp  # analysis decides the rank of
 from ..observer._generalized import GeneralizedFunctionalObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
 from . import _lmi, _riccati
+from ._base import AbstractDesign
 from ._conditions import (
     check_data_range,
     check_detectability,
@@ -99,8 +100,12 @@ class StructureDesignMixin:
         return np.asarray(self.structure.L)
 
 
+#: Entries of `VerificationReport.extra` that `verify` computes (not carried over by a re-run).
+COMPUTED_EXTRA = ("lyapunov_max_eig", "H∞")
+
+
 @dataclasses.dataclass(frozen=True)
-class FunctionalObserverDesign(StructureDesignMixin):
+class FunctionalObserverDesign(StructureDesignMixin, AbstractDesign):
     """A verified functional-observer design.
 
     Attributes:
@@ -133,6 +138,14 @@ class FunctionalObserverDesign(StructureDesignMixin):
     @property
     def error_matrix(self) -> np.ndarray:
         return np.asarray(self.observer.error_matrix)
+
+    def verify(self) -> VerificationReport:
+        """Re-run the float64 verification (`fojax.design.AbstractDesign.verify`): conditions
+        a.–d. at `params`, the eigenvalues in `region`, the region LMI at `X` and, for an
+        H∞ design, the bounded-real LMI at ``(X, γ)`` and ``γ ≥ ‖T‖∞`` (SLICOT AB13DD)."""
+        checks = () if self.hinf is None else tuple(self.hinf.checks(self.structure, self.params, self.X))
+        return verify_structure_design(self.structure, self.params, self.region, self.X,
+                                       extra=carried_extra(self.report), checks=checks)[1]
 
     def __str__(self) -> str:
         o = self.observer
@@ -360,8 +373,17 @@ def build_observer(s: FunctionalObserverStructure, mats, rule: int = 0, kind: st
     )
 
 
-def verify_structure_design(s, params, region, X, *, rtol=None, extra=None) -> tuple[Any, VerificationReport]:
-    """Compute the matrices for `params` and verify them (residuals, eigenvalues, LMI)."""
+def carried_extra(report: VerificationReport) -> dict:
+    """The notes of a stored report that a re-verification carries over (the route taken),
+    without the entries `verify` computes again."""
+    return {k: v for k, v in report.extra.items() if k not in COMPUTED_EXTRA}
+
+
+def verify_structure_design(s, params, region, X, *, rtol=None, extra=None, common_lyapunov=False,
+                            checks=()) -> tuple[Any, VerificationReport]:
+    """Compute the matrices for `params` and verify them (residuals, eigenvalues, LMI; the
+    common Lyapunov inequality of every rule with `common_lyapunov`; `checks` as in
+    `fojax.design.verify`)."""
     mats = observer_matrices(s, **{k: np.asarray(v) for k, v in params.items()}, xp=np)
     res = design_residuals(s, mats, xp=np)
     scale = float(res.pop("scale"))
@@ -374,6 +396,8 @@ def verify_structure_design(s, params, region, X, *, rtol=None, extra=None) -> t
         X,
         extra=extra,
         scales=condition_scales(s, mats),
+        common_lyapunov=common_lyapunov,
+        checks=checks,
         **kw,
     )
     return mats, report

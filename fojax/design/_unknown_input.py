@@ -106,6 +106,7 @@ from .._linalg import rank, row_space
 from ..observer._unknown_input import UnknownInputObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
 from . import _lmi
+from ._base import AbstractDesign
 from ._conditions import (
     check_data_range,
     check_detectability,
@@ -114,7 +115,7 @@ from ._conditions import (
     default_R,
     unobservable_modes,
 )
-from ._functional import _as_system, choose_Z, StructureDesignMixin, TIGHTEN
+from ._functional import _as_system, carried_extra, choose_Z, StructureDesignMixin, TIGHTEN
 from ._parameterization import (
     FunctionalObserverStructure,
     observer_matrices,
@@ -217,7 +218,7 @@ def unknown_input_residuals(s: FunctionalObserverStructure, D, mats, xp=np) -> d
 
 
 @dataclasses.dataclass(frozen=True)
-class UnknownInputObserverDesign(StructureDesignMixin):
+class UnknownInputObserverDesign(StructureDesignMixin, AbstractDesign):
     """A verified unknown-input functional-observer design.
 
     Attributes:
@@ -247,6 +248,12 @@ class UnknownInputObserverDesign(StructureDesignMixin):
     @property
     def error_matrix(self) -> np.ndarray:
         return np.asarray(self.observer.error_matrix)
+
+    def verify(self) -> VerificationReport:
+        """Re-run the float64 verification (`fojax.design.AbstractDesign.verify`): conditions
+        a.–f. at `params`, the eigenvalues of 𝔸 in `region` and the region LMI at `X`."""
+        return verify_unknown_input_design(self.structure, self.D, self.params, self.region, self.X,
+                                           extra=carried_extra(self.report))[1]
 
     def __str__(self) -> str:
         o = self.observer
@@ -554,17 +561,7 @@ def design_unknown_input_observer(
         "Y4": Yb[q0 + q1 :, :c],
         "Lambda": Yb[q0 + q1 :, c:],
     }
-    mats = unknown_input_observer_matrices(s, D, **params, xp=np)
-    res = {k: float(v) for k, v in unknown_input_residuals(s, D, mats).items()}
-    scale = res.pop("scale")
-    report = verify(
-        res,
-        scale,
-        unknown_input_error_dynamics(mats, xp=np),
-        region,
-        X,
-        extra={"Eperp [E D] residual": float(np.abs(Ep @ np.hstack([E, D])).max()) if Ep.size else 0.0},
-    )
+    mats, report = verify_unknown_input_design(s, D, params, region, X)
     p, m = C.shape[0], B.shape[1]
     Wu = np.vstack([-Ep @ B, np.zeros((p, m))])  # w = [-E⊥B u; y] (numpy: no JAX dispatch)
     Wy = np.vstack([np.zeros((Ep.shape[0], p)), np.eye(p)])
@@ -585,6 +582,21 @@ def design_unknown_input_observer(
         report=report,
         solver=info,
     )
+
+
+def verify_unknown_input_design(s, D, params, region, X, *, extra=None):
+    """The matrices of `params` (eq. 3.110) and their float64 verification by
+    `fojax.design.verify`: residuals of a.–f., the eigenvalues of 𝔸, the region LMI at
+    `X`, and ``E⊥[E D] = 0`` recorded (``extra["Eperp [E D] residual"]``)."""
+    mats = unknown_input_observer_matrices(s, D, **params, xp=np)
+    res = {k: float(v) for k, v in unknown_input_residuals(s, D, mats).items()}
+    scale = res.pop("scale")
+    Ep = np.asarray(s.Eperp)
+    extra = {**(extra or {}),
+             "Eperp [E D] residual": float(np.abs(Ep @ np.hstack([np.asarray(s.E), np.asarray(D)])).max())
+             if Ep.size else 0.0}
+    report = verify(res, scale, unknown_input_error_dynamics(mats, xp=np), region, X, extra=extra)
+    return mats, report
 
 
 def _target_poles(region: AbstractRegion, k: int) -> np.ndarray:
