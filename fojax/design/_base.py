@@ -89,6 +89,9 @@ class AbstractDesign(abc.ABC):
         region = getattr(self, "region", None)
         if hasattr(region, "to_dict"):
             out["region"] = region.to_dict()
+        s = getattr(self, "structure", None)
+        if s is not None:
+            out["sizes"] = {k: int(getattr(s, k)) for k in ("n", "m", "p", "q", "q0")}
         report = getattr(self, "report", None)
         if hasattr(report, "to_dict"):
             out["report"] = report.to_dict()
@@ -172,8 +175,8 @@ def save(design, path, *, overwrite: bool = False, metadata: dict | None = None)
 
 
 _EXPECTED = (
-    "load_design reads the .npz files written by design.save, fojax.save_design or `fojax design` "
-    "(<observer>.npz in its results folder)"
+    "load_design reads the .npz files written by fojax.results.save_design or `fojax design` "
+    "(<observer>.npz in its results folder) or design.save"
 )
 
 
