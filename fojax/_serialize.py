@@ -97,15 +97,15 @@ def encode(obj, arrays: dict, key: str = "", *, optional: tuple[str, ...] = (), 
             v = getattr(obj, f.name)
             try:
                 fields[f.name] = encode(v, arrays, sub(f.name), optional=optional, _in_dict=_in_dict)
-            except NotStorable as err:
-                if f.name not in optional:
-                    raise
-                fields[f.name] = {"$": "unstored", "class": class_path(v), "reason": str(err)}
             except _Unstorable:
                 reason = f"{type(obj).__qualname__}.{f.name} is a {type(v).__name__}"
                 if f.name not in optional:
                     raise NotStorable(reason) from None
                 fields[f.name] = {"$": "unstored", "class": class_path(v), "reason": reason}
+            except NotStorable as err:
+                if f.name not in optional:
+                    raise
+                fields[f.name] = {"$": "unstored", "class": class_path(v), "reason": str(err)}
         return {"$": "object", "class": class_path(obj), "fields": fields}
     raise _Unstorable(type(obj).__name__)
 
