@@ -34,6 +34,7 @@ from ._functional import (
 )
 from ._parameterization import observer_structure, pieces
 from ._regions import as_region, Disk
+from ._stein import host_stein_certificate
 from ._verify import combine_reports, VerificationReport
 
 
@@ -157,35 +158,6 @@ def _target_poles(region: Disk, q: int) -> np.ndarray:
     return region.center + 0.6 * region.radius * np.linspace(-1.0, 1.0, q)
 
 
-def _stein_certificate(Aa: np.ndarray, region: Disk) -> np.ndarray:
-    """X with ``L⊗X + M⊗(𝔸ᵀX) + Mᵀ⊗(X𝔸) ≺ 0`` for a disk.
-
-    By a Schur complement that LMI is ``Ãᵀ X Ã - X ≺ 0`` with ``Ã = (𝔸 - αI)/τ``; the
-    Stein equation ``Ãᵀ X Ã - X + I = 0`` gives such an X directly (no inversion).
-    The sum ``X = Σ_k (Ãᵀ)^k Ã^k`` is accumulated by Smith's doubling iteration, which
-    keeps X positive definite even for the highly non-normal 𝔸 of high-gain designs
-    (a direct Kronecker solve loses definiteness there).
-    """
-    At = (Aa - region.center * np.eye(Aa.shape[0])) / region.radius
-    X = np.eye(Aa.shape[0])
-    Mk = At
-    with np.errstate(over="ignore", invalid="ignore"):
-        for _ in range(64):
-            Xn = X + Mk.T @ X @ Mk
-            Mk = Mk @ Mk
-            if not (np.all(np.isfinite(Xn)) and np.all(np.isfinite(Mk))):
-                raise DesignVerificationError(
-                    "the placed error dynamics are so non-normal that their Lyapunov certificate "
-                    "overflows float64 (observer gains far beyond the data's scale); such an "
-                    "observer cannot be verified. Use fojax's default R, a larger observer order "
-                    "or disks closer to the open-loop modes."
-                )
-            X = Xn
-            if np.linalg.norm(Mk, 2) < 1e-18:
-                break
-    return 0.5 * (X + X.T)
-
-
 def _place_gains(s, Z, region: Disk, kind: str):
     """Pole placement of the ε-block through N3 (scipy `place_poles`), v-block G = αI.
 
@@ -215,7 +187,8 @@ def _place_gains(s, Z, region: Disk, kind: str):
     Y[q0:, c:] = region.center * np.eye(q1)
     A2 = np.block([[N3, np.zeros((c, q1))], [np.zeros((q1, q0)), -np.eye(q1)]])
     A1 = np.block([[N1, np.zeros((q0, q1))], [np.zeros((q1, q0 + q1))]])
-    X = _stein_certificate(A1 - Y @ A2, region)
+    # Smith's doubling keeps X positive definite for these highly non-normal dynamics
+    X = host_stein_certificate(A1 - Y @ A2, region.center, region.radius, method="doubling")
     return X, Y
 
 

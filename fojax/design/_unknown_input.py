@@ -123,6 +123,7 @@ from ._parameterization import (
     pieces,
 )
 from ._regions import AbstractRegion, as_region, Disk
+from ._stein import host_stein_certificate
 from ._verify import VerificationReport, verify
 
 
@@ -622,9 +623,10 @@ def _preconditioner(A1: np.ndarray, A2: np.ndarray, region: AbstractRegion) -> n
     K = scipy.signal.place_poles(A1.T, Cb.T, _target_poles(region, A1.shape[0])).gain_matrix.T
     A0 = A1 - K @ Cb
     if isinstance(region, Disk):
-        # Stein certificate of the disk: (A0 - αI)/τ = Ã, Ã P Ãᵀ - P + I = 0, X0 = P⁻¹.
-        At = (A0 - region.center * np.eye(A0.shape[0])) / region.radius
-        X0 = np.linalg.inv(scipy.linalg.solve_discrete_lyapunov(At, np.eye(A0.shape[0])))
+        # the one Stein certificate, of the transposed dynamics: Ã P Ãᵀ - P + I = 0 with
+        # Ã = (A0 - αI)/τ; X0 = P⁻¹ is a disk certificate of A0 (the dual form, by a Schur
+        # complement), the one this preconditioner was measured with
+        X0 = np.linalg.inv(host_stein_certificate(A0.T, region.center, region.radius))
     else:
         X0 = scipy.linalg.solve_continuous_lyapunov(A0.T, -np.eye(A0.shape[0]))
     w, V = np.linalg.eigh(0.5 * (X0 + X0.T))
