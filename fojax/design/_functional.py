@@ -39,7 +39,7 @@ from .._errors import InputError, LMIInfeasibleError, RankConditionError, ShapeE
 from ..analysis._pencil import e_perp as _e_perp  # analysis decides the rank of E (balanced)
 from ..observer._generalized import GeneralizedFunctionalObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
-from . import _lmi, _riccati
+from . import _ladder, _lmi, _riccati
 from ._base import AbstractDesign
 from ._conditions import (
     check_data_range,
@@ -340,23 +340,25 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
     """
     import cvxpy as cp
     solvers = ("CLARABEL", "SCS") if _lmi.check_solver(solver) == "AUTO" else (solver,)
-    attempts = [(sv, o) for sv in solvers for o in OBJECTIVES]
-    statuses = []
-    for sv, o in attempts:
-        prob = cp.Problem(cp.Minimize(obj if o == "min-gain" else 0), cons)
-        try:
-            info = _lmi.solve(prob, name, hint=hint, solver=sv)
-        except LMIInfeasibleError as err:
-            why = f": {err.info['message']}" if err.info.get("message") else ""
-            statuses.append(f"{err.status} ({sv}, {o}{why})")
-            continue
-        info["objective"] = o
-        if statuses:
-            info["failed_attempts"] = list(statuses)
-        info["route"] = _lmi.describe_route(info, o) + (
-            f"; refused before: {'; '.join(statuses)}" if statuses else "")
-        return info
-    raise LMIInfeasibleError(name, "; ".join(statuses), {}, hint)
+    rungs = [((sv, o), (lambda sv=sv, o=o: _lmi.solve(cp.Problem(cp.Minimize(obj if o == "min-gain" else 0), cons),
+                                                        name, hint=hint, solver=sv)))
+             for sv in solvers for o in OBJECTIVES]
+
+    def status(label, err):
+        why = f": {err.info['message']}" if err.info.get("message") else ""
+        return f"{err.status} ({label[0]}, {label[1]}{why})"
+
+    try:
+        (sv, o), info, refused = _ladder.climb(rungs, refusals=(LMIInfeasibleError,))
+    except _ladder.Refused as every:
+        raise LMIInfeasibleError(name, "; ".join(status(lb, e) for lb, e in every.refused), {}, hint) from None
+    statuses = [status(lb, e) for lb, e in refused]
+    info["objective"] = o
+    if statuses:
+        info["failed_attempts"] = list(statuses)
+    info["route"] = _lmi.describe_route(info, o) + (
+        f"; refused before: {'; '.join(statuses)}" if statuses else "")
+    return info
 
 
 def split_Y(Y: np.ndarray, q0: int, c: int) -> dict:

@@ -105,7 +105,7 @@ from .._errors import (
 from .._linalg import rank, row_space
 from ..observer._unknown_input import UnknownInputObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
-from . import _lmi
+from . import _ladder, _lmi
 from ._base import AbstractDesign
 from ._conditions import (
     check_data_range,
@@ -680,21 +680,19 @@ def _solve_lmi(s, D, Z, region, *, margin, solver):
     except (ValueError, np.linalg.LinAlgError):
         pass
     attempts.append((np.eye(d), None, name))
-    errors = []
-    for S, kappa, nm in attempts:
-        try:
-            Xv, Y, info = _region_lmi(A1, A2, S, region, margin, solver, nm, hint, kappa)
-            info["problem"] = nm
-            if errors:
-                info["previous_attempts"] = [f"{e.status} ({e.problem})" for e in errors]
-            break
-        except LMIInfeasibleError as err:
-            errors.append(err)
-    else:
+    rungs = [(nm, (lambda S=S, kappa=kappa, nm=nm: _region_lmi(A1, A2, S, region, margin, solver, nm, hint, kappa)))
+             for S, kappa, nm in attempts]
+    try:
+        nm, (Xv, Y, info), refused = _ladder.climb(rungs, refusals=(LMIInfeasibleError,))
+    except _ladder.Refused as every:
+        errors = [e for _, e in every.refused]
         raise errors[0] if len(errors) == 1 else LMIInfeasibleError(
             name, "; ".join(f"{e.status} ({e.problem})" for e in errors),
             {"attempts": [e.info for e in errors]}, hint,
-        )
+        ) from None
+    info["problem"] = nm
+    if refused:
+        info["previous_attempts"] = [f"{e.status} ({e.problem})" for _, e in refused]
     # Components of 𝕐 outside the row space of 𝔸2 do not change 𝔸 (they would only
     # enlarge F, M, W): project them away.
     Pr = A2 @ np.linalg.pinv(A2)
