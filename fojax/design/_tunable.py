@@ -598,12 +598,11 @@ class CommonCertificate(AbstractParameterization):
 
     def certify(self, params):
         from ..observer import TakagiSugenoObserver
-        from ._takagi_sugeno import _lyapunov_recheck, TakagiSugenoObserverDesign
+        from ._takagi_sugeno import TakagiSugenoObserverDesign
 
         p = {k: np.asarray(v, dtype=float) for k, v in self.design_params(params).items()}
         X = np.asarray(self.X)
-        mats, report = verify_structure_design(self.structure, p, self.region, X)
-        report = _lyapunov_recheck(report, X, mats)
+        mats, report = verify_structure_design(self.structure, p, self.region, X, common_lyapunov=True)
         obs = TakagiSugenoObserver(mats.N, mats.J, mats.F, mats.H, mats.S, mats.G, mats.M, mats.P, mats.Q,
                                    np.asarray(self.Wu), np.asarray(self.Wy), mats.T, self.membership, kind=self.kind)
         return TakagiSugenoObserverDesign(

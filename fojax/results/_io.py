@@ -1,40 +1,22 @@
 r"""Saved designs and results folders that last.
 
-**Design files.** `save_design` writes one ``.npz`` file (NumPy's zip of ``.npy``
-arrays, no pickles) holding every matrix of a design object of `fojax.design` in
-float64 exactly as computed, plus one entry ``__metadata__`` with a JSON document:
-
-- ``format`` = ``"fojax-design"``, ``format_version`` = 2, ``fojax_version``,
-  ``created`` (UTC timestamp, ISO 8601), ``design_class`` (one of `DESIGN_CLASSES`);
-- ``kind``, ``region`` (`AbstractRegion.to_dict`), the static fields of the
-  structure (``q1``, ``psi``, ``solvability_residual``), the sizes ``n, m, p, q, q0``;
-- ``report``: the `VerificationReport` (`to_dict`, eigenvalues kept in the arrays);
-- ``solver``: the solver information (JSON-safe copy; non-JSON values as strings);
-- ``user``: optional user metadata passed to `save_design`.
-
-Array entries of a `FunctionalObserverDesign` are named ``observer/N`` …
-``observer/Wy``, ``structure/E``, ``A``, ``B``, ``C``, ``L``, ``R``, ``Eperp``, ``Z0``,
-``PiZ`` (plant matrices, functional and the parameterization), ``params/Z`` …
-``params/G``, ``T``, ``K``, ``Z_eff``, ``X`` (LMI certificate) and
-``report/eigenvalues``. The other classes add to or nest this layout:
-
-- `TakagiSugenoObserverDesign`: rule-stacked observer matrices, ``observer/T``, and the
-  membership functions (``membership`` in the metadata: class and fields; arrays under
-  ``observer/membership/…``). `load_design` rebuilds fojax's own membership classes;
-  for other classes pass ``membership=``.
-- `UnknownInputObserverDesign`: the observer matrices of eq. 3.110 (``observer/Delta``,
-  ``observer/Phi``, ``observer/Lambda``, ``observer/W`` …) and ``D``.
-- `FiniteTimeObserverDesign`: the two designs under ``designs/0/`` and ``designs/1/``
-  (metadata ``designs``), ``observer/h``, ``observer/Gamma_now``,
-  ``observer/Gamma_delay``, and ``h``, ``reconstruction_rcond``,
-  ``reconstruction_residual`` as 0-d arrays.
-- `FaultEstimatorDesign`: the design of the augmented system under ``design/``
-  (metadata ``design``), ``augmented/E`` … ``augmented/C``, and ``q``, ``n_faults``,
-  ``ramp`` in the metadata.
+**Design files.** `save_design` (= ``design.save(path)``) writes one ``.npz`` file
+(NumPy's zip of ``.npy`` arrays, no pickles) holding every array of a design result of
+`fojax.design` in float64 exactly as computed, plus one entry ``__metadata__`` with a
+JSON document: ``format`` = ``"fojax-design"``, ``format_version`` = 3,
+``fojax_version``, ``created``, ``design_class``, ``user`` (the caller's metadata), a
+readable ``summary`` (``kind``, ``region``, ``sizes``, ``report``) and the ``tree``: the
+skeleton of the design's dataclass, every field, each array named by its path
+(``observer/N``, ``structure/E``, ``params/Z``, ``designs/0/X`` …) with its shape and dtype.
+No design class has code of its own for this: `fojax.design.AbstractDesign` and
+`fojax._serialize` (format, damage checks, the classes a file may name: fojax's only).
 
 `load_design` rebuilds an object of the saved class with bit-identical arrays
 (``np.array_equal`` on every entry), so the loaded observer produces identical
-outputs. Files of format 1 (functional designs only, no ``design_class``) still load.
+outputs, and re-runs its float64 verification (``verify=False`` skips that). Files of
+format 2 (hand-written layouts per class) and format 1 (functional designs only) still
+load (`fojax.design._legacy_io`; tested on files written by that code,
+``tests/data/designs_v2``).
 
 **Atomic, never clobbering.** Every file is written to a temporary file in the
 target directory, flushed to disk and then moved into place (`os.replace`, or a hard
