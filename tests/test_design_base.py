@@ -233,3 +233,17 @@ def test_save_is_atomic_and_never_clobbers(old, tmp_path):
     assert p.read_bytes() == before and sorted(q.name for q in tmp_path.iterdir()) == ["d.npz"]
     with pytest.raises(TypeError, match="AbstractDesign"):
         save_design(object(), tmp_path / "x.npz")
+
+
+def test_state_feedback_is_a_design_result_too(tmp_path):
+    """`fojax.control`'s state feedback (§4.1.3, dual LMI and slow-subsystem routes) round-trips
+    and re-verifies; a gain changed afterwards fails its re-verification."""
+    ex = fojax.models.example_4_1_3()
+    for kw in ({}, {"region": fojax.Disk(-3.0, 2.0)}):
+        sf = fojax.design_state_feedback(ex.system, **kw)
+        loaded = AbstractDesign.load(sf.save(tmp_path / f"sf{len(kw)}.npz"))
+        assert type(loaded) is type(sf) and _assert_identical(sf, loaded) >= 6
+        assert loaded.observer is None and loaded.report is loaded.checks
+        assert loaded.verify()["region_margin"] == sf.checks["region_margin"] > 0
+        with pytest.raises(fojax.DesignVerificationError):
+            dataclasses.replace(sf, L=-np.asarray(sf.L)).verify()

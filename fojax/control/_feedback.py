@@ -81,6 +81,7 @@ from .._errors import (
 from .._linalg import null_space, rank
 from ..analysis import finite_poles, is_impulse_free, is_regular, is_stabilizable
 from ..design import _ladder, _lmi
+from ..design._base import AbstractDesign
 from ..design._regions import AbstractRegion, as_region, HalfPlane, Intersection
 from ..design._verify import margin_failure, required_margin
 from ..plant import DescriptorSystem
@@ -105,7 +106,7 @@ A22_COND_MAX = 1e8
 
 
 @dataclasses.dataclass(frozen=True)
-class StateFeedbackDesign:
+class StateFeedbackDesign(AbstractDesign):
     r"""A verified state feedback $u = Lx$ with $(E, A + BL)$ admissible.
 
     **Fields:**
@@ -132,6 +133,23 @@ class StateFeedbackDesign:
     certificate: dict
     checks: dict
     solver: dict
+
+    @property
+    def observer(self) -> None:
+        """A state feedback has no observer (`fojax.design.AbstractDesign`)."""
+        return None
+
+    @property
+    def report(self) -> dict:
+        """The float64 verification numbers (`checks`)."""
+        return self.checks
+
+    def verify(self) -> dict:
+        """Re-run the float64 verification of `L` (`fojax.design.AbstractDesign.verify`):
+        regularity, impulse freedom and the finite poles of $(E, A + BL)$ in `region`, and
+        for the dual LMI the certificate's inequalities; returns the `checks`, raises
+        `fojax.DesignVerificationError` on a failure."""
+        return _verify(self.system, np.asarray(self.L), self.region, self.method, self.certificate)[2]
 
     def closed_loop(self) -> DescriptorSystem:
         """The state-feedback loop $(E, A + BL, B, C)$ (input: the reference $u_r$)."""

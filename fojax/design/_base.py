@@ -63,13 +63,9 @@ class AbstractDesign(abc.ABC):
     """Base of every design result (module docstring).
 
     Concrete classes are frozen dataclasses with (at least) the fields or properties
-    `observer`, `region` and `report`; `certificate` defaults to the field ``X``.
+    `observer`, `region`, `certificate` and `report` (not defined here: a property of the
+    base would become the default value of a dataclass field of the same name).
     """
-
-    @property
-    def certificate(self):
-        """The certificate of the region placement (the LMI's Lyapunov matrix ``X``)."""
-        return self.X
 
     @abc.abstractmethod
     def verify(self):

@@ -99,6 +99,11 @@ class StructureDesignMixin:
     def L(self) -> np.ndarray:
         return np.asarray(self.structure.L)
 
+    @property
+    def certificate(self) -> np.ndarray:
+        """The certificate of the region placement: the Lyapunov matrix ``X``."""
+        return self.X
+
 
 #: Entries of `VerificationReport.extra` that `verify` computes (not carried over by a re-run).
 COMPUTED_EXTRA = ("lyapunov_max_eig", "H∞")
