@@ -19,9 +19,9 @@ import dataclasses
 import json
 import pathlib
 
-import jax
 import numpy as np
 import pytest
+from helpers import assert_designs_identical
 
 import fojax
 from fojax.design import (
@@ -61,38 +61,6 @@ def resaved(old, tmp_path_factory):
     return {k: (p := d.save(tmp / f"{k}.npz", metadata={"case": k}), AbstractDesign.load(p)) for k, d in old.items()}
 
 
-def _leaves(obj, prefix=""):
-    """Every array and number of a design object keyed by its path (`solver` dicts left out)."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        for f in dataclasses.fields(obj):
-            if f.name != "solver":
-                yield from _leaves(getattr(obj, f.name), f"{prefix}.{f.name}")
-    elif isinstance(obj, dict):
-        for k, v in obj.items():
-            yield from _leaves(v, f"{prefix}[{k}]")
-    elif isinstance(obj, tuple | list):
-        for i, v in enumerate(obj):
-            yield from _leaves(v, f"{prefix}[{i}]")
-    else:
-        yield prefix, obj
-
-
-def _assert_identical(a, b) -> int:
-    la, lb = dict(_leaves(a)), dict(_leaves(b))
-    assert la.keys() == lb.keys()
-    n = 0
-    for k, x in la.items():
-        y = lb[k]
-        if isinstance(x, np.ndarray | jax.Array | np.generic):
-            assert type(x) is type(y) or (isinstance(x, jax.Array) and isinstance(y, jax.Array)), k
-            x, y = np.asarray(x), np.asarray(y)
-            assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y), k
-            n += 1
-        else:
-            assert type(x) is type(y) and (x == y or (x != x and y != y)), (k, x, y)
-    return n
-
-
 def _raw(kind):
     with np.load(V2 / f"{kind}.npz", allow_pickle=False) as data:
         return {k: data[k] for k in data.files}
@@ -125,7 +93,7 @@ def test_old_format_file_loads_bit_identical_and_verifies(old, kind):
 def test_every_kind_round_trips_save_load_verify(old, resaved, kind):
     d, (path, loaded) = old[kind], resaved[kind]
     assert type(loaded) is CLASSES[kind]
-    n = _assert_identical(d, loaded)
+    n = assert_designs_identical(d, loaded)
     assert n >= {"functional": 30, "hinf": 32, "ts": 30, "uio": 35, "finite_time": 60, "fault": 35}[kind], n
     assert str(loaded) == str(d) and loaded.summary() == str(d)
     before, after = d.verify(), loaded.verify()
@@ -242,7 +210,7 @@ def test_state_feedback_is_a_design_result_too(tmp_path):
     for kw in ({}, {"region": fojax.Disk(-3.0, 2.0)}):
         sf = fojax.design_state_feedback(ex.system, **kw)
         loaded = AbstractDesign.load(sf.save(tmp_path / f"sf{len(kw)}.npz"))
-        assert type(loaded) is type(sf) and _assert_identical(sf, loaded) >= 6
+        assert type(loaded) is type(sf) and assert_designs_identical(sf, loaded) >= 6
         assert loaded.observer is None and loaded.report is loaded.checks
         assert loaded.verify()["region_margin"] == sf.checks["region_margin"] > 0
         with pytest.raises(fojax.DesignVerificationError):

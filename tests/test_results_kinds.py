@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import assert_designs_identical
 
 import fojax
 from fojax.design import (
@@ -73,45 +74,11 @@ def saved(designs, tmp_path_factory):
     return out
 
 
-def _leaves(obj, prefix=""):
-    """Every array and number of a design object (dataclasses, equinox modules, dicts,
-    tuples), keyed by its path; the free-form `solver` dicts are left out."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        for f in dataclasses.fields(obj):
-            if f.name != "solver":
-                yield from _leaves(getattr(obj, f.name), f"{prefix}.{f.name}")
-    elif isinstance(obj, dict):
-        for k, v in obj.items():
-            yield from _leaves(v, f"{prefix}[{k}]")
-    elif isinstance(obj, tuple | list):
-        for i, v in enumerate(obj):
-            yield from _leaves(v, f"{prefix}[{i}]")
-    else:
-        yield prefix, obj
-
-
-def _assert_identical(a, b):
-    la, lb = dict(_leaves(a)), dict(_leaves(b))
-    assert la.keys() == lb.keys()
-    n_arrays = 0
-    for k, x in la.items():
-        y = lb[k]
-        if isinstance(x, np.ndarray | jax.Array):
-            assert isinstance(y, np.ndarray | jax.Array), k
-            x, y = np.asarray(x), np.asarray(y)
-            assert x.dtype == y.dtype and x.shape == y.shape, k
-            assert np.array_equal(x, y), k  # bit-identical (no tolerance)
-            n_arrays += 1
-        else:
-            assert type(x) is type(y) and (x == y or (x != x and y != y)), (k, x, y)
-    return n_arrays
-
-
 @pytest.mark.parametrize("kind", KINDS)
 def test_round_trip_same_class_bit_identical(designs, saved, kind):
     d, (path, loaded) = designs[kind], saved[kind]
     assert type(loaded) is CLASSES[kind]
-    n = _assert_identical(d, loaded)
+    n = assert_designs_identical(d, loaded)
     # every matrix was compared (observer, structure, params, T, K, Z_eff, X, eigenvalues, ...)
     assert n >= {"ts": 30, "uio": 35, "finite_time": 60, "fault": 35}[kind], n
     assert str(loaded.report if kind != "finite_time" else loaded) == str(
@@ -218,7 +185,7 @@ def test_foreign_membership_is_never_imported_and_can_be_passed(designs, tmp_pat
     with pytest.raises(fojax.InputError, match=r"cannot be rebuilt: it was not stored.*membership=plant\.membership"):
         load_design(path)
     loaded = load_design(path, membership=custom)
-    _assert_identical(d2, loaded)
+    assert_designs_identical(d2, loaded)
     # a tree of arrays is stored, but its class is outside fojax: never imported from a file
     arrays_only = _ForeignArraysOnly(jnp.asarray(0.7))
     d3 = dataclasses.replace(d, observer=eqx.tree_at(lambda o: o.membership, d.observer, arrays_only))
@@ -244,7 +211,7 @@ def test_format_1_files_load_and_membership_argument_is_ts_only(designs, tmp_pat
     np.savez(tmp_path / "v1.npz", **arrays)
     old = load_design(tmp_path / "v1.npz")
     assert type(old) is FunctionalObserverDesign
-    _assert_identical(load_design(v2), old)
+    assert_designs_identical(load_design(v2), old)
     with pytest.raises(fojax.InputError, match="membership= applies to Takagi–Sugeno designs only"):
         load_design(v2, membership=designs["ts"].observer.membership)
     with pytest.raises(fojax.InputError, match="membership= applies to Takagi–Sugeno designs only"):

@@ -112,21 +112,16 @@ def _load_functional(m: dict, arrays: dict, p: str, saved: dict):
 
 
 def _module_from(m: dict, arrays: dict):
-    import importlib
-
     import equinox as eqx
     import jax.numpy as jnp
 
-    module, _, qualname = m["class"].partition(":")
-    if module != "fojax" and not module.startswith("fojax."):
-        raise _NotStorable(f"{m['class']} is not a fojax class (fojax never imports code named in a file)")
+    from .._serialize import _fojax_class, NotStorable
+
     try:
-        cls = importlib.import_module(module)
-        for part in qualname.split("."):
-            cls = getattr(cls, part)
-    except (ImportError, AttributeError):
-        raise _NotStorable(f"{m['class']} does not exist in this fojax version") from None
-    if not (isinstance(cls, type) and issubclass(cls, eqx.Module)):
+        cls = _fojax_class(m["class"], "membership")  # fojax classes only, as in format 3
+    except NotStorable as err:
+        raise _NotStorable(str(err)) from None
+    if not issubclass(cls, eqx.Module):
         raise _NotStorable(f"{m['class']} is not an equinox.Module")
     kwargs = {}
     for name, f in m["fields"].items():

@@ -123,16 +123,6 @@ def atomic_write_npz(path, arrays: dict, *, overwrite: bool = False) -> pathlib.
 
 # --------------------------------------------------------------------------- designs
 
-#: The design classes of format 2 (format 3 saves every `fojax.design.AbstractDesign`).
-DESIGN_CLASSES = (
-    "FunctionalObserverDesign",
-    "TakagiSugenoObserverDesign",
-    "UnknownInputObserverDesign",
-    "FiniteTimeObserverDesign",
-    "FaultEstimatorDesign",
-)
-
-
 def save_design(design, path, *, overwrite: bool = False, metadata: dict | None = None) -> pathlib.Path:
     """Save a verified design to one ``.npz`` file (``design.save(path)``; format 3 of
     `fojax.design.AbstractDesign`).
