@@ -386,6 +386,14 @@ def _place_slow(As, Bs, region: AbstractRegion):
 
 
 def _verify(sys, L, region, method, cert) -> tuple[np.ndarray, float, dict]:
+    """The float64 verification of a state feedback (also `StateFeedbackDesign.verify`).
+
+    Not `fojax.design.verify`, on purpose: a state feedback is checked on the descriptor
+    pencil $(E, A + BL)$ — regularity, impulse freedom, *finite* poles (by
+    `fojax.analysis`) in the region, and the dual LMI's $EP = (EP)^\top \succeq 0$ — while
+    `verify` checks an observer's standard error dynamics $\mathbb A$ and its region LMI.
+    The region test is shared (`required_margin`, `margin_failure`).
+    """
     E, A, B = (np.asarray(x, float) for x in (sys.E, sys.A, sys.B))
     Acl = A + B @ L
     failures, checks = [], {}
