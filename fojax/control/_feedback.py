@@ -386,7 +386,7 @@ def _place_slow(As, Bs, region: AbstractRegion):
 
 
 def _verify(sys, L, region, method, cert) -> tuple[np.ndarray, float, dict]:
-    """The float64 verification of a state feedback (also `StateFeedbackDesign.verify`).
+    r"""The float64 verification of a state feedback (also `StateFeedbackDesign.verify`).
 
     Not `fojax.design.verify`, on purpose: a state feedback is checked on the descriptor
     pencil $(E, A + BL)$ — regularity, impulse freedom, *finite* poles (by
