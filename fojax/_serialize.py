@@ -92,6 +92,8 @@ def encode(obj, arrays: dict, key: str = "", *, optional: tuple[str, ...] = (), 
         items = [encode(v, arrays, sub(str(i)), optional=optional, _in_dict=_in_dict) for i, v in enumerate(obj)]
         return {"$": "tuple" if isinstance(obj, tuple) else "list", "items": items}
     if _is_instance_dataclass(obj):
+        if _in_dict and not class_path(obj).startswith(("fojax:", "fojax.")):
+            raise _Unstorable(type(obj).__name__)  # free-form info: stored as its str (never imported)
         fields = {}
         for f in dataclasses.fields(obj):
             v = getattr(obj, f.name)

@@ -215,3 +215,18 @@ def test_state_feedback_is_a_design_result_too(tmp_path):
         assert loaded.verify()["region_margin"] == sf.checks["region_margin"] > 0
         with pytest.raises(fojax.DesignVerificationError):
             dataclasses.replace(sf, L=-np.asarray(sf.L)).verify()
+
+
+@dataclasses.dataclass
+class _Foreign:
+    a: int = 1
+
+
+def test_free_form_solver_info_never_blocks_a_load(old, tmp_path):
+    """Regression: a callable or a non-fojax object in ``solver`` (e.g. a custom tuning loss)
+    is stored as its str, so the design still loads; its arrays stay exact."""
+    d = old["functional"]
+    d2 = dataclasses.replace(d, solver={**d.solver, "tuning": {"loss": len, "obj": _Foreign(), "steps": 3}})
+    loaded = load_design(d2.save(tmp_path / "tuned.npz"))
+    assert loaded.solver["tuning"] == {"loss": str(len), "obj": "_Foreign(a=1)", "steps": 3}
+    assert assert_designs_identical(d2, loaded) >= 30
