@@ -105,6 +105,7 @@ from .control import (
     finite_time_loop as finite_time_loop,
 )
 from .design import (
+    AbstractDesign as AbstractDesign,
     AbstractRegion as AbstractRegion,
     design_fault_estimator as design_fault_estimator,
     design_finite_time_observer as design_finite_time_observer,

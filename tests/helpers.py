@@ -8,6 +8,8 @@ so tests compare them with `assert_eigenvalues_match`, an optimal one-to-one mat
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
@@ -129,3 +131,39 @@ def count_equations(fn, *args) -> int:
         return total
 
     return count(jax.make_jaxpr(fn)(*args).jaxpr)
+
+
+def design_leaves(obj, prefix=""):
+    """Every array and number of a design object keyed by its path (`solver` dicts left out)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        for f in dataclasses.fields(obj):
+            if f.name != "solver":
+                yield from design_leaves(getattr(obj, f.name), f"{prefix}.{f.name}")
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from design_leaves(v, f"{prefix}[{k}]")
+    elif isinstance(obj, tuple | list):
+        for i, v in enumerate(obj):
+            yield from design_leaves(v, f"{prefix}[{i}]")
+    else:
+        yield prefix, obj
+
+
+def assert_designs_identical(a, b) -> int:
+    """Every array of two design objects bit-identical (same type, dtype, shape), every other
+    number and string equal; returns the number of arrays compared."""
+    import jax
+
+    la, lb = dict(design_leaves(a)), dict(design_leaves(b))
+    assert la.keys() == lb.keys()
+    n = 0
+    for k, x in la.items():
+        y = lb[k]
+        if isinstance(x, np.ndarray | jax.Array | np.generic):
+            assert type(x) is type(y) or (isinstance(x, jax.Array) and isinstance(y, jax.Array)), k
+            x, y = np.asarray(x), np.asarray(y)
+            assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y), k
+            n += 1
+        else:
+            assert type(x) is type(y) and (x == y or (x != x and y != y)), (k, x, y)
+    return n

@@ -59,8 +59,9 @@ def test_save_load_bit_identical(design, tmp_path):
     assert str(loaded.report) == str(design.report)
     meta = read_design_metadata(path)
     assert meta["fojax_version"] == fojax.__version__ and meta["user"] == {"config": "x.toml"}
-    assert meta["kind"] == "generalized" and meta["region"] == {"type": "disk", "center": -2.0, "radius": 1.0}
-    assert "T" in meta["created"] and meta["report"]["passed"] is True
+    summary = meta["summary"]  # format 3: a readable summary beside the skeleton ("tree")
+    assert summary["kind"] == "generalized" and summary["region"] == {"type": "disk", "center": -2.0, "radius": 1.0}
+    assert "T" in meta["created"] and summary["report"]["passed"] is True and meta["format_version"] == 3
     # the loaded observer produces identical outputs on the same data
     rng = np.random.default_rng(0)
     o1, o2 = design.observer, loaded.observer
@@ -205,7 +206,7 @@ def test_json_safe_metadata_is_valid_json(design, tmp_path):
     path = save_design(design, tmp_path / "m.npz")
     with np.load(path, allow_pickle=False) as data:
         meta = json.loads(str(data["__metadata__"][()]))
-    assert meta["sizes"] == {"n": 4, "m": 2, "p": 3, "q": 2, "q0": design.structure.q0}
+    assert meta["summary"]["sizes"] == {"n": 4, "m": 2, "p": 3, "q": 2, "q0": design.structure.q0}
 
 
 def test_write_metrics_json_and_exact_npz(tmp_path):

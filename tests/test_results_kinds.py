@@ -5,6 +5,7 @@ identical vector fields and outputs; foreign membership classes are never import
 
 import dataclasses
 import json
+import pathlib
 import zipfile
 
 import equinox as eqx
@@ -12,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import assert_designs_identical
 
 import fojax
 from fojax.design import (
@@ -72,52 +74,18 @@ def saved(designs, tmp_path_factory):
     return out
 
 
-def _leaves(obj, prefix=""):
-    """Every array and number of a design object (dataclasses, equinox modules, dicts,
-    tuples), keyed by its path; the free-form `solver` dicts are left out."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        for f in dataclasses.fields(obj):
-            if f.name != "solver":
-                yield from _leaves(getattr(obj, f.name), f"{prefix}.{f.name}")
-    elif isinstance(obj, dict):
-        for k, v in obj.items():
-            yield from _leaves(v, f"{prefix}[{k}]")
-    elif isinstance(obj, tuple | list):
-        for i, v in enumerate(obj):
-            yield from _leaves(v, f"{prefix}[{i}]")
-    else:
-        yield prefix, obj
-
-
-def _assert_identical(a, b):
-    la, lb = dict(_leaves(a)), dict(_leaves(b))
-    assert la.keys() == lb.keys()
-    n_arrays = 0
-    for k, x in la.items():
-        y = lb[k]
-        if isinstance(x, np.ndarray | jax.Array):
-            assert isinstance(y, np.ndarray | jax.Array), k
-            x, y = np.asarray(x), np.asarray(y)
-            assert x.dtype == y.dtype and x.shape == y.shape, k
-            assert np.array_equal(x, y), k  # bit-identical (no tolerance)
-            n_arrays += 1
-        else:
-            assert type(x) is type(y) and (x == y or (x != x and y != y)), (k, x, y)
-    return n_arrays
-
-
 @pytest.mark.parametrize("kind", KINDS)
 def test_round_trip_same_class_bit_identical(designs, saved, kind):
     d, (path, loaded) = designs[kind], saved[kind]
     assert type(loaded) is CLASSES[kind]
-    n = _assert_identical(d, loaded)
+    n = assert_designs_identical(d, loaded)
     # every matrix was compared (observer, structure, params, T, K, Z_eff, X, eigenvalues, ...)
     assert n >= {"ts": 30, "uio": 35, "finite_time": 60, "fault": 35}[kind], n
     assert str(loaded.report if kind != "finite_time" else loaded) == str(
         d.report if kind != "finite_time" else d
     )
     meta = read_design_metadata(path)
-    assert meta["format_version"] == 2 and meta["design_class"] == CLASSES[kind].__name__
+    assert meta["format_version"] == 3 and meta["design_class"] == CLASSES[kind].__name__
     assert meta["user"] == {"case": kind} and meta["fojax_version"] == fojax.__version__
     # the file holds plain arrays only (no pickled objects)
     with zipfile.ZipFile(path) as z, np.load(path, allow_pickle=False) as data:
@@ -125,19 +93,29 @@ def test_round_trip_same_class_bit_identical(designs, saved, kind):
         assert all(data[k].dtype != object for k in data.files)
 
 
+def _node(meta, *path):
+    """The skeleton node of a saved design at a field path (format 3: ``meta["tree"]``)."""
+    node = meta["tree"]
+    for p in path:
+        node = node["items"][p] if isinstance(p, int) else node["fields"][p]
+    return node
+
+
 def test_metadata_per_class(designs, saved):
     ts = read_design_metadata(saved["ts"][0])
-    assert ts["kind"] == "generalized" and ts["num_rules"] == 2
-    assert ts["membership"]["class"] == "fojax.plant._takagi_sugeno:SectorMembership"
-    assert ts["membership"]["stored"] is True
-    assert ts["report"]["extra"]["lyapunov_max_eig"] == designs["ts"].report.extra["lyapunov_max_eig"]
+    assert ts["summary"]["kind"] == "generalized" and _node(ts, "observer", "membership")["class"] == (
+        "fojax.plant._takagi_sugeno:SectorMembership")
+    assert ts["summary"]["report"]["extra"]["lyapunov_max_eig"] == designs["ts"].report.extra["lyapunov_max_eig"]
+    assert _node(ts, "structure", "A")["shape"] == [2, 5, 5]  # two rules
     uio = read_design_metadata(saved["uio"][0])
-    assert uio["sizes"] == {"n": 4, "m": 2, "p": 3, "q": 2, "q0": designs["uio"].structure.q0, "l": 1}
+    assert uio["summary"]["sizes"] == {"n": 4, "m": 2, "p": 3, "q": 2, "q0": designs["uio"].structure.q0}
+    assert _node(uio, "D")["shape"] == [4, 1]
     ft = read_design_metadata(saved["finite_time"][0])
-    assert ft["h"] == 0.5 and [m["region"]["center"] for m in ft["designs"]] == [-5, -2]
+    assert _node(ft, "h") == {"$": "float", "repr": "0.5"}
+    assert [_node(ft, "designs", i, "region")["class"] for i in (0, 1)] == ["fojax.design._regions:Disk"] * 2
     fault = read_design_metadata(saved["fault"][0])
-    assert (fault["q"], fault["n_faults"], fault["ramp"]) == (2, 3, False)
-    assert fault["design"]["sizes"]["n"] == 9  # 6 states + 3 constant faults
+    assert (_node(fault, "q"), _node(fault, "n_faults"), _node(fault, "ramp")) == (2, 3, False)
+    assert _node(fault, "design", "structure", "E")["shape"] == [9, 9]  # 6 states + 3 constant faults
     # what the inner designs of a loaded object carry
     loaded_ft = saved["finite_time"][1]
     assert all(di.solver["saved"]["user"] == {"case": "finite_time"} for di in loaded_ft.designs)
@@ -202,17 +180,17 @@ def test_foreign_membership_is_never_imported_and_can_be_passed(designs, tmp_pat
     custom = _ForeignMembership(jnp.asarray(0.7), jax.nn.sigmoid)
     d2 = dataclasses.replace(d, observer=eqx.tree_at(lambda o: o.membership, d.observer, custom))
     path = save_design(d2, tmp_path / "custom.npz")
-    meta = read_design_metadata(path)["membership"]
-    assert meta["stored"] is False and meta["reason"].startswith("_ForeignMembership.squash is a ")
+    meta = _node(read_design_metadata(path), "observer", "membership")
+    assert meta["$"] == "unstored" and meta["reason"].startswith("_ForeignMembership.squash is a ")
     with pytest.raises(fojax.InputError, match=r"cannot be rebuilt: it was not stored.*membership=plant\.membership"):
         load_design(path)
     loaded = load_design(path, membership=custom)
-    _assert_identical(d2, loaded)
+    assert_designs_identical(d2, loaded)
     # a tree of arrays is stored, but its class is outside fojax: never imported from a file
     arrays_only = _ForeignArraysOnly(jnp.asarray(0.7))
     d3 = dataclasses.replace(d, observer=eqx.tree_at(lambda o: o.membership, d.observer, arrays_only))
     path3 = save_design(d3, tmp_path / "arrays.npz")
-    assert read_design_metadata(path3)["membership"]["stored"] is True
+    assert _node(read_design_metadata(path3), "observer", "membership", "a")["$"] == "array"
     with pytest.raises(fojax.InputError, match=r"_ForeignArraysOnly is not a fojax class \(fojax never imports"):
         load_design(path3)
     xi, u, y = _random_inputs(d3.observer, 1, 2, 0)
@@ -221,20 +199,23 @@ def test_foreign_membership_is_never_imported_and_can_be_passed(designs, tmp_pat
 
 
 def test_format_1_files_load_and_membership_argument_is_ts_only(designs, tmp_path):
-    inner = designs["fault"].design
-    path = save_design(inner, tmp_path / "v2.npz")
-    with np.load(path, allow_pickle=False) as data:
+    """Format 1 = format 2 without ``design_class`` (functional designs only): made from the
+    committed format-2 file written by fojax before format 3 (tests/data/designs_v2)."""
+    v2 = pathlib.Path(__file__).parent / "data" / "designs_v2" / "functional.npz"
+    with np.load(v2, allow_pickle=False) as data:
         arrays = {k: data[k] for k in data.files}
     meta = json.loads(str(arrays["__metadata__"][()]))
-    assert meta.pop("design_class") == "FunctionalObserverDesign"
-    meta["format_version"] = 1  # what fojax wrote before other design classes were saved
+    assert meta.pop("design_class") == "FunctionalObserverDesign" and meta["format_version"] == 2
+    meta["format_version"] = 1
     arrays["__metadata__"] = np.array(json.dumps(meta))
     np.savez(tmp_path / "v1.npz", **arrays)
     old = load_design(tmp_path / "v1.npz")
     assert type(old) is FunctionalObserverDesign
-    _assert_identical(inner, old)
+    assert_designs_identical(load_design(v2), old)
     with pytest.raises(fojax.InputError, match="membership= applies to Takagi–Sugeno designs only"):
-        load_design(path, membership=designs["ts"].observer.membership)
+        load_design(v2, membership=designs["ts"].observer.membership)
+    with pytest.raises(fojax.InputError, match="membership= applies to Takagi–Sugeno designs only"):
+        load_design(save_design(designs["uio"], tmp_path / "uio.npz"), membership=designs["ts"].observer.membership)
     meta["format_version"], meta["design_class"] = 2, "FancyDesign"
     arrays["__metadata__"] = np.array(json.dumps(meta))
     np.savez(tmp_path / "fancy.npz", **arrays)

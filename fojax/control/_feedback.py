@@ -80,7 +80,8 @@ from .._errors import (
 )
 from .._linalg import null_space, rank
 from ..analysis import finite_poles, is_impulse_free, is_regular, is_stabilizable
-from ..design import _lmi
+from ..design import _ladder, _lmi
+from ..design._base import AbstractDesign
 from ..design._regions import AbstractRegion, as_region, HalfPlane, Intersection
 from ..design._verify import margin_failure, required_margin
 from ..plant import DescriptorSystem
@@ -105,7 +106,7 @@ A22_COND_MAX = 1e8
 
 
 @dataclasses.dataclass(frozen=True)
-class StateFeedbackDesign:
+class StateFeedbackDesign(AbstractDesign):
     r"""A verified state feedback $u = Lx$ with $(E, A + BL)$ admissible.
 
     **Fields:**
@@ -132,6 +133,23 @@ class StateFeedbackDesign:
     certificate: dict
     checks: dict
     solver: dict
+
+    @property
+    def observer(self) -> None:
+        """A state feedback has no observer (`fojax.design.AbstractDesign`)."""
+        return None
+
+    @property
+    def report(self) -> dict:
+        """The float64 verification numbers (`checks`)."""
+        return self.checks
+
+    def verify(self) -> dict:
+        """Re-run the float64 verification of `L` (`fojax.design.AbstractDesign.verify`):
+        regularity, impulse freedom and the finite poles of $(E, A + BL)$ in `region`, and
+        for the dual LMI the certificate's inequalities; returns the `checks`, raises
+        `fojax.DesignVerificationError` on a failure."""
+        return _verify(self.system, np.asarray(self.L), self.region, self.method, self.certificate)[2]
 
     def closed_loop(self) -> DescriptorSystem:
         """The state-feedback loop $(E, A + BL, B, C)$ (input: the reference $u_r$)."""
@@ -368,6 +386,14 @@ def _place_slow(As, Bs, region: AbstractRegion):
 
 
 def _verify(sys, L, region, method, cert) -> tuple[np.ndarray, float, dict]:
+    r"""The float64 verification of a state feedback (also `StateFeedbackDesign.verify`).
+
+    Not `fojax.design.verify`, on purpose: a state feedback is checked on the descriptor
+    pencil $(E, A + BL)$ — regularity, impulse freedom, *finite* poles (by
+    `fojax.analysis`) in the region, and the dual LMI's $EP = (EP)^\top \succeq 0$ — while
+    `verify` checks an observer's standard error dynamics $\mathbb A$ and its region LMI.
+    The region test is shared (`required_margin`, `margin_failure`).
+    """
     E, A, B = (np.asarray(x, float) for x in (sys.E, sys.A, sys.B))
     Acl = A + B @ L
     failures, checks = [], {}
@@ -498,44 +524,41 @@ def design_state_feedback(
             else ["slow-subsystem", "place"]
         )
     )
-    attempts, last = [], None
-    for meth in methods:
-        for reg in REG_LADDER if meth != "place" else (None,):
-            try:
-                if meth == "place":
-                    L1, cert, info = _place_slow(As, Bs, target)
-                    L = np.hstack([L1, L2]) @ V.T
-                    cert = dict(cert, L2=L2)
-                elif meth == "dual-lmi":
-                    L, cert, info = _solve_dual_lmi(
-                        E, A, B, _decay_of(lmi_target), margin, solver, reg
-                    )
-                else:
-                    L1, cert, info = _solve_slow_lmi(As, Bs, lmi_target, margin, solver, reg)
-                    L = np.hstack([L1, L2]) @ V.T
-                    cert = dict(cert, L2=L2)
-                poles, pmargin, checks = _verify(sys, L, target, meth, cert)
-            except (
-                LMIInfeasibleError,
-                DesignVerificationError,
-                np.linalg.LinAlgError,
-                ValueError,
-            ) as err:
-                attempts.append({"method": meth, "reg": reg, "error": str(err)})
-                last = err
-                if isinstance(err, LMIInfeasibleError) and str(err.status).startswith("infeasible"):
-                    break  # a larger penalty does not make an infeasible LMI feasible
-                continue
-            info = dict(info, reg=reg, failed_attempts=attempts)
-            return StateFeedbackDesign(
-                L=L,
-                system=sys,
-                region=target,
-                poles=poles,
-                region_margin=pmargin,
-                method=meth,
-                certificate=cert,
-                checks=checks,
-                solver=info,
-            )
-    raise last
+    def rung(meth, reg):
+        if meth == "place":
+            L1, cert, info = _place_slow(As, Bs, target)
+            L = np.hstack([L1, L2]) @ V.T
+            cert = dict(cert, L2=L2)
+        elif meth == "dual-lmi":
+            L, cert, info = _solve_dual_lmi(E, A, B, _decay_of(lmi_target), margin, solver, reg)
+        else:
+            L1, cert, info = _solve_slow_lmi(As, Bs, lmi_target, margin, solver, reg)
+            L = np.hstack([L1, L2]) @ V.T
+            cert = dict(cert, L2=L2)
+        return L, cert, info, _verify(sys, L, target, meth, cert)
+
+    rungs = [((meth, reg), (lambda meth=meth, reg=reg: rung(meth, reg)))
+             for meth in methods for reg in (REG_LADDER if meth != "place" else (None,))]
+    try:
+        (meth, reg), (L, cert, info, (poles, pmargin, checks)), refused = _ladder.climb(
+            rungs,
+            refusals=(LMIInfeasibleError, DesignVerificationError, np.linalg.LinAlgError, ValueError),
+            # a larger penalty does not make an infeasible LMI feasible: next method
+            give_up=lambda label, err: isinstance(err, LMIInfeasibleError)
+            and str(err.status).startswith("infeasible"),
+        )
+    except _ladder.Refused as every:
+        raise every.refused[-1][1] from None
+    attempts = [{"method": m, "reg": r, "error": str(err)} for (m, r), err in refused]
+    info = dict(info, reg=reg, failed_attempts=attempts)
+    return StateFeedbackDesign(
+        L=L,
+        system=sys,
+        region=target,
+        poles=poles,
+        region_margin=pmargin,
+        method=meth,
+        certificate=cert,
+        checks=checks,
+        solver=info,
+    )

@@ -1,5 +1,6 @@
 """Design layer: parameterization (pure JAX), LMI regions, LMI design (cvxpy, host), verification."""
 
+from ._base import AbstractDesign as AbstractDesign
 from ._conditions import (
     check_detectability as check_detectability,
     check_functional_observability as check_functional_observability,
@@ -49,6 +50,10 @@ from ._regions import (
     region_from_dict as region_from_dict,
     Sector as Sector,
 )
+from ._stein import (
+    host_stein_certificate as host_stein_certificate,
+    stein_certificate as stein_certificate,
+)
 from ._takagi_sugeno import (
     check_impulse_observability as check_impulse_observability,
     design_ts_observer as design_ts_observer,
@@ -61,7 +66,6 @@ from ._tunable import (
     FixedCertificateDisk as FixedCertificateDisk,
     live_parameters as live_parameters,
     LiveParameters as LiveParameters,
-    stein_certificate as stein_certificate,
     SteinDisk as SteinDisk,
 )
 from ._unknown_input import (

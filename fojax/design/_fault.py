@@ -10,12 +10,13 @@ import numpy as np
 from .._errors import ShapeError
 from ..plant._descriptor import augment_faults, check_functional, DescriptorSystem
 from . import _lmi
+from ._base import AbstractDesign
 from ._conditions import check_regular
 from ._functional import check_kind, design_functional_observer, FunctionalObserverDesign
 
 
 @dataclasses.dataclass(frozen=True)
-class FaultEstimatorDesign:
+class FaultEstimatorDesign(AbstractDesign):
     """A functional observer of the fault-augmented system that estimates ``[z; f]``.
 
     Attributes: `design` (the verified `FunctionalObserverDesign` on the augmented
@@ -36,6 +37,23 @@ class FaultEstimatorDesign:
     @property
     def report(self):
         return self.design.report
+
+    @property
+    def region(self):
+        return self.design.region
+
+    @property
+    def certificate(self):
+        return self.design.X
+
+    @property
+    def kind(self) -> str:
+        return self.design.kind
+
+    def verify(self):
+        """Re-run the float64 verification of the augmented design
+        (`fojax.design.AbstractDesign.verify`)."""
+        return self.design.verify()
 
     def split(self, estimates):
         """Split estimates ``(..., q + n_f)`` into ``(ẑ, f̂)``."""

@@ -19,6 +19,7 @@ from .._linalg import row_space
 from ..observer._finite_time import FiniteTimeObserver
 from ..plant._descriptor import DescriptorSystem
 from . import _lmi
+from ._base import AbstractDesign
 from ._conditions import check_detectability, unobservable_modes
 from ._functional import (
     _as_system,
@@ -33,6 +34,8 @@ from ._functional import (
 )
 from ._parameterization import observer_structure, pieces
 from ._regions import as_region, Disk
+from ._stein import host_stein_certificate
+from ._verify import combine_reports, VerificationReport
 
 
 #: Smallest singular value of 𝕄 (relative to its largest) accepted for the reconstruction.
@@ -40,12 +43,13 @@ RECONSTRUCTION_RCOND = 1e-8
 
 
 @dataclasses.dataclass(frozen=True)
-class FiniteTimeObserverDesign:
+class FiniteTimeObserverDesign(AbstractDesign):
     """A verified finite-time observer: two designs with a common ``T`` and the delay ``h``.
 
     Attributes: `observer` (`FiniteTimeObserver`), `designs` (the two
     `FunctionalObserverDesign` s), `h`, `reconstruction_rcond` (conditioning of 𝕄),
     `reconstruction_residual` (algebraic exactness check of the reconstruction).
+    `region`, `certificate` and `report` are those of the pair (`combine_reports`).
     """
 
     observer: FiniteTimeObserver
@@ -53,6 +57,34 @@ class FiniteTimeObserverDesign:
     h: float
     reconstruction_rcond: float
     reconstruction_residual: float
+
+    @property
+    def region(self) -> tuple:
+        """The two disks (observer 1, observer 2)."""
+        return tuple(d.region for d in self.designs)
+
+    @property
+    def certificate(self) -> tuple:
+        return tuple(d.X for d in self.designs)
+
+    @property
+    def report(self) -> VerificationReport:
+        """The two designs' reports and the reconstruction checks made at design time, as one."""
+        return combine_reports({"observer 1": self.designs[0].report, "observer 2": self.designs[1].report},
+                               _reconstruction_checks(self.reconstruction_rcond, self.reconstruction_residual),
+                               raise_on_failure=False)
+
+    def verify(self) -> VerificationReport:
+        """Re-run the float64 verification (`fojax.design.AbstractDesign.verify`) of both
+        designs and of the reconstruction: the conditioning of 𝕄 and the exactness of the
+        stored ``Γ_now``, ``Γ_delay`` (`reconstruction_residual`) at ``h``."""
+        reports = {f"observer {i + 1}": d.verify() for i, d in enumerate(self.designs)}
+        o = self.observer
+        A1, A2 = (d.error_matrix for d in self.designs)
+        rcond = reconstruction_matrices(A1, A2, self.designs[0].structure.q0, float(self.h))[2]
+        resid = reconstruction_residual(A1, A2, self.designs[0].structure.q0, float(self.h),
+                                        np.asarray(o.Gamma_now), np.asarray(o.Gamma_delay))
+        return combine_reports(reports, _reconstruction_checks(rcond, resid))
 
     def __str__(self) -> str:
         d1, d2 = self.designs
@@ -62,6 +94,34 @@ class FiniteTimeObserverDesign:
             f"exactness residual {self.reconstruction_residual:.2e}\n"
             f"[observer 1] {d1.report}\n[observer 2] {d2.report}"
         )
+
+
+def _reconstruction_checks(rcond: float, resid: float) -> tuple:
+    """The finite-time checks in the form of `fojax.design.verify`'s `checks`."""
+    return (
+        ("reconstruction rcond", rcond, None if rcond >= RECONSTRUCTION_RCOND else (
+            f"the finite-time reconstruction matrix 𝕄 is ill-conditioned (rcond {rcond:.2e} < "
+            f"{RECONSTRUCTION_RCOND:.0e}); condition (3.108)/Lemma 6 is violated numerically. "
+            "Separate the two disks further or change h.")),
+        ("reconstruction residual", resid, None if resid <= 1e-8 else (
+            f"finite-time reconstruction is not exact (relative residual {resid:.2e} > 1e-8).")),
+    )
+
+
+def reconstruction_residual(A1, A2, q0: int, h: float, G_now, G_del, seed: int = 0) -> float:
+    """Exactness of the reconstruction ``m̂ = Γ_now ξ(t) − Γ_delay ξ(t−h)``: random
+    ``m(t)``, ``m(t−h)``, ``ϑ(t−h)`` consistent with 𝔸_i; the relative error of ``m̂``."""
+    rng = np.random.default_rng(seed)
+    m_now, m_del = rng.normal(size=q0), rng.normal(size=q0)
+    xis_now, xis_del = [], []
+    for Ai in (A1, A2):
+        th_del = rng.normal(size=Ai.shape[0])
+        th_now = scipy.linalg.expm(Ai * h) @ th_del
+        pad = np.zeros(Ai.shape[0] - q0)
+        xis_del.append(th_del + np.concatenate([m_del, pad]))
+        xis_now.append(th_now + np.concatenate([m_now, pad]))
+    m_hat = G_now @ np.concatenate(xis_now) - G_del @ np.concatenate(xis_del)
+    return float(np.linalg.norm(m_hat - m_now) / max(1.0, np.linalg.norm(m_now)))
 
 
 def _check_separated(r1: Disk, r2: Disk) -> None:
@@ -98,35 +158,6 @@ def _target_poles(region: Disk, q: int) -> np.ndarray:
     return region.center + 0.6 * region.radius * np.linspace(-1.0, 1.0, q)
 
 
-def _stein_certificate(Aa: np.ndarray, region: Disk) -> np.ndarray:
-    """X with ``L⊗X + M⊗(𝔸ᵀX) + Mᵀ⊗(X𝔸) ≺ 0`` for a disk.
-
-    By a Schur complement that LMI is ``Ãᵀ X Ã - X ≺ 0`` with ``Ã = (𝔸 - αI)/τ``; the
-    Stein equation ``Ãᵀ X Ã - X + I = 0`` gives such an X directly (no inversion).
-    The sum ``X = Σ_k (Ãᵀ)^k Ã^k`` is accumulated by Smith's doubling iteration, which
-    keeps X positive definite even for the highly non-normal 𝔸 of high-gain designs
-    (a direct Kronecker solve loses definiteness there).
-    """
-    At = (Aa - region.center * np.eye(Aa.shape[0])) / region.radius
-    X = np.eye(Aa.shape[0])
-    Mk = At
-    with np.errstate(over="ignore", invalid="ignore"):
-        for _ in range(64):
-            Xn = X + Mk.T @ X @ Mk
-            Mk = Mk @ Mk
-            if not (np.all(np.isfinite(Xn)) and np.all(np.isfinite(Mk))):
-                raise DesignVerificationError(
-                    "the placed error dynamics are so non-normal that their Lyapunov certificate "
-                    "overflows float64 (observer gains far beyond the data's scale); such an "
-                    "observer cannot be verified. Use fojax's default R, a larger observer order "
-                    "or disks closer to the open-loop modes."
-                )
-            X = Xn
-            if np.linalg.norm(Mk, 2) < 1e-18:
-                break
-    return 0.5 * (X + X.T)
-
-
 def _place_gains(s, Z, region: Disk, kind: str):
     """Pole placement of the ε-block through N3 (scipy `place_poles`), v-block G = αI.
 
@@ -156,7 +187,8 @@ def _place_gains(s, Z, region: Disk, kind: str):
     Y[q0:, c:] = region.center * np.eye(q1)
     A2 = np.block([[N3, np.zeros((c, q1))], [np.zeros((q1, q0)), -np.eye(q1)]])
     A1 = np.block([[N1, np.zeros((q0, q1))], [np.zeros((q1, q0 + q1))]])
-    X = _stein_certificate(A1 - Y @ A2, region)
+    # Smith's doubling keeps X positive definite for these highly non-normal dynamics
+    X = host_stein_certificate(A1 - Y @ A2, region.center, region.radius, method="doubling")
     return X, Y
 
 
@@ -308,28 +340,10 @@ def _design_ft(
         )
     A1, A2 = designs[0].error_matrix, designs[1].error_matrix
     G_now, G_del, rcond = reconstruction_matrices(A1, A2, s.q0, h)
-    if rcond < RECONSTRUCTION_RCOND:
-        raise DesignVerificationError(
-            f"the finite-time reconstruction matrix 𝕄 is ill-conditioned (rcond {rcond:.2e} < "
-            f"{RECONSTRUCTION_RCOND:.0e}); condition (3.108)/Lemma 6 is violated numerically. "
-            "Separate the two disks further or change h."
-        )
-    # Exactness check of the algebra: random m(t), m(t-h), ϑ(t-h) consistent with 𝔸_i.
-    rng = np.random.default_rng(seed)
-    m_now, m_del = rng.normal(size=s.q0), rng.normal(size=s.q0)
-    xis_now, xis_del = [], []
-    for Ai in (A1, A2):
-        th_del = rng.normal(size=Ai.shape[0])
-        th_now = scipy.linalg.expm(Ai * h) @ th_del
-        pad = np.zeros(Ai.shape[0] - s.q0)
-        xis_del.append(th_del + np.concatenate([m_del, pad]))
-        xis_now.append(th_now + np.concatenate([m_now, pad]))
-    m_hat = G_now @ np.concatenate(xis_now) - G_del @ np.concatenate(xis_del)
-    resid = float(np.linalg.norm(m_hat - m_now) / max(1.0, np.linalg.norm(m_now)))
-    if resid > 1e-8:
-        raise DesignVerificationError(
-            f"finite-time reconstruction is not exact (relative residual {resid:.2e} > 1e-8)."
-        )
+    resid = reconstruction_residual(A1, A2, s.q0, h, G_now, G_del, seed) if rcond >= RECONSTRUCTION_RCOND else np.nan
+    for _, _, failure in _reconstruction_checks(rcond, resid if np.isfinite(resid) else 0.0):
+        if failure is not None:
+            raise DesignVerificationError(failure)
     obs = FiniteTimeObserver(
         designs[0].observer, designs[1].observer, jnp.asarray(h), jnp.asarray(G_now), jnp.asarray(G_del)
     )

@@ -39,7 +39,8 @@ from .._errors import InputError, LMIInfeasibleError, RankConditionError, ShapeE
 from ..analysis._pencil import e_perp as _e_perp  # analysis decides the rank of E (balanced)
 from ..observer._generalized import GeneralizedFunctionalObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
-from . import _lmi, _riccati
+from . import _ladder, _lmi, _riccati
+from ._base import AbstractDesign
 from ._conditions import (
     check_data_range,
     check_detectability,
@@ -98,9 +99,18 @@ class StructureDesignMixin:
     def L(self) -> np.ndarray:
         return np.asarray(self.structure.L)
 
+    @property
+    def certificate(self) -> np.ndarray:
+        """The certificate of the region placement: the Lyapunov matrix ``X``."""
+        return self.X
+
+
+#: Entries of `VerificationReport.extra` that `verify` computes (not carried over by a re-run).
+COMPUTED_EXTRA = ("lyapunov_max_eig", "H∞")
+
 
 @dataclasses.dataclass(frozen=True)
-class FunctionalObserverDesign(StructureDesignMixin):
+class FunctionalObserverDesign(StructureDesignMixin, AbstractDesign):
     """A verified functional-observer design.
 
     Attributes:
@@ -133,6 +143,14 @@ class FunctionalObserverDesign(StructureDesignMixin):
     @property
     def error_matrix(self) -> np.ndarray:
         return np.asarray(self.observer.error_matrix)
+
+    def verify(self) -> VerificationReport:
+        """Re-run the float64 verification (`fojax.design.AbstractDesign.verify`): conditions
+        a.–d. at `params`, the eigenvalues in `region`, the region LMI at `X` and, for an
+        H∞ design, the bounded-real LMI at ``(X, γ)`` and ``γ ≥ ‖T‖∞`` (SLICOT AB13DD)."""
+        checks = () if self.hinf is None else tuple(self.hinf.checks(self.structure, self.params, self.X))
+        return verify_structure_design(self.structure, self.params, self.region, self.X,
+                                       extra=carried_extra(self.report), checks=checks)[1]
 
     def __str__(self) -> str:
         o = self.observer
@@ -327,23 +345,25 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
     """
     import cvxpy as cp
     solvers = ("CLARABEL", "SCS") if _lmi.check_solver(solver) == "AUTO" else (solver,)
-    attempts = [(sv, o) for sv in solvers for o in OBJECTIVES]
-    statuses = []
-    for sv, o in attempts:
-        prob = cp.Problem(cp.Minimize(obj if o == "min-gain" else 0), cons)
-        try:
-            info = _lmi.solve(prob, name, hint=hint, solver=sv)
-        except LMIInfeasibleError as err:
-            why = f": {err.info['message']}" if err.info.get("message") else ""
-            statuses.append(f"{err.status} ({sv}, {o}{why})")
-            continue
-        info["objective"] = o
-        if statuses:
-            info["failed_attempts"] = list(statuses)
-        info["route"] = _lmi.describe_route(info, o) + (
-            f"; refused before: {'; '.join(statuses)}" if statuses else "")
-        return info
-    raise LMIInfeasibleError(name, "; ".join(statuses), {}, hint)
+    rungs = [((sv, o), (lambda sv=sv, o=o: _lmi.solve(cp.Problem(cp.Minimize(obj if o == "min-gain" else 0), cons),
+                                                        name, hint=hint, solver=sv)))
+             for sv in solvers for o in OBJECTIVES]
+
+    def status(label, err):
+        why = f": {err.info['message']}" if err.info.get("message") else ""
+        return f"{err.status} ({label[0]}, {label[1]}{why})"
+
+    try:
+        (sv, o), info, refused = _ladder.climb(rungs, refusals=(LMIInfeasibleError,))
+    except _ladder.Refused as every:
+        raise LMIInfeasibleError(name, "; ".join(status(lb, e) for lb, e in every.refused), {}, hint) from None
+    statuses = [status(lb, e) for lb, e in refused]
+    info["objective"] = o
+    if statuses:
+        info["failed_attempts"] = list(statuses)
+    info["route"] = _lmi.describe_route(info, o) + (
+        f"; refused before: {'; '.join(statuses)}" if statuses else "")
+    return info
 
 
 def split_Y(Y: np.ndarray, q0: int, c: int) -> dict:
@@ -360,8 +380,17 @@ def build_observer(s: FunctionalObserverStructure, mats, rule: int = 0, kind: st
     )
 
 
-def verify_structure_design(s, params, region, X, *, rtol=None, extra=None) -> tuple[Any, VerificationReport]:
-    """Compute the matrices for `params` and verify them (residuals, eigenvalues, LMI)."""
+def carried_extra(report: VerificationReport) -> dict:
+    """The notes of a stored report that a re-verification carries over (the route taken),
+    without the entries `verify` computes again."""
+    return {k: v for k, v in report.extra.items() if k not in COMPUTED_EXTRA}
+
+
+def verify_structure_design(s, params, region, X, *, rtol=None, extra=None, common_lyapunov=False,
+                            checks=()) -> tuple[Any, VerificationReport]:
+    """Compute the matrices for `params` and verify them (residuals, eigenvalues, LMI; the
+    common Lyapunov inequality of every rule with `common_lyapunov`; `checks` as in
+    `fojax.design.verify`)."""
     mats = observer_matrices(s, **{k: np.asarray(v) for k, v in params.items()}, xp=np)
     res = design_residuals(s, mats, xp=np)
     scale = float(res.pop("scale"))
@@ -374,6 +403,8 @@ def verify_structure_design(s, params, region, X, *, rtol=None, extra=None) -> t
         X,
         extra=extra,
         scales=condition_scales(s, mats),
+        common_lyapunov=common_lyapunov,
+        checks=checks,
         **kw,
     )
     return mats, report

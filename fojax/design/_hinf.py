@@ -143,6 +143,25 @@ class HinfCertificate:
                 "brl_max_eig": self.brl_max_eig, "Bw": np.asarray(self.Bw).tolist(),
                 "Dv": np.asarray(self.Dv).tolist()}
 
+    def checks(self, s, params, X) -> list:
+        """The H∞ checks of a re-verification (`fojax.design.AbstractDesign.verify`), as
+        ``(name, value, failure)`` for `fojax.design.verify`: the bounded-real LMI at
+        ``(X, γ)`` in float64 (in the scaled problem of `design_hinf`, channels divided by
+        `region_only_norm`) and ``γ ≥ ‖T‖∞`` by SLICOT's AB13DD on the observer of `params`."""
+        A, B, C, D = error_system(s, base_mats(s, params), np.asarray(self.Bw), np.asarray(self.Dv))
+        scale = self.region_only_norm if self.region_only_norm > 0 else 1.0
+        M = brl_matrix(np.asarray(X), A, B / scale, C, D / scale, self.gamma / scale)
+        top = float(np.linalg.eigvalsh(M).max())
+        norm, freq = hinf_norm(A, B, C, D)
+        out = [("H∞", self.describe(), None)]
+        if not top < -1e-12 * max(1.0, float(np.abs(M).max())):
+            out.append(("H∞ BRL max eig", top, f"the bounded-real LMI at (X, γ = {self.gamma:.8g}) has max "
+                        f"eigenvalue {top:.3e} in float64: γ is not certified"))
+        if not self.gamma >= norm * (1.0 - NORM_RTOL):
+            out.append(("H∞ norm (AB13DD)", norm, f"the certified γ = {self.gamma:.8g} is below the norm of the "
+                        f"error system computed by SLICOT AB13DD, {norm:.8g} (peak at ω = {freq:.4g} rad/s)"))
+        return out
+
     @classmethod
     def from_dict(cls, m: dict) -> HinfCertificate:
         """Inverse of `to_dict` (`fojax.results.load_design`)."""

@@ -92,7 +92,6 @@ no solution, with the closed-loop spectral radius in the message.
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 import scipy.linalg
@@ -101,6 +100,7 @@ from .._errors import InputError, LMIInfeasibleError
 from ._conditions import unobservable_modes
 from ._parameterization import FunctionalObserverStructure, pieces
 from ._regions import AbstractRegion, Disk, HalfPlane, Sector
+from ._stein import host_stein_certificate
 
 
 #: The Riccati route targets the disk shrunk by this fraction (as the LMI route targets
@@ -205,19 +205,6 @@ def _spectral_radius(M: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(M)))) if M.size else 0.0
 
 
-def _stein(Acl: np.ndarray, steps: list) -> np.ndarray:
-    """``X`` with ``Aclᵀ X Acl - X + I = 0`` (an ill-conditioned solve's warning goes in `steps`:
-    `verify` re-checks the certificate whatever its conditioning)."""
-    if Acl.size == 0:
-        return np.zeros(Acl.shape)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        X = scipy.linalg.solve_discrete_lyapunov(Acl.T, np.eye(Acl.shape[0]))
-    if caught:
-        steps.append("Stein equation: " + "; ".join(str(w.message) for w in caught))
-    return 0.5 * (X + X.T)
-
-
 def riccati_gains(s: FunctionalObserverStructure, region: AbstractRegion, *, kind: str):
     """Gains by the Riccati route for one rule (module docstring).
 
@@ -244,7 +231,7 @@ def riccati_gains(s: FunctionalObserverStructure, region: AbstractRegion, *, kin
     Acl1 = Ad - K @ Cd
     rho = _spectral_radius(Acl1)
     steps.append(f"[Z, Y1] from the Riccati equation of (N1', [N2'; N3]): spectral radius {rho:.3g}")
-    X1 = _stein(Acl1, steps)
+    X1 = host_stein_certificate(Acl1, notes=steps)  # the one Stein certificate (disk coordinates)
     Y = np.zeros((d, c + q1))
     Y[:q0, :c] = Y1
     X = np.zeros((d, d))

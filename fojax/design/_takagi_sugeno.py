@@ -49,7 +49,6 @@ import numpy as np
 
 from .._dtype import require_x64
 from .._errors import (
-    DesignVerificationError,
     FunctionalObservabilityError,
     ImpulseObservabilityError,
     InputError,
@@ -59,8 +58,10 @@ from ..observer._takagi_sugeno import TakagiSugenoObserver
 from ..plant._descriptor import check_functional
 from ..plant._takagi_sugeno import TakagiSugenoSystem
 from . import _lmi
+from ._base import AbstractDesign
 from ._conditions import check_regular
 from ._functional import (
+    carried_extra,
     check_kind,
     prepare_structure,
     solve_gains,
@@ -71,11 +72,11 @@ from ._functional import (
 )
 from ._parameterization import FunctionalObserverStructure, observer_structure
 from ._regions import AbstractRegion, as_region, Disk
-from ._verify import LMI_MARGIN, VerificationReport
+from ._verify import VerificationReport
 
 
 @dataclasses.dataclass(frozen=True)
-class TakagiSugenoObserverDesign(StructureDesignMixin):
+class TakagiSugenoObserverDesign(StructureDesignMixin, AbstractDesign):
     """A verified Takagi–Sugeno functional-observer design.
 
     Attributes:
@@ -111,6 +112,13 @@ class TakagiSugenoObserverDesign(StructureDesignMixin):
     def error_matrices(self) -> np.ndarray:
         """``(k, q0+q1, q0+q1)``: 𝔸_i of every rule."""
         return np.asarray(self.observer.error_matrices)
+
+    def verify(self) -> VerificationReport:
+        """Re-run the float64 verification (`fojax.design.AbstractDesign.verify`): conditions
+        a.–d. of every rule, every rule's eigenvalues in `region`, the region LMI and the
+        common Lyapunov inequality at the common `X`."""
+        return verify_structure_design(self.structure, self.params, self.region, self.X,
+                                       extra=carried_extra(self.report), common_lyapunov=True)[1]
 
     def __str__(self) -> str:
         o = self.observer
@@ -252,8 +260,8 @@ def design_ts_observer(
         "J": np.stack([b["J"] for b in blocks]),
         "G": np.stack([b["G"] for b in blocks]),
     }
-    mats, report = verify_structure_design(s, params, region, X, extra={"LMI route": info["lmi"]["route"]})
-    report = _lyapunov_recheck(report, np.asarray(X), mats)
+    mats, report = verify_structure_design(s, params, region, X, extra={"LMI route": info["lmi"]["route"]},
+                                           common_lyapunov=True)
     p, m = C.shape[0], B.shape[-1]
     Wu, Wy = np.zeros((p, m)), np.eye(p)  # w = y (psi="output")
     obs = TakagiSugenoObserver(
@@ -273,23 +281,3 @@ def design_ts_observer(
         report=report,
         solver=info,
     )
-
-
-def _lyapunov_recheck(report: VerificationReport, X: np.ndarray, mats) -> VerificationReport:
-    """``max_i λmax(𝔸_iᵀX + X𝔸_i) < 0``: quadratic stability for time-varying weights."""
-    from ._parameterization import error_dynamics
-
-    As = np.asarray(error_dynamics(mats, xp=np))
-    X = 0.5 * (X + X.T)
-    lyap = max(float(np.linalg.eigvalsh(Ai.T @ X + X @ Ai).max()) for Ai in As)
-    extra = dict(report.extra)
-    extra["lyapunov_max_eig"] = lyap
-    report = dataclasses.replace(report, extra=extra)
-    if not lyap < -LMI_MARGIN * float(np.linalg.norm(X, 2)):
-        failures = report.failures + (
-            f"common Lyapunov inequality 𝔸_iᵀX + X𝔸_i ≺ 0 fails (max eigenvalue {lyap:.3e}): "
-            "quadratic stability under time-varying weights is not certified",
-        )
-        report = dataclasses.replace(report, passed=False, failures=failures)
-        raise DesignVerificationError("design failed its float64 verification: " + failures[-1], report)
-    return report

@@ -70,7 +70,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
-from jax import lax
 
 from .._errors import DesignVerificationError, InputError
 from .._linalg import RANK_RTOL
@@ -83,6 +82,7 @@ from ._parameterization import (
     pieces,
 )
 from ._regions import AbstractRegion, as_region, Disk
+from ._stein import host_stein_certificate, stein_certificate
 
 
 class LiveParameters(NamedTuple):
@@ -113,34 +113,6 @@ class LiveParameters(NamedTuple):
 
     def __str__(self) -> str:
         return f"{self.live} of {self.total} free parameters are live (reach the estimate ẑ)"
-
-
-def stein_certificate(A, center, radius):
-    r"""``P`` solving $\bar A^\top P\bar A - P = -I$, $\bar A = (A - \alpha I)/\tau$ (traceable).
-
-    All eigenvalues of $A$ lie in the open disk $\mathcal Q(\alpha, \tau)$ iff ``P ≻ 0``
-    (then ``P ⪰ I``), and $(A-\alpha I)^\top P(A-\alpha I) - \tau^2P = -\tau^2 I$, so ``P`` is
-    a certificate $X$ of the disk LMI. Smith's doubling, $P = \sum_k (\bar A^\top)^k\bar A^k$
-    over $2^{40}$ terms (matrix products only: cheap to compile and differentiate); outside
-    the disk $\bar A^{2^j}$ overflows and ``P`` is not finite positive definite.
-    """
-    d = A.shape[0]
-    Ab = (A - center * jnp.eye(d)) / radius
-
-    def double(_, carry):
-        P, Ak = carry
-        return P + Ak.T @ P @ Ak, Ak @ Ak
-
-    P, _ = lax.fori_loop(0, 40, double, (jnp.eye(d), Ab))
-    return 0.5 * (P + P.T)
-
-
-def _host_stein(A: np.ndarray, region: Disk) -> np.ndarray:
-    """The float64 Stein certificate of `stein_certificate` by SciPy (host)."""
-    d = A.shape[0]
-    Ab = (A - region.center * np.eye(d)) / region.radius
-    X = scipy.linalg.solve_discrete_lyapunov(Ab.T, np.eye(d))
-    return 0.5 * (X + X.T)
 
 
 def _check_kind(design, who: str):
@@ -405,7 +377,7 @@ class SteinDisk(AbstractParameterization):
         A = np.asarray(error_dynamics(observer_matrices(self.structure, **p, xp=np), xp=np))[0]
         if not np.all(np.abs(np.linalg.eigvals(A) - self.region.center) < self.region.radius):
             return np.full(A.shape, np.nan)
-        return _host_stein(A, self.region)
+        return host_stein_certificate(A, self.region.center, self.region.radius)
 
 
 def _inverse_contraction(Lc: np.ndarray) -> np.ndarray:
@@ -626,12 +598,11 @@ class CommonCertificate(AbstractParameterization):
 
     def certify(self, params):
         from ..observer import TakagiSugenoObserver
-        from ._takagi_sugeno import _lyapunov_recheck, TakagiSugenoObserverDesign
+        from ._takagi_sugeno import TakagiSugenoObserverDesign
 
         p = {k: np.asarray(v, dtype=float) for k, v in self.design_params(params).items()}
         X = np.asarray(self.X)
-        mats, report = verify_structure_design(self.structure, p, self.region, X)
-        report = _lyapunov_recheck(report, X, mats)
+        mats, report = verify_structure_design(self.structure, p, self.region, X, common_lyapunov=True)
         obs = TakagiSugenoObserver(mats.N, mats.J, mats.F, mats.H, mats.S, mats.G, mats.M, mats.P, mats.Q,
                                    np.asarray(self.Wu), np.asarray(self.Wy), mats.T, self.membership, kind=self.kind)
         return TakagiSugenoObserverDesign(

@@ -105,7 +105,8 @@ from .._errors import (
 from .._linalg import rank, row_space
 from ..observer._unknown_input import UnknownInputObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
-from . import _lmi
+from . import _ladder, _lmi
+from ._base import AbstractDesign
 from ._conditions import (
     check_data_range,
     check_detectability,
@@ -114,7 +115,7 @@ from ._conditions import (
     default_R,
     unobservable_modes,
 )
-from ._functional import _as_system, choose_Z, StructureDesignMixin, TIGHTEN
+from ._functional import _as_system, carried_extra, choose_Z, StructureDesignMixin, TIGHTEN
 from ._parameterization import (
     FunctionalObserverStructure,
     observer_matrices,
@@ -122,6 +123,7 @@ from ._parameterization import (
     pieces,
 )
 from ._regions import AbstractRegion, as_region, Disk
+from ._stein import host_stein_certificate
 from ._verify import VerificationReport, verify
 
 
@@ -217,7 +219,7 @@ def unknown_input_residuals(s: FunctionalObserverStructure, D, mats, xp=np) -> d
 
 
 @dataclasses.dataclass(frozen=True)
-class UnknownInputObserverDesign(StructureDesignMixin):
+class UnknownInputObserverDesign(StructureDesignMixin, AbstractDesign):
     """A verified unknown-input functional-observer design.
 
     Attributes:
@@ -247,6 +249,12 @@ class UnknownInputObserverDesign(StructureDesignMixin):
     @property
     def error_matrix(self) -> np.ndarray:
         return np.asarray(self.observer.error_matrix)
+
+    def verify(self) -> VerificationReport:
+        """Re-run the float64 verification (`fojax.design.AbstractDesign.verify`): conditions
+        a.–f. at `params`, the eigenvalues of 𝔸 in `region` and the region LMI at `X`."""
+        return verify_unknown_input_design(self.structure, self.D, self.params, self.region, self.X,
+                                           extra=carried_extra(self.report))[1]
 
     def __str__(self) -> str:
         o = self.observer
@@ -554,17 +562,7 @@ def design_unknown_input_observer(
         "Y4": Yb[q0 + q1 :, :c],
         "Lambda": Yb[q0 + q1 :, c:],
     }
-    mats = unknown_input_observer_matrices(s, D, **params, xp=np)
-    res = {k: float(v) for k, v in unknown_input_residuals(s, D, mats).items()}
-    scale = res.pop("scale")
-    report = verify(
-        res,
-        scale,
-        unknown_input_error_dynamics(mats, xp=np),
-        region,
-        X,
-        extra={"Eperp [E D] residual": float(np.abs(Ep @ np.hstack([E, D])).max()) if Ep.size else 0.0},
-    )
+    mats, report = verify_unknown_input_design(s, D, params, region, X)
     p, m = C.shape[0], B.shape[1]
     Wu = np.vstack([-Ep @ B, np.zeros((p, m))])  # w = [-E⊥B u; y] (numpy: no JAX dispatch)
     Wy = np.vstack([np.zeros((Ep.shape[0], p)), np.eye(p)])
@@ -585,6 +583,21 @@ def design_unknown_input_observer(
         report=report,
         solver=info,
     )
+
+
+def verify_unknown_input_design(s, D, params, region, X, *, extra=None):
+    """The matrices of `params` (eq. 3.110) and their float64 verification by
+    `fojax.design.verify`: residuals of a.–f., the eigenvalues of 𝔸, the region LMI at
+    `X`, and ``E⊥[E D] = 0`` recorded (``extra["Eperp [E D] residual"]``)."""
+    mats = unknown_input_observer_matrices(s, D, **params, xp=np)
+    res = {k: float(v) for k, v in unknown_input_residuals(s, D, mats).items()}
+    scale = res.pop("scale")
+    Ep = np.asarray(s.Eperp)
+    extra = {**(extra or {}),
+             "Eperp [E D] residual": float(np.abs(Ep @ np.hstack([np.asarray(s.E), np.asarray(D)])).max())
+             if Ep.size else 0.0}
+    report = verify(res, scale, unknown_input_error_dynamics(mats, xp=np), region, X, extra=extra)
+    return mats, report
 
 
 def _target_poles(region: AbstractRegion, k: int) -> np.ndarray:
@@ -610,9 +623,10 @@ def _preconditioner(A1: np.ndarray, A2: np.ndarray, region: AbstractRegion) -> n
     K = scipy.signal.place_poles(A1.T, Cb.T, _target_poles(region, A1.shape[0])).gain_matrix.T
     A0 = A1 - K @ Cb
     if isinstance(region, Disk):
-        # Stein certificate of the disk: (A0 - αI)/τ = Ã, Ã P Ãᵀ - P + I = 0, X0 = P⁻¹.
-        At = (A0 - region.center * np.eye(A0.shape[0])) / region.radius
-        X0 = np.linalg.inv(scipy.linalg.solve_discrete_lyapunov(At, np.eye(A0.shape[0])))
+        # the one Stein certificate, of the transposed dynamics: Ã P Ãᵀ - P + I = 0 with
+        # Ã = (A0 - αI)/τ; X0 = P⁻¹ is a disk certificate of A0 (the dual form, by a Schur
+        # complement), the one this preconditioner was measured with
+        X0 = np.linalg.inv(host_stein_certificate(A0.T, region.center, region.radius))
     else:
         X0 = scipy.linalg.solve_continuous_lyapunov(A0.T, -np.eye(A0.shape[0]))
     w, V = np.linalg.eigh(0.5 * (X0 + X0.T))
@@ -666,21 +680,19 @@ def _solve_lmi(s, D, Z, region, *, margin, solver):
     except (ValueError, np.linalg.LinAlgError):
         pass
     attempts.append((np.eye(d), None, name))
-    errors = []
-    for S, kappa, nm in attempts:
-        try:
-            Xv, Y, info = _region_lmi(A1, A2, S, region, margin, solver, nm, hint, kappa)
-            info["problem"] = nm
-            if errors:
-                info["previous_attempts"] = [f"{e.status} ({e.problem})" for e in errors]
-            break
-        except LMIInfeasibleError as err:
-            errors.append(err)
-    else:
+    rungs = [(nm, (lambda S=S, kappa=kappa, nm=nm: _region_lmi(A1, A2, S, region, margin, solver, nm, hint, kappa)))
+             for S, kappa, nm in attempts]
+    try:
+        nm, (Xv, Y, info), refused = _ladder.climb(rungs, refusals=(LMIInfeasibleError,))
+    except _ladder.Refused as every:
+        errors = [e for _, e in every.refused]
         raise errors[0] if len(errors) == 1 else LMIInfeasibleError(
             name, "; ".join(f"{e.status} ({e.problem})" for e in errors),
             {"attempts": [e.info for e in errors]}, hint,
-        )
+        ) from None
+    info["problem"] = nm
+    if refused:
+        info["previous_attempts"] = [f"{e.status} ({e.problem})" for _, e in refused]
     # Components of 𝕐 outside the row space of 𝔸2 do not change 𝔸 (they would only
     # enlarge F, M, W): project them away.
     Pr = A2 @ np.linalg.pinv(A2)

@@ -123,6 +123,8 @@ def verify(
     raise_on_failure: bool = True,
     extra: dict | None = None,
     scales: dict | None = None,
+    common_lyapunov: bool = False,
+    checks: tuple = (),
 ) -> VerificationReport:
     """Check residuals, eigenvalue locations and (if `X` is given) the region LMI.
 
@@ -136,6 +138,15 @@ def verify(
     turning rounding (1e-30) into a failure: with ``rtol = 1e-8`` it accepts residuals
     below ``1e-14 · scale``, the rounding level of the whole design. Without `scales`:
     ``max(residuals) / max(scale, 1)``.
+
+    With ``common_lyapunov=True`` (Takagi–Sugeno designs) it also checks
+    ``max_i λmax(𝔸_iᵀX + X𝔸_i) < -LMI_MARGIN·‖X‖`` — quadratic stability of the error for
+    arbitrarily time-varying weights, which the region LMI implies for fojax's regions —
+    and records it as ``extra["lyapunov_max_eig"]``. `checks` are further named checks of
+    the caller, ``(name, value, failure)`` with ``failure`` ``None`` when it passed (the H∞
+    bound, a finite-time reconstruction): each value goes into `extra`, each failure into
+    `failures`. This is the one verification routine of every design result
+    (`fojax.design.AbstractDesign.verify`).
     """
     error_matrices = np.asarray(error_matrices, dtype=float)
     if error_matrices.ndim == 2:
@@ -174,6 +185,18 @@ def verify(
                 f"region LMI re-checked in float64 has max eigenvalue {lmi_max:.3e} "
                 f"(must be < {-LMI_MARGIN * xnorm:.1e})"
             )
+    extra = dict(extra or {})
+    if common_lyapunov and X is not None:
+        lyap = max(float(np.linalg.eigvalsh(Ai.T @ X + X @ Ai).max()) for Ai in error_matrices)
+        extra["lyapunov_max_eig"] = lyap
+        if not lyap < -LMI_MARGIN * float(np.linalg.norm(X, 2)):
+            failures.append(
+                f"common Lyapunov inequality 𝔸_iᵀX + X𝔸_i ≺ 0 fails (max eigenvalue {lyap:.3e}): "
+                "quadratic stability under time-varying weights is not certified")
+    for name, value, failure in checks:
+        extra[name] = value
+        if failure is not None:
+            failures.append(failure)
     report = VerificationReport(
         residuals=res,
         scale=float(scale),
@@ -185,10 +208,44 @@ def verify(
         certificate_min_eig=xmin,
         passed=not failures,
         failures=tuple(failures),
-        extra=dict(extra or {}),
+        extra=extra,
     )
     if failures and raise_on_failure:
         raise DesignVerificationError(
             "design failed its float64 verification: " + "; ".join(failures), report
         )
+    return report
+
+
+def combine_reports(reports: dict, checks: tuple = (), *, raise_on_failure: bool = True) -> VerificationReport:
+    """One `VerificationReport` of a design made of several (a finite-time pair):
+    residuals and failures prefixed by their label, eigenvalues concatenated, the worst
+    margin, LMI eigenvalue and certificate eigenvalue, plus the `checks` of `verify`."""
+    res, failures, extra = {}, [], {}
+    for label, r in reports.items():
+        res.update({f"{label}.{k}": v for k, v in r.residuals.items()})
+        failures += [f"{label}: {f}" for f in r.failures]
+        extra.update({f"{label} {k}": v for k, v in r.extra.items()})
+    for name, value, failure in checks:
+        extra[name] = value
+        if failure is not None:
+            failures.append(failure)
+    rs = list(reports.values())
+    lmis = [r.lmi_max_eig for r in rs if r.lmi_max_eig is not None]
+    xmins = [r.certificate_min_eig for r in rs if r.certificate_min_eig is not None]
+    report = VerificationReport(
+        residuals=res,
+        scale=max(r.scale for r in rs),
+        relative_residual=max(r.relative_residual for r in rs),
+        eigenvalues=np.concatenate([np.asarray(r.eigenvalues) for r in rs]),
+        region="; ".join(f"{label}: {r.region}" for label, r in reports.items()),
+        region_margin=min(r.region_margin for r in rs),
+        lmi_max_eig=max(lmis) if lmis else None,
+        certificate_min_eig=min(xmins) if xmins else None,
+        passed=not failures,
+        failures=tuple(failures),
+        extra=extra,
+    )
+    if failures and raise_on_failure:
+        raise DesignVerificationError("design failed its float64 verification: " + "; ".join(failures), report)
     return report

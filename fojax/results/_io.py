@@ -1,40 +1,22 @@
 r"""Saved designs and results folders that last.
 
-**Design files.** `save_design` writes one ``.npz`` file (NumPy's zip of ``.npy``
-arrays, no pickles) holding every matrix of a design object of `fojax.design` in
-float64 exactly as computed, plus one entry ``__metadata__`` with a JSON document:
-
-- ``format`` = ``"fojax-design"``, ``format_version`` = 2, ``fojax_version``,
-  ``created`` (UTC timestamp, ISO 8601), ``design_class`` (one of `DESIGN_CLASSES`);
-- ``kind``, ``region`` (`AbstractRegion.to_dict`), the static fields of the
-  structure (``q1``, ``psi``, ``solvability_residual``), the sizes ``n, m, p, q, q0``;
-- ``report``: the `VerificationReport` (`to_dict`, eigenvalues kept in the arrays);
-- ``solver``: the solver information (JSON-safe copy; non-JSON values as strings);
-- ``user``: optional user metadata passed to `save_design`.
-
-Array entries of a `FunctionalObserverDesign` are named ``observer/N`` …
-``observer/Wy``, ``structure/E``, ``A``, ``B``, ``C``, ``L``, ``R``, ``Eperp``, ``Z0``,
-``PiZ`` (plant matrices, functional and the parameterization), ``params/Z`` …
-``params/G``, ``T``, ``K``, ``Z_eff``, ``X`` (LMI certificate) and
-``report/eigenvalues``. The other classes add to or nest this layout:
-
-- `TakagiSugenoObserverDesign`: rule-stacked observer matrices, ``observer/T``, and the
-  membership functions (``membership`` in the metadata: class and fields; arrays under
-  ``observer/membership/…``). `load_design` rebuilds fojax's own membership classes;
-  for other classes pass ``membership=``.
-- `UnknownInputObserverDesign`: the observer matrices of eq. 3.110 (``observer/Delta``,
-  ``observer/Phi``, ``observer/Lambda``, ``observer/W`` …) and ``D``.
-- `FiniteTimeObserverDesign`: the two designs under ``designs/0/`` and ``designs/1/``
-  (metadata ``designs``), ``observer/h``, ``observer/Gamma_now``,
-  ``observer/Gamma_delay``, and ``h``, ``reconstruction_rcond``,
-  ``reconstruction_residual`` as 0-d arrays.
-- `FaultEstimatorDesign`: the design of the augmented system under ``design/``
-  (metadata ``design``), ``augmented/E`` … ``augmented/C``, and ``q``, ``n_faults``,
-  ``ramp`` in the metadata.
+**Design files.** `save_design` (= ``design.save(path)``) writes one ``.npz`` file
+(NumPy's zip of ``.npy`` arrays, no pickles) holding every array of a design result of
+`fojax.design` in float64 exactly as computed, plus one entry ``__metadata__`` with a
+JSON document: ``format`` = ``"fojax-design"``, ``format_version`` = 3,
+``fojax_version``, ``created``, ``design_class``, ``user`` (the caller's metadata), a
+readable ``summary`` (``kind``, ``region``, ``sizes``, ``report``) and the ``tree``: the
+skeleton of the design's dataclass, every field, each array named by its path
+(``observer/N``, ``structure/E``, ``params/Z``, ``designs/0/X`` …) with its shape and dtype.
+No design class has code of its own for this: `fojax.design.AbstractDesign` and
+`fojax._serialize` (format, damage checks, the classes a file may name: fojax's only).
 
 `load_design` rebuilds an object of the saved class with bit-identical arrays
 (``np.array_equal`` on every entry), so the loaded observer produces identical
-outputs. Files of format 1 (functional designs only, no ``design_class``) still load.
+outputs, and re-runs its float64 verification (``verify=False`` skips that). Files of
+format 2 (hand-written layouts per class) and format 1 (functional designs only) still
+load (`fojax.design._legacy_io`; tested on files written by that code,
+``tests/data/designs_v2``).
 
 **Atomic, never clobbering.** Every file is written to a temporary file in the
 target directory, flushed to disk and then moved into place (`os.replace`, or a hard
@@ -57,12 +39,10 @@ run's files only, beside the user's own.
 
 from __future__ import annotations
 
-import dataclasses
 import datetime as _dt
 import io
 import json
 import pathlib
-import zipfile
 from typing import Any
 
 import numpy as np
@@ -75,6 +55,7 @@ from .._io import (
     register_results_folder,
     suggest_name,
 )
+from .._serialize import json_safe as _json_safe  # the one JSON-safe copy
 
 
 FORMAT = "fojax-design"
@@ -128,26 +109,6 @@ def atomic_write_text(path, text: str, *, overwrite: bool = False) -> pathlib.Pa
     return atomic_write_bytes(path, text.encode("utf-8"), overwrite=overwrite)
 
 
-def _json_safe(value: Any):
-    """A JSON-serialisable copy (arrays to lists, numpy scalars to Python, others to str)."""
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, bool | int | str) or value is None:
-        return value
-    if isinstance(value, float):
-        return value if np.isfinite(value) else str(value)
-    if isinstance(value, np.generic):
-        return _json_safe(value.item())
-    if isinstance(value, np.ndarray) or hasattr(value, "__array__"):
-        arr = np.asarray(value)
-        if np.iscomplexobj(arr):
-            return {"real": _json_safe(arr.real.tolist()), "imag": _json_safe(arr.imag.tolist())}
-        return _json_safe(arr.tolist())
-    return str(value)
-
-
 def atomic_write_json(path, obj: Any, *, overwrite: bool = False) -> pathlib.Path:
     """Write `obj` as indented JSON, atomically (non-JSON values are converted)."""
     return atomic_write_text(path, json.dumps(_json_safe(obj), indent=2) + "\n", overwrite=overwrite)
@@ -162,488 +123,60 @@ def atomic_write_npz(path, arrays: dict, *, overwrite: bool = False) -> pathlib.
 
 # --------------------------------------------------------------------------- designs
 
-#: The design classes `save_design` writes (``design_class`` in the metadata).
-DESIGN_CLASSES = (
-    "FunctionalObserverDesign",
-    "TakagiSugenoObserverDesign",
-    "UnknownInputObserverDesign",
-    "FiniteTimeObserverDesign",
-    "FaultEstimatorDesign",
-)
-_TS_OBSERVER_FIELDS = _OBSERVER_FIELDS + ("T",)
-_UIO_OBSERVER_FIELDS = (
-    "N", "J", "F", "H", "Delta", "S", "G", "M", "Phi", "Lambda", "W", "P", "Q", "Wu", "Wy",
-)  # fmt: skip
-_SYSTEM_FIELDS = ("E", "A", "B", "C")
-
-
-def _design_class_map() -> dict:
-    from ..design import (
-        FaultEstimatorDesign,
-        FiniteTimeObserverDesign,
-        FunctionalObserverDesign,
-        TakagiSugenoObserverDesign,
-        UnknownInputObserverDesign,
-    )
-
-    classes = (
-        FunctionalObserverDesign,
-        TakagiSugenoObserverDesign,
-        UnknownInputObserverDesign,
-        FiniteTimeObserverDesign,
-        FaultEstimatorDesign,
-    )
-    return {c.__name__: c for c in classes}
-
-
-def _report_meta(report, p: str, arrays: dict) -> dict:
-    arrays[f"{p}report/eigenvalues"] = np.asarray(report.eigenvalues)
-    rep = report.to_dict()
-    rep.pop("eigenvalues_real", None)
-    rep.pop("eigenvalues_imag", None)
-    rep["extra"] = _json_safe(dict(report.extra))
-    return rep
-
-
-def _structure_design_meta(d, p: str, arrays: dict, observer_fields: tuple) -> dict:
-    """Arrays and metadata of a design object holding a `FunctionalObserverStructure`
-    (functional, Takagi–Sugeno and unknown-input designs), under the key prefix `p`."""
-    obs, s = d.observer, d.structure
-    for k in observer_fields:
-        arrays[f"{p}observer/{k}"] = np.asarray(getattr(obs, k))
-    for k in _STRUCTURE_FIELDS:
-        arrays[f"{p}structure/{k}"] = np.asarray(getattr(s, k))
-    for k, v in d.params.items():
-        arrays[f"{p}params/{k}"] = np.asarray(v)
-    for k in _TOP_FIELDS:
-        arrays[p + k] = np.asarray(getattr(d, k))
-    return {
-        "region": d.region.to_dict(),
-        "region_description": d.region.describe(),
-        "structure": {
-            "q1": int(s.q1),
-            "psi": s.psi,
-            "solvability_residual": float(s.solvability_residual),
-        },
-        "sizes": {"n": int(s.n), "m": int(s.m), "p": int(s.p), "q": int(s.q), "q0": int(s.q0)},
-        "params": sorted(d.params),
-        "report": _report_meta(d.report, p, arrays),
-        "solver": _json_safe(d.solver),
-    }
-
-
-def _functional_meta(d, p: str, arrays: dict) -> dict:
-    return {
-        "kind": d.kind,
-        "observer_kind": d.observer.kind,
-        **_structure_design_meta(d, p, arrays, _OBSERVER_FIELDS),
-        **({"hinf": d.hinf.to_dict()} if getattr(d, "hinf", None) is not None else {}),
-    }
-
-
-class _NotStorable(Exception):
-    pass
-
-
-def _module_meta(obj, p: str, arrays: dict) -> dict:
-    """A membership (any `equinox.Module` tree of arrays, numbers and strings): class
-    name + fields in the metadata, arrays under ``p/<field>``. Raises `_NotStorable`."""
-    import equinox as eqx
-    import jax
-
-    cls = type(obj)
-    fields = {}
-    for f in dataclasses.fields(obj):
-        v = getattr(obj, f.name)
-        key = f"{p}/{f.name}"
-        if isinstance(v, eqx.Module):
-            fields[f.name] = {"module": _module_meta(v, key, arrays)}
-        elif v is None or isinstance(v, bool | int | str):
-            fields[f.name] = {"value": v}
-        elif isinstance(v, float):
-            fields[f.name] = {"float": repr(v)}  # repr round-trips exactly (inf, nan too)
-        elif isinstance(v, np.ndarray | np.generic | jax.Array):
-            arr = np.asarray(v)
-            if arr.dtype == object:
-                raise _NotStorable(f"{cls.__qualname__}.{f.name} has dtype object")
-            arrays[key] = arr
-            fields[f.name] = {"array": key}
-        else:
-            raise _NotStorable(f"{cls.__qualname__}.{f.name} is a {type(v).__name__}")
-    return {"class": f"{cls.__module__}:{cls.__qualname__}", "fields": fields}
-
-
-def _membership_meta(membership, arrays: dict) -> dict:
-    staged: dict = {}
-    try:
-        meta = _module_meta(membership, "observer/membership", staged)
-    except _NotStorable as err:
-        cls = type(membership)
-        return {"class": f"{cls.__module__}:{cls.__qualname__}", "stored": False, "reason": str(err)}
-    arrays.update(staged)
-    return {**meta, "stored": True}
-
-
-def _ts_meta(d, arrays: dict) -> dict:
-    return {
-        "kind": d.kind,
-        "observer_kind": d.observer.kind,
-        "num_rules": int(d.observer.num_rules),
-        "membership": _membership_meta(d.observer.membership, arrays),
-        **_structure_design_meta(d, "", arrays, _TS_OBSERVER_FIELDS),
-    }
-
-
-def _uio_meta(d, arrays: dict) -> dict:
-    arrays["D"] = np.asarray(d.D)
-    meta = _structure_design_meta(d, "", arrays, _UIO_OBSERVER_FIELDS)
-    meta["sizes"]["l"] = int(np.shape(d.D)[1])
-    return meta
-
-
-def _finite_time_meta(d, arrays: dict) -> dict:
-    o = d.observer
-    arrays["observer/h"] = np.asarray(o.h)
-    arrays["observer/Gamma_now"] = np.asarray(o.Gamma_now)
-    arrays["observer/Gamma_delay"] = np.asarray(o.Gamma_delay)
-    scalars = ("h", "reconstruction_rcond", "reconstruction_residual")
-    for k in scalars:
-        arrays[k] = np.asarray(getattr(d, k), dtype=np.float64)
-    return {
-        "kind": d.designs[0].kind,
-        "designs": [_functional_meta(di, f"designs/{i}/", arrays) for i, di in enumerate(d.designs)],
-        **{k: float(getattr(d, k)) for k in scalars},
-    }
-
-
-def _fault_meta(d, arrays: dict) -> dict:
-    for k in _SYSTEM_FIELDS:
-        arrays[f"augmented/{k}"] = np.asarray(getattr(d.augmented, k))
-    return {
-        "kind": d.design.kind,
-        "design": _functional_meta(d.design, "design/", arrays),
-        "q": int(d.q),
-        "n_faults": int(d.n_faults),
-        "ramp": bool(d.ramp),
-    }
-
-
-_SAVERS = {
-    "FunctionalObserverDesign": lambda d, arrays: _functional_meta(d, "", arrays),
-    "TakagiSugenoObserverDesign": _ts_meta,
-    "UnknownInputObserverDesign": _uio_meta,
-    "FiniteTimeObserverDesign": _finite_time_meta,
-    "FaultEstimatorDesign": _fault_meta,
-}
-
-
 def save_design(design, path, *, overwrite: bool = False, metadata: dict | None = None) -> pathlib.Path:
-    """Save a verified design to one ``.npz`` file (format in the module docstring).
+    """Save a verified design to one ``.npz`` file (``design.save(path)``; format 3 of
+    `fojax.design.AbstractDesign`).
 
     **Arguments:**
 
-    - `design`: a design object of `fojax.design`: `FunctionalObserverDesign`,
-      `TakagiSugenoObserverDesign`, `UnknownInputObserverDesign`,
-      `FiniteTimeObserverDesign` or `FaultEstimatorDesign`.
+    - `design`: a design result of `fojax.design` (any `fojax.design.AbstractDesign`:
+      `FunctionalObserverDesign`, `TakagiSugenoObserverDesign`,
+      `UnknownInputObserverDesign`, `FiniteTimeObserverDesign`, `FaultEstimatorDesign`).
     - `path`: destination file (conventionally ``*.npz``); its directory must exist.
     - `overwrite`: replace an existing file (default: raise `FileExistsError`).
     - `metadata`: optional JSON-serialisable user metadata (e.g. the config file).
 
     **Returns:** the path written.
     """
-    classes = _design_class_map()
-    name = next((n for n, c in classes.items() if type(design) is c), None)
-    if name is None:
-        raise TypeError(
-            f"save_design expects a design object of fojax.design ({', '.join(DESIGN_CLASSES)}), "
-            f"got {type(design).__name__}."
-        )
-    arrays: dict[str, np.ndarray] = {}
-    meta = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "fojax_version": fojax_version(),
-        "created": _timestamp(),
-        "design_class": name,
-        **_SAVERS[name](design, arrays),
-        "user": _json_safe(metadata or {}),
-    }
-    for k, v in arrays.items():
-        if v.dtype == object:
-            raise TypeError(f"design array {k!r} has dtype object; cannot be saved without pickle.")
-    arrays["__metadata__"] = np.array(json.dumps(meta))
-    return atomic_write_npz(path, arrays, overwrite=overwrite)
+    from ..design._base import save
+
+    return save(design, path, overwrite=overwrite, metadata=metadata)
 
 
 def read_design_metadata(path) -> dict:
     """The JSON metadata of a saved design (no arrays are rebuilt)."""
-    with _open_design_file(path) as data:
-        return _metadata(data, path)
+    from ..design._base import read_metadata
+
+    return read_metadata(path)
 
 
-_EXPECTED = (
-    "load_design reads the .npz files written by fojax.results.save_design or `fojax design` "
-    "(<observer>.npz in its results folder)"
-)
-
-
-def _what_file(head: bytes, path: pathlib.Path) -> str:
-    if head.startswith(b"\x93NUMPY"):
-        return "a single NumPy array (.npy), not a design archive"
-    if not head:
-        return "empty"
-    try:
-        head.decode("utf-8")
-    except UnicodeDecodeError:
-        return "a binary file that is not a .npz archive"
-    if path.suffix.lower() == ".toml" or head.lstrip().startswith((b"[", b"name", b"#")):
-        return "a text file (a TOML config?), not a .npz archive"
-    return "a text file, not a .npz archive"
-
-
-def _open_design_file(path):
-    """`np.load` of a design file (no pickles), with a clear `InputError` for anything
-    that is not a ``.npz`` archive."""
-    from .._errors import InputError
-
-    path = pathlib.Path(path)
-    if path.is_dir():
-        raise InputError(f"{path} is a folder; {_EXPECTED}.")
-    with open(path, "rb") as f:  # FileNotFoundError names the missing file
-        head = f.read(64)
-    if not head.startswith(b"PK"):
-        raise InputError(f"{path} is not a fojax design file: it is {_what_file(head, path)}; {_EXPECTED}.")
-    try:
-        with zipfile.ZipFile(path) as z:  # np.load leaks its file on a damaged archive
-            z.namelist()
-    except (ValueError, OSError, zipfile.BadZipFile) as err:
-        raise InputError(
-            f"{path} is not a readable fojax design file ({type(err).__name__}: {err}; a damaged or "
-            f"truncated archive?); {_EXPECTED}."
-        ) from None
-    return np.load(path, allow_pickle=False)
-
-
-def _metadata(data, path) -> dict:
-    from .._errors import InputError
-
-    if "__metadata__" not in data.files:
-        raise InputError(f"{path} is not a fojax design file (no __metadata__ entry); {_EXPECTED}.")
-    meta = json.loads(str(data["__metadata__"][()]))
-    if meta.get("format") != FORMAT:
-        raise InputError(f"{path} is not a fojax design file (format {meta.get('format')!r}).")
-    if int(meta.get("format_version", 0)) > FORMAT_VERSION:
-        raise InputError(
-            f"{path} has design format version {meta['format_version']}, newer than this fojax "
-            f"reads ({FORMAT_VERSION}); upgrade fojax."
-        )
-    return meta
-
-
-def _report_from(rep: dict, arrays: dict, p: str):
-    from ..design._verify import VerificationReport
-
-    return VerificationReport(
-        residuals=dict(rep["residuals"]),
-        scale=rep["scale"],
-        relative_residual=rep["relative_residual"],
-        eigenvalues=arrays[f"{p}report/eigenvalues"],
-        region=rep["region"],
-        region_margin=rep["region_margin"],
-        lmi_max_eig=rep["lmi_max_eig"],
-        certificate_min_eig=rep["certificate_min_eig"],
-        passed=bool(rep["passed"]),
-        failures=tuple(rep["failures"]),
-        extra=dict(rep.get("extra", {})),
-    )
-
-
-def _structure_design_kwargs(m: dict, arrays: dict, p: str, saved: dict) -> dict:
-    """Constructor arguments shared by the structure-based design classes."""
-    import jax.numpy as jnp
-
-    from ..design import FunctionalObserverStructure, region_from_dict
-
-    st = m["structure"]
-    structure = FunctionalObserverStructure(
-        **{k: jnp.asarray(arrays[f"{p}structure/{k}"]) for k in _STRUCTURE_FIELDS},
-        solvability_residual=float(st["solvability_residual"]),
-        q1=int(st["q1"]),
-        psi=str(st["psi"]),
-    )
-    solver = dict(m.get("solver") or {})
-    solver["saved"] = saved
-    prefix = f"{p}params/"
-    return dict(
-        region=region_from_dict(m["region"]),
-        structure=structure,
-        params={k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)},
-        T=arrays[p + "T"],
-        K=arrays[p + "K"],
-        Z_eff=arrays[p + "Z_eff"],
-        X=arrays[p + "X"],
-        report=_report_from(m["report"], arrays, p),
-        solver=solver,
-    )
-
-
-def _observer_arrays(arrays: dict, p: str, fields: tuple) -> list:
-    import jax.numpy as jnp
-
-    return [jnp.asarray(arrays[f"{p}observer/{k}"]) for k in fields]
-
-
-def _load_functional(m: dict, arrays: dict, p: str, saved: dict):
-    from ..design import FunctionalObserverDesign
-    from ..observer import GeneralizedFunctionalObserver
-
-    obs = GeneralizedFunctionalObserver(*_observer_arrays(arrays, p, _OBSERVER_FIELDS), kind=m["observer_kind"])
-    hinf = None
-    if m.get("hinf"):
-        from ..design import HinfCertificate
-
-        hinf = HinfCertificate.from_dict(m["hinf"])
-    return FunctionalObserverDesign(observer=obs, kind=m["kind"], hinf=hinf,
-                                    **_structure_design_kwargs(m, arrays, p, saved))
-
-
-def _module_from(m: dict, arrays: dict):
-    import importlib
-
-    import equinox as eqx
-    import jax.numpy as jnp
-
-    module, _, qualname = m["class"].partition(":")
-    if module != "fojax" and not module.startswith("fojax."):
-        raise _NotStorable(f"{m['class']} is not a fojax class (fojax never imports code named in a file)")
-    try:
-        cls = importlib.import_module(module)
-        for part in qualname.split("."):
-            cls = getattr(cls, part)
-    except (ImportError, AttributeError):
-        raise _NotStorable(f"{m['class']} does not exist in this fojax version") from None
-    if not (isinstance(cls, type) and issubclass(cls, eqx.Module)):
-        raise _NotStorable(f"{m['class']} is not an equinox.Module")
-    kwargs = {}
-    for name, f in m["fields"].items():
-        if "module" in f:
-            kwargs[name] = _module_from(f["module"], arrays)
-        elif "array" in f:
-            kwargs[name] = jnp.asarray(arrays[f["array"]])
-        elif "float" in f:
-            kwargs[name] = float(f["float"])
-        else:
-            kwargs[name] = f["value"]
-    return cls(**kwargs)
-
-
-def _load_ts(m: dict, arrays: dict, saved: dict, membership=None, path=None):
-    from .._errors import InputError
-    from ..design import TakagiSugenoObserverDesign
-    from ..observer import TakagiSugenoObserver
-
-    mm = m["membership"]
-    if membership is None:
-        try:
-            if not mm.get("stored", True):
-                raise _NotStorable(f"it was not stored ({mm.get('reason', 'not a tree of arrays')})")
-            membership = _module_from(mm, arrays)
-        except _NotStorable as err:
-            raise InputError(
-                f"{path}: the membership functions of this Takagi–Sugeno design ({mm['class']}) "
-                f"cannot be rebuilt: {err}. Pass the plant's membership: "
-                "load_design(path, membership=plant.membership)."
-            ) from None
-    *mats, T = _observer_arrays(arrays, "", _TS_OBSERVER_FIELDS)
-    obs = TakagiSugenoObserver(*mats, T, membership, kind=m["observer_kind"])
-    return TakagiSugenoObserverDesign(observer=obs, kind=m["kind"], **_structure_design_kwargs(m, arrays, "", saved))
-
-
-def _load_uio(m: dict, arrays: dict, saved: dict):
-    from ..design import UnknownInputObserverDesign
-    from ..observer import UnknownInputObserver
-
-    obs = UnknownInputObserver(*_observer_arrays(arrays, "", _UIO_OBSERVER_FIELDS))
-    return UnknownInputObserverDesign(observer=obs, D=arrays["D"], **_structure_design_kwargs(m, arrays, "", saved))
-
-
-def _load_finite_time(m: dict, arrays: dict, saved: dict):
-    import jax.numpy as jnp
-
-    from ..design import FiniteTimeObserverDesign
-    from ..observer import FiniteTimeObserver
-
-    designs = tuple(_load_functional(mi, arrays, f"designs/{i}/", saved) for i, mi in enumerate(m["designs"]))
-    obs = FiniteTimeObserver(
-        designs[0].observer,
-        designs[1].observer,
-        *(jnp.asarray(arrays[f"observer/{k}"]) for k in ("h", "Gamma_now", "Gamma_delay")),
-    )
-    return FiniteTimeObserverDesign(
-        obs, designs, *(float(arrays[k]) for k in ("h", "reconstruction_rcond", "reconstruction_residual"))
-    )
-
-
-def _load_fault(m: dict, arrays: dict, saved: dict):
-    import jax.numpy as jnp
-
-    from ..design import FaultEstimatorDesign
-    from ..plant import DescriptorSystem
-
-    aug = DescriptorSystem(*(jnp.asarray(arrays[f"augmented/{k}"]) for k in _SYSTEM_FIELDS))
-    design = _load_functional(m["design"], arrays, "design/", saved)
-    return FaultEstimatorDesign(design, aug, int(m["q"]), int(m["n_faults"]), bool(m["ramp"]))
-
-
-def load_design(path, *, membership=None):
-    """Load a design written by `save_design`; arrays are bit-identical to the saved ones.
+def load_design(path, *, membership=None, verify: bool = True):
+    """Load a design written by `save_design` (any format version); arrays are
+    bit-identical to the saved ones.
 
     **Arguments:**
 
-    - `path`: a file written by `save_design`.
+    - `path`: a file written by `save_design`, ``design.save`` or `fojax design`.
     - `membership`: only for Takagi–Sugeno designs whose membership functions are not
       fojax classes (fojax rebuilds `fojax.SectorMembership` and the other fojax
       memberships from the file, but never imports code named in a file): the
       plant's `fojax.AbstractMembership`.
+    - `verify`: re-run the design's float64 verification (``design.verify()``) on the
+      loaded numbers (default ``True``).
 
-    **Returns:** an object of the saved class (`FunctionalObserverDesign`,
-    `TakagiSugenoObserverDesign`, `UnknownInputObserverDesign`,
-    `FiniteTimeObserverDesign` or `FaultEstimatorDesign`) whose arrays equal the saved
-    ones bit for bit, so its observer produces identical outputs. The metadata (fojax
-    version, creation time, user metadata) is in ``design.solver["saved"]`` (for
-    finite-time and fault-estimator designs: in the `solver` of each inner
-    `FunctionalObserverDesign`).
+    **Returns:** an object of the saved class whose arrays equal the saved ones bit for
+    bit, so its observer produces identical outputs. The metadata (fojax version,
+    creation time, user metadata) is in ``design.solver["saved"]`` (for finite-time and
+    fault-estimator designs: in the `solver` of each inner `FunctionalObserverDesign`).
 
     **Raises:** `fojax.InputError` for a file that is not a fojax design (a config file,
-    any other file or archive), has a newer format, or holds a design class this version
-    does not know.
+    any other file or archive), has a newer format, holds a design class this version
+    does not know, or was damaged (a missing array, an array of the wrong shape or dtype,
+    each named); `fojax.DesignVerificationError` when the loaded numbers fail verification.
     """
-    from .._dtype import require_x64
-    from .._errors import InputError
+    from ..design._base import load
 
-    require_x64("load_design")
-    path = pathlib.Path(path)
-    with _open_design_file(path) as data:
-        meta = _metadata(data, path)
-        arrays = {k: np.array(data[k]) for k in data.files if k != "__metadata__"}
-    name = meta.get("design_class", "FunctionalObserverDesign")  # format 1: functional only
-    saved = {k: meta[k] for k in ("fojax_version", "created", "format_version", "user") if k in meta}
-    if membership is not None and name != "TakagiSugenoObserverDesign":
-        raise InputError(f"membership= applies to Takagi–Sugeno designs only; {path} holds a {name}.")
-    if name == "FunctionalObserverDesign":
-        return _load_functional(meta, arrays, "", saved)
-    if name == "TakagiSugenoObserverDesign":
-        return _load_ts(meta, arrays, saved, membership=membership, path=path)
-    if name == "UnknownInputObserverDesign":
-        return _load_uio(meta, arrays, saved)
-    if name == "FiniteTimeObserverDesign":
-        return _load_finite_time(meta, arrays, saved)
-    if name == "FaultEstimatorDesign":
-        return _load_fault(meta, arrays, saved)
-    raise InputError(
-        f"{path} holds a design of class {name!r}, which this fojax version cannot load "
-        f"(known: {', '.join(DESIGN_CLASSES)}); upgrade fojax."
-    )
+    return load(path, membership=membership, verify=verify)
 
 
 # --------------------------------------------------------------------------- folders
