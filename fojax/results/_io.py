@@ -238,6 +238,7 @@ def _functional_meta(d, p: str, arrays: dict) -> dict:
         "observer_kind": d.observer.kind,
         **_structure_design_meta(d, p, arrays, _OBSERVER_FIELDS),
         **({"hinf": d.hinf.to_dict()} if getattr(d, "hinf", None) is not None else {}),
+        **({"h2": d.h2.to_dict()} if getattr(d, "h2", None) is not None else {}),
     }
 
 
@@ -503,7 +504,12 @@ def _load_functional(m: dict, arrays: dict, p: str, saved: dict):
         from ..design import HinfCertificate
 
         hinf = HinfCertificate.from_dict(m["hinf"])
-    return FunctionalObserverDesign(observer=obs, kind=m["kind"], hinf=hinf,
+    h2 = None
+    if m.get("h2"):
+        from ..design import H2Certificate
+
+        h2 = H2Certificate.from_dict(m["h2"])
+    return FunctionalObserverDesign(observer=obs, kind=m["kind"], hinf=hinf, h2=h2,
                                     **_structure_design_kwargs(m, arrays, p, saved))
 
 
