@@ -167,3 +167,23 @@ def assert_designs_identical(a, b) -> int:
         else:
             assert type(x) is type(y) and (x == y or (x != x and y != y)), (k, x, y)
     return n
+
+
+def joint_error_system(sys_, L, obs, Bw, Dv):
+    r"""``(Ej, Aj, Bj, Cj, Dj)``: plant and functional observer as one descriptor system with
+    states $[x; \zeta; v]$, input $d = [w; \nu]$ ($E\dot x = Ax + B_w w$, $y = Cx + D_v\nu$,
+    $u = 0$) and output $\hat z - z$, written from the observer's own matrices (not from
+    fojax's error coordinates), so the plant modes cancel only if the design conditions hold."""
+    E, A, C = (np.asarray(x) for x in (sys_.E, sys_.A, sys_.C))
+    N, J, F, S, G, M, P, Q, Wy = (np.asarray(x) for x in (obs.N, obs.J, obs.F, obs.S, obs.G, obs.M,
+                                                          obs.P, obs.Q, obs.Wy))
+    n, q0, q1 = A.shape[0], N.shape[0], G.shape[0]
+    mw, mv = Bw.shape[1], Dv.shape[1]
+    Ej = np.eye(n + q0 + q1)
+    Ej[:n, :n] = E
+    Aj = np.block([[A, np.zeros((n, q0 + q1))], [F @ Wy @ C, N, J], [M @ Wy @ C, S, G]])
+    Bj = np.block([[Bw, np.zeros((n, mv))], [np.zeros((q0, mw)), F @ Wy @ Dv],
+                   [np.zeros((q1, mw)), M @ Wy @ Dv]])
+    Cj = np.hstack([Q @ Wy @ C - np.asarray(L), P, np.zeros((P.shape[0], q1))])
+    Dj = np.hstack([np.zeros((P.shape[0], mw)), Q @ Wy @ Dv])
+    return Ej, Aj, Bj, Cj, Dj

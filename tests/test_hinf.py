@@ -28,6 +28,7 @@ import numpy as np
 import pytest
 import scipy.optimize as so
 import slycot
+from helpers import joint_error_system
 
 import fojax
 from fojax import InputError, ShapeError
@@ -36,18 +37,7 @@ from fojax.design import design_functional_observer, Disk
 
 def joint_sweep(sys_, L, obs, Bw, Dv, n_grid=2000):
     """max over ω of the gain of the joint descriptor system (module docstring), and where."""
-    E, A, C = (np.asarray(x) for x in (sys_.E, sys_.A, sys_.C))
-    N, J, F, S, G, M, P, Q, Wy = (np.asarray(x) for x in (obs.N, obs.J, obs.F, obs.S, obs.G, obs.M,
-                                                          obs.P, obs.Q, obs.Wy))
-    n, q0, q1 = A.shape[0], N.shape[0], G.shape[0]
-    mw, mv = Bw.shape[1], Dv.shape[1]
-    Ej = np.eye(n + q0 + q1)
-    Ej[:n, :n] = E
-    Aj = np.block([[A, np.zeros((n, q0 + q1))], [F @ Wy @ C, N, J], [M @ Wy @ C, S, G]])
-    Bj = np.block([[Bw, np.zeros((n, mv))], [np.zeros((q0, mw)), F @ Wy @ Dv],
-                   [np.zeros((q1, mw)), M @ Wy @ Dv]])
-    Cj = np.hstack([Q @ Wy @ C - np.asarray(L), P, np.zeros((P.shape[0], q1))])
-    Dj = np.hstack([np.zeros((P.shape[0], mw)), Q @ Wy @ Dv])
+    Ej, Aj, Bj, Cj, Dj = joint_error_system(sys_, L, obs, Bw, Dv)
 
     def gain(w):
         return np.linalg.norm(Cj @ np.linalg.solve(1j * w * Ej - Aj, Bj) + Dj, 2)

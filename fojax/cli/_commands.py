@@ -232,7 +232,7 @@ def design(
             folder,
             title=f"fojax design: {cfg.name}",
             summary=(cfg.description or "") + f"\n\nConfig: `{config_path}`. {verdict}.",
-            tables={"Designs": (headers, rows), **_hinf_table(summary)},
+            tables={"Designs": (headers, rows), **_hinf_table(summary), **_h2_table(summary)},
             figures=figures,
             files=files,
             sections=sections,
@@ -282,7 +282,8 @@ def design(
             summary.append({"name": spec.name, "file": path.name,
                             "status": "verified" if view.passed else "not verified",
                             **view.report, "kind": spec.kind, "q0": view.q0, "q1": view.q1,
-                            **({"hinf": d.hinf.to_dict()} if getattr(d, "hinf", None) is not None else {})})
+                            **({"hinf": d.hinf.to_dict()} if getattr(d, "hinf", None) is not None else {}),
+                            **({"h2": d.h2.to_dict()} if getattr(d, "h2", None) is not None else {})})
             out.say(f"  saved {path}")
     except BaseException as err:  # a bug or an interrupt: say so in the folder, then stop
         import contextlib
@@ -300,6 +301,9 @@ def design(
     for name, row in zip(*_hinf_rows(summary)):
         out.say(f"{name}: H∞ bound gamma = {row[1]:.6g} >= ||T||inf = {row[2]:.6g} (SLICOT AB13DD, peak at "
                 f"{row[3]:.4g} rad/s, tightness {row[4]:.4f}; region-only design {row[5]:.6g})")
+    for row in _h2_rows(summary):
+        out.say(f"{row[0]}: H2 bound nu = {row[1]:.6g} >= ||T||2 = {row[2]:.6g} (SciPy Lyapunov, tightness "
+                f"{row[3]:.4f}; region-only design {row[4]:.6g})")
     out.say(f"\nresults: {folder} (report: {report.name})")
     if failed:
         print(f"fojax: {len(failed)} of {len(observers)} observer(s) of {config_path} could not be designed "
@@ -329,6 +333,24 @@ def _hinf_table(summary) -> dict:
     headers = ["observer", "γ (certified bound)", "‖T‖∞ (SLICOT AB13DD)", "peak ω [rad/s]",
                "tightness γ/‖T‖∞", "‖T‖∞ of the region-only design"]
     return {"H∞ bounds (d = [w; ν] → ẑ − z)": (headers, rows)}
+
+
+def _h2_rows(summary) -> list:
+    """Rows of the ``objective = "h2"`` designs of a `design` summary (``inf``: the region-only
+    design has a feedthrough, so an infinite H2 norm)."""
+    inf = (lambda x: float("inf") if x is None else x)
+    return [[e["name"], e["h2"]["nu"], e["h2"]["norm"], inf(e["h2"]["tightness"]), inf(e["h2"]["region_only_norm"])]
+            for e in summary if e.get("h2")]
+
+
+def _h2_table(summary) -> dict:
+    """The report's "H2 bounds" table (empty dict if no design has one)."""
+    rows = _h2_rows(summary)
+    if not rows:
+        return {}
+    headers = ["observer", "ν (certified bound)", "‖T‖₂ (SciPy Lyapunov)", "tightness ν/‖T‖₂",
+               "‖T‖₂ of the region-only design"]
+    return {"H2 bounds (d = [w; ν] → ẑ − z)": (headers, rows)}
 
 
 def _region_words(spec) -> str:

@@ -27,6 +27,7 @@ from ._gain_parameterization import (
     lemma10_gain as lemma10_gain,
 )
 from ._hinf import (
+    H2Certificate as H2Certificate,
     hinf_uncertainty_channel as hinf_uncertainty_channel,
     HinfCertificate as HinfCertificate,
 )

@@ -125,6 +125,8 @@ class FunctionalObserverDesign(StructureDesignMixin, AbstractDesign):
         solver: solver information (status, iterations, LMI steps).
         hinf: the `fojax.design.HinfCertificate` (γ, the independent norm) of an
             ``objective="hinf"`` design, else ``None``.
+        h2: the `fojax.design.H2Certificate` (ν, the independent norm) of an
+            ``objective="h2"`` design, else ``None``.
     """
 
     observer: GeneralizedFunctionalObserver
@@ -139,6 +141,7 @@ class FunctionalObserverDesign(StructureDesignMixin, AbstractDesign):
     report: VerificationReport
     solver: dict
     hinf: Any = None
+    h2: Any = None
 
     @property
     def error_matrix(self) -> np.ndarray:
@@ -516,8 +519,11 @@ def design_functional_observer(
       ``"hinf"``: also minimise a certified bound γ on the L2 gain from the disturbance
       ``w`` ($E\dot x = Ax + Bu + B_w w$) and the noise ``ν`` ($y = Cx + D_v\nu$) to
       $\hat z - z$ (`fojax.design._hinf`: derivation, conservatism, verification by
-      SLICOT's AB13DD); the result's `hinf` holds γ and the independent norm.
-    - `Bw`, `Dv`: ``(n, mw)`` and ``(p, mv)`` channels of ``objective="hinf"``.
+      SLICOT's AB13DD); the result's `hinf` holds γ and the independent norm; or
+      ``"h2"``: minimise a certified bound ν on the H2 norm of the same map (it must have
+      no feedthrough, else `InputError`; verified by SciPy's Lyapunov solver); the
+      result's `h2` holds ν and the independent norm.
+    - `Bw`, `Dv`: ``(n, mw)`` and ``(p, mv)`` channels of ``objective="hinf"``/``"h2"``.
 
     **Returns:** a `FunctionalObserverDesign` whose `report` shows residuals of
     conditions a.–d. (≤ 1e-8 relative), the error eigenvalues inside `region` and the
@@ -530,16 +536,17 @@ def design_functional_observer(
     change), `LMIInfeasibleError` (solver status other than ``optimal``, or a solver
     exception, with its message), `DesignVerificationError` (a float64 check failed:
     each design condition relative to the norms of its own terms; for ``objective="hinf"``
-    also the bounded-real LMI at ``(X, γ)`` and ``γ ≥ ‖T‖∞`` by SLICOT's AB13DD),
+    also the bounded-real LMI at ``(X, γ)`` and ``γ ≥ ‖T‖∞`` by SLICOT's AB13DD; for
+    ``"h2"`` the Lyapunov inequality at ``X`` and ``ν ≥ ‖T‖₂``),
     `ShapeError`/`InputError` (a channel `Bw`/`Dv` of the wrong shape, or none).
     """
     check_kind(kind)
     _riccati.check_method(method)
-    if objective not in ("region", "hinf"):
-        raise InputError(f"objective must be 'region' or 'hinf'; got {objective!r}.")
+    if objective not in ("region", "hinf", "h2"):
+        raise InputError(f"objective must be 'region', 'hinf' or 'h2'; got {objective!r}.")
     if objective == "region" and (Bw is not None or Dv is not None):
-        raise InputError("Bw/Dv (disturbance and noise channels) are only used with objective='hinf'; "
-                         "pass objective='hinf' or drop them.")
+        raise InputError("Bw/Dv (disturbance and noise channels) are only used with objective='hinf' or "
+                         "'h2'; pass one of them or drop Bw/Dv.")
     sys = _as_system(sys)
     region = as_region(region if region is not None else Disk(-2.0, 1.0))
     if kind == "proportional":
@@ -551,10 +558,10 @@ def design_functional_observer(
     if q1 is None:
         q1 = s.q0
     s = observer_structure(s.E, s.A, s.B, s.C, s.L, s.R, q1=q1, psi=s.psi, Eperp=s.Eperp)
-    if objective == "hinf":
+    if objective in ("hinf", "h2"):
         from ._hinf import design_hinf
         return design_hinf(s, region, kind=kind, margin=margin, solver=solver, Bw=Bw, Dv=Dv, tighten=TIGHTEN,
-                           method=method)
+                           method=method, objective=objective)
     return _design_from_structure(s, region, kind=kind, margin=margin, solver=solver, method=method)
 
 

@@ -1,4 +1,4 @@
-r"""H∞ functional-observer design: a guaranteed L2-gain bound inside the region LMI.
+r"""H∞ and H2 functional-observer design: a guaranteed L2-gain or H2-norm bound inside the region LMI.
 
 **The plant with exogenous inputs.** $E\dot x = Ax + Bu + B_w w$, $y = Cx + D_v\nu$,
 $z = Lx$. The observer (thesis eq. 3.5) is driven by the measured signal
@@ -41,13 +41,46 @@ $\|T_{d\to\hat z - z}\|_\infty < \gamma$ with $\mathbb A$ Hurwitz (bounded-real 
 e.g. Gahinet & Apkarian 1994); the second places the eigenvalues of $\mathbb A$ in the
 region (Chilali & Gahinet 1996).
 
+**H2 (``objective="h2"``; derived here).** $\|T\|_2$ is finite only without feedthrough,
+so $\mathbb D = \mathbb D_1 - Y_3\mathbb D_2 = 0$ ($\mathbb D_2 = F_3\mathcal D$) is imposed
+*exactly*: its solutions are $Y_3 = \mathbb D_1\mathbb D_2^+ + V\Pi_n$ ($\Pi_n$ the projector
+onto the orthogonal complement of the columns of $\mathbb D_2$, rank by fojax's one rule),
+$V$ free. If $\mathbb D_1\mathbb D_2^+\mathbb D_2 \ne \mathbb D_1$ no observer of this structure
+(this $Z$, $q_0$) avoids the feedthrough, and the design is refused with `InputError`
+before any LMI (typically: noise on outputs the minimal-order observer passes straight to
+$\hat z$; a larger $q_0$ can remove it, on §3.3.7 $q_0 = 4$ does). Then, with the same
+$\mathcal W = X\mathbb Y$,
+
+$$\min\operatorname{tr}W\ \text{s.t.}\ X \succ 0,\
+  \begin{bmatrix}\operatorname{He}(X\mathbb A) & \mathbb C^\top\\ \mathbb C & -I\end{bmatrix} \prec 0,\
+  \begin{bmatrix}W & (X\mathbb B)^\top\\ X\mathbb B & X\end{bmatrix} \succ 0,\
+  \text{region LMI},$$
+
+linear in $(X, \mathcal W, V, W)$. Why it bounds the norm: the first LMI is (Schur)
+$\mathbb A^\top X + X\mathbb A + \mathbb C^\top\mathbb C \prec 0$, so $\mathbb A$ is Hurwitz and
+$X - L_o$ ($L_o$ the observability Gramian, $\mathbb A^\top L_o + L_o\mathbb A + \mathbb C^\top
+\mathbb C = 0$) satisfies a strict Lyapunov inequality, hence $X \succ L_o$; the second is
+$W \succ \mathbb B^\top X\mathbb B$. So $\|T\|_2^2 = \operatorname{tr}(\mathbb B^\top L_o\mathbb B)
+\le \operatorname{tr}(\mathbb B^\top X\mathbb B) < \operatorname{tr}W = \nu^2$. This is the
+observability-Gramian ("filtering") form of the H2 LMI, chosen because $X\mathbb B$ and
+$\mathbb C$ are affine in the unknowns, whereas the controllability form needs $\mathbb B$
+multiplied by the inverse certificate. The returned $\nu$ is re-certified in float64 at the
+design's own matrices: $\nu = \sqrt{\operatorname{tr}(\mathbb B^\top X\mathbb B)}$ once the
+Lyapunov inequality holds at $X$ (`certify_nu`); the design's $Q\mathcal D$ must be round-off
+(``H2Certificate.feedthrough`` ≤ `FEEDTHROUGH_RTOL`; a round-off feedthrough is treated as
+zero), and $\nu \ge \|T\|_2$ computed by SciPy's ``solve_continuous_lyapunov`` on the error
+system (`h2_norm`) is checked, else `DesignVerificationError`. The region-only design usually
+has a feedthrough ($Y_3 = 0$), so its H2 norm (``region_only_norm``) is often ``inf``.
+
 **Conservatism (stated, and measured in the report).** One certificate $X$ serves both
 constraints — the multi-objective approach of Chilali & Gahinet (1996) / Scherer, Gahinet
 & Chilali (1997): $\gamma$ is a guaranteed bound, but it may exceed the smallest $\|T\|_\infty$
 attainable in the region, and the returned design's own $\|T\|_\infty$ may lie below
 $\gamma$. Without a binding region constraint the bound is lossless: at the optimum $\gamma$
 equals the design's $\|T\|_\infty$ (else the BRL certificate of that design would give
-a smaller $\gamma$). Every design reports ``tightness = γ / ‖T‖∞``.
+a smaller $\gamma$). Every design reports ``tightness = γ / ‖T‖∞`` (H2: ``ν / ‖T‖₂``;
+measured 1.0000 on the scalar Kalman case, 1.001 on §3.3.7 with q0 = 4, 1.05–1.18 on random
+5-state descriptor plants where the shared $X$ costs more).
 
 **Deviations from the literature.**
 (1) $Z$ (hence $T$) is *not* optimised: $F = TA\Sigma^+[K;I] - Y_1F_3$ is quadratic in $Z$
@@ -170,12 +203,57 @@ class HinfCertificate:
                    Bw=_matrix(m["Bw"]), Dv=_matrix(m["Dv"]))
 
 
+@dataclasses.dataclass(frozen=True)
+class H2Certificate:
+    r"""What an H2 design guarantees, with the independent check.
+
+    Attributes:
+        nu: the certified bound $\nu \ge \|T_{d\to\hat z - z}\|_2$ (Lyapunov inequality re-checked
+            in float64 at $X$; $\nu = \sqrt{\operatorname{tr}(\mathbb B^\top X\mathbb B)}$).
+        norm: $\|T\|_2$ of the returned design's error system (SciPy ``solve_continuous_lyapunov``).
+        tightness: ``nu / norm`` (≥ 1).
+        region_only_norm: $\|T\|_2$ of the region-only design (same structure, same Z); ``inf``
+            when that design has a feedthrough from $d$ to $\hat z - z$.
+        feedthrough: $\|\mathbb D\|_2 / (\|Q\|_2\|\mathcal D\|_2)$ of the design (round-off).
+        Bw, Dv: the disturbance and noise channels (``(n, mw)``, ``(p, mv)``).
+        lyapunov_max_eig: largest eigenvalue of the Lyapunov LMI at $X$ (``< 0``).
+    """
+
+    nu: float
+    norm: float
+    tightness: float
+    region_only_norm: float
+    feedthrough: float
+    Bw: np.ndarray
+    Dv: np.ndarray
+    lyapunov_max_eig: float
+
+    def describe(self) -> str:
+        return (f"H2 bound ν = {self.nu:.6g} ≥ ‖T‖₂ = {self.norm:.6g} (SciPy Lyapunov; tightness "
+                f"ν/‖T‖₂ = {self.tightness:.4f}); region-only design: ‖T‖₂ = {self.region_only_norm:.6g}")
+
+    def to_dict(self) -> dict:
+        fin = (lambda x: x if np.isfinite(x) else None)
+        return {"nu": self.nu, "norm": self.norm, "tightness": fin(self.tightness),
+                "region_only_norm": fin(self.region_only_norm), "feedthrough": self.feedthrough,
+                "lyapunov_max_eig": self.lyapunov_max_eig, "Bw": np.asarray(self.Bw).tolist(),
+                "Dv": np.asarray(self.Dv).tolist()}
+
+    @classmethod
+    def from_dict(cls, m: dict) -> H2Certificate:
+        """Inverse of `to_dict` (`fojax.results.load_design`); ``None`` is ``inf``."""
+        return cls(**{k: float("inf") if m[k] is None else float(m[k])
+                      for k in ("nu", "norm", "tightness", "region_only_norm", "feedthrough",
+                                "lyapunov_max_eig")},
+                   Bw=_matrix(m["Bw"]), Dv=_matrix(m["Dv"]))
+
+
 def _matrix(rows: list) -> np.ndarray:
     """A JSON list of rows as an ``(r, c)`` array, also when ``c = 0``."""
     return np.asarray(rows, dtype=float).reshape(len(rows), len(rows[0]) if rows else 0)
 
 
-def check_channels(n: int, p: int, Bw, Dv) -> tuple[np.ndarray, np.ndarray]:
+def check_channels(n: int, p: int, Bw, Dv, objective: str = "hinf") -> tuple[np.ndarray, np.ndarray]:
     """``(Bw, Dv)`` as float arrays ``(n, mw)``, ``(p, mv)``; `InputError` naming the
     channel for a bad shape or value. ``None`` is an empty channel; at least one must be given."""
     def one(name, M, rows, what):
@@ -195,7 +273,7 @@ def check_channels(n: int, p: int, Bw, Dv) -> tuple[np.ndarray, np.ndarray]:
     Bw = one("Bw", Bw, n, "disturbance w")
     Dv = one("Dv", Dv, p, "measurement noise")
     if Bw.shape[1] + Dv.shape[1] == 0 or not (np.any(Bw) or np.any(Dv)):
-        raise InputError("objective='hinf' needs a disturbance channel Bw (n x mw) or a measurement-"
+        raise InputError(f"objective={objective!r} needs a disturbance channel Bw (n x mw) or a measurement-"
                          "noise channel Dv (p x mv) with a nonzero entry; got neither. "
                          "Give e.g. Dv=np.eye(p) for noise on every output.")
     return Bw, Dv
@@ -255,12 +333,23 @@ def brl_matrix(X, A, B, C, D, gamma):
     return 0.5 * (out + out.T)
 
 
-def solve_hinf(s, region, *, kind, Z, Bw, Dv, scale, solver):
-    """The LMI of the module docstring with `Z` fixed; channels divided by `scale`.
+@dataclasses.dataclass(frozen=True)
+class _AffinePieces:
+    """The affine error system of the module docstring (channels divided by ``scale``)."""
 
-    Returns ``(X, 𝕐, Y3, γ_scaled, info)``."""
-    import cvxpy as cp
+    A1: np.ndarray
+    A2: np.ndarray
+    B1: np.ndarray
+    B2: np.ndarray
+    C1: np.ndarray
+    C2: np.ndarray
+    D1: np.ndarray
+    D2: np.ndarray
 
+
+def affine_pieces(s, Z, Bw, Dv, scale) -> _AffinePieces:
+    r"""$\mathbb A_{1,2}, \mathbb B_{1,2}, \mathbb C_{1,2}, \mathbb D_{1,2}$ at fixed `Z`
+    ($\mathbb D_2 = F_3\mathcal D$), host float64, channels divided by `scale`."""
     q0, q1, c = s.q0, s.q1, s.q0 + s.nw
     d = q0 + q1
     mats0 = observer_matrices(s, Z, *(np.zeros(shape) for k, shape in s.param_shapes().items() if k != "Z"), xp=np)
@@ -272,14 +361,51 @@ def solve_hinf(s, region, *, kind, Z, Bw, Dv, scale, solver):
     Dcal = _dcal(s, Bw, Dv) / scale
     Bbar = np.hstack([Bw, np.zeros((Bw.shape[0], Dv.shape[1]))]) / scale
     nd, q = Dcal.shape[1], P0.shape[0]
-    A1 = np.block([[N0, np.zeros((q0, q1))], [np.zeros((q1, d))]])
-    A2 = np.block([[N3, np.zeros((c, q1))], [np.zeros((q1, q0)), -np.eye(q1)]])
-    B1 = np.vstack([F0 @ Dcal - T @ Bbar, np.zeros((q1, nd))])
-    B2 = np.vstack([F3 @ Dcal, np.zeros((q1, nd))])
-    C1 = np.hstack([P0, np.zeros((q, q1))])
-    C2 = np.hstack([N3, np.zeros((c, q1))])
-    D1 = Q0 @ Dcal
-    D2 = F3 @ Dcal
+    return _AffinePieces(
+        A1=np.block([[N0, np.zeros((q0, q1))], [np.zeros((q1, d))]]),
+        A2=np.block([[N3, np.zeros((c, q1))], [np.zeros((q1, q0)), -np.eye(q1)]]),
+        B1=np.vstack([F0 @ Dcal - T @ Bbar, np.zeros((q1, nd))]),
+        B2=np.vstack([F3 @ Dcal, np.zeros((q1, nd))]),
+        C1=np.hstack([P0, np.zeros((q, q1))]),
+        C2=np.hstack([N3, np.zeros((c, q1))]),
+        D1=Q0 @ Dcal,
+        D2=F3 @ Dcal,
+    )
+
+
+def feedthrough_free_Y3(ap: _AffinePieces) -> tuple[np.ndarray, np.ndarray, float]:
+    r"""``(Y3p, Πn, residual)``: every $Y_3$ with $\mathbb D = \mathbb D_1 - Y_3\mathbb D_2 = 0$ is
+    $Y_{3p} + V\Pi_n$ ($Y_{3p} = \mathbb D_1\mathbb D_2^+$, $\Pi_n$ the projector onto the
+    orthogonal complement of the columns of $\mathbb D_2$), if ``residual`` (the relative
+    $\|\mathbb D_1 - Y_{3p}\mathbb D_2\|$) is round-off; rank by fojax's one rule."""
+    D1, D2 = ap.D1, ap.D2
+    U, sv, Vt = np.linalg.svd(D2, full_matrices=False)
+    r = int(np.sum(sv > RANK_RTOL * (sv[0] if sv.size else 0.0)))
+    pinv = (Vt[:r].T / sv[:r]) @ U[:, :r].T
+    Y3p = D1 @ pinv
+    Pn = np.eye(D2.shape[0]) - U[:, :r] @ U[:, :r].T
+    scale = max(float(np.linalg.norm(D1, 2)) if D1.size else 0.0, 1e-300)
+    res = float(np.linalg.norm(D1 - Y3p @ D2, 2)) / scale if D1.size and np.any(D1) else 0.0
+    return Y3p, Pn, res
+
+
+#: Relative residual of $\mathbb D_1 - Y_3\mathbb D_2$ below which the feedthrough of an
+#: ``objective="h2"`` design counts as removable (round-off).
+FEEDTHROUGH_RTOL = 1e-9
+
+
+def solve_performance(s, region, *, kind, Z, Bw, Dv, scale, solver, objective="hinf"):
+    r"""The LMI of the module docstring with `Z` fixed; channels divided by `scale`:
+    ``objective="hinf"`` (bounded-real lemma, minimise γ) or ``"h2"`` (Lyapunov inequality
+    with $\mathbb D = 0$, minimise $\operatorname{tr}W = \nu^2$).
+
+    Returns ``(X, 𝕐, Y3, γ or ν (scaled), info)``."""
+    import cvxpy as cp
+
+    q0, q1, c = s.q0, s.q1, s.q0 + s.nw
+    d = q0 + q1
+    ap = affine_pieces(s, Z, Bw, Dv, scale)
+    q, nd = ap.D1.shape
 
     if kind == "PI" and q1:
         X1 = cp.Variable((q0, q0), symmetric=True)
@@ -288,41 +414,59 @@ def solve_hinf(s, region, *, kind, Z, Bw, Dv, scale, solver):
     else:
         X = cp.Variable((d, d), symmetric=True)
     Wv = cp.Variable((d, c + q1))
-    Y3 = cp.Variable((q, c))
-    gam = cp.Variable()
-    XA = X @ A1 - Wv @ A2
-    XB = X @ B1 - Wv @ B2
-    Cm = C1 - Y3 @ C2
-    Dm = D1 - Y3 @ D2
-    brl = cp.bmat([
-        [XA + XA.T, XB, Cm.T],
-        [XB.T, -gam * np.eye(nd), Dm.T],
-        [Cm, Dm, -gam * np.eye(q)],
-    ])
+    XA = X @ ap.A1 - Wv @ ap.A2
+    XB = X @ ap.B1 - Wv @ ap.B2
     eps = HINF_MARGIN
-    cons = [X >> eps * np.eye(d), _lmi.sym(brl) << -eps * np.eye(d + nd + q)]
+    if objective == "hinf":
+        Y3 = cp.Variable((q, c))
+        Y3expr = Y3
+        gam = cp.Variable()
+        Cm = ap.C1 - Y3 @ ap.C2
+        Dm = ap.D1 - Y3 @ ap.D2
+        perf = cp.bmat([
+            [XA + XA.T, XB, Cm.T],
+            [XB.T, -gam * np.eye(nd), Dm.T],
+            [Cm, Dm, -gam * np.eye(q)],
+        ])
+        cons = [X >> eps * np.eye(d), _lmi.sym(perf) << -eps * np.eye(d + nd + q)]
+        target = gam
+        name = f"{kind} observer, H∞ LMI (bounded-real lemma + region, 𝒲 = X 𝕐, Z fixed)"
+        hint = ("No observer with this Z places the error eigenvalues in the region with a finite "
+                "L2 gain: enlarge the region, or check the channels Bw/Dv (their scale).")
+    else:
+        Y3p, Pn, _ = feedthrough_free_Y3(ap)
+        V = cp.Variable((q, c))
+        Y3 = V
+        Y3expr = Y3p + V @ Pn  # 𝔻 = 0 for every V
+        W = cp.Variable((nd, nd), symmetric=True)
+        Cm = ap.C1 - Y3expr @ ap.C2
+        lyap = cp.bmat([[XA + XA.T, Cm.T], [Cm, -np.eye(q)]])
+        gram = cp.bmat([[W, XB.T], [XB, X]])
+        cons = [X >> eps * np.eye(d), _lmi.sym(lyap) << -eps * np.eye(d + q),
+                _lmi.sym(gram) >> eps * np.eye(nd + d)]
+        target = cp.trace(W)
+        name = f"{kind} observer, H2 LMI (Lyapunov inequality + trace bound + region, 𝒲 = X 𝕐, Z fixed)"
+        hint = ("No observer with this Z places the error eigenvalues in the region with a finite "
+                "H2 norm: enlarge the region, or check the channels Bw/Dv (their scale).")
     Mx = _lmi.region_lmi(region, X, XA)
     cons.append(Mx << -eps * np.eye(Mx.shape[0]))
     if kind == "PI" and q1:
         cons.append(Wv[q0:, :c] == 0)
-    # γ, plus a small gain penalty: without measurement noise the infimum of γ may be
+    # the bound, plus a small gain penalty: without measurement noise the infimum may be
     # approached only with unbounded gains (then no solver reaches "optimal").
-    obj = cp.Minimize(gam + 1e-6 * (cp.norm(Wv, "fro") + cp.norm(Y3, "fro") + cp.trace(X)))
-    name = f"{kind} observer, H∞ LMI (bounded-real lemma + region, 𝒲 = X 𝕐, Z fixed)"
-    hint = ("No observer with this Z places the error eigenvalues in the region with a finite "
-            "L2 gain: enlarge the region, or check the channels Bw/Dv (their scale).")
+    obj = cp.Minimize(target + 1e-6 * (cp.norm(Wv, "fro") + cp.norm(Y3, "fro") + cp.trace(X)))
     info = _lmi.solve(cp.Problem(obj, cons), name, hint=hint, solver=solver)
     Xv = np.asarray(X.value, dtype=float)
     Xv = 0.5 * (Xv + Xv.T)
     Yv = np.linalg.solve(Xv, _lmi.value(Wv))
     # components of 𝕐 (Y3) that change neither 𝔸, 𝔹 (ℂ, 𝔻) only enlarge the gains: drop them
-    AB = np.hstack([A2, B2])
-    Yv = Yv @ _range_projector(AB)
-    CD = np.hstack([C2, D2])
-    Y3v = _lmi.value(Y3) @ _range_projector(CD)
+    Yv = Yv @ _range_projector(np.hstack([ap.A2, ap.B2]))
+    Y3v = _lmi.value(Y3expr)
+    Y3v = Y3v @ _range_projector(np.hstack([ap.C2, ap.D2]))
     if kind == "PI" and q1:
         Yv[q0:, :c] = 0.0
-    return Xv, Yv, Y3v, float(gam.value), info
+    bound = float(target.value) if objective == "hinf" else float(np.sqrt(max(float(target.value), 0.0)))
+    return Xv, Yv, Y3v, bound, info
 
 
 def _range_projector(M):
@@ -349,8 +493,54 @@ def certify_gamma(X, A, B, C, D, gamma) -> tuple[float, float]:
         f"{1.01 * gamma:.6g} (max eigenvalue {top:.3e}): the solver's γ is not certified")
 
 
-def design_hinf(s, region, *, kind, margin, solver, Bw, Dv, tighten, method="lmi"):
-    """`design_functional_observer(..., objective="hinf")` once the structure is built."""
+def h2_norm(A, B, C) -> float:
+    r"""$\|T\|_2 = \sqrt{\operatorname{tr}(C P C^\top)}$, $AP + PA^\top + BB^\top = 0$ (SciPy
+    ``solve_continuous_lyapunov``): the independent norm every H2 design is checked against
+    (`A` Hurwitz, no feedthrough)."""
+    import scipy.linalg as sla
+
+    if A.shape[0] == 0 or B.shape[1] == 0 or C.shape[0] == 0:
+        return 0.0
+    P = sla.solve_continuous_lyapunov(A, -B @ B.T)
+    return float(np.sqrt(max(float(np.trace(C @ (0.5 * (P + P.T)) @ C.T)), 0.0)))
+
+
+def lyapunov_matrix(X, A, C):
+    r"""$\begin{bmatrix}\operatorname{He}(XA) & C^\top\\ C & -I\end{bmatrix}$ (float64, symmetrised)."""
+    XA = X @ A
+    out = np.block([[XA + XA.T, C.T], [C, -np.eye(C.shape[0])]])
+    return 0.5 * (out + out.T)
+
+
+def certify_nu(X, A, B, C) -> tuple[float, float]:
+    r"""``(ν, max eig)``: the smallest ``t ∈ {1, 1 + 1e-9·10^k}`` at which the Lyapunov
+    inequality holds at ``tX`` in float64 (strictly, relative to its scale, with ``tX ≻ 0``),
+    and the certified $\nu = \sqrt{\operatorname{tr}(B^\top tX B)}$. Raises
+    `DesignVerificationError` if even ``t = 1.01`` fails."""
+    for bump in (0.0, 1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2):
+        Xt = (1.0 + bump) * X
+        M = lyapunov_matrix(Xt, A, C)
+        top = float(np.linalg.eigvalsh(M).max())
+        if top < -1e-12 * max(1.0, float(np.abs(M).max())) and float(np.linalg.eigvalsh(Xt).min()) > 0:
+            return float(np.sqrt(max(float(np.trace(B.T @ Xt @ B)), 0.0))), top
+    raise DesignVerificationError(
+        f"the H2 Lyapunov inequality He(X𝔸) + ℂᵀℂ ≺ 0 re-checked in float64 at the certificate X "
+        f"fails even at 1.01 X (max eigenvalue {top:.3e}): the solver's H2 bound is not certified")
+
+
+def _feedthrough(mats, Y3, Dcal) -> float:
+    r"""$\|\mathbb D\|_2 = \|Q\mathcal D\|_2$ relative to the norms of its terms,
+    $(\|Q_0\|_2 + \|Y_3\|_2\|F_3\|_2)\|\mathcal D\|_2$ ($Q = Q_0 - Y_3F_3$); 0 if it is zero."""
+    Q, F3, Y3 = np.asarray(mats.Q)[0], np.asarray(mats.F3), np.asarray(Y3)
+    D = Q @ Dcal
+    if D.size == 0 or not np.any(D):
+        return 0.0
+    terms = np.linalg.norm(Q + Y3 @ F3, 2) + np.linalg.norm(Y3, 2) * np.linalg.norm(F3, 2)
+    return float(np.linalg.norm(D, 2)) / max(float(terms * np.linalg.norm(Dcal, 2)), 1e-300)
+
+
+def design_hinf(s, region, *, kind, margin, solver, Bw, Dv, tighten, method="lmi", objective="hinf"):
+    """`design_functional_observer(..., objective="hinf" | "h2")` once the structure is built."""
     from ._functional import (
         _design_from_structure,
         build_observer,
@@ -360,37 +550,70 @@ def design_hinf(s, region, *, kind, margin, solver, Bw, Dv, tighten, method="lmi
     )
 
     if s.num_rules != 1:
-        raise InputError("objective='hinf' is for linear (single-rule) plants.")
-    Bw, Dv = check_channels(s.n, s.p, Bw, Dv)
+        raise InputError(f"objective={objective!r} is for linear (single-rule) plants.")
+    Bw, Dv = check_channels(s.n, s.p, Bw, Dv, objective=objective)
     base = _design_from_structure(s, region, kind=kind, margin=margin, solver=solver, tighten=tighten,
                                   method=method)
     Z = base.params["Z"]
     g0, _ = hinf_norm(*error_system(s, base_mats(s, base.params), Bw, Dv))
     scale = g0 if g0 > 0 else 1.0
-    X, Y, Y3, gs, info = solve_hinf(s, region.tightened(tighten), kind=kind, Z=Z, Bw=Bw, Dv=Dv,
-                                    scale=scale, solver=solver)
+    if objective == "h2":
+        _, _, res = feedthrough_free_Y3(affine_pieces(s, Z, Bw, Dv, scale))
+        if res > FEEDTHROUGH_RTOL:
+            raise InputError(
+                f"objective='h2' needs ẑ − z to have no direct feedthrough from d = [w; ν] (else its H2 "
+                f"norm is infinite), but every observer of this structure passes part of the channels "
+                f"straight into the estimate: min over Y3 of ‖Q 𝒟‖ is {res:.3g} relative to ‖Q0 𝒟‖ (𝒟 = "
+                f"[E⊥Bw, 0; 0, Dv]: noise Dv, or disturbance Bw on the algebraic rows). Use objective='hinf' "
+                f"(it allows feedthrough), or remove that part of Bw/Dv, or choose R (q0) so that the "
+                f"observer state carries z.")
+    X, Y, Y3, gs, info = solve_performance(s, region.tightened(tighten), kind=kind, Z=Z, Bw=Bw, Dv=Dv,
+                                           scale=scale, solver=solver, objective=objective)
     c = s.q0 + s.nw
     blocks = split_Y(Y, s.q0, c)
     params = {"Z": Z, "Y1": blocks["Y1"], "Y2": blocks["Y2"], "Y3": Y3, "J": blocks["J"], "G": blocks["G"]}
-    route = _lmi.describe_route(info, "min-γ")
+    route = _lmi.describe_route(info, "min-γ" if objective == "hinf" else "min-tr(W)")
     mats, report = verify_structure_design(s, params, region, X, extra={"LMI route": route})
     A, B, C, D = error_system(s, mats, Bw, Dv)
-    gamma, brl_top = certify_gamma(X, A, B / scale, C, D / scale, gs)
-    gamma *= scale
-    norm, freq = hinf_norm(A, B, C, D)
-    if not gamma >= norm * (1.0 - NORM_RTOL):
-        raise DesignVerificationError(
-            f"H∞ verification failed: the certified γ = {gamma:.8g} is below the norm of the "
-            f"error system computed by SLICOT AB13DD, {norm:.8g} (peak at ω = {freq:.4g} rad/s)", report)
-    cert = HinfCertificate(gamma=gamma, norm=norm, peak_frequency=freq,
-                           tightness=gamma / norm if norm > 0 else float("inf"),
-                           region_only_norm=g0, Bw=Bw, Dv=Dv, brl_max_eig=brl_top)
-    report = dataclasses.replace(report, extra={**report.extra, "H∞": cert.describe()})
+    if objective == "h2":
+        Dcal = _dcal(s, Bw, Dv)
+        ft = _feedthrough(mats, Y3, Dcal)
+        if ft > FEEDTHROUGH_RTOL:
+            raise DesignVerificationError(
+                f"H2 verification failed: the designed observer's feedthrough ‖Q 𝒟‖ is {ft:.3e} relative "
+                f"to ‖Q‖‖𝒟‖ (tolerance {FEEDTHROUGH_RTOL:g}): its H2 norm is infinite", report)
+        nu, lyap_top = certify_nu(X, A, B / scale, C)
+        nu *= scale
+        norm = h2_norm(A, B, C)
+        if not nu >= norm * (1.0 - NORM_RTOL):
+            raise DesignVerificationError(
+                f"H2 verification failed: the certified ν = {nu:.8g} is below the H2 norm of the error "
+                f"system computed by SciPy's Lyapunov solver, {norm:.8g}", report)
+        mb = base_mats(s, base.params)
+        Ab, Bb, Cb, _ = error_system(s, mb, Bw, Dv)
+        n0 = h2_norm(Ab, Bb, Cb) if _feedthrough(mb, base.params["Y3"], Dcal) <= FEEDTHROUGH_RTOL else float("inf")
+        cert = H2Certificate(nu=nu, norm=norm, tightness=nu / norm if norm > 0 else float("inf"),
+                             region_only_norm=n0, feedthrough=ft, Bw=Bw, Dv=Dv, lyapunov_max_eig=lyap_top)
+        report = dataclasses.replace(report, extra={**report.extra, "H2": cert.describe()})
+        extra = {"h2": cert}
+    else:
+        gamma, brl_top = certify_gamma(X, A, B / scale, C, D / scale, gs)
+        gamma *= scale
+        norm, freq = hinf_norm(A, B, C, D)
+        if not gamma >= norm * (1.0 - NORM_RTOL):
+            raise DesignVerificationError(
+                f"H∞ verification failed: the certified γ = {gamma:.8g} is below the norm of the "
+                f"error system computed by SLICOT AB13DD, {norm:.8g} (peak at ω = {freq:.4g} rad/s)", report)
+        cert = HinfCertificate(gamma=gamma, norm=norm, peak_frequency=freq,
+                               tightness=gamma / norm if norm > 0 else float("inf"),
+                               region_only_norm=g0, Bw=Bw, Dv=Dv, brl_max_eig=brl_top)
+        report = dataclasses.replace(report, extra={**report.extra, "H∞": cert.describe()})
+        extra = {"hinf": cert}
     return FunctionalObserverDesign(
         observer=build_observer(s, mats, kind=kind), kind=kind, region=region, structure=s,
         params={k: np.asarray(v) for k, v in params.items()}, T=np.asarray(mats.T),
         K=np.asarray(mats.K), Z_eff=np.asarray(mats.Z_eff), X=X, report=report,
-        solver={"lmi": info, "region_only": base.solver}, hinf=cert,
+        solver={"lmi": info, "region_only": base.solver}, **extra,
     )
 
 
