@@ -38,6 +38,18 @@ step starts from the right limits). `exponential_problem` checks this for every 
 otherwise ``"auto"`` keeps the adaptive diffrax path, which places steps at the
 breakpoints. Fault onsets drawn at random times (`fault_scenarios` with an `onset`
 range) are therefore not on this path.
+
+**Reverse mode.** `study_loss` runs the same engine through `exponential_metrics_traced`:
+the same host decisions, the computation traced with respect to the observer, the time
+loop in `jax.checkpoint`-ed segments (memory of the backward pass ~√S for S steps). Its
+gradient is checked against central finite differences (``tests/test_study_loss_exponential.py``).
+A traced study (inside `fojax.tune`'s jitted step, where the study is an argument) cannot
+be checked on the host and keeps the diffrax path.
+
+**Compile time.** The set-up of the decomposition is compiled once, for the host pre-pass
+(`fojax.simulation._exponential.prepare`), which hands the kernel only what it reads; the
+kernel holds one ETDRK4 step body; the host passes are compiled without the backend's
+optimisation passes (`HOST_PASS_COMPILER_OPTIONS`).
 """
 
 from __future__ import annotations
@@ -277,7 +289,8 @@ def exponential_metrics_traced(study, observers, settle_tol):
     if not is_concrete(study):
         return None
     host_obs = observers if is_concrete(observers) else tuple(_zero_stand_in(o) for o in observers)
-    prepared, _ = exponential_problem(study, host_obs, settle_tol, False, strict=False)
+    with jax.ensure_compile_time_eval():  # host passes on concrete data, also inside an outer jit
+        prepared, _ = exponential_problem(study, host_obs, settle_tol, False, strict=False)
     if prepared is None:
         return None
     schedule = prepared[0].schedule
