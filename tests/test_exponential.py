@@ -206,7 +206,7 @@ def test_plan_exploits_the_structure(batch):
     first = jax.tree.map(lambda a: a[0], p)
     Cs = jnp.concatenate([C for _, C in METRICS.values()], axis=0)
     x0 = jnp.asarray(x0)
-    _, plan, _ = prepare(_ModelSetup(model, Cs), (p, x0), (first, x0[0]), (first, x0[0]), 4096)
+    _, plan, _, _, _ = prepare(_ModelSetup(model, Cs), (p, x0), (first, x0[0]), 4096)
     assert len(plan.keep) == 5  # 3 slow plant coordinates + 2 observer states
     assert plan.terms == ((1, "shared"),)  # the δ direction; Ā_k = A0 (common nominal)
     assert len(plan.cols) == 2 and plan.rows == tuple(range(5))

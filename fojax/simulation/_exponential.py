@@ -76,6 +76,7 @@ or `fojax.run_study`'s IAE/ISE/ITAE/peak/settling time, `fojax.studies._exponent
 from __future__ import annotations
 
 import collections
+import math
 from collections.abc import Callable, Mapping
 from typing import NamedTuple
 
@@ -120,6 +121,11 @@ AFFINE_CHECK_RTOL = 1e-8
 #: on the boundary belongs to the next step even when the boundary and the jump time differ
 #: by rounding. For a smooth signal this moves a stage by 1e-9 of a step.
 SIDE_OFFSET = 1e-9
+#: XLA options of the host-side passes that run once per call on small data (the set-up
+#: statistics, the affine check): without the backend's optimisation passes they compile
+#: in about half the time, and their run time is negligible either way. The stepping
+#: kernel keeps the default (it runs ~40 % slower at level 0).
+HOST_PASS_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 __all__ = ["METRIC_KINDS", "simulate_batch_exponential"]
 
@@ -339,60 +345,117 @@ class _ModelSetup(eqx.Module):
     def __call__(self, p):
         return _sample_setup(self.model, p[0], p[1], self.Cstack)
 
+    def signals(self, p):
+        plant, _, u = _parse_model_output(self.model(p[0]))
+        return _plant_signals(plant), u
+
 
 def _stats(data, ref):
-    """Small summaries of a chunk's data the host turns into a plan; deviations are
-    measured from ``ref`` (one sample's data, no batch axis), so that chunks merge
-    (`_merge_stats`)."""
+    """Small summaries (host, NumPy) of a chunk's data that `_host_plan` turns into a plan;
+    deviations are measured from ``ref`` (sample 0's data, no batch axis), so that chunks
+    merge (`_merge_stats`)."""
     A, B, G, H, mask = data["A"], data["B"], data["G"], data["H"], data["mask"]
     return dict(
-        mask_min=jnp.min(mask, axis=0),
-        mask_max=jnp.max(mask, axis=0),
-        A_abs=jnp.max(jnp.abs(A), axis=0),
-        A_dev=jnp.max(jnp.abs(A - ref["A"][None]), axis=(0, 2, 3)),
-        B_abs=jnp.max(jnp.abs(B), axis=0),
-        G_abs=jnp.max(jnp.abs(G), axis=(0, 2, 3)),
-        G_dev=jnp.max(jnp.abs(G - ref["G"][None]), axis=(0, 2, 3)),
-        H_abs=jnp.max(jnp.abs(H), axis=(0, 2, 3)),
+        mask_min=np.min(mask, axis=0),
+        mask_max=np.max(mask, axis=0),
+        A_abs=np.max(np.abs(A), axis=0),
+        A_dev=np.max(np.abs(A - ref["A"][None]), axis=(0, 2, 3)),
+        B_abs=np.max(np.abs(B), axis=0),
+        G_abs=np.max(np.abs(G), axis=(0, 2, 3)),
+        G_dev=np.max(np.abs(G - ref["G"][None]), axis=(0, 2, 3)),
+        H_abs=np.max(np.abs(H), axis=(0, 2, 3)),
     )
 
 
 def _merge_stats(a, b):
-    return {k: (np.minimum if k == "mask_min" else np.maximum)(np.asarray(a[k]), np.asarray(b[k])) for k in a}
+    return {k: (np.minimum if k == "mask_min" else np.maximum)(a[k], b[k]) for k in a}
 
 
-@eqx.filter_jit
-def _setup_stats(setup, p, first, reference):
-    """The set-up of a chunk ``p`` (leaves with a leading batch axis), of ``first`` (the
-    sample whose data the deviations are measured from) and of ``reference`` (whose
-    constant part, all signals at zero, is ``A0``), in one vmapped call, so the set-up is
-    compiled once. Returns ``(data of first, stats, A0)``; the constant term of every
-    sample is ``Ā_k − A0``."""
-    TRACE_COUNTS["setup"] += 1
-    p = jax.tree.map(lambda a, f, r: jnp.concatenate([a, f[None], r[None]], axis=0), p, first, reference)
+def setup_all(setup, p, reference):
+    """The set-up of a chunk ``p`` (leaves with a leading batch axis) and of ``reference``
+    (one sample, whose constant part, all signals at zero, is ``A0``), in one vmapped call.
+    Returns ``(data, A0)``; the constant term of every sample is ``Ā_k − A0``. On the host
+    it runs once per chunk (twice when there are several), compiled once, and it is the
+    only place the set-up is compiled: the stepping kernel reads `kernel_inputs`.
+    Traceable (under an outer `jax.jit` / `jax.grad` it is called directly)."""
+    p = jax.tree.map(lambda a, r: jnp.concatenate([a, jnp.asarray(r)[None]], axis=0), p, reference)
     data, _ = jax.vmap(setup)(p)
     A0 = data["A"][-1, 0]
     data = jax.tree.map(lambda a: a[:-1], data)
     data["A"] = data["A"].at[:, 0].add(-A0[None])
-    ref = jax.tree.map(lambda a: a[-1], data)
-    return ref, _stats(jax.tree.map(lambda a: a[:-1], data), ref), A0
+    return data, A0
 
 
-def prepare(setup, p, first, reference, chunk_size: int):
-    """Host: ``A0``, the `_Plan` of all samples of ``p`` (read in chunks of `chunk_size`)
-    and the data of ``first``."""
+@eqx.filter_jit(compiler_options=HOST_PASS_COMPILER_OPTIONS)
+def _setup_chunk(setup, p, reference):
+    """`setup_all` compiled for the host pre-pass (`prepare`)."""
+    TRACE_COUNTS["setup"] += 1
+    return setup_all(setup, p, reference)
+
+
+def kernel_inputs(data, plan, xp=np):
+    """What the stepping kernel reads, from the set-up's ``data`` (leading batch axis; the
+    constant term already reduced by ``A0``) and the `_Plan`: per sample (leading batch
+    axis) ``w0`` and the stacked per-sample terms ``Ms``, ``Bs``, ``Gs``, ``Hs``; shared
+    by all (sample 0's) the shared perturbation and output matrices. ``xp``: `numpy` on
+    the host, `jax.numpy` under a trace."""
+    keep, rows, cols = (np.asarray(a, dtype=int) for a in plan[:3])
+    Bn = data["w0"].shape[0]
+    A = data["A"][:, :, keep][:, :, :, keep][:, :, rows][:, :, :, cols]  # (B, nt, nr, nc)
+    G = data["G"][:, :, :, keep]  # (B, nt, R, Nk)
+    Bf = data["B"][:, :, keep][:, :, rows]  # (B, nt, nr, m+1)
+    H = data["H"]  # (B, nt, R, m+1)
+    nr, nc, Nk, R, m1 = rows.size, cols.size, keep.size, G.shape[2], Bf.shape[-1]
+
+    def stack(parts, shape, axis=1):
+        return xp.stack(parts, axis=axis) if parts else xp.zeros(shape)
+
+    per = dict(
+        w0=data["w0"][:, keep],
+        Ms=stack([A[:, i] for i, kind in plan.terms if kind == "sample"], (Bn, 0, nr, nc)),
+        Bs=stack([Bf[:, i] for i in plan.fterms], (Bn, 0, nr, m1)),
+        Gs=stack([G[:, i] for i, kind in plan.gterms if kind == "sample"], (Bn, 0, R, Nk)),
+        Hs=stack([H[:, i] for i in plan.hterms], (Bn, 0, R, m1)),
+    )
+    shared = dict(
+        A=stack([A[0, i] for i, kind in plan.terms if kind == "shared"], (0, nr, nc), axis=0),
+        G=stack([G[0, i] for i, kind in plan.gterms if kind == "shared"], (0, R, Nk), axis=0),
+    )
+    return per, shared
+
+
+def prepare(setup, p, reference, chunk_size: int):
+    """Host: ``A0``, the `_Plan` of all samples of ``p`` (read in chunks of `chunk_size`),
+    the kernel's inputs (`kernel_inputs`: per sample, NumPy, and shared) and sample 0's
+    data. With one chunk the set-up runs once; with several, a second time per chunk
+    once the plan is known (same compiled function), so that only the kernel's inputs of
+    all samples are held, not the set-up's data."""
     Bn = jax.tree.leaves(p)[0].shape[0]
     bc = min(int(chunk_size), Bn)
     n_chunks = -(-Bn // bc)
     pad = n_chunks * bc - Bn
     if pad:  # copies of the last sample change no maximum; one shape, one compilation
         p = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)], axis=0), p)
+
+    def chunk(i):
+        data, A0 = _setup_chunk(setup, jax.tree.map(lambda a: a[i * bc : (i + 1) * bc], p), reference)
+        return jax.tree.map(np.asarray, data), np.asarray(A0)
+
     stats = None
     for i in range(n_chunks):
-        pc = jax.tree.map(lambda a, i=i: a[i * bc : (i + 1) * bc], p)
-        ref, st, A0 = _setup_stats(setup, pc, first, reference)
+        data, A0 = chunk(i)
+        if i == 0:
+            ref = jax.tree.map(lambda a: a[0], data)
+        st = _stats(data, ref)
         stats = st if stats is None else _merge_stats(stats, st)
-    return A0, _host_plan(stats, A0), ref
+    plan = _host_plan(stats, A0)
+    if n_chunks == 1:
+        per, shared = kernel_inputs(data, plan)
+    else:
+        parts = [kernel_inputs(chunk(i)[0], plan) for i in range(n_chunks)]
+        shared = parts[0][1]
+        per = jax.tree.map(lambda *a: np.concatenate(a, axis=0)[:Bn], *[pt[0] for pt in parts])
+    return A0, plan, per, shared, ref
 
 
 class _Plan(NamedTuple):
@@ -462,7 +525,7 @@ class CstackOutputs(eqx.Module):
         return self.Cstack @ jnp.concatenate([x, xi])
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=HOST_PASS_COMPILER_OPTIONS)
 def _affinity_mismatch(model, p, terms, outputs, t_rand, s_rand, u_rand, w_rand):
     """Relative mismatch of one sample's decomposition (``terms = (A, B, G, H)``, raw: the
     constant part not reduced by ``A0``) against the plant's own slow field and against
@@ -512,8 +575,9 @@ def check_affine(model, first, data, A0, outputs, t0, t1, ns, m, who="simulate_b
     no batch axis) that misses the plant's own vector field or outputs."""
     rng = np.random.default_rng(20261121)
     t_rand = jnp.asarray(t0 + 0.3719 * (t1 - t0))
-    terms = tuple(data[k] for k in ("A", "B", "G", "H"))
-    terms = (terms[0].at[0].add(A0),) + terms[1:]
+    A = np.array(data["A"])
+    A[0] += np.asarray(A0)
+    terms = tuple(jnp.asarray(a) for a in (A, data["B"], data["G"], data["H"]))
     err = np.asarray(
         _affinity_mismatch(
             model,
@@ -554,50 +618,66 @@ _TAYLOR_THETA = 0.5
 
 
 def _expm_taylor(Z, max_squarings: int = 24):
-    r"""$e^Z$ by scaling and squaring with a degree-18 Taylor polynomial (matrix products only).
+    r"""$e^Z$ by scaling and squaring with a degree-18 Taylor polynomial (matrix products only),
+    for a stack ``Z`` ``(..., n, n)`` (each matrix its own scaling).
 
     ``s = ceil(log2(‖Z‖₁ / 0.5))`` squarings; the truncation error of the polynomial at
-    $\|Z/2^s\|_1 \le 1/2$ is below $0.5^{19}/19! \approx 10^{-23}$. No linear solve, so it
-    compiles quickly for the ``4N × 4N`` augmented matrices of the φ-functions (unlike
-    `expm_small`, whose Padé solve is unrolled). Computed once per call, not per sample.
+    $\|Z/2^s\|_1 \le 1/2$ is below $0.5^{19}/19! \approx 10^{-23}$. No linear solve, and
+    both the Horner evaluation of the polynomial and the squarings are loops (one body in
+    the compiled graph each, not 18 + 24 unrolled products), so it compiles in a fraction
+    of a second for the ``4N × 4N`` augmented matrices of the φ-functions and is
+    reverse-differentiable (fixed trip counts). Computed once per call, not per sample.
     """
-    n = Z.shape[0]
-    norm1 = jnp.max(jnp.sum(jnp.abs(Z), axis=0))
+    n = Z.shape[-1]
+    norm1 = jnp.max(jnp.sum(jnp.abs(Z), axis=-2), axis=-1)  # (...,)
     s = jnp.maximum(0.0, jnp.ceil(jnp.log2(jnp.maximum(norm1, 1e-300) / _TAYLOR_THETA)))
-    X = Z / (2.0**s)
-    eye = jnp.eye(n, dtype=Z.dtype)
-    R = eye
-    for k in range(_TAYLOR_DEGREE, 0, -1):
-        R = eye + (X @ R) / k
+    X = Z / (2.0**s)[..., None, None]
+    eye = jnp.broadcast_to(jnp.eye(n, dtype=Z.dtype), Z.shape)
+
+    def horner(i, R):  # R <- I + X R / k for k = 18, ..., 1
+        return eye + (X @ R) / (_TAYLOR_DEGREE - i).astype(Z.dtype)
+
+    R = lax.fori_loop(0, _TAYLOR_DEGREE, horner, eye)
 
     def square(R, k):
-        return jnp.where(k < s, R @ R, R), None
+        return jnp.where((k < s)[..., None, None], R @ R, R), None
 
     R, _ = lax.scan(square, R, jnp.arange(max_squarings, dtype=Z.dtype))
-    return jnp.where(s > max_squarings, jnp.nan, R)
+    return jnp.where((s > max_squarings)[..., None, None], jnp.nan, R)
 
 
 def _phi(M):
-    """``[φ0(M), φ1(M), φ2(M), φ3(M)]`` from one exponential of the augmented matrix."""
-    N = M.shape[0]
-    Z = jnp.zeros((4 * N, 4 * N), dtype=M.dtype)
-    Z = Z.at[:N, :N].set(M)
+    """``[φ0(M), φ1(M), φ2(M), φ3(M)]`` ``(..., 4, N, N)`` of a stack ``M`` ``(..., N, N)``
+    from one exponential of the augmented matrix each."""
+    N = M.shape[-1]
+    Z = jnp.zeros(M.shape[:-2] + (4 * N, 4 * N), dtype=M.dtype)
+    Z = Z.at[..., :N, :N].set(M)
     eye = jnp.eye(N, dtype=M.dtype)
     for j in range(3):
-        Z = Z.at[j * N : (j + 1) * N, (j + 1) * N : (j + 2) * N].set(eye)
+        Z = Z.at[..., j * N : (j + 1) * N, (j + 1) * N : (j + 2) * N].set(eye)
     F = _expm_taylor(Z)
-    return jnp.stack([F[:N, j * N : (j + 1) * N] for j in range(4)])
+    return jnp.stack([F[..., :N, j * N : (j + 1) * N] for j in range(4)], axis=-3)
 
 
-@jax.jit
 def phi_functions(A0, h):
     r"""$[\varphi_j(hA_0)]_{j=0..3}$ and $[\varphi_j(hA_0/2)]_{j=0..3}$, each ``(4, N, N)``.
 
     $\varphi_0(z) = e^z$, $\varphi_{j+1}(z) = (\varphi_j(z) - 1/j!)/z$, from the exponential of
-    the augmented matrix (first block row). Compiled once per ``N``.
+    the augmented matrix (first block row); both step sizes in one stacked exponential.
+    Concrete inputs: one host call compiled once per ``N`` (`HOST_PASS_COMPILER_OPTIONS`);
+    under a trace (`fojax.studies.study_loss`, an outer `jax.jit`) it is traced inline.
     """
+    if is_concrete(A0, h):
+        return _phi_functions_host(A0, h)
+    F = _phi(jnp.stack([h * A0, 0.5 * h * A0]))
+    return F[0], F[1]
+
+
+@jax.jit(compiler_options=HOST_PASS_COMPILER_OPTIONS)
+def _phi_functions_host(A0, h):
     TRACE_COUNTS["phi"] += 1
-    return _phi(h * A0), _phi(0.5 * h * A0)
+    F = _phi(jnp.stack([h * A0, 0.5 * h * A0]))
+    return F[0], F[1]
 
 
 def _etd_matrices(phis, h, rows, Pi):
@@ -635,22 +715,29 @@ class ExponentialProblem(eqx.Module):
     r"""A problem of the batch kernel (`fojax.simulation._batch.run_batched`) stepped by
     ETDRK4 instead of exact matrix exponentials.
 
-    ``setup(p_k)`` gives one sample's data (`setup_data`: the affine decomposition's
-    terms, ``w0``, mask) and its signals ``(plant signals, input)``; ``reducer`` is a
+    A sample is ``p_k = (s_k, d_k)``: ``setup.signals(s_k)`` gives its signals ``(plant
+    signals, input)``, ``d_k`` its part of `kernel_inputs` (``w0`` and the per-sample terms
+    of the affine decomposition, computed once on the host by `prepare`, so the set-up of
+    the decomposition is not part of the stepping kernel's graph). ``reducer`` is a
     batch-kernel problem whose ``init``/``update``/``final`` reduce the outputs
     $o = \sum_i c_i(t)\,(G_i w + H_i v)$ along the grid (the integrated metrics of
-    `simulate_batch_exponential`, or `run_study`'s metrics). ``A0`` (full size) and its
-    φ-functions ``phis`` (kept block; bulk step and start-up step) are shared by every
-    sample; ``plan`` (static, `_Plan`) says which terms are applied and how;
-    ``schedule = (n_start, sub_start, substeps)``.
+    `simulate_batch_exponential`, or `run_study`'s metrics). ``shared`` (the terms equal
+    for every sample) and the φ-functions of $A_0$ ``phis`` (kept block; bulk step and
+    start-up step) are shared by every sample; ``plan`` (static, `_Plan`) says which terms
+    are applied and how; ``schedule = (n_start, sub_start, substeps)``.
 
     `run_batched` owns chunks, padding, blocks and devices; `block_kernel` steps one block
-    with the batch as the last axis.
+    with the batch as the last axis: one `lax.scan` over every step of the schedule with
+    one ETDRK4 step body (start-up and bulk steps differ only in data), the outputs and
+    metrics taken under a `lax.cond` at the steps that end a grid interval. With
+    ``checkpoint=True`` (reverse mode, `fojax.studies.study_loss`) the scan is cut into
+    segments of about √S steps, each `jax.checkpoint`-ed, so the memory of the backward
+    pass grows like √S.
     """
 
     setup: eqx.Module
     reducer: eqx.Module
-    A0: jax.Array
+    shared: dict
     phis: tuple
     plan: _Plan = eqx.field(static=True)
     schedule: tuple = eqx.field(static=True)
@@ -659,50 +746,49 @@ class ExponentialProblem(eqx.Module):
     def keep(self) -> bool:
         return self.reducer.keep
 
-    def block_kernel(self, p, h_grid, ts, basis=None):
+    def block_kernel(self, p, h_grid, ts, basis=None, checkpoint: bool = False):
         """One block (leading axis ``b`` of every leaf of ``p``): the reducer's result
         (and the ``(T, K, b)`` outputs when ``reducer.keep``), batch last."""
         TRACE_COUNTS["simulate_batch_exponential"] += 1
         del basis  # the exponential kernel steps the slow state itself
         plan, (n_start, sub_start, substeps) = self.plan, self.schedule
-        data, sigpack = jax.vmap(self.setup)(p)
-        data["A"] = data["A"].at[:, 0].add(-self.A0[None])
+        sig_p, inp = p
+        sigpack = jax.vmap(self.setup.signals)(sig_p)
         T = ts.shape[0]
         t0 = ts[0]
         keep, rows, cols = (np.asarray(a, dtype=int) for a in plan[:3])
         nr = len(rows)
-        R_out = data["G"].shape[2]
+        R_out = inp["Gs"].shape[2]
         Nk = keep.size
-
-        A = data["A"][:, :, keep][:, :, :, keep]
-        Ar = A[:, :, rows][:, :, :, cols]  # (b, nt, nr, nc)
         shared = [i for i, kind in plan.terms if kind == "shared"]
         sample = [i for i, kind in plan.terms if kind == "sample"]
         # Pi: what g reads from a state — the shared perturbation matrices (embedded in the
         # kept coordinates) and, for per-sample terms, the components they read
-        Pi = [jnp.zeros((nr, Nk)).at[:, cols].set(Ar[0, i]) for i in shared]
+        Pi = [jnp.zeros((nr, Nk)).at[:, cols].set(self.shared["A"][j]) for j in range(len(shared))]
         if sample:
             Pi.append(jnp.eye(Nk)[cols])
         Pi = jnp.concatenate(Pi, axis=0) if Pi else jnp.zeros((0, Nk))
         q, n_sh = Pi.shape[0], len(shared) * nr
-        phases = []  # (first interval, number of intervals, substeps, h, stage matrices)
-        if n_start:
-            h_s = h_grid / sub_start
-            phases.append((0, n_start, sub_start, h_s, _etd_matrices(self.phis[1], h_s, rows, Pi)))
-        if T - 1 - n_start:
-            h_b = h_grid / substeps
-            phases.append((n_start, T - 1 - n_start, substeps, h_b, _etd_matrices(self.phis[0], h_b, rows, Pi)))
-        Bf = data["B"][:, :, keep][:, :, rows]  # (b, nt, nr, m+1)
-        G = data["G"][:, :, :, keep]  # (b, nt, R, Nk)
+        # one step body for every step: the start-up and the bulk step differ only in data
+        # (their h and stage matrices, stacked and picked by a per-step phase index), so the
+        # compiled graph holds one ETDRK4 step whatever the schedule
+        phase_sub = [sub_start] * bool(n_start) + [substeps] * bool(T - 1 - n_start)
+        phase_phis = [self.phis[1]] * bool(n_start) + [self.phis[0]] * bool(T - 1 - n_start)
+        hs = jnp.stack([h_grid / sub for sub in phase_sub])
+        mats = jax.tree.map(
+            lambda *m: jnp.stack(m),
+            *[_etd_matrices(ph, h_grid / sub, rows, Pi) for ph, sub in zip(phase_phis, phase_sub)],
+        )
+        steps = _step_table(T, n_start, sub_start, substeps)  # (4, S): interval, substep, phase, last
         g_sh = [i for i, kind in plan.gterms if kind == "shared"]
         g_sa = [i for i, kind in plan.gterms if kind == "sample"]
-        G_sh = jnp.concatenate([G[0, i] for i in g_sh], axis=0) if g_sh else None
+        G_sh = self.shared["G"].reshape(-1, Nk) if g_sh else None
         last = lambda a: jnp.moveaxis(a, 0, -1)  # noqa: E731
-        Ms = last(jnp.stack([Ar[:, i] for i in sample], axis=1)) if sample else None  # (k, nr, nc, b)
-        Bs = last(jnp.stack([Bf[:, i] for i in plan.fterms], axis=1)) if plan.fterms else None
-        Gs = last(jnp.stack([G[:, i] for i in g_sa], axis=1)) if g_sa else None
-        Hs = last(jnp.stack([data["H"][:, i] for i in plan.hterms], axis=1)) if plan.hterms else None
-        w0 = last(data["w0"][:, keep])  # (Nk, b)
+        Ms = last(inp["Ms"]) if sample else None  # (k, nr, nc, b)
+        Bs = last(inp["Bs"]) if plan.fterms else None
+        Gs = last(inp["Gs"]) if g_sa else None
+        Hs = last(inp["Hs"]) if plan.hterms else None
+        w0 = last(inp["w0"])  # (Nk, b)
         sigs, usig = sigpack
         b = w0.shape[-1]
 
@@ -746,64 +832,92 @@ class ExponentialProblem(eqx.Module):
                 o = o + cf[i][None, :] * _matvec_last(Hs[j], v)
             return o
 
-        def make_step(h, mats):
+        def step(carry, t, h, mats):
             E, L0, L1, L2, L3 = mats
-
-            def step(carry, t):
-                w, piw, c0, v0 = carry
-                # the last stage uses the signals' left limits at t + h, the next step their
-                # right limits (a jump on the step boundary belongs to the next step)
-                c1, v1 = evaluate(t + (1.0 + SIDE_OFFSET) * h)
-                if nr == 0:
-                    return (E @ w, piw, c1, v1), None
-                ch, vh = evaluate(t + 0.5 * h)
-                cl, vl = evaluate(t + (1.0 - SIDE_OFFSET) * h)
-                fh, fl = forcing(ch, vh), forcing(cl, vl)
-                Nn = g(piw, c0, forcing(c0, v0))
-                Y0 = L0 @ jnp.concatenate([w, Nn], axis=0)
-                pa, pb, pc = Y0[:q], Y0[q : 2 * q], Y0[2 * q : 3 * q]
-                w_new, piw = Y0[3 * q : 3 * q + Nk], Y0[3 * q + Nk :]
-                Na = g(pa, ch, fh)
-                Y1 = L1 @ Na
-                pb, w_new, piw = pb + Y1[:q], w_new + Y1[q : q + Nk], piw + Y1[q + Nk :]
-                Nb = g(pb, ch, fh)
-                Y2 = L2 @ Nb
-                pc, w_new, piw = pc + Y2[:q], w_new + Y2[q : q + Nk], piw + Y2[q + Nk :]
-                Nc = g(pc, cl, fl)
-                Y3 = L3 @ Nc
-                return (w_new + Y3[:Nk], piw + Y3[Nk:], c1, v1), None
-
-            return step
+            w, piw, c0, v0 = carry
+            # the last stage uses the signals' left limits at t + h, the next step their
+            # right limits (a jump on the step boundary belongs to the next step)
+            c1, v1 = evaluate(t + (1.0 + SIDE_OFFSET) * h)
+            if nr == 0:
+                return E @ w, piw, c1, v1
+            ch, vh = evaluate(t + 0.5 * h)
+            cl, vl = evaluate(t + (1.0 - SIDE_OFFSET) * h)
+            fh, fl = forcing(ch, vh), forcing(cl, vl)
+            Nn = g(piw, c0, forcing(c0, v0))
+            Y0 = L0 @ jnp.concatenate([w, Nn], axis=0)
+            pa, pb, pc = Y0[:q], Y0[q : 2 * q], Y0[2 * q : 3 * q]
+            w_new, piw = Y0[3 * q : 3 * q + Nk], Y0[3 * q + Nk :]
+            Na = g(pa, ch, fh)
+            Y1 = L1 @ Na
+            pb, w_new, piw = pb + Y1[:q], w_new + Y1[q : q + Nk], piw + Y1[q + Nk :]
+            Nb = g(pb, ch, fh)
+            Y2 = L2 @ Nb
+            pc, w_new, piw = pc + Y2[:q], w_new + Y2[q : q + Nk], piw + Y2[q + Nk :]
+            Nc = g(pc, cl, fl)
+            Y3 = L3 @ Nc
+            return w_new + Y3[:Nk], piw + Y3[Nk:], c1, v1
 
         reducer = self.reducer
-
-        def run_phase(carry, first, count, sub, h, mats):
-            step = make_step(h, mats)
-            t_base = t0 + first * h_grid
-
-            def interval(carry, i):
-                w, piw, cf, v, acc = carry
-                ts_i = t_base + (i * sub + jnp.arange(sub, dtype=w.dtype)) * h
-                (w, piw, cf, v), _ = lax.scan(step, (w, piw, cf, v), ts_i)
-                o = outputs(w, cf, v)
-                acc = reducer.update(acc, o, first + 1 + i, ts)
-                return (w, piw, cf, v, acc), (o if reducer.keep else None)
-
-            return lax.scan(interval, carry, jnp.arange(count))
-
         c_init, v_init = evaluate(t0)
         o_first = outputs(w0, c_init, v_init)
+        o_zero = jnp.zeros_like(o_first)
+
+        def body(carry, x):
+            interval, sub, phase, last = x[0], x[1], x[2], x[3]
+            state, acc = carry[:4], carry[4]
+            h = hs[phase]
+            state = step(state, t0 + interval * h_grid + sub * h, h, jax.tree.map(lambda m: m[phase], mats))
+
+            def grid_point(acc):  # the step ends a grid interval: outputs and metrics there
+                o = outputs(state[0], state[2], state[3])
+                return reducer.update(acc, o, interval + 1, ts), o
+
+            acc, o = lax.cond(last > 0, grid_point, lambda acc: (acc, o_zero), acc)
+            return state + (acc,), (o if reducer.keep else None)
+
         carry = (w0, Pi @ w0, c_init, v_init, reducer.init(o_first))
-        trajs = [o_first[None]]
-        for first, count, sub, h, mats in phases:
-            carry, traj = run_phase(carry, first, count, sub, h, mats)
-            trajs.append(traj)
+        xs = jnp.asarray(steps.T)  # (S, 4)
+        if checkpoint:
+            # reverse mode: segments of ~√S steps, each recomputed in the backward pass
+            # (jax.checkpoint), so memory grows like √S, not S; padded steps do nothing
+            S = xs.shape[0]
+            seg = max(1, math.isqrt(S - 1) + 1)
+            n_seg = -(-S // seg)
+            xs = jnp.concatenate([xs, jnp.full((n_seg * seg - S, 4), -1, dtype=xs.dtype)]).reshape(n_seg, seg, 4)
+
+            def padded(carry, x):
+                return lax.cond(x[0] >= 0, body, lambda c, x: (c, None if not reducer.keep else o_zero), carry, x)
+
+            @jax.checkpoint
+            def segment(carry, xseg):
+                return lax.scan(padded, carry, xseg)
+
+            carry, traj = lax.scan(segment, carry, xs)
+            if reducer.keep:
+                traj = traj.reshape((-1,) + traj.shape[2:])[:S]
+        else:
+            carry, traj = lax.scan(body, carry, xs)
         w_end, _, c_end, v_end, acc = carry
         ok = jnp.all(jnp.isfinite(w_end), axis=0)
         out = reducer.final(acc, o_first, outputs(w_end, c_end, v_end), ts, h_grid, ok)
         if reducer.keep:
-            out = (out, jnp.concatenate(trajs, axis=0))  # (T, K, b)
+            ends = np.flatnonzero(steps[3])
+            out = (out, jnp.concatenate([o_first[None], traj[ends]], axis=0))  # (T, K, b)
         return out
+
+
+def _step_table(T: int, n_start: int, sub_start: int, substeps: int) -> np.ndarray:
+    """The schedule as a table ``(4, S)`` of integers (host, static): for every step its grid
+    interval, its index within the interval, its phase (0: start-up if any, else bulk)
+    and whether it ends the interval."""
+    parts = []
+    for phase, (first, count, sub) in enumerate(
+        [(0, n_start, sub_start)] * bool(n_start) + [(n_start, T - 1 - n_start, substeps)] * bool(T - 1 - n_start)
+    ):
+        interval = np.repeat(np.arange(first, first + count), sub)
+        within = np.tile(np.arange(sub), count)
+        parts.append(np.stack([interval, within, np.full_like(interval, phase), (within == sub - 1).astype(int)]))
+    return np.concatenate(parts, axis=1).astype(np.int64)
 
 
 # --------------------------------------------------------------------------- public entry
@@ -1011,16 +1125,17 @@ def simulate_batch_exponential(
     p = (params, x0)
     if concrete:
         # A0, the plan of the whole batch (read in chunks) and the affine check on sample 0
-        A0, plan, data0 = prepare(setup, p, (first, x0[0]), (reference, x0[0]), chunk_size)
+        A0, plan, per, shared, data0 = prepare(setup, p, (reference, x0[0]), chunk_size)
         check_affine(model, first, data0, A0, CstackOutputs(Cstack), float(ts[0]), float(ts[-1]), ns, plant0.m)
     else:  # under an outer jax.jit: every term per sample
-        A0 = _setup_stats(setup, jax.tree.map(lambda a: a[:1], p), (first, x0[0]), (reference, x0[0]))[2]
+        data, A0 = setup_all(setup, p, (reference, x0[0]))
         plan = _full_plan(size, n_terms)
+        per, shared = kernel_inputs(data, plan, jnp)
     keep = np.asarray(plan.keep, dtype=int)
     A0k = A0[keep][:, keep]
     phis = (phi_functions(A0k, h / substeps), phi_functions(A0k, h / sub_start))
-    problem = ExponentialProblem(setup, _ModelProblem(model, Cstack, None, None, kinds), A0, phis, plan, schedule)
-    out, _ = run_batched(problem, p, ts, chunk_size=chunk_size, block=block, devices=devices)
+    problem = ExponentialProblem(setup, _ModelProblem(model, Cstack, None, None, kinds), shared, phis, plan, schedule)
+    out, _ = run_batched(problem, (p, per), ts, chunk_size=chunk_size, block=block, devices=devices)
     out = out.T
     result, off = {}, 0
     for name, (kind, k) in zip(names, kinds):

@@ -38,10 +38,23 @@ step starts from the right limits). `exponential_problem` checks this for every 
 otherwise ``"auto"`` keeps the adaptive diffrax path, which places steps at the
 breakpoints. Fault onsets drawn at random times (`fault_scenarios` with an `onset`
 range) are therefore not on this path.
+
+**Reverse mode.** `study_loss` runs the same engine through `exponential_metrics_traced`:
+the same host decisions, the computation traced with respect to the observer, the time
+loop in `jax.checkpoint`-ed segments (memory of the backward pass ~√S for S steps). Its
+gradient is checked against central finite differences (``tests/test_study_loss_exponential.py``).
+A traced study (inside `fojax.tune`'s jitted step, where the study is an argument) cannot
+be checked on the host and keeps the diffrax path.
+
+**Compile time.** The set-up of the decomposition is compiled once, for the host pre-pass
+(`fojax.simulation._exponential.prepare`), which hands the kernel only what it reads; the
+kernel holds one ETDRK4 step body; the host passes are compiled without the backend's
+optimisation passes (`HOST_PASS_COMPILER_OPTIONS`).
 """
 
 from __future__ import annotations
 
+import collections
 import math
 
 import equinox as eqx
@@ -51,15 +64,20 @@ import numpy as np
 
 from .._errors import FojaxError, InputError
 from ..plant import Sine
+from ..simulation._batch import _step_size
 from ..simulation._exponential import (
     _check_structure,
+    _full_plan,
     _plant_signals,
     _with_probes,
     check_affine,
     decompose,
     ExponentialProblem,
+    HOST_PASS_COMPILER_OPTIONS,
+    kernel_inputs,
     phi_functions,
     prepare,
+    setup_all,
     setup_data,
 )
 from ..simulation._reduction import host_initial_checks, is_concrete
@@ -77,6 +95,9 @@ STARTUP_FACTOR = 2
 BREAKPOINT_RTOL = 1e-10
 #: Samples per call of the host pre-pass (set-up and plan statistics).
 PREPARE_CHUNK = 2048
+#: Traces of the differentiable exponential study metrics (tests prove `study_loss` takes
+#: this path and does not retrace for new observer numbers).
+TRACE_COUNTS: collections.Counter = collections.Counter()
 
 
 class StudyModel(eqx.Module):
@@ -145,8 +166,12 @@ class StudySetup(eqx.Module):
         data = setup_data(Aj, Bj, jnp.concatenate(Gs, axis=1), jnp.concatenate(Hs, axis=1), w0, mask)
         return data, (_plant_signals(plant), study.u)
 
+    def signals(self, p):
+        plant, _ = self.study.sample(p[0], p[1])
+        return _plant_signals(plant), self.study.u
 
-@eqx.filter_jit
+
+@eqx.filter_jit(compiler_options=HOST_PASS_COMPILER_OPTIONS)
 def _breakpoints(study, iu, jf):
     """Every sample's signal breakpoints (plant signals and input) ``(B, k)`` and the
     angular frequencies of its `fojax.Sine` signals ``(B, k')``."""
@@ -201,8 +226,8 @@ def exponential_problem(study, observers, settle_tol: float, keep: bool, strict:
     try:
         host_initial_checks(plant0, x00, study.ts[0], study.u, strict=False, tol=0.0)
         setup = StudySetup(study, tuple(observers))
-        first = (idx[0][0], idx[1][0])
-        A0, plan, data0 = prepare(setup, idx, first, first, PREPARE_CHUNK)
+        first = (iu[0], jf[0])  # NumPy scalars: no eager device op
+        A0, plan, per, shared, data0 = prepare(setup, idx, first, PREPARE_CHUNK)
         ns = sum(sg.size for sg in _plant_signals(plant0))
         check_affine(StudyModel(study, tuple(observers)), first, data0, A0,
                      StudyErrors(study.L, study.fault_targets), float(t[0]), float(t[-1]), ns, plant0.m,
@@ -227,5 +252,58 @@ def exponential_problem(study, observers, settle_tol: float, keep: bool, strict:
     hj = jnp.asarray(h)
     phis = (phi_functions(A0k, hj / substeps), phi_functions(A0k, hj / sub_start))
     reducer = StudyProblem(study, tuple(observers), None, None, jnp.asarray(float(settle_tol)), None, keep)
-    problem = ExponentialProblem(setup, reducer, A0, phis, plan, (n_start, sub_start, substeps))
-    return (problem, None, idx), None
+    problem = ExponentialProblem(setup, reducer, shared, phis, plan, (n_start, sub_start, substeps))
+    return (problem, None, (idx, per)), None
+
+
+def _zero_stand_in(observer):
+    """``observer`` with every array leaf replaced by concrete zeros of its shape."""
+    return jax.tree.map(lambda a: np.zeros(jnp.shape(a), jnp.result_type(a)) if eqx.is_array(a) else a, observer)
+
+
+def exponential_metrics_traced(study, observers, settle_tol):
+    r"""Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of a concrete `study` on the
+    exponential engine, reverse-differentiable with respect to the `observers` (which may
+    be traced, e.g. under `jax.grad`), or ``None`` when the study does not qualify (the
+    rules of `exponential_problem`; a traced study never qualifies).
+
+    **The host decisions** (qualification, breakpoints on the step grid, the affine check,
+    the step schedule) are those of `exponential_problem`, taken with the observers when
+    they are concrete and otherwise with a concrete stand-in of the same structure whose
+    arrays are zeros: the observers are LTI, so their part of the field is affine by
+    construction and the check still tests the plant; the schedule then sees the plant's
+    nominal slow poles and the signal frequencies but not the observer's poles (the
+    observer's poles set the step only when they are faster than the plant's; the
+    schedule of a concrete call, `run_study`'s, includes them).
+
+    **The computation** is traced: the set-up of every sample (`setup_all`), every term
+    applied per sample (no plan, as under an outer `jax.jit`), the φ-functions of the
+    traced $A_0$ (`phi_functions`: matrix products and fixed-length loops), and all
+    samples stepped as one block by `ExponentialProblem.block_kernel` with
+    ``checkpoint=True``: the backward pass recomputes segments of about $\sqrt S$ steps
+    (``S`` steps in all), so its memory grows like $\sqrt S$, not $S$. The values equal
+    `run_study`'s exponential engine to round-off when the schedules agree.
+    """
+    TRACE_COUNTS["study_loss_exponential"] += 1
+    observers = tuple(observers)
+    if not is_concrete(study):
+        return None
+    host_obs = observers if is_concrete(observers) else tuple(_zero_stand_in(o) for o in observers)
+    with jax.ensure_compile_time_eval():  # host passes on concrete data, also inside an outer jit
+        prepared, _ = exponential_problem(study, host_obs, settle_tol, False, strict=False)
+    if prepared is None:
+        return None
+    schedule = prepared[0].schedule
+    n_start, sub_start, substeps = schedule
+    iu = np.arange(study.num_samples) // study.num_scenarios
+    jf = np.arange(study.num_samples) % study.num_scenarios
+    idx = (jnp.asarray(iu), jnp.asarray(jf))
+    setup = StudySetup(study, observers)
+    data, A0 = setup_all(setup, idx, (iu[0], jf[0]))
+    plan = _full_plan(A0.shape[0], data["A"].shape[1])
+    per, shared = kernel_inputs(data, plan, jnp)
+    _, h, ts = _step_size(study.ts)
+    phis = (phi_functions(A0, h / substeps), phi_functions(A0, h / sub_start))
+    reducer = StudyProblem(study, observers, None, None, jnp.asarray(float(settle_tol)), None, False)
+    problem = ExponentialProblem(setup, reducer, shared, phis, plan, schedule)
+    return problem.block_kernel((idx, per), h, ts, checkpoint=True)

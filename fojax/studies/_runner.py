@@ -58,7 +58,7 @@ from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
 from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, gather_across_processes, run_batched
 from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
-from ._exponential import exponential_problem
+from ._exponential import exponential_metrics_traced, exponential_problem
 from ._families import Family
 from ._sharding import (
     check_same_on_every_process,
@@ -394,8 +394,8 @@ def run_study(
       `fojax.studies._exponential`) on the same batch kernel
       (``attrs["engine"] == "exponential-batch"``): with ``"auto"`` when the exact engine
       does not apply, or asked for with ``method="exponential"`` (an `InputError` says
-      why a study does not qualify). `study_loss` does not use it (not differentiable
-      in reverse mode yet).
+      why a study does not qualify). `study_loss` uses the same engine, reverse-differentiable
+      (see there).
     - `rtol`, `atol`, `max_steps`, `solver`: passed to `fojax.simulate` on the
       ``"vmap-simulate"`` engine (``throw=False``; failed samples are flagged in
       ``metrics["success"]``). For non-stiff studies an explicit solver
@@ -548,7 +548,17 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     block (`fojax.studies._exact.sample_metrics_traced`; its reverse mode is the adjoint
     recurrence of `fojax.studies._adjoint`, checkpointed, so memory does not grow with the
     number of time steps; like `jax.grad`, it takes the derivative of $|e|$ as
-    $\mathrm{sign}(e)$, 0 at 0); otherwise each sample runs
+    $\mathrm{sign}(e)$, 0 at 0). With ``cfg.method="auto"``, no ``cfg.devices`` and a
+    *concrete* study whose samples vary in time only through signals entering the
+    differential equations affinely (`run_study`'s exponential engine: a time-varying
+    δ(t), faults on the step grid, known inputs), the samples run on that engine
+    (`fojax.studies._exponential.exponential_metrics_traced`: ETDRK4 in one block, every
+    term per sample, the time loop in `jax.checkpoint`-ed segments of about √S of the S
+    steps, so the memory of the backward pass grows like √S), differentiable with respect
+    to the observer; the host decisions (qualification, the affine check, the step
+    schedule) are taken with the observer when it is concrete and with a zero stand-in of
+    it when it is traced (the schedule then ignores the observer's poles). A traced study
+    (as inside `fojax.tune`'s jitted step) does not qualify. Otherwise each sample runs
     `fojax.simulate` under `jax.vmap`.
 
     With ``cfg.devices`` (e.g. ``jax.devices()`` after `jax.distributed.initialize`: all
@@ -565,6 +575,12 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
         mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh)
         per = w @ mets[METRICS.index(loss)]  # (B,)
         return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
+    if cfg.method == "auto" and mesh is None:
+        # time-varying affine samples: the exponential engine, checkpointed (fojax.studies._exponential)
+        out = exponential_metrics_traced(study, (observer,), cfg.settle_tol)
+        if out is not None:
+            per = w @ out[0][METRICS.index(loss)]  # (B,)
+            return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
     iu, jf = (jnp.asarray(a) for a in _indices(study))
 
     def local(study, p):
