@@ -1,4 +1,5 @@
-"""Design layer: parameterization (pure JAX), LMI regions, LMI design (cvxpy, host), verification."""
+"""Design layer: parameterization (pure JAX), LMI regions, LMI design (cvxpy, host), verification,
+and `AbstractDesign`, the base of every design result (verify, summary, save/load)."""
 
 from ._base import AbstractDesign as AbstractDesign
 from ._conditions import (
