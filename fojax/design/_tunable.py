@@ -303,13 +303,13 @@ def _features_and_jacobian(observer_fn, names, flat, rho, K):
     return feat(flat), jax.jacfwd(feat)(flat)
 
 
-def _live(observer_fn, params, kind: str = "") -> LiveParameters:
+def _live(observer_fn, params, kind: str = "", error_matrices=None) -> LiveParameters:
     # compiled as two functions (built op by op, the observer compiles ~100 primitives, 30-60 s
     # under load); a parameterization's bound `observer` is a pytree, so a second call with the
     # same shapes reuses them
     names = tuple(sorted((k, tuple(np.shape(v))) for k, v in params.items()))
     flat0 = jnp.concatenate([jnp.ravel(jnp.asarray(params[k])) for k, _ in names]) if names else jnp.zeros(0)
-    As = np.asarray(_error_matrices(observer_fn, params))
+    As = np.asarray(_error_matrices(observer_fn, params) if error_matrices is None else error_matrices)
     rho = max(float(np.max(np.abs(np.linalg.eigvals(As)))), 1e-300) if As.size else 1.0
     K = 2 * As.shape[-1] + 2
     if flat0.size == 0:
@@ -347,7 +347,8 @@ def live_parameters(design) -> LiveParameters:
                                         kind=design.kind)
         return build_observer(s, m, kind=design.kind)
 
-    return _live(observer, params, design.kind)
+    As = o.error_matrices if ts else o.error_matrix  # the design's own: nothing to compile
+    return _live(observer, params, design.kind, As)
 
 
 def unflatten(names: tuple, flat) -> dict:
