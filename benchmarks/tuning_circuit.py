@@ -135,8 +135,13 @@ class _Budget(Exception):
     pass
 
 
-def run_dfo(design, train, heldout, method, budget_s):
-    """scipy.optimize.minimize(method) on SteinDisk's flattened parameters, stopped at budget_s."""
+def run_dfo(design, train, heldout, method, budget_s, certify_each=True):
+    """scipy.optimize.minimize(method) on SteinDisk's flattened parameters, stopped at budget_s.
+
+    With `certify_each` every candidate with a positive traced margin is also checked on the
+    host (``SteinDisk.host_check``: the float64 verification `tune` applies to each iterate)
+    inside the timed loop, and gets the large loss when it fails; otherwise only the returned
+    point is certified (the best improving point that passes)."""
     par = SteinDisk(design)
     p0 = par.init(design)
     flat0, unravel = ravel_pytree(p0)
@@ -157,6 +162,9 @@ def run_dfo(design, train, heldout, method, budget_s):
         if time.perf_counter() - t0 > budget_s:
             raise _Budget
         v = float(loss(jnp.asarray(x)))
+        if certify_each and v < INVALID_LOSS and not par.host_check(unravel(jnp.asarray(x)))[0]:
+            v = INVALID_LOSS
+            best["host_rejected"] = best.get("host_rejected", 0) + 1
         best["evals"] += 1
         best["rejected"] += v >= INVALID_LOSS
         if v < best["f"]:
@@ -182,10 +190,68 @@ def run_dfo(design, train, heldout, method, budget_s):
             failed.append(dict(train_loss=fx, why=str(err)[:300]))
     h0, h1 = heldout_iae(par, p0, heldout), heldout_iae(par, params, heldout)
     return dict(method=method, budget_s=budget_s, wall_s=wall, stopped=stopped, evaluations=best["evals"],
-                rejected_candidates=int(best["rejected"]), train_loss_first=f0, train_loss_best_seen=best["f"],
+                rejected_candidates=int(best["rejected"]), certify_each=certify_each,
+                rejected_by_host_check=int(best.get("host_rejected", 0)),
+                train_loss_first=f0, train_loss_best_seen=best["f"],
                 train_loss_returned=fx, best_points_failing_verification=failed,
                 initial_heldout_iae=h0, final_heldout_iae=h1, heldout_change=h1 / h0 - 1.0,
                 final_verified=bool(certified.report.passed), parameters=int(x0.size))
+
+
+def long_run(args):
+    import json
+
+    out = json.loads(Path(args.out).read_text())
+    load0 = _common.load_average()
+    m, sys_, train = build(False, args.nu, args.nx, seed=0)
+    _, _, held = build(False, args.heldout_nu, args.heldout_nx, seed=1)
+    d = design_functional_observer(sys_, m["L"], kind="generalized", region=REGION, q0=args.q0, objective="centre")
+    opt = fojax.tuning.shared_optimizer("adam", learning_rate=args.lr)
+    res, wall = clock(lambda: fojax.tune(d, train, heldout=held, optimizer=opt, steps=args.long_steps,
+                                         eval_every=100, method="exact"))
+    h = res.history
+    every = [(int(s), float(t), float(v)) for s, t, v in zip(h["step"], h["train_loss"], h["heldout_loss"])
+             if np.isfinite(v)]
+    out["a_long"] = dict(
+        steps=args.long_steps, learning_rate=args.lr, precondition="live", wall_s_including_compile=wall,
+        initial_heldout_iae=res.initial_heldout, final_heldout_iae=res.final_heldout,
+        heldout_change=res.final_heldout / res.initial_heldout - 1.0,
+        heldout_every_100_steps=[dict(step=s, train_loss=t, heldout_iae=v, change=v / res.initial_heldout - 1.0)
+                                 for s, t, v in every],
+        train_loss_every_10_steps=[float(x) for x in h["train_loss"][::10]],
+        final_region_margin=float(res.design.report.region_margin), final_verified=bool(res.design.report.passed),
+        rejected_steps=int(len(h["accepted"]) - np.sum(h["accepted"])),
+        load_average_at_start=load0, load_average_at_end=_common.load_average(),
+        note="a separate run after the main one (same samples, same start), measured under load")
+    print(out["a_long"], flush=True)
+    _common.write_result(args.out, out)
+
+
+def dfo_rerun(args):
+    import json
+
+    out = json.loads(Path(args.out).read_text())
+    load0 = _common.load_average()
+    m, sys_, train = build(False, args.nu, args.nx, seed=0)
+    _, _, held = build(False, args.heldout_nu, args.heldout_nx, seed=1)
+    d = design_functional_observer(sys_, m["L"], kind="generalized", region=REGION, q0=args.q0, objective="centre")
+    budget = out["tune"]["plain/live"]["wall_s"]
+    if "dfo_certify_at_end" not in out:
+        out["dfo_certify_at_end"] = out["dfo"]
+    dfo = {}
+    for method in ("Powell", "Nelder-Mead"):
+        dfo[f"plain/{method}"] = r = run_dfo(d, train, held, method, budget, certify_each=True)
+        print(method, r, flush=True)
+    out["dfo"] = dfo
+    out["dfo_note"] = ("'dfo': every candidate certified on the host inside the budget (tune's rule for its "
+                       "iterates); 'dfo_certify_at_end': only the returned point certified (first protocol: every "
+                       "improving Powell point failed verification, so it returned its start). Re-run separately, "
+                       f"load average {load0} -> {_common.load_average()}")
+    a = out["tune"]["plain/live"]
+    out["summary"]["b_gradient_vs_powell"] = a["final_heldout_iae"] / dfo["plain/Powell"]["final_heldout_iae"] - 1.0
+    out["summary"]["b_gradient_vs_nelder_mead"] = (a["final_heldout_iae"]
+                                                   / dfo["plain/Nelder-Mead"]["final_heldout_iae"] - 1.0)
+    _common.write_result(args.out, out)
 
 
 def main():
@@ -199,7 +265,17 @@ def main():
     ap.add_argument("--heldout-nx", type=int, default=16)
     ap.add_argument("--preconditions", default="live,whiten")
     ap.add_argument("--out", default=str(_common.RESULTS / "tuning_circuit_latest.json"))
+    ap.add_argument("--long-steps", type=int, default=0,
+                    help="only run (a) on the plain model for this many steps (held-out every 100) and add it "
+                         "to the existing --out file as 'a_long' (a separate run: is (a) converged?)")
+    ap.add_argument("--dfo-only", action="store_true",
+                    help="only re-run (b) with every candidate certified on the host (as tune certifies every "
+                         "iterate), at the budget recorded in --out; the first protocol's rows are kept")
     args = ap.parse_args()
+    if args.long_steps:
+        return long_run(args)
+    if args.dfo_only:
+        return dfo_rerun(args)
     info = _common.machine_info()
     load0 = _common.load_average()
     out = dict(status="partial", benchmark="tuning_circuit (issue 14 targets)", machine=info,
