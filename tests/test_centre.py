@@ -29,7 +29,7 @@ def _disk_margin(d, region):
     return float(np.min(region.radius - np.abs(eigs - region.center)))
 
 
-def test_centred_design_is_farther_inside_and_verified(motor):
+def test_centred_design_is_farther_inside_and_verified(motor, tmp_path):
     sys_, L = motor
     region = Disk(-2.0, 1.0)
     plain = design_functional_observer(sys_, L, kind="generalized", region=region)
@@ -43,6 +43,9 @@ def test_centred_design_is_farther_inside_and_verified(motor):
     assert c["certified_margin"] == pytest.approx(region.radius * c["fraction"])
     assert centred.report.region_margin == pytest.approx(m_centred, abs=1e-12)
     assert "centred" in str(centred.report)
+    fojax.save_design(centred, tmp_path / "c.npz")  # what fojax design writes for objective = "centre"
+    back = fojax.load_design(tmp_path / "c.npz")
+    assert back.report.passed and back.solver["centre"] == c
 
 
 def test_bisection_brackets_the_closed_form_fraction(motor):
