@@ -10,6 +10,10 @@
 - `benchmarks/tuning_scaling.py`: the batch factorisation.
 - `benchmarks/make_readme.py`: copies numbers from the JSON files, skips unknown schemas,
   and only rewrites the README between its markers.
+- `benchmarks/lc_filter.py` (the circuit of `tuning_circuit.py`): index 1 with 4 finite
+  poles equal (by matching) to those of the hand-reduced ODE (the divider gives
+  $v_3 = v_2/2$, $i_L = v_2/(2R_a)$), and its badly scaled twin has the same finite poles,
+  outputs and functional for the same physical state.
 """
 
 import json
@@ -25,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import design_scaling  # noqa: E402
+import lc_filter  # noqa: E402
 import make_readme  # noqa: E402
 import scaling  # noqa: E402
 import tuning_scaling  # noqa: E402
@@ -254,3 +259,23 @@ def test_make_readme_renders_the_time_varying_study(tmp_path):
     text = make_readme.render(tmp_path)
     assert "| 1000 | 255 | 4.11 | 62.1× | 5.1e-10 | 2.5e-06 | 60.8 | 17.9 |" in text
     assert "took 60.8 s, the time the solve_ivp loop needs for 250 samples" in text
+
+
+def test_lc_filter_is_index1_and_its_twin_is_the_same_circuit():
+    p = lc_filter.PARAMS
+    # hand reduction: rows 5-6 give v3 = v2/2 and i_L = v2/(2 Ra); states (i1, v1, i2, v2)
+    Ared = np.array([[-p["R1"] / p["L1"], -1 / p["L1"], 0, 0],
+                     [1 / p["C1"], 0, -1 / p["C1"], 0],
+                     [0, 1 / p["L2"], -p["R2"] / p["L2"], -1 / p["L2"]],
+                     [0, 0, 1 / p["C2"], -1 / (2 * p["Ra"] * p["C2"])]])
+    want = np.linalg.eigvals(Ared)
+    plain, twin = lc_filter.lc_filter(), lc_filter.lc_filter(scaled=True)
+    for m in (plain, twin):
+        sys_ = fojax.DescriptorSystem(m["E"], m["A"], m["B"], m["C"])
+        assert fojax.analysis.nilpotency_index(sys_) == 1
+        assert_eigenvalues_match(_finite_poles(m["A"], m["E"]), want, rtol=1e-9)
+    S = twin["Dc"]
+    assert np.ptp(np.log10(np.diag(S))) == 6 and np.ptp(np.log10(lc_filter.TWIN_ROWS)) == 6  # 1e-3 .. 1e3
+    x = np.arange(1.0, 7.0)
+    np.testing.assert_allclose(twin["C"] @ np.linalg.solve(S, x), plain["C"] @ x, rtol=1e-14)
+    np.testing.assert_allclose(twin["L"] @ np.linalg.solve(S, x), plain["L"] @ x, rtol=1e-14)

@@ -163,6 +163,11 @@ def test_design_every_example(designed):
             img = mpimg.imread(folder / f"poles-{path.stem}.png")
             assert img.shape[:2] == (600, 800) and img[..., :3].std() > 0.01
     assert "verified" in r.stdout and "NO" not in r.stdout.split("verified")[-1]
+    # issue 14 item 4: every generalized/PI/proportional/T-S design reports its live parameters
+    assert "free parameters are live (reach the estimate ẑ)" in r.stdout
+    summary = json.loads(next(p for p in folders if p.name.startswith("design-example_4_1_3-"))
+                         .joinpath("designs.json").read_text())
+    assert all(0 < e["live_parameters"]["live"] <= e["live_parameters"]["free"] for e in summary["designs"])
 
 
 def test_design_of_the_takagi_sugeno_example(designed):

@@ -76,6 +76,11 @@ def test_live_parameters_known_by_hand(hand_designs):
     # the same verdict for the LMI design itself (all six parameters, Z included)
     lv_design = fojax.design.live_parameters(d)
     assert (lv_design.live, lv_design.total) == (1, total)
+    # the "generalized" observer's extra freedom is void (issue 14 item 4): only Z is live, and it says so
+    assert lv.live_blocks() == lv_design.live_blocks() == ("Z",)
+    assert lv_design.void_generalized and "void" in str(lv_design) and "cannot: G, J, Y1, Y2, Y3" in str(lv)
+    lv_p = fojax.design.live_parameters(hand_designs["proportional"])
+    assert lv_p.live == 1 and not lv_p.void_generalized and "void" not in str(lv_p)
 
 
 def test_tune_moves_only_live_directions_and_reports_them(hand_designs):

@@ -257,6 +257,9 @@ def design(
                                 "region": _region_words(spec), "error": kind, "message": str(err)})
                 continue
             out.say(f"  {d}")
+            live = _live_parameters(d)
+            if live is not None:
+                out.say(f"  {live}")
             path = save_design(
                 d,
                 folder / f"{spec.name}.npz",
@@ -283,7 +286,11 @@ def design(
                             "status": "verified" if view.passed else "not verified",
                             **view.report, "kind": spec.kind, "q0": view.q0, "q1": view.q1,
                             **({"hinf": d.hinf.to_dict()} if getattr(d, "hinf", None) is not None else {}),
-                            **({"h2": d.h2.to_dict()} if getattr(d, "h2", None) is not None else {})})
+                            **({"h2": d.h2.to_dict()} if getattr(d, "h2", None) is not None else {}),
+                            **({"live_parameters": {"live": live.live, "free": live.total,
+                                                    "live_blocks": list(live.live_blocks()),
+                                                    "void_generalized": live.void_generalized}}
+                               if live is not None else {})})
             out.say(f"  saved {path}")
     except BaseException as err:  # a bug or an interrupt: say so in the folder, then stop
         import contextlib
@@ -311,6 +318,13 @@ def design(
               file=sys.stderr, flush=True)
     all_ok = not failed and all(e["status"] == "verified" for e in summary)
     return 0 if all_ok else 1
+
+
+def _live_parameters(d):
+    """`fojax.design.live_parameters` of a generalized/PI/proportional or T-S design, else ``None``."""
+    from ..design import FunctionalObserverDesign, live_parameters, TakagiSugenoObserverDesign
+
+    return live_parameters(d) if isinstance(d, FunctionalObserverDesign | TakagiSugenoObserverDesign) else None
 
 
 def _hinf_rows(summary) -> tuple[list, list]:
@@ -717,7 +731,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
             tuning_rows.append([nm, n_steps, float(tr.initial_heldout), float(tr.final_heldout)])
             out.say(f"  {'training-run' if plan.deterministic else 'held-out training-type'} loss "
                     f"{tr.initial_heldout:.4g} -> {tr.final_heldout:.4g}; "
-                    f"verification {'PASSED' if tr.design.report.passed else 'FAILED'}")
+                    f"verification {'PASSED' if tr.design.report.passed else 'FAILED'}; {tr.live_parameters}")
 
     # what every sample set simulates, per sample (before the long run: nothing is lost if
     # it is interrupted)

@@ -57,7 +57,8 @@ examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
     q1 = 2                               # optional size of v
     objective = "hinf"                   # optional: "region" (default), "hinf" (minimise a
                                          # certified L2-gain bound from w, nu to zhat - z) or
-                                         # "h2" (a certified H2-norm bound; no feedthrough)
+                                         # "h2" (a certified H2-norm bound; no feedthrough) or
+                                         # "centre" (eigenvalues as far inside a disk as the LMI allows)
     Bw = [[...]]                         # "hinf"/"h2": (n, mw) disturbance E x' = ... + Bw w
     Dv = [[...]]                         # "hinf"/"h2": (p, mv) noise y = C x + Dv nu
 
@@ -116,7 +117,7 @@ _TS = {"premise", "index", "lower", "upper", "plant"}
 NONLINEAR_PLANTS = ("robot_arm",)
 _OBSERVER = {"name", "kind", "region", "R", "q0", "q1", "objective", "Bw", "Dv", "D", "delay", "regions",
              "method"}
-OBJECTIVES = ("region", "hinf", "h2")
+OBJECTIVES = ("region", "hinf", "h2", "centre")
 _REGION = {"disk", "decay", "damping"}
 _DISK = {"center", "radius"}
 _STUDY = {"samples", "horizon", "dt", "seed"}
@@ -430,11 +431,13 @@ def _objective(v: _V, key: str, o: dict, n: int, n_design: int, p: int, takagi_s
     """``objective``, ``Bw``, ``Dv`` of one ``[[observer]]``. `Bw` may have `n` rows (the
     model's states; zero rows are added for fault states) or `n_design` rows."""
     objective = v.string(_join(key, "objective"), o["objective"], OBJECTIVES) if "objective" in o else "region"
-    if objective == "region":
+    if objective in ("region", "centre"):
         for ch in ("Bw", "Dv"):
             if ch in o:
                 raise v.err(_join(key, ch), 'is only used with objective = "hinf" or "h2"; add that line or remove '
                             'the key.')
+        if objective == "centre" and takagi_sugeno:
+            raise v.err(_join(key, "objective"), 'is "centre", which is for linear models (not [takagi_sugeno]).')
         return objective, None, None
     if takagi_sugeno:
         raise v.err(_join(key, "objective"), f'is "{objective}", which is for linear models (not [takagi_sugeno]).')
@@ -656,7 +659,7 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
         oname = v.file_name(_join(key, "name"), o["name"], f"observer_{i + 1}") if "name" in o else f"{kind}-{i + 1}"
         special = _special_observer(v, key, o, kind, n, ts_raw is not None, Fa is not None or Fs is not None)
         if objective != "region" and kind in ("unknown-input", "finite-time"):
-            raise v.err(_join(key, "objective"), f"is {objective!r}; objective = \"{objective}\" is for the generalized, PI "
+            raise v.err(_join(key, "objective"), f"is {objective!r}; objective = {objective!r} is for the generalized, PI "
                         f"and proportional kinds, not {kind!r}: remove the key.")
         observers.append(ObserverSpec(oname, kind, region, R, q0, q1, objective, Bw, Dv, **special))
     _check_observer_names(v, [o.name for o in observers])

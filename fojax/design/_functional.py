@@ -63,6 +63,8 @@ from ._verify import VerificationReport, verify
 
 
 KINDS = ("generalized", "PI", "proportional")
+#: ``objective=`` of `design_functional_observer`.
+OBJECTIVE_NAMES = ("region", "hinf", "h2", "centre")
 #: LMIs target the region shrunk by this fraction (`AbstractRegion.tightened`), so that the
 #: returned eigenvalues keep a margin inside the requested region.
 TIGHTEN = 0.05
@@ -522,7 +524,12 @@ def design_functional_observer(
       SLICOT's AB13DD); the result's `hinf` holds γ and the independent norm; or
       ``"h2"``: minimise a certified bound ν on the H2 norm of the same map (it must have
       no feedthrough, else `InputError`; verified by SciPy's Lyapunov solver); the
-      result's `h2` holds ν and the independent norm.
+      result's `h2` holds ν and the independent norm; or
+      ``"centre"``: the error eigenvalues as far inside a bounded `region` (a disk, or an
+      intersection with one) as the region LMI allows — the largest concentric tightening
+      found by bisection (`fojax.design._centre`: derivation, relation to the thesis's LMI);
+      ``design.solver["centre"]`` holds the fraction and the certified margin,
+      ``design.report.region_margin`` the achieved one.
     - `Bw`, `Dv`: ``(n, mw)`` and ``(p, mv)`` channels of ``objective="hinf"``/``"h2"``.
 
     **Returns:** a `FunctionalObserverDesign` whose `report` shows residuals of
@@ -542,9 +549,9 @@ def design_functional_observer(
     """
     check_kind(kind)
     _riccati.check_method(method)
-    if objective not in ("region", "hinf", "h2"):
-        raise InputError(f"objective must be 'region', 'hinf' or 'h2'; got {objective!r}.")
-    if objective == "region" and (Bw is not None or Dv is not None):
+    if objective not in OBJECTIVE_NAMES:
+        raise InputError(f"objective must be one of {OBJECTIVE_NAMES}; got {objective!r}.")
+    if objective not in ("hinf", "h2") and (Bw is not None or Dv is not None):
         raise InputError("Bw/Dv (disturbance and noise channels) are only used with objective='hinf' or "
                          "'h2'; pass one of them or drop Bw/Dv.")
     sys = _as_system(sys)
@@ -562,14 +569,30 @@ def design_functional_observer(
         from ._hinf import design_hinf
         return design_hinf(s, region, kind=kind, margin=margin, solver=solver, Bw=Bw, Dv=Dv, tighten=TIGHTEN,
                            method=method, objective=objective)
-    return _design_from_structure(s, region, kind=kind, margin=margin, solver=solver, method=method)
+    return _design_from_structure(s, region, kind=kind, margin=margin, solver=solver, method=method,
+                                  centre=objective == "centre")
 
 
-def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, method="lmi"):
+def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, method="lmi", centre=False):
     why_not = _riccati.riccati_applies(region, kind, s.num_rules)
     if method == "riccati" and why_not is not None:
         raise InputError(f"method='riccati' does not apply: {why_not}. Use method='lmi' or 'auto'.")
-    if method != "lmi" and why_not is None:
+    if centre and method == "riccati":
+        raise InputError("objective='centre' searches the region LMI (method='lmi'); the Riccati route returns "
+                         "one gain per region. Use method='lmi' or 'auto'.")
+    extra = {}
+    if centre:  # the largest tightening of the region that the LMI still meets (fojax.design._centre)
+        from ._centre import centred_gains
+
+        X, Z, Ys, info = centred_gains(
+            lambda reg: solve_gains(s, reg, kind=kind, margin=margin, solver=solver), region, tighten)
+        info["lmi"]["method"] = "lmi"
+        c = info["centre"]
+        bracket = (f"LMI infeasible above {c['infeasible_above']:.3f}" if c["infeasible_above"] is not None
+                   else "the largest fraction tried")
+        extra["centred"] = (f"region tightened by the fraction {c['fraction']:.3f} ({bracket}); certified "
+                            f"margin >= {c['certified_margin']:.4g}")
+    elif method != "lmi" and why_not is None:
         X, Z, Ys, info = _riccati.riccati_gains(s, region, kind=kind)
     else:
         X, Z, Ys, info = solve_gains(s, region.tightened(tighten), kind=kind, margin=margin, solver=solver)
@@ -585,7 +608,7 @@ def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, 
         "G": blocks["G"],
     }
     route_key = "LMI route" if info["lmi"]["method"] == "lmi" else "design route"
-    mats, report = verify_structure_design(s, params, region, X, extra={route_key: info["lmi"]["route"]})
+    mats, report = verify_structure_design(s, params, region, X, extra={route_key: info["lmi"]["route"], **extra})
     obs = build_observer(s, mats, kind=kind)
     return FunctionalObserverDesign(
         observer=obs,

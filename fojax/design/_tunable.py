@@ -95,6 +95,7 @@ class LiveParameters(NamedTuple):
         basis: ``(total, live)`` orthonormal live directions $V_r$ in the flattened parameters.
         names: the parameter names in flattening order (sorted), with their shapes.
         response_norm: the norm of the response features at the point (their unit).
+        kind: the observer kind (``"generalized"``, ...), for `void_generalized`.
     """
 
     live: int
@@ -103,6 +104,7 @@ class LiveParameters(NamedTuple):
     basis: np.ndarray
     names: tuple
     response_norm: float = 1.0
+    kind: str = ""
 
     def live_mask(self) -> np.ndarray:
         """Per flattened parameter: ``True`` unless the parameter is dead by itself (its own
@@ -111,8 +113,36 @@ class LiveParameters(NamedTuple):
             return np.zeros(self.total, dtype=bool)
         return np.linalg.norm(self.basis, axis=1) > 1e3 * np.finfo(float).eps
 
+    def live_blocks(self) -> tuple[str, ...]:
+        """The parameter blocks (``Z``, ``Y1``, ...) with at least one coordinate that is not dead
+        by itself (`live_mask`), in `names` order."""
+        mask, out, i = self.live_mask(), [], 0
+        for k, shape in self.names:
+            size = math.prod(shape)
+            if size and mask[i:i + size].any():
+                out.append(k)
+            i += size
+        return tuple(out)
+
+    @property
+    def void_generalized(self) -> bool:
+        r"""A ``"generalized"`` observer whose extra freedom cannot reach $\hat z$: no block but
+        ``Z`` is live (e.g. $[R;\Psi]$ of full row rank: $N_3 = F_3 = 0$, module docstring), so it
+        acts as a proportional observer of the same order."""
+        return self.kind == "generalized" and set(self.live_blocks()) <= {"Z"}
+
     def __str__(self) -> str:
-        return f"{self.live} of {self.total} free parameters are live (reach the estimate ẑ)"
+        live = self.live_blocks()
+        dead = [k for k, shape in self.names if math.prod(shape) and k not in live]
+        out = f"{self.live} of {self.total} free parameters are live (reach the estimate ẑ)"
+        if self.names:
+            out += f"; blocks that reach it: {', '.join(live) or 'none'}"
+            out += f"; blocks that cannot: {', '.join(dead)}" if dead else ""
+        if self.void_generalized:
+            out += (". The generalized structure is void here: only Z reaches ẑ, so this observer acts as a "
+                    "proportional one of the same order (choose another R or a larger q0 for a generalized "
+                    "observer with its own freedom)")
+        return out
 
 
 def _check_kind(design, who: str):
@@ -228,27 +258,40 @@ class AbstractParameterization(eqx.Module):
 
     def live(self, params) -> LiveParameters:
         """How many directions of `params` reach the estimate (module docstring; host)."""
-        return _live(self.observer, params)
+        return _live(self.observer, params, self.kind)
 
 
-def _live(observer_fn, params) -> LiveParameters:
+@eqx.filter_jit
+def _error_matrices(observer_fn, params):
+    o = observer_fn(params)
+    return o.error_matrices if hasattr(o, "num_rules") else o.error_matrix
+
+
+@eqx.filter_jit
+def _features_and_jacobian(observer_fn, names, flat, rho, K):
+    def feat(f):
+        return _response_features(observer_fn(unflatten(names, f)), rho, K)
+
+    return feat(flat), jax.jacfwd(feat)(flat)
+
+
+def _live(observer_fn, params, kind: str = "", error_matrices=None) -> LiveParameters:
+    # compiled as two functions (built op by op, the observer compiles ~100 primitives, 30-60 s
+    # under load); a parameterization's bound `observer` is a pytree, so a second call with the
+    # same shapes reuses them
     names = tuple(sorted((k, tuple(np.shape(v))) for k, v in params.items()))
     flat0 = jnp.concatenate([jnp.ravel(jnp.asarray(params[k])) for k, _ in names]) if names else jnp.zeros(0)
-    obs0 = observer_fn(params)
-    As = np.asarray(obs0.error_matrices if hasattr(obs0, "num_rules") else obs0.error_matrix)
+    As = np.asarray(_error_matrices(observer_fn, params) if error_matrices is None else error_matrices)
     rho = max(float(np.max(np.abs(np.linalg.eigvals(As)))), 1e-300) if As.size else 1.0
     K = 2 * As.shape[-1] + 2
-
-    def feat(flat):
-        return _response_features(observer_fn(unflatten(names, flat)), rho, K)
-
     if flat0.size == 0:
-        return LiveParameters(0, 0, np.zeros(0), np.zeros((0, 0)), names, 0.0)
-    Jm = np.asarray(jax.jacfwd(feat)(flat0))
-    fnorm = float(np.linalg.norm(np.asarray(feat(flat0))))
+        return LiveParameters(0, 0, np.zeros(0), np.zeros((0, 0)), names, 0.0, kind)
+    f0, Jm = _features_and_jacobian(observer_fn, names, flat0, jnp.asarray(rho), K)
+    Jm = np.asarray(Jm)
+    fnorm = float(np.linalg.norm(np.asarray(f0)))
     _, sv, Vt = np.linalg.svd(Jm, full_matrices=False)
     r = int(np.sum(sv > RANK_RTOL * sv[0])) if sv.size and sv[0] > 0 else 0
-    return LiveParameters(r, int(flat0.size), sv, Vt[:r].T, names, fnorm)
+    return LiveParameters(r, int(flat0.size), sv, Vt[:r].T, names, fnorm, kind)
 
 
 def live_parameters(design) -> LiveParameters:
@@ -276,7 +319,8 @@ def live_parameters(design) -> LiveParameters:
                                         kind=design.kind)
         return build_observer(s, m, kind=design.kind)
 
-    return _live(observer, params)
+    As = o.error_matrices if ts else o.error_matrix  # the design's own: nothing to compile
+    return _live(observer, params, design.kind, As)
 
 
 def unflatten(names: tuple, flat) -> dict:

@@ -31,6 +31,15 @@ reach $\hat z$). The optimizer moves $\xi$ with $\theta = \theta_0 + B\xi$:
   ``"none"``/``"live"``: its step size needs its own learning rate.
 - ``"none"``: the raw parameters (the behaviour before this option).
 
+Which default: on the LC-filter benchmark (``benchmarks/tuning_circuit.py``, 100 Adam steps at
+learning rate 0.1 from the centred LMI design, held-out samples of another seed) ``"live"``
+and ``"whiten"`` gave −20.4 % and −18.9 % held-out IAE on the plain model; on its twin with
+rows and states rescaled by 1e-3…1e3 the tuned IAE was 6.2 % / 6.1 % above the plain
+model's (designed with its own default ``R``) and 5.8 % / 4.7 % (designed with the plain
+model's ``R``). Whitening makes the *steps* unit-free, but the starting design is not:
+``default_R`` and the LMI solution (``X ⪰ I``, minimum gains) depend on the units, so the
+two runs start from different observers. ``"live"`` stays the default.
+
 In every mode the count is reported (`TuneResult.live_parameters`, the design's
 ``solver["tuning"]``).
 `TuneResult.live_parameters` and the design's ``solver["tuning"]`` report the count.
