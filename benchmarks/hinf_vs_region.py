@@ -107,9 +107,11 @@ def designs(ex, case, sigma, h2_q0):
 
 def tuned(ds, ex, case, args, sigma):
     """`fojax.tune` of each region-only design on a training study (another seed)."""
+    out, info = {}, {}
+    if args.tune_steps == 0:  # --tune-steps 0: no tuned column
+        return out, info
     train = study(ex, case, args.train_deltas, args.faults if case == "faults" else 1, sigma, args.noise_dt,
                   args.seed + 1)
-    out, info = {}, {}
     opt = fojax.tuning.shared_optimizer("adam", learning_rate=args.tune_lr)
     for kind in ("proportional", "generalized"):
         t = time.perf_counter()
@@ -152,7 +154,7 @@ def main(argv=None) -> int:
     ap.add_argument("--noise-dt", type=float, default=0.05, help="hold time of the output noise [s]")
     ap.add_argument("--cases", nargs="+", default=["states", "noise", "faults"], choices=["states", "noise", "faults"])
     ap.add_argument("--h2-q0", type=int, default=4, help="observer order of the H2 design")
-    ap.add_argument("--tune-steps", type=int, default=30)
+    ap.add_argument("--tune-steps", type=int, default=30, help="0: no tuned design")
     ap.add_argument("--tune-lr", type=float, default=0.05)
     ap.add_argument("--train-deltas", type=int, default=8, help="samples of the training study of the tuned design")
     ap.add_argument("--out", default=str(_common.RESULTS / "hinf_vs_region_latest.json"))
@@ -194,8 +196,9 @@ def main(argv=None) -> int:
                              "mean_iae_region": r["mean_iae_total"], "mean_iae_hinf": h["mean_iae_total"],
                              "iae_change_pct": 100 * (h["mean_iae_total"] / r["mean_iae_total"] - 1),
                              "mean_peak_region": r["mean_peak_max_signal"], "mean_peak_hinf": h["mean_peak_max_signal"],
-                             "mean_iae_tuned": per[f"tuned {kind}"]["mean_iae_total"],
-                             "mean_peak_tuned": per[f"tuned {kind}"]["mean_peak_max_signal"],
+                             **({"mean_iae_tuned": per[f"tuned {kind}"]["mean_iae_total"],
+                                 "mean_peak_tuned": per[f"tuned {kind}"]["mean_peak_max_signal"]}
+                                if f"tuned {kind}" in per else {}),
                              **({"nu": g["h2"]["nu"], "norm_h2": g["h2"]["norm"], "h2_q0": g["h2"]["q0"],
                                  "mean_iae_h2": per[f"h2 {kind}"]["mean_iae_total"],
                                  "mean_peak_h2": per[f"h2 {kind}"]["mean_peak_max_signal"]}
@@ -209,6 +212,8 @@ def main(argv=None) -> int:
                       f"peak at {g['peak_frequency']:.3g} rad/s", flush=True)
                 for extra in ("tuned", "h2"):
                     e = per.get(f"{extra} {kind}")
+                    if e is None and extra == "tuned":
+                        continue
                     print(f"    {extra:5s} mean IAE {e['mean_iae_total']:.4f} "
                           f"({100 * (e['mean_iae_total'] / r['mean_iae_total'] - 1):+.1f} % vs region); mean peak "
                           f"{e['mean_peak_max_signal']:.4f}" if e else f"    {extra}: {g['h2'].get('refused')}", flush=True)
