@@ -562,8 +562,8 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     mesh = sample_mesh(cfg.devices)
     if cfg.method in ("auto", "exact") and traced_qualifies(study, (observer,)):
         # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
-        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh)
-        per = w @ mets[METRICS.index(loss)]  # (B,)
+        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh, metric=loss)
+        per = w @ mets[0]  # (B,)
         return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
     iu, jf = (jnp.asarray(a) for a in _indices(study))
 
