@@ -27,10 +27,18 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 from jaxtyping import Array
 
 from ..plant import Constant, PiecewiseConstant, Ramp, Sine, Stack, Step, SumSignal, Zero
-from ..simulation._batch import _block_kernel, _output_basis, Exogenous, joint_matrices
+from ..simulation._batch import (
+    _block_kernel,
+    _DIFF_MAX_SQUARINGS,
+    _output_basis,
+    Exogenous,
+    expm_last,
+    joint_matrices,
+)
 from ..simulation._reduction import (
     check_index1_host,
     is_concrete,
@@ -39,7 +47,7 @@ from ..simulation._reduction import (
     SVDSplit,
 )
 from ..simulation._simulate import UNIFORM_GRID_RTOL
-from ._adjoint import linear_recurrence_reduce
+from ._adjoint import split_recurrence_reduce
 from ._sharding import per_sample
 from ._wrappers import FaultProfile, FaultyPlant
 
@@ -367,9 +375,64 @@ def traced_qualifies(study, observers) -> bool:
     return True
 
 
+def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts):
+    r"""The time loop of one block of `sample_metrics_traced`: the joint state
+    ``w = [x (n); ξ (q); v]`` split into the plant part ``p = [x; v]`` and the observers'
+    ``ξ`` (`fojax.studies._adjoint.split_recurrence_reduce`).
+
+    The plant part (``Φ_pp``, ``p_0``, its jumps) is rebuilt from the joint of the same
+    samples with the observers under `jax.lax.stop_gradient` (the plant rows of the joint
+    do not involve the observers) and discretised by its own `expm_last`: nothing the
+    observers' parameters reach is treated as constant, and differentiating with respect
+    to the study's arrays raises `fojax.InputError` (the adjoint has no plant part). ``Φ_pp = e^{A_p h}`` is the plant block of ``e^{\mathcal A h}`` (block
+    lower-triangular ``\mathcal A``), equal up to rounding."""
+    sp = problem.study if isinstance(problem, LossProblem) else problem
+    n = sp.E0.shape[0]
+    nq = sum(o.state_size for o in sp.observers)
+    N = Phi.shape[0]
+
+    def rows(X, axis):  # the plant entries [0, n) ∪ [n + nq, N) along `axis`
+        return jnp.concatenate([lax.slice_in_dim(X, 0, n, axis=axis), lax.slice_in_dim(X, n + nq, N, axis=axis)],
+                               axis=axis)
+
+    def obs(X, axis):
+        return lax.slice_in_dim(X, n, n + nq, axis=axis)
+
+    sg = lambda t: jax.tree.map(lambda x: lax.stop_gradient(x) if eqx.is_array(x) else x, t)  # noqa: E731
+    free = eqx.tree_at(lambda pr: pr.observers, sp, sg(sp.observers))
+
+    def plant_of(pk):
+        pk = tuple(pk[:2]) + tuple(sg(x) for x in pk[2:])
+        Aj, w0p, _, _, jumps = free.joint(pk)
+        return rows(rows(Aj, 0), 1), rows(w0p, 0), jumps
+
+    Ap, p0, jumps = jax.vmap(plant_of)(q)  # (b, m, m), (b, m)
+    expm = lambda M: expm_last(M, max_squarings=_DIFF_MAX_SQUARINGS)  # noqa: E731
+    Ppp = expm(jnp.moveaxis(h * Ap, 0, -1))
+    jvp = None
+    if jv is not None:
+        # the plant part of e^{A (t_k - t_j)} Δw_j, as `_block_kernel` forms the joint one
+        jt, dW = jumps  # (b, J), (b, J, N)
+        b_, J = jt.shape
+        valid = (kon.T >= 1) & jnp.isfinite(jt)  # kon: -1 where the jump is off the grid's steps
+        tau = jnp.where(valid, ts[jnp.clip(kon.T, 0, ts.shape[0] - 1)] - jnp.where(valid, jt, 0.0), 0.0)
+        Mj = (tau[:, :, None, None] * Ap[:, None]).reshape((b_ * J,) + Ap.shape[1:])
+        Psi = expm(jnp.moveaxis(Mj, 0, -1))  # (m, m, b J)
+        dWp = jnp.moveaxis(rows(dW, 2).reshape(b_ * J, -1), 0, -1)  # (m, b J)
+        jvp = jnp.einsum("ijb,jb->ib", Psi, dWp)
+        jvp = jnp.moveaxis(jvp.reshape(jvp.shape[0], b_, J), 2, 0)  # (J, m, b)
+        jvp = jnp.where(valid.T[:, None, :], jvp, 0.0)
+    diff = (obs(obs(Phi, 0), 1), rows(obs(Phi, 0), 1), obs(G, 1), rows(G, 1), obs(w0, 0),
+            None if jv is None else obs(jv, 1), ts)
+    acc, p_end, xi_end = split_recurrence_reduce(diff, (Ppp, p0.T, jvp), problem, kon)
+    w_end = jnp.concatenate([p_end[:n], xi_end, p_end[n:]], axis=0)
+    return acc, w_end
+
+
 def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str | None = None):
     """Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of every sample, exactly and
-    reverse-differentiably (blocks of `DIFF_BLOCK` samples, `expm_last` with a
+    reverse-differentiably with respect to the observers (the time loop split into the
+    plant and the observers, `_split_loop`; blocks of `DIFF_BLOCK` samples, `expm_last` with a
     fixed-length squaring scan, the masked full-size slow coordinates so that nothing
     needs ``rank E`` on the host). With `metric` (``"iae"`` or ``"ise"``) only that metric
     is accumulated (`LossProblem`) and the result is ``(1, K, B)``. With a `mesh`
@@ -389,8 +452,8 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
     def block(shared, q):
         problem, ts, h = shared
         mets, ok = _block_kernel(problem, q, h, ts, None, differentiable=True,
-                                 time_loop=lambda pr, Phi, w0, G, jv, kon, ts: linear_recurrence_reduce(
-                                     (Phi, w0, G, jv, ts), pr, kon))
+                                 time_loop=lambda pr, Phi, w0, G, jv, kon, ts: _split_loop(
+                                     pr, q, h, Phi, w0, G, jv, kon, ts))
         mets = mets[None] if mets.ndim == 2 else mets  # LossProblem: (K, b) -> (1, K, b)
         return jnp.moveaxis(mets, -1, 0), ok  # samples first
 

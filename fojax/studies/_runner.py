@@ -544,11 +544,14 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
 
     With ``cfg.method`` ``"auto"`` or ``"exact"`` and a study of LTI samples with known
     signals (the types `run_study`'s exact engine accepts; a traced grid is assumed
-    uniform), every sample runs on the exact batch-last kernel in one reverse-differentiable
-    block (`fojax.studies._exact.sample_metrics_traced`; its reverse mode is the adjoint
-    recurrence of `fojax.studies._adjoint`, checkpointed, so memory does not grow with the
-    number of time steps; like `jax.grad`, it takes the derivative of $|e|$ as
-    $\mathrm{sign}(e)$, 0 at 0); otherwise each sample runs
+    uniform), every sample runs on the exact batch-last kernel, reverse-differentiable with
+    respect to the observer (`fojax.studies._exact.sample_metrics_traced`: blocks of 32
+    samples; its reverse mode is the adjoint recurrence of `fojax.studies._adjoint` at the
+    observer's size, the plant's trajectory being independent of the observer,
+    checkpointed, so memory does not grow with the number of time steps; like `jax.grad`,
+    it takes the derivative of $|e|$ as $\mathrm{sign}(e)$, 0 at 0; differentiating with
+    respect to the study's arrays raises `fojax.InputError`: use
+    ``cfg=SimConfig(method="diffrax")`` for that); otherwise each sample runs
     `fojax.simulate` under `jax.vmap`.
 
     With ``cfg.devices`` (e.g. ``jax.devices()`` after `jax.distributed.initialize`: all
