@@ -11,15 +11,21 @@ What is measured (public API only, one process, float64):
   host-side certification of every iterate (eigenvalues of the error dynamics);
 - the gradient part alone: ``jax.value_and_grad`` of ``fojax.studies.study_loss`` with
   respect to the observer's matrices, jitted (compile = first call − warm call);
-- gradient agreement: the directional derivative along a random unit direction against a
-  central finite difference (steps 1e-4, 1e-5, 1e-6), for IAE and ISE of the same ``study_loss``;
+- the host-side certification of one iterate (``parameterization.host_check``: the traced
+  margin, the error dynamics' eigenvalues and the float64 ``certify``), which `tune` runs on
+  every accepted candidate;
+- with ``--finite-differences`` only (slower: a second loss, its compilations and six more
+  forward passes each): gradient agreement, the directional derivative along a random unit
+  direction against a central finite difference (steps 1e-4, 1e-5, 1e-6), for IAE and ISE
+  of the same ``study_loss``; without it the IAE loss (what `tune` trains) is timed alone;
 - wall and process CPU seconds, and ``os.getloadavg()`` before and after: the reference
   machine is a shared 2-core box, so wall times are measured under load.
 
 There is no peer: no SciPy/NumPy library tunes these observers; a user's alternative is
 finite differences, whose cost is (number of parameters + 1) forward passes (recorded).
 
-    python benchmarks/tuning_step.py            # B = 2048
+    python benchmarks/tuning_step.py                        # B = 2048, quick
+    python benchmarks/tuning_step.py --finite-differences   # + gradient agreement (IAE and ISE)
     python benchmarks/tuning_step.py --B 256 --extra-steps 1
 """
 
@@ -66,6 +72,8 @@ def main():
     ap.add_argument("--B", type=int, default=2048)
     ap.add_argument("--extra-steps", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--finite-differences", action="store_true",
+                    help="also check the gradient against central differences, for IAE and ISE")
     ap.add_argument("--out", default=str(_common.RESULTS / "tuning_step_latest.json"))
     args = ap.parse_args()
     info = _common.machine_info()
@@ -83,7 +91,7 @@ def main():
     v = jax.tree.unflatten(jax.tree.structure(dyn), [x / nrm for x in v])
     n_params = int(sum(x.size for x in leaves))
     grad_rows = {}
-    for name in ("iae", "ise"):
+    for name in ("iae", "ise") if args.finite_differences else ("iae",):
         loss = eqx.filter_jit(lambda p, s, name=name: fojax.studies.study_loss(s, eqx.combine(p, st), loss=name))
         vg = eqx.filter_jit(lambda p, s, name=name: eqx.filter_value_and_grad(
             lambda q: fojax.studies.study_loss(s, eqx.combine(q, st), loss=name))(p))
@@ -91,11 +99,6 @@ def main():
         runs = [clock(lambda: vg(dyn, study))[1:] for _ in range(args.repeats)]
         _, fwd_first_w, _ = clock(lambda: loss(dyn, study))
         fruns = [clock(lambda: loss(dyn, study))[1:] for _ in range(args.repeats)]
-        an = float(sum(jnp.sum(a * b) for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(v))))
-        fds = {}
-        for eps in (1e-4, 1e-5, 1e-6):
-            fds[f"{eps:g}"] = (float(loss(jax.tree.map(lambda a, b: a + eps * b, dyn, v), study))
-                               - float(loss(jax.tree.map(lambda a, b: a - eps * b, dyn, v), study))) / (2 * eps)
         fwd_w = statistics.median(r[0] for r in fruns)
         grad_rows[name] = dict(
             value_and_grad_s=statistics.median(r[0] for r in runs),
@@ -103,11 +106,26 @@ def main():
             value_and_grad_compile_s=vg_first_w - statistics.median(r[0] for r in runs),
             forward_s=fwd_w, forward_cpu_s=statistics.median(r[1] for r in fruns),
             forward_compile_s=fwd_first_w - fwd_w,
-            grad_directional=an, central_differences=fds,
-            rel_error={e: abs(an - fd) / max(abs(fd), 1e-300) for e, fd in fds.items()},
+            # what a user without reverse mode would pay: 2 forward passes per parameter
             finite_difference_gradient_estimate_s=(2 * n_params) * fwd_w,
         )
+        if args.finite_differences:
+            an = float(sum(jnp.sum(a * b) for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(v))))
+            fds = {}
+            for eps in (1e-4, 1e-5, 1e-6):
+                fds[f"{eps:g}"] = (float(loss(jax.tree.map(lambda a, b: a + eps * b, dyn, v), study))
+                                   - float(loss(jax.tree.map(lambda a, b: a - eps * b, dyn, v), study))) / (2 * eps)
+            grad_rows[name].update(grad_directional=an, central_differences=fds,
+                                   rel_error={e: abs(an - fd) / max(abs(fd), 1e-300) for e, fd in fds.items()})
         print(name, json.dumps(grad_rows[name]), flush=True)
+
+    # the host-side certification of one iterate (tune runs it on every accepted candidate)
+    par, params0 = fojax.tuning.initial_parameters(design)
+    par.host_check(params0)  # first call compiles the traced margin
+    host = [clock(lambda: par.host_check(params0))[1:] for _ in range(args.repeats)]
+    host_check_s = min(h[0] for h in host)
+    host_check_cpu_s = min(h[1] for h in host)
+    print("host_check", host_check_s, host_check_cpu_s, flush=True)
 
     # the public tuning step
     k = args.extra_steps
@@ -123,6 +141,7 @@ def main():
         tune_step_s=step_w, tune_step_cpu_s=step_c, tune_first_call_s=t_cold, tune_first_call_cpu_s=c_cold,
         tune_compile_estimate_s=t_cold - t1, tune_warm_call_steps1_s=t1, tune_retraced_on_warm_calls=retraced,
         train_loss=[float(x) for x in res.history["train_loss"]], accepted=[bool(a) for a in res.history["accepted"]],
+        host_check_s=host_check_s, host_check_cpu_s=host_check_cpu_s,
         observer_parameters=n_params, study_loss=grad_rows,
     )
     print(json.dumps(row), flush=True)
@@ -133,8 +152,9 @@ def main():
                    design="generalized, Disk(-3, 2)", horizon_s=study_default.T_END, dt_s=study_default.DT),
         target="one tuning step at B = 2,048 <= 0.3 s; compile of a tuning step <= 10 s",
         machine=info, rows=[row], load_average_at_start=load0, load_average_at_end=_common.load_average(),
-        note="measured once on a shared 2-core machine under load from other jobs (see load averages); "
-             "CPU seconds are this process's",
+        note="measured under load: once, on a shared 2-core machine busy with other jobs (see the load "
+             "averages); CPU seconds are this process's",
+        finite_differences=bool(args.finite_differences),
     )
     _common.write_result(args.out, result)
 

@@ -4,6 +4,8 @@ Oracles: (1) a plain `jax.lax.scan` of the same recurrence written here, differe
 by `jax.grad` (what `study_loss` used before the custom VJP); (2) a NumPy loop for the
 forward values; (3) central finite differences; (4) `study_loss` on a study with jumps (a
 step input between grid points) with the kernel's former time loop, through `jax.grad`.
+The split loop (`split_recurrence_reduce`: plant constant, adjoint at the observers' size)
+is checked against (1) on a block lower-triangular Φ: the blocks of `jax.grad` of the joint scan.
 """
 
 import equinox as eqx
@@ -16,7 +18,7 @@ import fojax
 from fojax import studies as S
 from fojax.design import design_functional_observer, Disk
 from fojax.studies import _exact
-from fojax.studies._adjoint import linear_recurrence_reduce
+from fojax.studies._adjoint import linear_recurrence_reduce, split_recurrence_reduce
 
 
 class _Metrics(eqx.Module):
@@ -148,3 +150,37 @@ def test_study_loss_with_jumps_equals_former_reverse_mode(monkeypatch):
     assert np.isclose(float(v1), float(v0), rtol=1e-13)
     for a, b in zip(jax.tree.leaves(g1), jax.tree.leaves(g0)):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12 * float(jnp.max(jnp.abs(b))))
+
+
+@pytest.mark.parametrize("segment", [None, 1, 4, 11, 20])
+def test_split_loop_equals_joint_scan_and_its_gradient_blocks(data, segment):
+    # plant p = w[:M] (constant), observers ξ = w[M:]: Φ block lower triangular; the split
+    # loop's value and its gradient w.r.t. Φ_ξξ, Φ_ξp, G, ξ_0 and the observer part of the
+    # jumps equal the joint scan's and the matching blocks of jax.grad of the joint scan;
+    # every segment layout (a tail of 3 steps at 4, none at 11, one segment at 20)
+    (Phi, w0, G, jv, ts), kon = data
+    M = 2
+    Phi = Phi.at[:M, M:].set(0.0)
+
+    def scalar1(acc, xi_end):
+        (s1, s2, s3, peak, _), = (acc,)
+        return jnp.sum(s1) + 0.7 * jnp.sum(s2) - 0.3 * jnp.sum(s3) + 0.2 * jnp.sum(peak) + jnp.sum(jnp.sin(xi_end))
+
+    def split(d):
+        Poo, Pop, Go, Gp, xi0, jvo = d
+        plant = (Phi[:M, :M], w0[:M], jv[:, :M])
+        acc, p_end, xi_end = split_recurrence_reduce((Poo, Pop, Go, Gp, xi0, jvo, ts), plant, PROB, kon, segment)
+        return scalar1(acc, xi_end), p_end
+
+    def joint(Phi_, w0_, G_, jv_):
+        acc, w = plain((Phi_, w0_, G_, jv_, ts), kon)
+        return scalar1(acc, w[M:]), w[:M]
+
+    d0 = (Phi[M:, M:], Phi[M:, :M], G[:, M:], G[:, :M], w0[M:], jv[:, M:])
+    (v, p_end), g = jax.jit(jax.value_and_grad(split, has_aux=True))(d0)
+    (v0, p0_end), (gP, gw, gG, gj) = jax.value_and_grad(joint, argnums=(0, 1, 2, 3), has_aux=True)(Phi, w0, G, jv)
+    np.testing.assert_allclose(v, v0, rtol=1e-13)
+    np.testing.assert_allclose(p_end, p0_end, rtol=1e-13)
+    want = (gP[M:, M:], gP[M:, :M], gG[:, M:], gG[:, :M], gw[M:], gj[:, M:])
+    for a, b in zip(g, want):
+        np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12 * float(jnp.max(jnp.abs(b))))

@@ -62,6 +62,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from .._errors import InputError
 from ..simulation._batch import _matvec_last
 
 
@@ -225,3 +226,185 @@ def _bwd(saved, grad_obj, perturbed, diff, problem, kon, segment=None):
     lam0 = mu + _rmatvec_last(G, o0_bar)
     Gb = Gb + o0_bar[:, None, :] * w0[None, :, :]
     return (Pb, lam0, Gb, jb, tb)
+
+
+# --- the loop split into the plant (constant) and the observers (differentiated) ----------
+
+
+def _split_step(problem, plant, diff, kon, p, xi, acc, k):
+    """Step ``k`` (``1 ≤ k ≤ n``) of the split loop: ``(p_k, ξ_k, acc_k)``."""
+    Ppp, _, jvp = plant
+    Poo, Pop, Go, Gp, _, jvo, ts = diff
+    pn = _jump(_matvec_last(Ppp, p), jvp, kon, k)
+    xn = _jump(_matvec_last(Poo, xi) + _matvec_last(Pop, p), jvo, kon, k)
+    return pn, xn, problem.update(acc, _matvec_last(Go, xn) + _matvec_last(Gp, pn), k, ts)
+
+
+def _split_layout(T: int, segment: int | None):
+    """``(n, S, full, tail)``: ``n = T − 1`` steps in ``full`` segments of ``S`` steps and
+    one of ``tail < S`` steps. (The joint loop pads the last segment and skips the padded
+    steps with selects; in the split loop those selects made XLA CPU's step 40x slower,
+    measured, so the segments here have exact lengths.)"""
+    n = T - 1
+    S = max(1, math.ceil(math.sqrt(n))) if segment is None else int(segment)
+    return n, S, n // S, n % S
+
+
+def _split_forward(problem, plant, diff, kon, segment, checkpoints: bool):
+    Go, Gp, xi0, ts = diff[2], diff[3], diff[4], diff[6]
+    p0 = plant[1]
+    n, S, full, tail = _split_layout(ts.shape[0], segment)
+    acc0 = problem.init(_matvec_last(Go, xi0) + _matvec_last(Gp, p0))
+
+    def run(carry, ks):
+        out, _ = lax.scan(lambda c, k: (_split_step(problem, plant, diff, kon, *c, k), None), carry, ks)
+        return out
+
+    def outer(carry, s):
+        return run(carry, 1 + s * S + jnp.arange(S)), (carry if checkpoints else None)
+
+    carry, saved = lax.scan(outer, (p0, xi0, acc0), jnp.arange(full))
+    saved_tail = carry
+    if tail:
+        carry = run(carry, 1 + full * S + jnp.arange(tail))
+    p_end, xi_end, acc = carry
+    return (acc, p_end, xi_end), ((saved, saved_tail) if checkpoints else None)
+
+
+def split_recurrence_reduce(diff, plant, problem, kon, segment=None):
+    r"""The loop of the module docstring for a joint state $w = (p, \xi)$ whose first part
+    $p$ (the plant and its exosystem) does not depend on the differentiated arguments,
+    with an adjoint that runs at the size of $\xi$ (the observers).
+
+    In a study the observers do not feed back into the plant, so $\Phi$ is block lower
+    triangular, $\Phi = \begin{bmatrix}\Phi_{pp} & 0\\ \Phi_{\xi p} & \Phi_{\xi\xi}\end{bmatrix}$
+    (the upper right block of $e^{\mathcal A h}$ is exactly zero because that of
+    $\mathcal A$ is), and
+
+    $$p_k = \Phi_{pp}p_{k-1} + v^p_{(k)},\qquad
+    \xi_k = \Phi_{\xi\xi}\xi_{k-1} + \Phi_{\xi p}p_{k-1} + v^\xi_{(k)},\qquad
+    o_k = G_\xi \xi_k + G_p p_k .$$
+
+    With $\ell$ as in the module docstring and $p$ constant, only the observer part of the
+    adjoint is needed: $\lambda_n = \bar\xi_n + G_\xi^\top\bar o_n$,
+    $\lambda_k = \Phi_{\xi\xi}^\top\lambda_{k+1} + G_\xi^\top\bar o_k$, and
+
+    $$\bar\Phi_{\xi\xi} = \sum_{k\ge1}\lambda_k\xi_{k-1}^\top,\quad
+    \bar\Phi_{\xi p} = \sum_{k\ge1}\lambda_k p_{k-1}^\top,\quad
+    \bar G_\xi = \sum_{k\ge0}\bar o_k\xi_k^\top,\quad
+    \bar G_p = \sum_{k\ge0}\bar o_k p_k^\top,\quad \bar v^\xi_j = \lambda_{k_j},\quad
+    \bar\xi_0 = \lambda_0 .$$
+
+    (the same equations as the joint adjoint with the plant rows of $\lambda$ dropped: they
+    would only feed the cotangents of $\Phi_{pp}$, $p_0$ and $v^p$). Per step the
+    backward costs $\dim\xi^2$ instead of $(\dim p + \dim\xi)^2$ for $\Phi^\top\lambda$,
+    and the outer-product sums skip the $\Phi_{pp}$ block.
+
+    **Arguments:**
+
+    - `diff`: ``(Poo, Pop, Go, Gp, xi0, jvo, ts)``: ``(q, q, b)``, ``(q, m, b)``,
+      ``(K, q, b)``, ``(K, m, b)``, ``(q, b)``, ``(J, q, b)`` or ``None``, ``(T,)``.
+    - `plant`: ``(Ppp, p0, jvp)``: ``(m, m, b)``, ``(m, b)``, ``(J, m, b)`` or ``None``;
+      the caller must build them from data that the differentiated arguments do not
+      reach. Differentiating with respect to them (e.g. `jax.grad` with respect to the
+      study's own arrays) raises `fojax.InputError` when the reverse pass is traced: the
+      plant part of the adjoint is not computed, so such a gradient would be incomplete.
+    - `problem`, `kon`, `segment`: as in `linear_recurrence_reduce`.
+
+    **Returns:** ``(acc, p_end, xi_end)``.
+    """
+    problem = jax.tree.map(lambda x: lax.stop_gradient(x) if eqx.is_array(x) else x, problem)
+    return _split_reduce((diff, plant), problem, kon, segment)
+
+
+@eqx.filter_custom_vjp
+def _split_reduce(args, problem, kon, segment=None):
+    diff, plant = args
+    out, _ = _split_forward(problem, plant, diff, kon, segment, checkpoints=False)
+    return out
+
+
+@_split_reduce.def_fwd
+def _split_fwd(perturbed, args, problem, kon, segment=None):
+    diff, plant = args
+    return _split_forward(problem, plant, diff, kon, segment, checkpoints=True)
+
+
+@_split_reduce.def_bwd
+def _split_bwd(saved, grad_obj, perturbed, args, problem, kon, segment=None):
+    diff, plant = args
+    if any(jax.tree.leaves(perturbed[1])):
+        raise InputError(
+            "study_loss's reverse mode differentiates the observers only: the plant's trajectory (Φ_pp, its "
+            "initial state or jumps) is being differentiated, e.g. jax.grad with respect to the study's arrays. "
+            "Differentiate with respect to the observer, or use cfg=SimConfig(method='diffrax') for derivatives "
+            "with respect to the study.")
+    Poo, Pop, Go, Gp, xi0, jvo, ts = diff
+    p0 = plant[1]
+    n, S, full, tail = _split_layout(ts.shape[0], segment)
+    (ps_ck, xs_ck, accs_ck), tail_ck = saved
+    acc_bar, _, xi_bar = grad_obj  # p_end does not depend on `diff`: its cotangent is not needed
+    acc_f0, _ = _float_part(problem.init(_matvec_last(Go, xi0) + _matvec_last(Gp, p0)))
+    given = (acc_f0 if acc_bar is None else _float_part(acc_bar)[0])
+    acc_bar = jax.tree.map(
+        lambda z, g: None if z is None else (jnp.zeros_like(z) if g is None or acc_bar is None else g),
+        acc_f0, given, is_leaf=lambda x: x is None)
+    mu = jnp.zeros_like(xi0) if xi_bar is None else xi_bar
+
+    def update_vjp(acc_prev, o, k, cot):
+        accf, acci = _float_part(acc_prev)
+
+        def f(accf, o, ts):
+            return _float_part(problem.update(eqx.combine(accf, acci), o, k, ts))[0]
+
+        _, vjp = jax.vjp(f, accf, o, ts)
+        return vjp(cot)
+
+    def back_step(carry, x):
+        mu, acc_bar, tb = carry
+        p_k, xi_k, acc_prev, k = x
+        o_k = _matvec_last(Go, xi_k) + _matvec_last(Gp, p_k)
+        acc_bar, o_bar, t_bar = update_vjp(acc_prev, o_k, k, acc_bar)
+        # Gᵀō as a dot (see `_bwd`)
+        lam = mu + jnp.einsum("kib,kb->ib", Go, o_bar)
+        return (_rmatvec_last(Poo, lam), acc_bar, tb + t_bar), (lam, o_bar)
+
+    def back(carry, start, ks):
+        """The adjoint through the steps ``ks`` from the checkpoint ``start``."""
+        mu, acc_bar, Poo_b, Pop_b, Go_b, Gp_b, jb, tb = carry
+
+        def rec(c, k):
+            new = _split_step(problem, plant, diff, kon, *c, k)
+            return new, (c[0], c[1], c[2], new[0], new[1])
+
+        _, (p_prev, xi_prev, acc_prev, p_k, xi_k) = lax.scan(rec, start, ks)
+        (mu, acc_bar, tb), (lam, o_bar) = lax.scan(back_step, (mu, acc_bar, tb), (p_k, xi_k, acc_prev, ks),
+                                                   reverse=True)
+        Poo_b = Poo_b + jnp.einsum("kib,kjb->ijb", lam, xi_prev)
+        Pop_b = Pop_b + jnp.einsum("kib,kjb->ijb", lam, p_prev)
+        Go_b = Go_b + jnp.einsum("kib,kjb->ijb", o_bar, xi_k)
+        Gp_b = Gp_b + jnp.einsum("kib,kjb->ijb", o_bar, p_k)
+        if jb is not None:
+            hit = jnp.where(kon[None] == ks[:, None, None], 1.0, 0.0)  # (steps, J, b)
+            jb = jb + jnp.einsum("kjb,kib->jib", hit, lam)
+        return (mu, acc_bar, Poo_b, Pop_b, Go_b, Gp_b, jb, tb)
+
+    zeros = jnp.zeros_like
+    carry = (mu, acc_bar, zeros(Poo), zeros(Pop), zeros(Go), zeros(Gp), None if jvo is None else zeros(jvo), zeros(ts))
+    if tail:
+        carry = back(carry, tail_ck, 1 + full * S + jnp.arange(tail))
+
+    def segment_back(carry, s):
+        start = jax.tree.map(lambda a: a[s], (ps_ck, xs_ck, accs_ck))
+        return back(carry, start, 1 + s * S + jnp.arange(S)), None
+
+    if full:
+        carry, _ = lax.scan(segment_back, carry, jnp.arange(full), reverse=True)
+    mu, acc_bar, Poo_b, Pop_b, Go_b, Gp_b, jb, tb = carry
+    o0 = _matvec_last(Go, xi0) + _matvec_last(Gp, p0)
+    _, vjp0 = jax.vjp(lambda o: _float_part(problem.init(o))[0], o0)
+    (o0_bar,) = vjp0(acc_bar)
+    lam0 = mu + _rmatvec_last(Go, o0_bar)
+    Go_b = Go_b + o0_bar[:, None, :] * xi0[None, :, :]
+    Gp_b = Gp_b + o0_bar[:, None, :] * p0[None, :, :]
+    return (Poo_b, Pop_b, Go_b, Gp_b, lam0, jb, tb), jax.tree.map(lambda _: None, plant)

@@ -544,17 +544,20 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
 
     With ``cfg.method`` ``"auto"`` or ``"exact"`` and a study of LTI samples with known
     signals (the types `run_study`'s exact engine accepts; a traced grid is assumed
-    uniform), every sample runs on the exact batch-last kernel in one reverse-differentiable
-    block (`fojax.studies._exact.sample_metrics_traced`; its reverse mode is the adjoint
-    recurrence of `fojax.studies._adjoint`, checkpointed, so memory does not grow with the
-    number of time steps; like `jax.grad`, it takes the derivative of $|e|$ as
-    $\mathrm{sign}(e)$, 0 at 0). With ``cfg.method="auto"``, no ``cfg.devices`` and a
-    *concrete* study whose samples vary in time only through signals entering the
-    differential equations affinely (`run_study`'s exponential engine: a time-varying
-    δ(t), faults on the step grid, known inputs), the samples run on that engine
-    (`fojax.studies._exponential.exponential_metrics_traced`: ETDRK4 in one block, every
-    term per sample, the time loop in `jax.checkpoint`-ed segments of about √S of the S
-    steps, so the memory of the backward pass grows like √S), differentiable with respect
+    uniform), every sample runs on the exact batch-last kernel, reverse-differentiable with
+    respect to the observer (`fojax.studies._exact.sample_metrics_traced`: blocks of 32
+    samples; its reverse mode is the adjoint recurrence of `fojax.studies._adjoint` at the
+    observer's size, the plant's trajectory being independent of the observer,
+    checkpointed, so memory does not grow with the number of time steps; like `jax.grad`,
+    it takes the derivative of $|e|$ as $\mathrm{sign}(e)$, 0 at 0; differentiating with
+    respect to the study's arrays raises `fojax.InputError`: use
+    ``cfg=SimConfig(method="diffrax")`` for that). With ``cfg.method="auto"``, no
+    ``cfg.devices`` and a *concrete* study whose samples vary in time only through signals
+    entering the differential equations affinely (`run_study`'s exponential engine: a
+    time-varying δ(t), faults on the step grid, known inputs), the samples run on that
+    engine (`fojax.studies._exponential.exponential_metrics_traced`: ETDRK4 in one block,
+    every term per sample, the time loop in `jax.checkpoint`-ed segments of about √S of the
+    S steps, so the memory of the backward pass grows like √S), differentiable with respect
     to the observer; the host decisions (qualification, the affine check, the step
     schedule) are taken with the observer when it is concrete and with a zero stand-in of
     it when it is traced (the schedule then ignores the observer's poles). A traced study
@@ -572,8 +575,8 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     mesh = sample_mesh(cfg.devices)
     if cfg.method in ("auto", "exact") and traced_qualifies(study, (observer,)):
         # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
-        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh)
-        per = w @ mets[METRICS.index(loss)]  # (B,)
+        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh, metric=loss)
+        per = w @ mets[0]  # (B,)
         return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
     if cfg.method == "auto" and mesh is None:
         # time-varying affine samples: the exponential engine, checkpointed (fojax.studies._exponential)

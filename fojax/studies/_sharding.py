@@ -24,8 +24,8 @@ elsewhere). What would depend on the split are the two reductions *over* samples
 So the loss and its gradient are bit-identical for one device, several local devices or
 several processes (tested in ``tests/test_distributed.py``), and the cost is one copy of
 the observer's arrays per sample (a few hundred numbers each). Leaves of the study that
-are differentiated (not the case in `tune`) get the ``psum`` of reverse mode: correct, but
-their last bits may depend on the split.
+are differentiated (not the case in `tune`; on the exact kernel `study_loss` refuses it)
+get the ``psum`` of reverse mode: correct, but their last bits may depend on the split.
 """
 
 from __future__ import annotations
