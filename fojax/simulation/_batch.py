@@ -464,17 +464,33 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
             for j in range(jv.shape[0]):
                 w = w + jnp.where(kon[j] == k, 1.0, 0.0)[None, :] * jv[j]
         o = outputs(w)
-        return (w, problem.update(acc, o, k, ts)), (o if problem.keep else None)
+        return (w, problem.update(acc, o, k, ts)), (o if problem.keep else None)  # keep: 0 or the stride
 
     if time_loop is not None and basis is None and not problem.keep:
         acc, w_end = time_loop(problem, Phi, w0, G, jv if jumps is not None else None,
                                kon if jumps is not None else None, ts)
         return problem.final(acc, matvec(G, w0), matvec(G, w_end), ts, h, ok)
     o0 = outputs(w0)
-    (w_end, acc), traj = lax.scan(step, (w0, problem.init(o0)), jnp.arange(1, T))
+    stride = int(problem.keep)
+    if stride > 1:
+        # keep the outputs on every stride-th grid point only (ts[::stride]): an outer scan
+        # over the kept points, each an inner scan of `stride` steps, then the remaining
+        # (T - 1) mod stride steps unsaved
+        n_kept, rest = divmod(T - 1, stride)
+
+        def coarse(carry, c):
+            carry, os = lax.scan(step, carry, 1 + c * stride + jnp.arange(stride))
+            return carry, os[-1]
+
+        carry, traj = lax.scan(coarse, (w0, problem.init(o0)), jnp.arange(n_kept))
+        if rest:
+            carry, _ = lax.scan(step, carry, 1 + n_kept * stride + jnp.arange(rest))
+        w_end, acc = carry
+    else:
+        (w_end, acc), traj = lax.scan(step, (w0, problem.init(o0)), jnp.arange(1, T))
     out = problem.final(acc, o0, outputs(w_end), ts, h, ok)
-    if problem.keep:
-        out = (out, jnp.concatenate([o0[None], traj], axis=0))  # (T, K, b)
+    if stride:
+        out = (out, jnp.concatenate([o0[None], traj], axis=0))  # (T_c, K, b), T_c = ceil(T / stride)
     return out
 
 

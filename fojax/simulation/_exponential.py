@@ -802,7 +802,7 @@ class ExponentialProblem(eqx.Module):
         ok = jnp.all(jnp.isfinite(w_end), axis=0)
         out = reducer.final(acc, o_first, outputs(w_end, c_end, v_end), ts, h_grid, ok)
         if reducer.keep:
-            out = (out, jnp.concatenate(trajs, axis=0))  # (T, K, b)
+            out = (out, jnp.concatenate(trajs, axis=0)[:: int(reducer.keep)])  # (T_c, K, b): every keep-th point
         return out
 
 

@@ -144,7 +144,9 @@ class StudyProblem(eqx.Module):
     E0: Array
     settle_tol: Array
     r: int | None = eqx.field(static=True)
-    keep: bool = eqx.field(static=True, default=False)
+    # 0: metrics only; k >= 1: also the error trajectories on every k-th grid point
+    # (``ts[::k]``, the quantile bands' grid of `fojax.studies._runner.band_stride`)
+    keep: int = eqx.field(static=True, default=0)
 
     def joint(self, p):
         # p = (i, j) or (i, j, observers): one copy of the observers per sample (`study_loss`
@@ -246,8 +248,9 @@ def _structure(fn, *args):
     return eqx.filter_eval_shape(fn, *args)
 
 
-def exact_problem(study, observers, settle_tol: float, keep: bool):
-    """Host: the `StudyProblem` of `study`, or ``(None, reason)`` when it does not qualify."""
+def exact_problem(study, observers, settle_tol: float, keep: int):
+    """Host: the `StudyProblem` of `study`, or ``(None, reason)`` when it does not qualify.
+    ``keep``: 0, or the stride of the kept error trajectories (`StudyProblem.keep`)."""
     if not all(_structure(lambda o: o.linear_matrices(), o) is not None for o in observers):
         return None, "an observer is not LTI"
     if not is_concrete(study):
@@ -272,7 +275,8 @@ def exact_problem(study, observers, settle_tol: float, keep: bool):
     E0 = np.asarray(E0)
     check_index1_host(E0, np.asarray(A0), jacobian_name="A")
     r = int(np.sum(np.asarray(split.slow)))
-    problem = StudyProblem(study, tuple(observers), split, jnp.asarray(E0), jnp.asarray(float(settle_tol)), r, keep)
+    problem = StudyProblem(study, tuple(observers), split, jnp.asarray(E0), jnp.asarray(float(settle_tol)), r,
+                           int(keep))
     G0, _ = _first_joint(problem, (jnp.asarray(0), jnp.asarray(0)))
     basis = _output_basis(np.asarray(G0))
     basis = None if basis is None else (basis[0], jnp.asarray(basis[1]))
