@@ -211,6 +211,15 @@ class StudyProblem(eqx.Module):
         a = jnp.abs(o)
         return s1 + a, s2 + o * o, s3 + (ts[k] - ts[0]) * a, jnp.maximum(peak, a), jnp.where(a > self.settle_tol, k, last)
 
+    def update_block(self, acc, O, ks, ts):
+        """`update` over ``m`` consecutive steps at once: ``O`` ``(K, m, b)``, ``ks`` ``(m,)``."""
+        s1, s2, s3, peak, last = acc
+        a = jnp.abs(O)
+        tk = (ts[ks] - ts[0])[None, :, None]
+        above = jnp.max(jnp.where(a > self.settle_tol, ks[None, :, None], -1), axis=1)
+        return (s1 + jnp.sum(a, axis=1), s2 + jnp.sum(O * O, axis=1), s3 + jnp.sum(tk * a, axis=1),
+                jnp.maximum(peak, jnp.max(a, axis=1)), jnp.maximum(last, above))
+
     def final(self, acc, o0, o_end, ts, h, ok):
         s1, s2, s3, peak, last = acc
         T = ts.shape[0]
