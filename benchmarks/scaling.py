@@ -4,7 +4,7 @@ r"""Issue 7, item 3: how fojax's batched LTI simulation scales with the state di
 What is measured
 ----------------
 1. **Time vs state dimension** (the main table). For each n in ``--dims`` (default
-   4, 8, 16, 32, 64): a random *stable, index-1* descriptor system
+   4, 8, 16, 32, 64, 128, 256): a random *stable, index-1* descriptor system
    $E\dot x = A_k x$ (see `random_stable_index1`), ``--batch`` samples (default 1,000),
    horizon [0, 10] s, 0.01 s output grid (1001 points), float64; per sample one metric, the
    IAE of $\|x(t)\|_1$ (trapezoid rule on the grid). Two methods:
@@ -72,7 +72,7 @@ from scipy.optimize import linear_sum_assignment  # noqa: E402
 from scipy.stats import ortho_group  # noqa: E402
 
 
-DIMS = (4, 8, 16, 32, 64)
+DIMS = (4, 8, 16, 32, 64, 128, 256)
 MEMORY_SIZES = (1, 10, 100, 1_000, 10_000, 100_000)
 T_END, DT = 10.0, 0.01
 DELTA = 0.3  # samples: A_k = A + delta_k dA, delta_k ~ U[-DELTA, DELTA], ||dA||_2 = 1
@@ -346,7 +346,7 @@ def batch_scaling_from_reference(path: Path) -> dict | None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--worker", help=argparse.SUPPRESS)
-    ap.add_argument("--dims", type=int, nargs="+", default=list(DIMS), help="state dimensions n (default 4 … 64)")
+    ap.add_argument("--dims", type=int, nargs="+", default=list(DIMS), help="state dimensions n (default 4 … 256)")
     ap.add_argument("--batch", type=int, default=1000, help="samples B of the n study (default 1000)")
     ap.add_argument("--check-b", type=int, default=100, help="samples of the agreement check before timing")
     ap.add_argument("--memory-n", type=int, default=8, help="state dimension of the memory-vs-B sweep")
@@ -392,7 +392,7 @@ def _run(args, state: dict, tmp: Path) -> int:
         return res
 
     def measure(n, B, tag, check_first: bool) -> dict:
-        row: dict = {"n": n, "B": B}
+        row: dict = {"n": n, "B": B, "load_average_at_start": _common.load_average()}
         if check_first:
             chk = entry("check", n, min(args.check_b, B), tag)
             if chk.get("status") != "ok":
@@ -413,6 +413,7 @@ def _run(args, state: dict, tmp: Path) -> int:
             row["status"] = f"fojax {f.get('status')}"
             return row
         row["status"] = "ok"
+        row["load_average_at_end"] = _common.load_average()
         if p is not None and p.get("status") == "ok":
             row["rel_diff"] = _common.rel_diff(f["_out"], p["_out"])
             row["peer_over_fojax"] = p["median_s"] / f["median_s"]
