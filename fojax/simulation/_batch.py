@@ -13,11 +13,14 @@ A Monte Carlo study of a linear time-invariant loop needs per-sample *numbers*
 2. when the metric outputs $o = G_k w$ have at most as many independent rows as states,
    changes coordinates to $w' = S_k w$ whose leading entries *are* the outputs, so a time
    step is a single ``N × N`` product per sample (`_output_basis`);
-3. steps a block of samples together with the batch as the **last** axis (state
-   ``(N, b)``, ``Φ`` ``(N, N, b)``: each step is ``N²`` fused multiply–adds over the
-   block, whose data stays in cache) in one `jax.lax.scan` over the grid, and
-   accumulates the requested reductions *inside* the scan (trapezoid rule), so no
-   ``(B, T, N)`` trajectory is ever stored and memory grows linearly with ``B``;
+3. steps a block of samples together in one `jax.lax.scan` over the grid, with a layout
+   chosen by the joint size ``N``: below ``MULTISTEP_MIN_N`` with the batch as the
+   **last** axis (state ``(N, b)``, ``Φ`` ``(N, N, b)``: each step is ``N²`` fused
+   multiply–adds over the block, whose data stays in cache); from it on (and without
+   jumps) ``MULTISTEP`` grid steps per pass as batched matrix–matrix products
+   ``Φ^m [w_{k+1} … w_{k+m}]`` (`_multistep_block`: compute-bound, a graph independent of
+   ``N``); the requested reductions are accumulated *inside* the loop (trapezoid rule),
+   so no ``(B, T, N)`` trajectory is ever stored and memory grows linearly with ``B``;
 4. spreads the blocks over all devices with `jax.shard_map` (round-robin, each device
    computing only blocks that hold real samples).
 
