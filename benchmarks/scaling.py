@@ -328,11 +328,19 @@ def worker(spec: dict) -> dict:
         cands = []
         for v in spec["variants"]:
             fn = PEER_VARIANTS[v]
-            o, first, times, m = timed(lambda fn=fn: fn(samples.As, loop.T, samples.z0))
-            cands.append((statistics.median(times), v, first, times, o, m))
-        med, v, first, times, out, m = min(cands, key=lambda c: c[0])
+            cpu = []
+
+            def call_cpu(fn=fn, cpu=cpu):
+                c = time.process_time()
+                o = fn(samples.As, loop.T, samples.z0)
+                cpu.append(time.process_time() - c)
+                return o
+
+            o, first, times, m = timed(call_cpu)
+            cands.append((statistics.median(times), v, first, times, o, m, statistics.median(cpu)))
+        med, v, first, times, out, m, med_cpu = min(cands, key=lambda c: c[0])
         res.update(first_s=first, median_s=med, all_s=times, reps=len(times), variant=v,
-                   all_variants={c[1]: c[0] for c in cands})
+                   all_variants={c[1]: c[0] for c in cands}, median_cpu_s=med_cpu)
     res.update(m, rss_before_first_call_mib=rss_before, peak_rss_mib=max(m["peak_rss_first_call_mib"],
                                                                          m["peak_rss_repeats_mib"]))
     if rss_before is not None and m["peak_reset"]:
@@ -429,6 +437,8 @@ def _run(args, state: dict, tmp: Path) -> int:
         if p is not None and p.get("status") == "ok":
             row["rel_diff"] = _common.rel_diff(f["_out"], p["_out"])
             row["peer_over_fojax"] = p["median_s"] / f["median_s"]
+            if p.get("median_cpu_s") and f.get("median_cpu_s"):  # CPU time of each process (load-robust)
+                row["peer_over_fojax_cpu"] = p["median_cpu_s"] / f["median_cpu_s"]
             if not row["rel_diff"] <= TOL:
                 row["status"] = f"disagree at B ({row['rel_diff']:.1e})"
         return row

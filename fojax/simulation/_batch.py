@@ -514,6 +514,20 @@ MULTISTEP = 16
 MULTISTEP_MIN_N = 10
 
 
+#: Bytes of one block's ``Φ^m`` (``8 N² b``) that `block_for` aims at: small enough to
+#: stay in the CPU's cache while the block is stepped.
+BLOCK_BYTES = 2**21
+
+
+def block_for(N: int | None, block: int) -> int:
+    """The block size for joint size ``N``: `block`, capped so that a block's ``Φ^m``
+    takes at most ``BLOCK_BYTES`` (at least 4 samples) when ``N ≥ MULTISTEP_MIN_N``.
+    ``N = 22``: 256 (unchanged); 64: 64; 128: 16; 256: 4."""
+    if N is None or N < MULTISTEP_MIN_N:
+        return block
+    return max(1, min(block, max(4, BLOCK_BYTES // (8 * N * N))))
+
+
 def _matrix_power(P, m: int):
     """``P^m`` of a batch-first stack ``P`` ``(b, N, N)`` by binary powering (``m ≥ 1``
     static: ``⌊log₂ m⌋`` squarings and at most as many products)."""
@@ -692,6 +706,9 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
     # block has the shapes of a one-process run and its samples the same bits (batched
     # products of other widths differed by ~1e-15 on a study with fault onsets)
     Dw = 1 if spans_processes(mesh) else D
+    if getattr(problem, "block_kernel", None) is None:  # the batch kernel's own stepping: block by N
+        one = jax.tree.map(lambda a: a[0], p)
+        block = block_for(eqx.filter_eval_shape(problem.joint, one)[0].shape[0], int(block))
     block = max(1, min(int(block), -(-min(int(chunk_size), Bn) // Dw)))
     unit = block * D
     bc = -(-int(chunk_size) // unit) * unit
@@ -855,7 +872,8 @@ def simulate_lti_batch(
     - `chunk_size`: samples per compiled call (default 4096).
     - `block`: samples stepped together in one time loop (default 256): ``Φ`` and the
       output maps of a block, ``8 (N² + k N) · block`` bytes, should fit in the CPU's
-      L2 cache. (Unrolling the time loop was measured slower.)
+      L2 cache (for a joint size ``N ≥ 10`` it is capped by `block_for`: 64 at
+      ``N = 64``, 16 at ``N = 128``). (Unrolling the time loop was measured slower.)
     - `devices`: the devices to spread the blocks over (default `jax.local_devices()`).
 
     **Returns:** a dict ``name -> (B,)`` or ``(B, k)`` array (float64).
@@ -908,6 +926,8 @@ def simulate_lti_batch(
         r = int(np.sum(np.asarray(svd_split(plant0.E).slow))) if is_concrete(plant0.E) else None
     mesh = _mesh_for(devices)
     D = 1 if mesh is None else mesh.devices.size
+    if r is not None:
+        block = block_for(r + sum(sizes[1:]), block)
     block = min(block, -(-min(chunk_size, Bn) // D))  # tiny batches: no block of mostly padding
     unit = block * D
     bc = -(-chunk_size // unit) * unit
