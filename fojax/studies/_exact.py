@@ -212,13 +212,13 @@ class StudyProblem(eqx.Module):
         return s1 + a, s2 + o * o, s3 + (ts[k] - ts[0]) * a, jnp.maximum(peak, a), jnp.where(a > self.settle_tol, k, last)
 
     def update_block(self, acc, O, ks, ts):
-        """`update` over ``m`` consecutive steps at once: ``O`` ``(K, m, b)``, ``ks`` ``(m,)``."""
+        """`update` over ``m`` consecutive steps at once: ``O`` ``(b, K, m)``, ``ks`` ``(m,)``."""
         s1, s2, s3, peak, last = acc
         a = jnp.abs(O)
-        tk = (ts[ks] - ts[0])[None, :, None]
-        above = jnp.max(jnp.where(a > self.settle_tol, ks[None, :, None], -1), axis=1)
-        return (s1 + jnp.sum(a, axis=1), s2 + jnp.sum(O * O, axis=1), s3 + jnp.sum(tk * a, axis=1),
-                jnp.maximum(peak, jnp.max(a, axis=1)), jnp.maximum(last, above))
+        tk = (ts[ks] - ts[0])[None, None, :]
+        above = jnp.max(jnp.where(a > self.settle_tol, ks[None, None, :], -1), axis=2).T
+        return (s1 + jnp.sum(a, axis=2).T, s2 + jnp.sum(O * O, axis=2).T, s3 + jnp.sum(tk * a, axis=2).T,
+                jnp.maximum(peak, jnp.max(a, axis=2).T), jnp.maximum(last, above))
 
     def final(self, acc, o0, o_end, ts, h, ok):
         s1, s2, s3, peak, last = acc
