@@ -18,9 +18,11 @@ before anything is timed.
 
 Timing: the first call of `fojax.run_study` (after `jax.clear_caches()`) is reported
 separately and ``compile ≈ first − median``; then the median of ``--repeats`` calls.
-Main rows use ``quantiles=()`` (the peer computes no quantile bands); one extra row
-times `run_study` with its default quantile bands (host-side ``np.quantile`` over the
-``(B, T)`` errors). Writes ``benchmarks/results/study_latest.json``.
+Main rows use ``quantiles=()`` (the peer computes no quantile bands); then `run_study`
+with its default settings (quantile bands on the default band grid, ``ts[::5]``: 201
+points) is timed against both the metrics-only peer and the peer that also keeps its
+errors on the same band grid and calls ``np.quantile`` (bands checked to agree first).
+Writes ``benchmarks/results/study_latest.json``.
 """
 
 from __future__ import annotations
@@ -102,8 +104,10 @@ def peer_inputs(ex, plant, obs, study):
     )
 
 
-def peer(d):
-    """The SciPy/NumPy peer: metrics ``(5, obs, signal, B)``."""
+def peer(d, bands=None):
+    """The SciPy/NumPy peer: metrics ``(5, B, K)``; with ``bands = (stride, quantiles)`` also
+    the quantile bands the way a NumPy user computes them (errors kept on ``ts[::stride]``,
+    then ``np.quantile`` over the samples): ``(nq, T_c, K)``."""
     E, C, L, ts = d["E"], d["C"], d["L"], d["ts"]
     A = d["A0"][None] + d["delta"][:, None, None] * d["dA"][None]  # (B, n, n)
     B = A.shape[0]
@@ -143,6 +147,7 @@ def peer(d):
     peak = a.copy()
     last = np.where(a > SETTLE_TOL, 0, -1)
     tr = ts - ts[0]
+    kept = [e] if bands is not None else None
     for k in range(1, ts.shape[0]):
         w = np.einsum("bn,bnm->bm", w, PhiT)
         e = np.einsum("bn,bnk->bk", w, GT)
@@ -152,12 +157,17 @@ def peer(d):
         s3 += tr[k] * a
         np.maximum(peak, a, out=peak)
         last = np.where(a > SETTLE_TOL, k, last)
+        if bands is not None and k % bands[0] == 0:
+            kept.append(e)
     T = ts.shape[0]
     iae = h * (s1 + 0.5 * a0 - 0.5 * a)
     ise = h * (s2 + 0.5 * e0**2 - 0.5 * e**2)
     itae = h * (s3 - 0.5 * tr[-1] * a)
     settle = np.where(last < 0, 0.0, np.where(last == T - 1, np.inf, tr[np.minimum(last + 1, T - 1)]))
-    return np.stack([iae, ise, itae, peak, settle])  # (5, B, K)
+    mets = np.stack([iae, ise, itae, peak, settle])  # (5, B, K)
+    if bands is None:
+        return mets
+    return mets, np.quantile(np.stack(kept, axis=1), bands[1], axis=0)  # (nq, T_c, K)
 
 
 def fojax_metrics(res):
@@ -210,14 +220,26 @@ def main():
         med, reps, _ = timed(lambda: fojax.run_study(study, obs, quantiles=(), quiet=True), args.repeats)
         pmed, preps, _ = timed(lambda: peer(d), max(1, args.repeats if B <= 1000 else 1))
         t = time.perf_counter()
-        fojax.run_study(study, obs, quiet=True)  # default quantile bands: another structure, compiles once
+        qres = fojax.run_study(study, obs, quiet=True)  # default quantile bands: another structure, compiles once
         qfirst = time.perf_counter() - t
-        qmed, qreps, _ = timed(lambda: fojax.run_study(study, obs, quiet=True), 1)
+        # the peer with the same bands (errors kept on the same band grid, np.quantile)
+        stride, levels = qres.attrs["band_stride"], qres.coords["quantile"]
+        _, pbands = peer(d, (stride, levels))
+        fb = np.transpose(qres.metrics["quantiles"], (1, 2, 0, 3)).reshape(pbands.shape)  # (nq, T_c, obs*q)
+        band_agree = float(np.max(np.abs(fb - pbands)) / np.max(np.abs(pbands)))
+        if not band_agree <= 1e-8:
+            raise SystemExit(f"B={B}: fojax's and the peer's quantile bands disagree ({band_agree:.2e})")
+        qmed, qreps, _ = timed(lambda: fojax.run_study(study, obs, quiet=True), args.repeats)
+        qpmed, qpreps, _ = timed(lambda: peer(d, (stride, levels)), 1)
         row = dict(
             B=B, agreement_max_rel=agree,
             fojax_first_call_s=first, fojax_compile_estimate_s=first - med, fojax_median_s=med, fojax_runs_s=reps,
             fojax_samples_per_s=B / med,
             fojax_default_quantiles_first_call_s=qfirst, fojax_default_quantiles_s=qmed,
+            fojax_default_quantiles_runs_s=qreps, band_stride=stride, band_points=int(qres.coords["time"].shape[0]),
+            band_agreement_max_rel=band_agree,
+            speedup_default_settings_vs_metrics_only_peer=pmed / qmed,
+            peer_with_bands_s=qpmed, speedup_default_settings_vs_peer_with_bands=qpmed / qmed,
             peer_median_s=pmed, peer_runs_s=preps, peer_samples_per_s=B / pmed,
             speedup_vs_peer=pmed / med,
             load_average=_common.load_average(),

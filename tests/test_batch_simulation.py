@@ -313,3 +313,21 @@ def test_per_sample_E_matches_scipy_and_rank_change_gives_nan(batch_result):
             np.testing.assert_allclose(np.asarray(got[name][k]), ref[name], rtol=1e-10)
     for name in METRICS:
         assert np.all(np.isnan(np.asarray(got[name][B - 1])))
+
+
+def test_forward_kernel_graph_does_not_grow_with_n():
+    # Issue 16 item 2: the forward time loop (`_multistep_block`: m steps per pass as batched
+    # matrix products) has a graph of the same size for every N (the former batch-last matvec
+    # was unrolled over N columns, so compile time grew with n: 12 / 24 / 52 s at n = 16 / 32 / 64)
+    from fojax.simulation._batch import _block_kernel, _ModelProblem
+
+    def count(n, keep):
+        def plant(A):
+            return fojax.DescriptorSystem(jnp.eye(n), A, jnp.zeros((n, 1)), jnp.eye(n)[:1])
+
+        problem = _ModelProblem(plant, jnp.eye(n), None, None, (("iae_l1", n),), keep)
+        p = (jnp.zeros((3, n, n)), jnp.zeros((3, n)))
+        return count_equations(lambda p: _block_kernel(problem, p, 0.01, jnp.linspace(0.0, 1.0, 11), None), p)
+
+    assert count(16, False) == count(40, False)
+    assert count(16, 3) == count(40, 3)

@@ -48,6 +48,45 @@ def single_metrics(study, observer, i, j, **opts):
     return {k: np.asarray(v) for k, v in S.error_metrics(study.ts, sol.estimates[0] - z).items()}
 
 
+def test_band_stride_and_band_quantiles_equal_np_quantile():
+    # oracle: np.quantile (method "linear") itself, bit for bit, NaN and ±inf rows included
+    assert S._runner.band_stride(1001, 201) == 5 and S._runner.band_stride(1001, None) == 1
+    assert S._runner.band_stride(51, 8) == 7 and S._runner.band_stride(6, 201) == 1
+    for bad in (1, 0, 2.5, True):
+        with pytest.raises(fojax.InputError, match="band_points must be an integer >= 2"):
+            S._runner.band_stride(100, bad)
+    rng = np.random.default_rng(0)
+    E = rng.standard_normal((7, 3, 101))
+    E[2, 1, 5] = np.nan
+    E[4, 0, :3] = np.inf
+    E[5, 2, 7] = -np.inf
+    E[6] = np.round(E[6], 1)  # ties
+    q = (0.0, 0.05, 0.25, 0.333, 0.5, 0.75, 0.95, 1.0)
+    with np.errstate(invalid="ignore"):
+        want = np.quantile(E, q, axis=-1)
+        got = S._runner.band_quantiles(E, q)
+        one = np.quantile(E[..., :1], q, axis=-1)
+    assert got.shape == want.shape and np.array_equal(got, want, equal_nan=True)
+    assert np.array_equal(S._runner.band_quantiles(E[..., :1], q), one, equal_nan=True)
+
+
+def test_vmap_engine_bands_on_the_coarse_grid(bench):
+    # the vmap-simulate engine keeps the errors on the same band grid (band_stride): the
+    # bands equal its full-resolution bands at those times
+    _, d, _, _, _ = bench
+    study = make_study(bench, jax.random.PRNGKey(7), 2, 2)
+    one = jax.devices()[:1]
+    full = S.run_study(study, d.observer, devices=one, quantiles=(0.1, 0.5, 0.9), band_points=None, quiet=True,
+                       **OPTS)
+    coarse = S.run_study(study, d.observer, devices=one, quantiles=(0.1, 0.5, 0.9), band_points=3, quiet=True,
+                         **OPTS)
+    assert coarse.attrs["engine"] == "vmap-simulate" and coarse.attrs["band_stride"] == 2
+    assert np.array_equal(coarse.coords["time"], np.asarray(TS)[::2])
+    assert np.array_equal(full.coords["time"], np.asarray(TS))
+    assert np.array_equal(coarse.metrics["quantiles"], full.metrics["quantiles"][:, :, ::2])
+    assert np.array_equal(coarse.metrics["iae"], full.metrics["iae"])
+
+
 def test_samplers_are_reproducible_and_distinct():
     k = jax.random.PRNGKey(3)
     a = S.sinusoidal_delta(k, 5, 2)

@@ -141,6 +141,29 @@ def test_default_337_study_runs_exact_and_matches_simulate_and_scipy(ex337):
     assert res2.metrics["success"].all() and not np.allclose(res2.metrics["iae"], res.metrics["iae"])
 
 
+def test_quantile_bands_on_the_coarse_grid_are_np_quantile_of_the_full_errors(ex337):
+    # band_points=8 on 51 grid points: stride ceil(51/8) = 7, band grid ts[0], ts[7], ..., ts[49]
+    # (8 points; the last step, 50, is stepped but not kept): the kernel keeps only those
+    # outputs, and the bands equal np.quantile of fojax.simulate's full-resolution errors there
+    ex, observers, _, _ = ex337
+    one = jax.devices()[:1]
+    study = study337(ex337, 3)
+    res = S.run_study(study, observers, devices=one, quantiles=(0.0, 0.1, 0.5, 0.9, 1.0), band_points=8, quiet=True)
+    assert res.attrs["engine"] == "exact-batch" and res.attrs["band_stride"] == 7
+    assert np.array_equal(res.coords["time"], np.asarray(TS)[::7]) and res.coords["time"].shape == (8,)
+    assert res.metrics["quantiles"].shape == (2, 5, 8, 5)
+    all_errs = []
+    for i in range(3):
+        for j in range(2):
+            refs, errs = reference(study, observers, i, j, method="exact")
+            assert_metrics_close(res, refs, i, j, rtol=1e-8)  # the metrics still use every step
+            all_errs.append(errs)
+    for o in range(2):
+        full = np.stack([e[o] for e in all_errs])  # (B, 51, 5)
+        want = np.quantile(full, res.coords["quantile"], axis=0)[:, ::7]
+        assert np.allclose(res.metrics["quantiles"][o], want, rtol=1e-8, atol=1e-12)
+
+
 def test_faulty_plant_steps_ramps_and_sine_input_match_tight_diffrax(ex337):
     # FaultyPlant (not LTI for fojax.simulate): step and ramp faults with onsets between
     # grid points, a sine input and a step input off the grid; all exact on the kernel.

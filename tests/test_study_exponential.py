@@ -165,6 +165,18 @@ def test_quantile_bands_agree_with_scipy(result, reference):
     np.testing.assert_allclose(result.metrics["quantiles"][0], qs, rtol=0, atol=1e-8 * np.max(np.abs(errs)))
 
 
+def test_quantile_bands_on_a_coarse_grid_agree_with_scipy(study, result, reference):
+    # band_points=11 on 51 grid points: the kernel keeps ts[::5]; the bands are np.quantile
+    # of the SciPy errors at those times, and equal the full-resolution bands there
+    _, errs = reference
+    res = fojax.run_study(study, OBSERVER, quiet=True, settle_tol=SETTLE_TOL, band_points=11)
+    assert res.attrs["engine"] == "exponential-batch" and res.attrs["band_stride"] == 5
+    assert np.array_equal(res.coords["time"], TS[::5])
+    qs = np.quantile(errs, res.coords["quantile"], axis=0)[:, ::5]  # (nq, 11, 2)
+    np.testing.assert_allclose(res.metrics["quantiles"][0], qs, rtol=0, atol=1e-8 * np.max(np.abs(errs)))
+    assert np.array_equal(res.metrics["quantiles"], result.metrics["quantiles"][:, :, ::5])
+
+
 def test_padded_chunks_do_not_change_results(study, result):
     # B = 9 in chunks of 4 (3 chunks, the last one padded) on every device
     res = fojax.run_study(study, OBSERVER, quiet=True, settle_tol=SETTLE_TOL, chunk_size=4, method="exponential")

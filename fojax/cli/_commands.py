@@ -812,7 +812,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
     }, overwrite=ow)
     q = np.asarray(res.metrics["quantiles"])  # (observer, quantile, time, signal)
     figures["Estimation error, Monte Carlo 5-95 % band and median"] = plot_estimates(
-        folder / "error-bands.png", np.asarray(ts), np.zeros((len(ts), len(signals))),
+        folder / "error-bands.png", np.asarray(res.coords["time"]), np.zeros((len(res.coords["time"]), len(signals))),
         {nm: (q[k, 0], q[k, 1], q[k, 2]) for k, nm in enumerate(names)},
         labels=[f"e({s})" for s in signals], truth_label="zero error", title="Estimation error over the Monte Carlo samples",
         overwrite=ow,

@@ -902,7 +902,8 @@ class ExponentialProblem(eqx.Module):
         out = reducer.final(acc, o_first, outputs(w_end, c_end, v_end), ts, h_grid, ok)
         if reducer.keep:
             ends = np.flatnonzero(steps[3])
-            out = (out, jnp.concatenate([o_first[None], traj[ends]], axis=0))  # (T, K, b)
+            # (T_c, K, b): the grid points (first, then every interval's end), every keep-th one
+            out = (out, jnp.concatenate([o_first[None], traj[ends]], axis=0)[:: int(reducer.keep)])
         return out
 
 

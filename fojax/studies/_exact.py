@@ -152,7 +152,9 @@ class StudyProblem(eqx.Module):
     E0: Array
     settle_tol: Array
     r: int | None = eqx.field(static=True)
-    keep: bool = eqx.field(static=True, default=False)
+    # 0: metrics only; k >= 1: also the error trajectories on every k-th grid point
+    # (``ts[::k]``, the quantile bands' grid of `fojax.studies._runner.band_stride`)
+    keep: int = eqx.field(static=True, default=0)
 
     def joint(self, p):
         # p = (i, j) or (i, j, observers): one copy of the observers per sample (`study_loss`
@@ -217,6 +219,15 @@ class StudyProblem(eqx.Module):
         a = jnp.abs(o)
         return s1 + a, s2 + o * o, s3 + (ts[k] - ts[0]) * a, jnp.maximum(peak, a), jnp.where(a > self.settle_tol, k, last)
 
+    def update_block(self, acc, O, ks, ts):
+        """`update` over ``m`` consecutive steps at once: ``O`` ``(b, K, m)``, ``ks`` ``(m,)``."""
+        s1, s2, s3, peak, last = acc
+        a = jnp.abs(O)
+        tk = (ts[ks] - ts[0])[None, None, :]
+        above = jnp.max(jnp.where(a > self.settle_tol, ks[None, None, :], -1), axis=2).T
+        return (s1 + jnp.sum(a, axis=2).T, s2 + jnp.sum(O * O, axis=2).T, s3 + jnp.sum(tk * a, axis=2).T,
+                jnp.maximum(peak, jnp.max(a, axis=2).T), jnp.maximum(last, above))
+
     def final(self, acc, o0, o_end, ts, h, ok):
         s1, s2, s3, peak, last = acc
         T = ts.shape[0]
@@ -254,8 +265,9 @@ def _structure(fn, *args):
     return eqx.filter_eval_shape(fn, *args)
 
 
-def exact_problem(study, observers, settle_tol: float, keep: bool):
-    """Host: the `StudyProblem` of `study`, or ``(None, reason)`` when it does not qualify."""
+def exact_problem(study, observers, settle_tol: float, keep: int):
+    """Host: the `StudyProblem` of `study`, or ``(None, reason)`` when it does not qualify.
+    ``keep``: 0, or the stride of the kept error trajectories (`StudyProblem.keep`)."""
     if not all(_structure(lambda o: o.linear_matrices(), o) is not None for o in observers):
         return None, "an observer is not LTI"
     if not is_concrete(study):
@@ -280,7 +292,8 @@ def exact_problem(study, observers, settle_tol: float, keep: bool):
     E0 = np.asarray(E0)
     check_index1_host(E0, np.asarray(A0), jacobian_name="A")
     r = int(np.sum(np.asarray(split.slow)))
-    problem = StudyProblem(study, tuple(observers), split, jnp.asarray(E0), jnp.asarray(float(settle_tol)), r, keep)
+    problem = StudyProblem(study, tuple(observers), split, jnp.asarray(E0), jnp.asarray(float(settle_tol)), r,
+                           int(keep))
     G0, _ = _first_joint(problem, (jnp.asarray(0), jnp.asarray(0)))
     basis = _output_basis(np.asarray(G0))
     basis = None if basis is None else (basis[0], jnp.asarray(basis[1]))

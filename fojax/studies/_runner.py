@@ -31,8 +31,10 @@ single-device run.
 $e = \hat z - z$ on the grid, trapezoidal rule): IAE $\int|e|$, ISE $\int e^2$, ITAE
 $\int (t - t_0)|e|$, peak $\max|e|$, settling time (the first grid time after which
 $|e| \le$ `settle_tol` for good, $+\infty$ if $|e|$ exceeds it at the final time), and
-time-wise quantiles of $e$ over all samples (confidence bands, computed on the host
-from the per-chunk errors).
+time-wise quantiles of $e$ over all samples (confidence bands): every engine keeps the
+errors only on the band grid ``ts[::k]`` (`band_stride`, at most `run_study`'s
+`band_points` points), and the host computes exactly ``np.quantile`` of them
+(`band_quantiles`).
 """
 
 from __future__ import annotations
@@ -75,6 +77,47 @@ from ._wrappers import FaultyPlant
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
 METRICS = ("iae", "ise", "itae", "peak", "settling_time")
+
+#: Default number of time points of the quantile bands (`run_study`'s `band_points`).
+DEFAULT_BAND_POINTS = 201
+
+
+def band_stride(T: int, band_points: int | None) -> int:
+    """The stride ``k`` of the quantile bands' time grid ``ts[::k]`` (the one definition,
+    used by every engine of `run_study`): the smallest ``k`` whose grid has at most
+    `band_points` points, ``ceil(T / k) <= band_points``; ``1`` (the full grid) for
+    ``None``. E.g. ``T = 1001``, ``band_points = 201``: ``k = 5`` (every 5th point, the
+    last grid time included since ``5 | 1000``)."""
+    if band_points is None:
+        return 1
+    if isinstance(band_points, bool) or not isinstance(band_points, int | np.integer) or band_points < 2:
+        raise InputError(
+            f"band_points must be an integer >= 2 (time points of the quantile bands) or None "
+            f"(every grid point); got {band_points!r}."
+        )
+    return max(1, -(-int(T) // int(band_points)))
+
+
+def band_quantiles(errors: np.ndarray, quantiles) -> np.ndarray:
+    """``np.quantile(errors, quantiles, axis=-1)`` (its default ``"linear"`` method),
+    bit for bit, from one ``np.sort`` of the last axis (the samples).
+
+    The same interpolation as NumPy's (``a + (b - a) γ``, or ``b - (b - a)(1 - γ)`` for
+    ``γ ≥ 0.5``, at the virtual index ``(n - 1) q``; ``nan`` where a row holds a ``nan``),
+    but NumPy's vectorised sort instead of its partition with several ``kth``: on the
+    default §3.3.7 bands (201 × 10 rows of 10,000 samples) 0.56 s instead of 2.36 s
+    (measured under load). Tested equal to ``np.quantile``."""
+    s = np.sort(np.asarray(errors), axis=-1)
+    n = s.shape[-1]
+    virt = (n - 1) * np.asarray(quantiles, dtype=float)
+    lo = np.floor(virt).astype(np.intp)
+    hi = np.minimum(lo + 1, n - 1)
+    a, b = np.moveaxis(s[..., lo], -1, 0), np.moveaxis(s[..., hi], -1, 0)
+    g = (virt - lo).reshape((-1,) + (1,) * (a.ndim - 1))
+    with np.errstate(invalid="ignore"):  # inf - inf: nan, as np.quantile gives
+        d = b - a
+        out = np.where(g >= 0.5, b - d * (1 - g), a + d * g)
+    return np.where(np.isnan(s[..., -1])[None], np.nan, out)
 
 
 class _Sample(eqx.Module):
@@ -232,7 +275,9 @@ def sample_errors(study: Study, observers, i, j, cfg: SimConfig):
 
 
 @eqx.filter_jit
-def _run_chunk(study, observers, iu, jf, cfg: SimConfig, keep_errors: bool, mesh: Mesh):
+def _run_chunk(study, observers, iu, jf, cfg: SimConfig, keep_errors: int, mesh: Mesh):
+    """``keep_errors``: 0, or the stride ``k`` of the error trajectories kept (``ts[::k]``,
+    `band_stride`)."""
     TRACE_COUNTS["run_study"] += 1
     dyn, static = eqx.partition((study, observers), eqx.is_array)
 
@@ -242,7 +287,7 @@ def _run_chunk(study, observers, iu, jf, cfg: SimConfig, keep_errors: bool, mesh
         def one(i, j):
             errs, ok = sample_errors(st, obs, i, j, cfg)
             mets = tuple(error_metrics(st.ts, e, cfg.settle_tol) for e in errs)
-            return mets, (errs if keep_errors else None), ok
+            return mets, (tuple(e[::keep_errors] for e in errs) if keep_errors else None), ok
 
         return jax.vmap(one)(iu, jf)
 
@@ -280,7 +325,9 @@ class StudyResult:
             ``(observer, quantile, time, signal)``; ``"success"`` ``(uncertainty, fault)``.
         axes: dict metric name → tuple of axis names.
         coords: labels: ``observer`` and ``signal`` names (strings), ``quantile`` levels
-            and ``time`` (the grid) as float arrays.
+            and ``time`` as float arrays; ``time`` is the time axis of ``"quantiles"``: the
+            band grid ``ts[::attrs["band_stride"]]`` (at most `run_study`'s
+            `band_points` points; the study grid itself when ``band_stride == 1``).
         attrs: options of the run (JSON-serialisable).
     """
 
@@ -345,6 +392,7 @@ def run_study(
     chunk_size: int | None = None,
     devices=None,
     quantiles: Sequence[float] = (0.05, 0.25, 0.5, 0.75, 0.95),
+    band_points: int | None = DEFAULT_BAND_POINTS,
     settle_tol: float = 0.05,
     method: str = "auto",
     rtol: float = 1e-8,
@@ -372,6 +420,11 @@ def run_study(
       dies). See ``docs/distributed.md``.
     - `quantiles`: levels of the time-wise error quantiles (``()``: none; then the
       per-chunk errors are not kept on the host).
+    - `band_points`: most time points of the quantile bands (default 201): the errors are
+      kept only on every ``k``-th grid point, ``ts[::k]`` with the smallest ``k`` giving at
+      most `band_points` points (`band_stride`; ``coords["time"]``), and the quantiles are
+      exactly ``np.quantile`` of the full-resolution errors at those times. ``None``: every
+      grid point (memory ``8 T · observers · signals · B`` bytes on the host).
     - `settle_tol`: tolerance of the settling time.
     - `method`: ``"auto"`` or ``"exact"``: when every sample is an LTI loop driven by
       known signals (plant `DescriptorSystem` or `UncertainDescriptorSystem` with a
@@ -420,14 +473,15 @@ def run_study(
         raise ShapeError("observer_names", len(observers), len(names))
     cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps),
                     settle_tol=float(settle_tol), solver=solver)
-    keep = len(quantiles) > 0
+    stride = band_stride(study.ts.shape[0], band_points)
+    keep = stride if len(quantiles) > 0 else 0  # 0: no error trajectories; else their stride
     if spans_processes(devices):  # a global mesh (jax.distributed): same inputs everywhere
         check_same_on_every_process((study, observers), "run_study")
     with distributed_errors("run_study"):
         if method in ("auto", "exact"):
             prepared, _reason = exact_problem(study, observers, settle_tol, keep)
             if prepared is not None:
-                return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices)
+                return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, stride=stride)
         if method in ("auto", "exponential"):
             prepared, _reason = exponential_problem(study, observers, settle_tol, keep,
                                                     strict=method == "exponential")
@@ -435,12 +489,13 @@ def run_study(
                 n_start, sub_start, substeps = prepared[0].schedule
                 return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, method="exponential",
                                   solver=f"ETDRK4, {substeps} steps per grid interval ({sub_start} in the first "
-                                         f"{n_start})", engine="exponential-batch")
-        return _run_vmap(study, observers, names, quantiles, cfg, chunk_size, devices, keep, solver, quiet)
+                                         f"{n_start})", engine="exponential-batch", stride=stride)
+        return _run_vmap(study, observers, names, quantiles, cfg, chunk_size, devices, keep, solver, quiet,
+                         stride)
 
 
 def _run_vmap(study, observers, names, quantiles, cfg: SimConfig, chunk_size, devices, keep, solver,
-              quiet) -> StudyResult:
+              quiet, stride) -> StudyResult:
     """`run_study` on the ``"vmap-simulate"`` engine (`fojax.simulate` per sample)."""
     mesh, batch_sh, rep_sh = _mesh(devices)
     ndev = mesh.devices.size
@@ -475,31 +530,33 @@ def _run_vmap(study, observers, names, quantiles, cfg: SimConfig, chunk_size, de
     if keep:
         qs = []
         for o in range(len(observers)):
-            E = np.concatenate([e[o] for e in errs])[:B]
-            qs.append(np.quantile(E, np.asarray(quantiles), axis=0))
+            E = np.concatenate([e[o] for e in errs])[:B]  # (B, T_c, q)
+            qs.append(band_quantiles(np.moveaxis(E, 0, -1), quantiles))
         metrics["quantiles"] = np.stack(qs)
         axes["quantiles"] = ("observer", "quantile", "time", "signal")
-    return _result(study, names, quantiles, cfg, metrics, axes,
+    return _result(study, names, quantiles, cfg, metrics, axes, stride,
                    solver=type(solver).__name__ if solver is not None else "default", chunk_size=chunk,
                    num_chunks=n_chunks, num_devices=int(ndev), engine="vmap-simulate")
 
 
-def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, **attrs) -> StudyResult:
-    """The `StudyResult` of either engine: coordinates from the study, attributes from
-    `cfg` (without the solver object) updated by the engine's own `attrs`."""
+def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, stride: int, **attrs) -> StudyResult:
+    """The `StudyResult` of either engine: coordinates from the study (``time``: the band
+    grid ``ts[::stride]``), attributes from `cfg` (without the solver object) updated by
+    the engine's own `attrs`."""
     coords = {
         "observer": names,
         "signal": study.signal_names,
         "quantile": np.asarray(quantiles, dtype=float),
-        "time": np.asarray(study.ts),
+        "time": np.asarray(study.ts)[::stride],
     }
     merged = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("solver", "devices")}
+    merged["band_stride"] = int(stride)
     merged.update(attrs)
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=merged)
 
 
 def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices, method="exact",
-               solver="none (exact matrix-exponential stepping)", engine="exact-batch") -> StudyResult:
+               solver="none (exact matrix-exponential stepping)", engine="exact-batch", stride=1) -> StudyResult:
     """`run_study` on the batch-last kernel (`run_batched`): the exact problem of
     `fojax.studies._exact` or the exponential one of `fojax.studies._exponential`."""
     problem, basis, idx = prepared
@@ -525,11 +582,11 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
     axes = {name: ("observer", "uncertainty", "fault", "signal") for name in METRICS}
     axes["success"] = ("uncertainty", "fault")
     if keep:
-        E = np.asarray(traj).reshape(traj.shape[0], n_obs, q, B)  # (T, obs, q, B)
-        qs = np.quantile(E, np.asarray(quantiles), axis=-1)  # (nq, T, obs, q)
+        E = np.asarray(traj).reshape(traj.shape[0], n_obs, q, B)  # (T_c, obs, q, B)
+        qs = band_quantiles(E, quantiles)  # (nq, T_c, obs, q)
         metrics["quantiles"] = np.ascontiguousarray(np.transpose(qs, (2, 0, 1, 3)))
         axes["quantiles"] = ("observer", "quantile", "time", "signal")
-    return _result(study, names, quantiles, cfg, metrics, axes, method=method, solver=solver,
+    return _result(study, names, quantiles, cfg, metrics, axes, stride, method=method, solver=solver,
                    chunk_size=layout["chunk_size"], num_chunks=layout["num_chunks"],
                    num_devices=layout["num_devices"], engine=engine)
 
