@@ -33,7 +33,9 @@ from fojax.studies._runner import SimConfig
 
 
 HERE = pathlib.Path(__file__).parent
-TIMEOUT = 600  # s per loopback run: a worker costs ~12-20 s of CPU, but took 280 s on a 2-core machine at load 19
+# s per loopback run: a worker costs ~12-20 s of CPU, but took 280 s on a 2-core machine at load 19
+# (FOJAX_DISTRIBUTED_TEST_TIMEOUT: more on a busier machine)
+TIMEOUT = int(os.environ.get("FOJAX_DISTRIBUTED_TEST_TIMEOUT", "600"))
 
 
 @pytest.fixture(scope="module")
@@ -230,6 +232,14 @@ def _fojax_study(args, *, processes=None, timeout=TIMEOUT):
                 p.kill()
                 p.communicate()
     return [(p.returncode, o) for p, o in zip(procs, outs)]
+
+
+def test_fojax_study_distributed_resume_of_a_missing_folder_stops_every_process(tmp_path):
+    # process 0 reads the folder for every process: none finds it, none hangs
+    runs = _fojax_study(["--resume", str(tmp_path / "nowhere"), "--quiet"], processes=2, timeout=300)
+    assert [c for c, _ in runs] == [2, 2], [o[-3000:] for _, o in runs]
+    for _, text in runs:
+        assert f"--resume {tmp_path / 'nowhere'}: no such results folder" in text
 
 
 def test_fojax_study_distributed_resumed_writes_the_single_process_folder(tmp_path):

@@ -127,13 +127,13 @@ def process_folders(out_dir, resume):
     tmp = tempfile.mkdtemp(prefix=f"fojax-process{jax.process_index()}-")
     try:
         if resume is not None:
-            # the copy keeps the folder's name; empty snapshot: process 0 found no folder, and
-            # this process reports the same error (no such results folder) as process 0
-            copy = os.path.join(tmp, os.path.basename(os.path.normpath(resume)))
-            if snapshot:
-                os.mkdir(copy)
-                with zipfile.ZipFile(io.BytesIO(snapshot)) as z:
-                    z.extractall(copy)
+            if not snapshot:  # process 0 stops with the same words
+                raise InputError(f"--resume {resume}: no such results folder (on process 0's host: process 0 "
+                                 "reads it for every process).")
+            copy = os.path.join(tmp, os.path.basename(os.path.normpath(resume)))  # the folder's name
+            os.mkdir(copy)
+            with zipfile.ZipFile(io.BytesIO(snapshot)) as z:
+                z.extractall(copy)
             resume = copy
         yield os.path.join(tmp, "out"), resume, True
     finally:
