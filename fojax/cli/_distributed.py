@@ -135,7 +135,8 @@ def process_folders(out_dir, resume):
             with zipfile.ZipFile(io.BytesIO(snapshot)) as z:
                 z.extractall(copy)
             resume = copy
-        yield os.path.join(tmp, "out"), resume, True
+        # --resume reuses its folder (no --out, as on process 0); a new study: its own folder
+        yield (os.path.join(tmp, "out") if resume is None else None), resume, True
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
