@@ -1,14 +1,19 @@
 """One process of the loopback multi-process runs of tests/test_distributed.py (not a test module).
 
-``python distributed_worker.py PORT NUM_PROCESSES PROCESS_ID DESIGN OUT [KILL]``: joins the
+``python distributed_worker.py PORT NUM_PROCESSES PROCESS_ID DESIGN OUT [KILL WHEN]``: joins the
 `jax.distributed` run on 127.0.0.1:PORT (CPU, gloo; XLA_FLAGS gives the host devices),
-runs `study_and_tuning` over the global mesh of every process's devices and writes what
-*this* process received to ``OUT`` (.npz). With KILL (a process id), that process kills
-itself (SIGKILL) after the run and the others run the study again: each must stop with
-`fojax.DistributedError`, written to ``OUT.error``.
+runs `study_and_tuning` over the global mesh of every process's devices (its tuning
+checkpoint at ``OUT.ckpt/tune``: a path of its own) and writes what *this* process
+received to ``OUT`` (.npz). With KILL (a process id), that process kills itself (SIGKILL)
+while every process runs the study again (WHEN ``run_study``: right before it) or tunes
+again (``tune``: after the first of two steps); every other process must stop with
+`fojax.DistributedError`, whose message goes to ``OUT.error``. (Only the first collective
+after the death can raise it: the heartbeat, 10 s here, ends a process that JAX finds
+waiting for the dead one, with JAX's own message.)
 """
 
 import collections
+import faulthandler
 import os
 import signal
 import sys
@@ -51,11 +56,31 @@ def studies():
     return evaluation, study(k3, k4, 2, 3)
 
 
-def study_and_tuning(design, devices, loss_devices, steps=3):
-    """Metrics and quantile bands of the evaluation study, and `steps` Adam steps of the
-    tuning parameters (`fojax.tuning.initial_parameters`, the loss `study_loss` that `tune`
-    differentiates, spread over `loss_devices`) on the training study: losses, gradients and final
-    parameters, as a flat dict of NumPy arrays."""
+def time_varying_study():
+    """5 samples of a sinusoidal δ(t) (the exponential engine of `run_study`)."""
+    ex = fojax.models.example_3_3_7()
+    dA = np.zeros((1, 9, 9))
+    dA[0, :6, :6] = ex.dA
+    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    x0 = jnp.zeros(9).at[:4].set(jnp.array([1.0, -0.5, 0.5, 0.2]))
+    return S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, fojax.Sine(jnp.array([1.0, 0.5]), 1.0),
+                   uncertainty=(S.sinusoidal_delta(jax.random.PRNGKey(5), 5, 1, amplitude=(0.0, 0.5)),),
+                   signal_names=SIGNALS)
+
+
+def study_and_tuning(design, devices, loss_devices, checkpoint, steps=3):
+    """As a flat dict of NumPy arrays:
+
+    - metrics and quantile bands of the evaluation study (`run_study` over `devices`);
+    - its metrics with ``chunk_size=2``: blocks of 2 samples, dealt to the devices
+      unevenly (7 samples: on 3 devices 2 + 2 + 2 and then 1);
+    - the metrics of `time_varying_study` (exponential engine, ``chunk_size=2``);
+    - `steps` Adam steps of the tuning parameters (`fojax.tuning.initial_parameters`, the
+      loss `study_loss` that `tune` differentiates, spread over `loss_devices`) on the
+      training study: losses, gradients and final parameters;
+    - `fojax.tune` over `loss_devices`: 1 step with a checkpoint at `checkpoint`, then
+      resumed from it to step 2: history and parameters.
+    """
     import equinox as eqx
     import optax
 
@@ -65,6 +90,11 @@ def study_and_tuning(design, devices, loss_devices, steps=3):
     ev, train = studies()
     res = S.run_study(ev, design.observer, devices=devices, quantiles=(0.1, 0.5, 0.9), quiet=True)
     out = {f"metric:{k}": np.asarray(v) for k, v in res.metrics.items()}
+    uneven = S.run_study(ev, design.observer, devices=devices, chunk_size=2, quantiles=(0.5,), quiet=True)
+    out.update({f"uneven:{k}": np.asarray(v) for k, v in uneven.metrics.items()})
+    tv = S.run_study(time_varying_study(), design.observer, devices=devices, chunk_size=2, quantiles=(), quiet=True)
+    out.update({f"tv:{k}": np.asarray(v) for k, v in tv.metrics.items()})
+    out["tv_engine"] = np.asarray(tv.attrs["engine"])
     cfg = SimConfig(devices=None if loss_devices is None else tuple(loss_devices))
     fx, params = tuning.initial_parameters(design)
     opt = optax.adam(1e-2)
@@ -87,26 +117,42 @@ def study_and_tuning(design, devices, loss_devices, steps=3):
     out["train_loss"] = np.asarray(losses)
     out.update({f"param:{k}": np.asarray(v) for k, v in params.items()})
     out["step_traces"] = np.asarray(TRACES["step"])  # 1: new parameters never recompile
+    for n_steps, resume in ((1, False), (2, True)):
+        tr = tuning.tune(design, train, steps=n_steps, checkpoint=checkpoint, resume=resume,
+                         devices=None if loss_devices is None else tuple(loss_devices))
+    out["tune_loss"] = np.asarray(tr.history["train_loss"])
+    out.update({f"tune_param:{i}": np.asarray(a) for i, a in enumerate(jax.tree.leaves(tr.params))})
+    out["tune_traces"] = np.asarray(tuning._tune.TRACE_COUNTS["tune_step"])  # the resumed run: no new trace
     out["engine"] = np.asarray(res.attrs["engine"])
     out["num_devices"] = np.asarray(res.attrs["num_devices"])
     return out
 
 
-def main(port, n, pid, design_path, out_path, kill=None):
+def main(port, n, pid, design_path, out_path, kill=None, when=None):
+    faulthandler.dump_traceback_later(420, exit=False)  # where a process hangs, in its log
     jax.distributed.initialize(f"127.0.0.1:{port}", int(n), int(pid), initialization_timeout=60,
                                heartbeat_timeout_seconds=10, shutdown_timeout_seconds=10)
     design = fojax.load_design(design_path)
-    out = study_and_tuning(design, jax.devices(), jax.devices())
+    os.makedirs(out_path + ".ckpt")
+    out = study_and_tuning(design, jax.devices(), jax.devices(), os.path.join(out_path + ".ckpt", "tune"))
     out["process_count"] = np.asarray(jax.process_count())
     out["local_devices"] = np.asarray(len(jax.local_devices()))
     np.savez(out_path, **out)
     if kill is None:
         return 0
-    if int(pid) == int(kill):
+    killed = int(pid) == int(kill)
+    ev, train = studies()
+
+    def die(*_):
         os.kill(os.getpid(), signal.SIGKILL)
-    ev, _ = studies()
+
     try:
-        S.run_study(ev, design.observer, devices=jax.devices(), quantiles=(), quiet=True)
+        if when == "run_study":
+            if killed:
+                die()
+            S.run_study(ev, design.observer, devices=jax.devices(), quantiles=(), quiet=True)
+        else:  # the step is compiled already (study_and_tuning): step 2 comes within a second
+            tuning.tune(design, train, steps=2, devices=jax.devices(), callback=die if killed else None)
     except fojax.DistributedError as err:
         with open(out_path + ".error", "w") as f:
             f.write(str(err))

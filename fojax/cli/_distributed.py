@@ -15,8 +15,10 @@ unset):
 
 Only process 0 writes the results folder. The others run the identical computation (the
 collectives need every process) in a private temporary folder that is deleted at the end;
-with ``--resume FOLDER`` they continue from a copy of process 0's FOLDER, which must be
-visible to every host (a shared file system, as on a cluster).
+with ``--resume FOLDER`` process 0 reads FOLDER before anything is written and sends the
+files a resume needs (config, options, designs, tuning checkpoints) to the others, which
+continue from that copy: every process agrees on what is done, and FOLDER need only be on
+process 0's host.
 """
 
 from __future__ import annotations
@@ -75,25 +77,66 @@ def initialize() -> None:
         ) from err
 
 
+#: Files of a results folder that ``fojax study --resume`` never reads (the last stage
+#: writes them again): not sent to the other processes.
+_REGENERATED = ("metrics", "study", "study-samples")
+
+
+def _snapshot(folder) -> bytes | None:
+    """Process 0: the files of `folder` a resume reads (config, options, manifest, designs,
+    tuning checkpoints: every top-level ``.toml``/``.json``/``.npz`` but the regenerated
+    study outputs), as the bytes of an uncompressed zip; None if there is no such folder."""
+    import io
+    import pathlib
+    import zipfile
+
+    folder = pathlib.Path(folder)
+    if not folder.is_dir():
+        return None
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as z:
+        for p in sorted(folder.iterdir()):
+            if (p.is_file() and not p.is_symlink() and p.suffix in (".toml", ".json", ".npz")
+                    and not p.name.startswith(".") and p.stem not in _REGENERATED):
+                z.writestr(p.name, p.read_bytes())
+    return buf.getvalue()
+
+
 @contextlib.contextmanager
 def process_folders(out_dir, resume):
     """``(out_dir, resume, quiet)`` for this process: unchanged on process 0; on the others a
-    temporary folder (and a copy of the `resume` folder in it), removed at the end."""
+    temporary folder, removed at the end. With `resume`, process 0 reads the files of that
+    folder a resume needs *before* it writes anything and sends them to every other process
+    (`fojax.studies._sharding.broadcast_bytes`), which continue from that copy: every
+    process sees the same designs and tuning checkpoints, and the folder need not be
+    visible to the other hosts."""
+    import io
+    import zipfile
+
     import jax
 
+    from ..studies._sharding import broadcast_bytes
+
+    snapshot = None
+    if resume is not None:  # every process takes part, before any can fail or write
+        snapshot = broadcast_bytes(_snapshot(resume) if jax.process_index() == 0 else None,
+                                   f"--resume {resume}: sending the folder to every process")
     if jax.process_index() == 0:
         yield out_dir, resume, None
         return
     tmp = tempfile.mkdtemp(prefix=f"fojax-process{jax.process_index()}-")
     try:
         if resume is not None:
-            if not os.path.isdir(resume):
-                raise InputError(f"--resume {resume}: process {jax.process_index()} cannot see this folder; "
-                                 "--distributed --resume needs it on a file system every host mounts.")
-            copy = os.path.join(tmp, os.path.basename(os.path.normpath(resume)))
-            shutil.copytree(resume, copy)
+            if not snapshot:  # process 0 stops with the same words
+                raise InputError(f"--resume {resume}: no such results folder (on process 0's host: process 0 "
+                                 "reads it for every process).")
+            copy = os.path.join(tmp, os.path.basename(os.path.normpath(resume)))  # the folder's name
+            os.mkdir(copy)
+            with zipfile.ZipFile(io.BytesIO(snapshot)) as z:
+                z.extractall(copy)
             resume = copy
-        yield os.path.join(tmp, "out"), resume, True
+        # --resume reuses its folder (no --out, as on process 0); a new study: its own folder
+        yield (os.path.join(tmp, "out") if resume is None else None), resume, True
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

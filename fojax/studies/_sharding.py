@@ -174,6 +174,38 @@ def check_same_on_every_process(tree, what: str) -> None:
         )
 
 
+def broadcast_bytes(data: bytes | None, what: str) -> bytes:
+    """Host, every process of a multi-process run calls it: process 0's `data` (``None``:
+    no bytes) on every process, bit for bit (sent as ``uint8``; a float broadcast by
+    `multihost_utils.broadcast_one_to_all`, a sum with zeros, would turn ``-0.0`` into
+    ``0.0``). The other processes' `data` is ignored. One process: `data` itself.
+
+    The one way process 0's *files* reach the others (a tuning checkpoint to resume from,
+    the folder of ``fojax study --resume``), so that every process continues from the same
+    state without a file system shared by the hosts, and none reads a file while process 0
+    replaces it."""
+    if jax.process_count() == 1:
+        return b"" if data is None else bytes(data)
+    from jax.experimental import multihost_utils
+
+    source = jax.process_index() == 0
+    data = b"" if data is None or not source else bytes(data)
+    with distributed_errors(what):
+        n = int(multihost_utils.broadcast_one_to_all(np.asarray(len(data), np.int64)))
+        buf = np.frombuffer(data, np.uint8) if source else np.zeros(n, np.uint8)
+        if n == 0:
+            return b""
+        out = multihost_utils.broadcast_one_to_all(buf)
+    return np.asarray(out, np.uint8).tobytes()
+
+
+def writes_files(devices) -> bool:
+    """Whether this process writes the files of a computation over `devices` (a sequence
+    of `jax.Device` or ``None``): always, unless `devices` span several processes; then
+    only process 0 does (the others hold the same numbers)."""
+    return devices is None or not spans_processes(devices) or jax.process_index() == 0
+
+
 #: Words of the runtime's messages when another process of a distributed run is gone.
 _PEER_FAILURE = ("gloo", "nccl", "coordination", "heartbeat", "connection reset", "peer", "barrier")
 
@@ -184,9 +216,13 @@ def distributed_errors(what: str):
     only) into a `DistributedError` naming this process and what to do."""
     try:
         yield
-    except jax.errors.JaxRuntimeError as err:
+    except (jax.errors.JaxRuntimeError, ValueError, RuntimeError) as err:
+        # the same lost peer reaches Python as a JaxRuntimeError or, e.g. from
+        # multihost_utils.process_allgather, as a ValueError ("UNKNOWN: Gloo AllGather
+        # failed: ... Connection closed by peer"; seen on a 3-process loopback run)
         msg = str(err)
-        if jax.process_count() == 1 or not any(w in msg.lower() for w in _PEER_FAILURE):
+        if (isinstance(err, DistributedError) or jax.process_count() == 1
+                or not any(w in msg.lower() for w in _PEER_FAILURE)):
             raise
         raise DistributedError(
             f"{what} stopped on process {jax.process_index()} of {jax.process_count()}: another process "

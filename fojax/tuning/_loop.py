@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from .._errors import InputError
 from ..studies._runner import _atomic_write
+from ..studies._sharding import broadcast_bytes, spans_processes, writes_files
 
 
 def check_extra_loss(extra_loss, observer, design_params) -> None:
@@ -72,13 +73,31 @@ def save_checkpoint(path, params, opt_state, step, key, history):
     _atomic_write(path + ".json", lambda f: f.write(json.dumps(meta).encode()))
 
 
-def load_checkpoint(path, params, opt_state):
-    with open(path + ".json") as f:
-        meta = json.load(f)
-    with np.load(path + ".npz") as data:
-        leaves = [jnp.asarray(data[f"leaf{i}"]) for i in range(len(jax.tree.leaves((params, opt_state))))]
-        key = jnp.asarray(data["key"])
-        npz_step = int(data["step"]) if "step" in data else meta["step"]
+def read_checkpoint(path) -> bytes | None:
+    """The bytes of the checkpoint pair at `path` (``path.json`` then ``path.npz``, framed
+    by the JSON's length), or None when there is none."""
+    import os
+
+    if not os.path.exists(path + ".json"):
+        return None
+    with open(path + ".json", "rb") as f:
+        meta = f.read()
+    with open(path + ".npz", "rb") as f:
+        arrays = f.read()
+    return len(meta).to_bytes(8, "little") + meta + arrays
+
+
+def load_checkpoint(path, params, opt_state, data: bytes | None = None):
+    """The state saved at `path` (or in `data`, the bytes of `read_checkpoint`)."""
+    import io
+
+    data = read_checkpoint(path) if data is None else data
+    n = int.from_bytes(data[:8], "little")
+    meta = json.loads(data[8 : 8 + n].decode())
+    with np.load(io.BytesIO(data[8 + n :])) as npz:
+        leaves = [jnp.asarray(npz[f"leaf{i}"]) for i in range(len(jax.tree.leaves((params, opt_state))))]
+        key = jnp.asarray(npz["key"])
+        npz_step = int(npz["step"]) if "step" in npz else meta["step"]
     if npz_step != meta["step"]:
         raise InputError(
             f"checkpoint {path}: {path}.npz holds step {npz_step} but {path}.json step {meta['step']} "
@@ -107,6 +126,8 @@ def run_loop(
     checkpoint_every: int,
     quiet: bool,
     desc: str,
+    devices=None,
+    place: Callable | None = None,
 ):
     """Run steps ``start+1 .. steps`` and return ``(params, history)``.
 
@@ -115,13 +136,26 @@ def run_loop(
     float64 check on the host; `to_params` maps the optimizer's coordinates to the
     parameterization's parameters (passed to `callback` as ``record["params"]``). With `resume` and an existing checkpoint at `path`, the
     run continues from it (the result equals an uninterrupted run).
-    """
-    import os
 
+    With `devices` spanning several processes (a `jax.distributed` run, every process
+    running the same loop) only process 0 writes the checkpoint, and on `resume` process 0
+    reads it and sends its bytes to the others (`fojax.studies._sharding.broadcast_bytes`):
+    every process continues from process 0's checkpoint, whatever its own `path` holds
+    (no file system shared by the hosts is needed). `place` maps a loaded ``(params,
+    opt_state)`` to the placement of the jitted step's inputs (so that it does not compile
+    again).
+    """
     history = {k: [] for k in HISTORY_KEYS}
     start = 0
-    if resume and path is not None and os.path.exists(path + ".json"):
-        params, opt_state, start, key, history = load_checkpoint(path, params, opt_state)
+    writer = writes_files(devices)
+    if resume and path is not None:
+        data = read_checkpoint(path) if writer else None
+        if devices is not None and spans_processes(devices):  # every process: process 0's bytes
+            data = broadcast_bytes(data, f"{desc}: resuming from checkpoint {path}") or None
+        if data is not None:
+            params, opt_state, start, key, history = load_checkpoint(path, params, opt_state, data)
+            if place is not None:
+                params, opt_state = place((params, opt_state))
     for i in tqdm(range(start, steps), disable=quiet, desc=desc, unit="step"):
         key, _ = jax.random.split(key)
         value, cand, cand_state, _, ok, nback = step(params, opt_state, *step_args)
@@ -140,6 +174,6 @@ def run_loop(
             history[k].append(v)
         if callback is not None:
             callback(i + 1, dict(rec, params=to_params(params)))
-        if path is not None and ((i + 1) % checkpoint_every == 0 or i + 1 == steps):
+        if writer and path is not None and ((i + 1) % checkpoint_every == 0 or i + 1 == steps):
             save_checkpoint(path, params, opt_state, i + 1, key, history)
     return params, history

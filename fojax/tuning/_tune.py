@@ -53,7 +53,8 @@ candidates form one `equinox.filter_jit` function, compiled once
 **Checkpoints.** ``checkpoint=path`` writes, every `checkpoint_every` steps, the
 optimizer's coordinates, its state, the step, the PRNG key and the history (``path.npz`` +
 ``path.json``, each written atomically; a pair that disagrees is refused). ``resume=True``
-continues from it; the result equals an uninterrupted run.
+continues from it; the result equals an uninterrupted run. With `devices` spanning
+several processes only process 0 writes and reads it (the others receive its bytes).
 """
 
 from __future__ import annotations
@@ -294,8 +295,11 @@ def tune(
       after `jax.distributed.initialize`: every process's devices; each process computes
       its share of the loss and gradient). The iterates are bit-identical to the default
       (``None``: one device), see `fojax.studies._sharding`. Every process runs the same
-      `tune` call (checked; `fojax.DistributedError` otherwise or when another dies);
-      with `checkpoint`, give each process its own path or let only process 0's file count.
+      `tune` call (checked; `fojax.DistributedError` otherwise or when another dies).
+      With `checkpoint`, only process 0 writes it (at its `checkpoint` path), and with
+      `resume` every process continues from process 0's checkpoint (sent to the others:
+      no file system shared by the hosts is needed); the other processes' paths are
+      neither written nor read.
 
     **Returns:** a `TuneResult`.
 
@@ -334,8 +338,8 @@ def tune(
     def heldout_loss(p):
         return float(_evaluate(p, par, heldout, loss, quantile, w, cfg))
 
-    initial_heldout = heldout_loss(params0) if heldout is not None else None
-    with distributed_errors("tune"):
+    with distributed_errors("tune"):  # every collective of the run (a dead process: DistributedError)
+        initial_heldout = heldout_loss(params0) if heldout is not None else None
         xi, history = run_loop(
             xi, opt_state, key, steps=steps, step=_step,
             step_args=(coords, par, train_study, optimizer, loss, quantile, w, cfg, jnp.asarray(float(min_margin)),
@@ -344,6 +348,7 @@ def tune(
             heldout_loss=(lambda x: heldout_loss(coords.params(x))) if heldout is not None else None,
             eval_every=eval_every, callback=callback, to_params=coords.params, path=path, resume=resume,
             checkpoint_every=checkpoint_every, quiet=quiet, desc="tune",
+            devices=devices, place=lambda t: replicate(t, devices),
         )  # fmt: skip
         params = coords.params(xi)
         final_heldout = heldout_loss(params) if heldout is not None else None
