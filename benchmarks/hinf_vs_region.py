@@ -12,6 +12,16 @@ y (`fojax.studies.NoisyPlant`), 10 s on a 0.01 s output grid:
   estimation error is the response to the output noise alone;
 - ``faults``: the fault-augmented plant of the thesis (n = 9) with constant faults
   (magnitudes in [0.5, 1.5]), estimating z and f (as `benchmarks/study_default.py`).
+- ``lc``: a model of our own, not from the thesis: the two-stage LC filter of
+  `benchmarks/lc_filter.py` (plain units, index 1, n = 6, y = (i1, v2), z = i2), the plant
+  built by `tuning_circuit.build` (load resistance ``Ra (1 + 0.5 δ)``); δ uniform in
+  [-1, 1] (``LC_DELTA_MAX = 1``: lc_filter's ΔA is the change for δ = 1, so the H∞ channel
+  is ``Bw = 1 · Bδ``), x0 = 0.5 on the four differential states and the algebraic states
+  (v3, iL) made consistent with the nominal algebraic rows
+  (`fojax.consistent_initial_condition`: v3 = 0.25, iL = 0.125; for δ ≠ 0 `fojax.simulate`
+  re-solves iL from the same slow part), zero input, the same 10 s horizon (the plant's
+  slowest pole, -0.17 ± 0.79j at δ = 1, has not decayed by then, so no shorter horizon),
+  noise on both outputs (``Dv = σ I₂``).
 
 Observers: region-only and H∞ designs of the proportional and generalized kinds in the disk
 (-3, 2) of `fojax/examples/example_3_3_7.toml`. H∞ channels: ``Bw = δ̄ Bδ`` with
@@ -33,6 +43,12 @@ Two more designs per kind:
 
     python benchmarks/hinf_vs_region.py                        # 8 δ (x 4 faults), σ = 0.05, 0.5
     python benchmarks/hinf_vs_region.py --deltas 4 --faults 2 --sigma 0.05 --cases states --tune-steps 5
+    python benchmarks/hinf_vs_region.py --cases lc --deltas 8 --train-deltas 4 --tune-steps 10 --solver tsit5 \
+        --out benchmarks/results/hinf_vs_region_lc_latest.json
+
+``--solver tsit5`` passes ``diffrax.Tsit5()`` to `fojax.run_study` and `fojax.tune` (the
+studies with output noise run on the ``vmap-simulate`` engine); default: `fojax.simulate`'s
+own solver (the recorded §3.3.7 runs).
 
 Writes ``benchmarks/results/hinf_vs_region_latest.json`` (with ``os.getloadavg()``).
 """
@@ -62,33 +78,53 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from tuning_circuit import build as lc_build  # noqa: E402
 
 import fojax  # noqa: E402
 from fojax import studies as S  # noqa: E402
-from fojax.design import design_functional_observer, Disk, hinf_uncertainty_channel  # noqa: E402
+from fojax.design import design_functional_observer, Disk, hinf_uncertainty_channel, live_parameters  # noqa: E402
 
 
 T_END, DT, DELTA_MAX = 10.0, 0.01, 0.3
 SIGNALS = ("z1", "z2", "f1", "f2", "f3")
+LC_DELTA_MAX = 1.0  # lc_filter's dA is the load change for delta = 1: Ra (1 + 0.5 delta), |delta| <= 1
 
 
-def designs(ex, case, sigma, h2_q0):
+def lc_model():
+    """``(model dict, system, uncertain plant, consistent x0)`` of the LC filter (plain units)."""
+    m, sys_, st = lc_build(False, 1, 1, seed=0)
+    x0, _ = fojax.consistent_initial_condition(sys_, jnp.array([0.5, 0.5, 0.5, 0.5, 0.0, 0.0]))
+    return m, sys_, st.plant, x0
+
+
+def designs(ex, case, sigma, h2_q0, q0=None):
     """Region-only, H∞ and H2 designs (proportional, generalized) of one case, with γ, ν and norms."""
-    sys_, L, dA = (ex.augmented, ex.L_aug, np.pad(ex.dA, ((0, 3), (0, 3)))) if case == "faults" else (
-        ex.system, ex.L, np.asarray(ex.dA))
-    Bd, _ = hinf_uncertainty_channel(dA, DELTA_MAX)
-    Dv = sigma * np.eye(3)
+    if case == "lc":
+        m, sys_, _, _ = lc_model()
+        L, dA, dmax = m["L"], m["dA"], LC_DELTA_MAX
+    else:
+        sys_, L, dA = (ex.augmented, ex.L_aug, np.pad(ex.dA, ((0, 3), (0, 3)))) if case == "faults" else (
+            ex.system, ex.L, np.asarray(ex.dA))
+        dmax = DELTA_MAX
+    Bd, _ = hinf_uncertainty_channel(dA, dmax)
+    Dv = sigma * np.eye(sys_.C.shape[0])
     out, info = {}, {}
+    qkw = {} if q0 is None else {"q0": q0}  # --q0: the order of the region-only and H∞ designs
     for kind in ("proportional", "generalized"):
         t = time.perf_counter()
-        out[f"region {kind}"] = design_functional_observer(sys_, L, kind=kind, region=Disk(-3.0, 2.0))
+        out[f"region {kind}"] = design_functional_observer(sys_, L, kind=kind, region=Disk(-3.0, 2.0), **qkw)
         t_region = time.perf_counter() - t
         t = time.perf_counter()
-        d = design_functional_observer(sys_, L, kind=kind, region=Disk(-3.0, 2.0), objective="hinf", Bw=Bd, Dv=Dv)
+        d = design_functional_observer(sys_, L, kind=kind, region=Disk(-3.0, 2.0), objective="hinf", Bw=Bd, Dv=Dv,
+                                       **qkw)
         t_hinf = time.perf_counter() - t
         out[f"hinf {kind}"] = d
         info[kind] = {**{k: v for k, v in d.hinf.to_dict().items() if k not in ("Bw", "Dv")},
                       "design_seconds_region": t_region, "design_seconds_hinf": t_hinf,
+                      "q0": q0, "observer_order_region": int(out[f"region {kind}"].observer.state_size),
+                      "live_parameters_region": live_parameters(out[f"region {kind}"]).live,
+                      "live_parameters_hinf": live_parameters(d).live,
+                      "free_parameters": live_parameters(d).total,
                       "max_re_eig_region": float(np.max(out[f"region {kind}"].report.eigenvalues.real)),
                       "max_re_eig_hinf": float(np.max(d.report.eigenvalues.real))}
         t = time.perf_counter()
@@ -115,7 +151,8 @@ def tuned(ds, ex, case, args, sigma):
     opt = fojax.tuning.shared_optimizer("adam", learning_rate=args.tune_lr)
     for kind in ("proportional", "generalized"):
         t = time.perf_counter()
-        res = fojax.tune(ds[f"region {kind}"], train, steps=args.tune_steps, optimizer=opt, quiet=True)
+        res = fojax.tune(ds[f"region {kind}"], train, steps=args.tune_steps, optimizer=opt, quiet=True,
+                         solver=solver(args))
         out[f"tuned {kind}"] = res.design
         h = res.history
         info[kind] = {"steps": args.tune_steps, "learning_rate": args.tune_lr, "train_samples": int(train.num_samples),
@@ -125,7 +162,18 @@ def tuned(ds, ex, case, args, sigma):
     return out, info
 
 
+def solver(args):
+    """The diffrax solver of ``--solver`` (None: `fojax.simulate`'s default)."""
+    if args.solver == "tsit5":
+        import diffrax
+
+        return diffrax.Tsit5()
+    return None
+
+
 def study(ex, case, n_delta, n_fault, sigma, noise_dt, seed):
+    if case == "lc":
+        return lc_study(n_delta, sigma, noise_dt, seed)
     faults = case == "faults"
     n = 9 if faults else 6
     x0_value = 0.0 if case == "noise" else 0.5
@@ -145,6 +193,20 @@ def study(ex, case, n_delta, n_fault, sigma, noise_dt, seed):
         signal_names=SIGNALS if faults else SIGNALS[:2])
 
 
+def lc_study(n_delta, sigma, noise_dt, seed):
+    """The LC filter with constant delta in [-1, 1], consistent x0, zero input, noise on (i1, v2)."""
+    m, _, base, x0 = lc_model()
+    plant = S.NoisyPlant(base, fojax.Constant(jnp.zeros(2)))
+    ts = jnp.linspace(0.0, T_END, int(round(T_END / DT)) + 1)
+    k1, _, k3 = jax.random.split(jax.random.PRNGKey(seed), 3)
+    return fojax.Study(
+        plant, x0, ts, m["L"], None,
+        uncertainty=(S.constant_delta(k1, n_delta, 1, bounds=(-LC_DELTA_MAX, LC_DELTA_MAX),
+                                      path=("plant", "base", "delta")),
+                     S.output_noise(k3, n_delta, 2, 0.0, T_END, noise_dt, std=sigma, path=("plant", "noise"))),
+        signal_names=("i2",))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--deltas", type=int, default=8)
@@ -152,11 +214,15 @@ def main(argv=None) -> int:
     ap.add_argument("--sigma", type=float, nargs="+", default=[0.05, 0.5])
     ap.add_argument("--seed", type=int, default=18_2026)
     ap.add_argument("--noise-dt", type=float, default=0.05, help="hold time of the output noise [s]")
-    ap.add_argument("--cases", nargs="+", default=["states", "noise", "faults"], choices=["states", "noise", "faults"])
+    ap.add_argument("--cases", nargs="+", default=["states", "noise", "faults"], choices=["states", "noise", "faults", "lc"])
+    ap.add_argument("--q0", type=int, default=None,
+                    help="order q0 of the region-only and H∞ designs (default: the design's own choice)")
     ap.add_argument("--h2-q0", type=int, default=4, help="observer order of the H2 design")
     ap.add_argument("--tune-steps", type=int, default=30, help="0: no tuned design")
     ap.add_argument("--tune-lr", type=float, default=0.05)
     ap.add_argument("--train-deltas", type=int, default=8, help="samples of the training study of the tuned design")
+    ap.add_argument("--solver", default="default", choices=["default", "tsit5"],
+                    help="simulation solver of the Monte Carlo and training studies (tsit5: diffrax.Tsit5)")
     ap.add_argument("--out", default=str(_common.RESULTS / "hinf_vs_region_latest.json"))
     args = ap.parse_args(argv)
     ex = fojax.models.example_3_3_7()
@@ -164,7 +230,7 @@ def main(argv=None) -> int:
     rows, details = [], []
     for case in args.cases:
         for sigma in args.sigma:
-            ds, info = designs(ex, case, sigma, args.h2_q0)
+            ds, info = designs(ex, case, sigma, args.h2_q0, args.q0)
             print(f"{case} sigma={sigma:g}: designed {', '.join(ds)}; tuning ...", flush=True)
             tds, tinfo = tuned(ds, ex, case, args, sigma)
             secs = ", ".join(f"{k} {v['tune_seconds']:.0f} s" for k, v in tinfo.items())
@@ -174,7 +240,7 @@ def main(argv=None) -> int:
             names = list(ds)
             t = time.perf_counter()
             res = fojax.run_study(st, [d.observer for d in ds.values()], observer_names=names, quantiles=(),
-                                  quiet=True)
+                                  quiet=True, solver=solver(args))
             t_study = time.perf_counter() - t
             iae, peak = np.asarray(res.metrics["iae"]), np.asarray(res.metrics["peak"])  # (obs, u, f, signal)
             ok = np.asarray(res.metrics["success"])
@@ -190,7 +256,7 @@ def main(argv=None) -> int:
                             "designs": info, "tuning": tinfo, "monte_carlo": per})
             for kind in ("proportional", "generalized"):
                 r, h, g = per[f"region {kind}"], per[f"hinf {kind}"], info[kind]
-                rows.append({"case": case, "sigma": sigma, "kind": kind, "samples": int(ok.sum()),
+                rows.append({"case": case, "sigma": sigma, "kind": kind, "q0": g["q0"], "samples": int(ok.sum()),
                              "gamma": g["gamma"], "norm_hinf": g["norm"], "norm_region_only": g["region_only_norm"],
                              "peak_frequency": g["peak_frequency"], "tightness": g["tightness"],
                              "mean_iae_region": r["mean_iae_total"], "mean_iae_hinf": h["mean_iae_total"],
@@ -225,7 +291,11 @@ def main(argv=None) -> int:
              "objective='hinf' designs in Disk(-3, 2), objective='h2' designs (q0 = h2_q0), and "
              "fojax.tune from the region-only design on a training study of another seed; mean over the "
              "held-out samples of fojax.run_study's IAE (summed over "
-             "the estimated signals) and peak error (max over signals); measured under load",
+             "the estimated signals) and peak error (max over signals); case 'lc' (a model of our own): the "
+             "two-stage LC filter of benchmarks/lc_filter.py (plain units, index 1, n = 6, y = (i1, v2), "
+             "z = i2), constant delta in [-1, 1] on dA (load Ra (1 + 0.5 delta)), x0 = 0.5 on the differential "
+             "states with consistent algebraic states, Bw = hinf_uncertainty_channel(dA, 1), Dv = sigma I2; "
+             "measured under load",
         loadavg=list(os.getloadavg()), rows=rows, details=details)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(args.out).with_suffix(".tmp")
