@@ -14,6 +14,9 @@
   poles equal (by matching) to those of the hand-reduced ODE (the divider gives
   $v_3 = v_2/2$, $i_L = v_2/(2R_a)$), and its badly scaled twin has the same finite poles,
   outputs and functional for the same physical state.
+- `benchmarks/hinf_vs_region.py`, case ``lc`` (issue 18): the plant is lc_filter's, the
+  initial state satisfies the algebraic rows (oracle: the same hand reduction), the H∞
+  channel reproduces ΔA for |δ| ≤ 1, and the study draws δ in [-1, 1] and noise on both outputs.
 """
 
 import json
@@ -279,3 +282,25 @@ def test_lc_filter_is_index1_and_its_twin_is_the_same_circuit():
     x = np.arange(1.0, 7.0)
     np.testing.assert_allclose(twin["C"] @ np.linalg.solve(S, x), plain["C"] @ x, rtol=1e-14)
     np.testing.assert_allclose(twin["L"] @ np.linalg.solve(S, x), plain["L"] @ x, rtol=1e-14)
+
+
+def test_hinf_vs_region_lc_case_is_the_lc_filter_with_consistent_x0():
+    import hinf_vs_region
+
+    p = lc_filter.PARAMS
+    _, sys_, plant, x0 = hinf_vs_region.lc_model()
+    ref = lc_filter.lc_filter()
+    for k in ("E", "A", "C"):
+        np.testing.assert_array_equal(np.asarray(getattr(sys_, k)), ref[k])
+    np.testing.assert_array_equal(np.asarray(plant.dA)[0], ref["dA"])
+    # hand reduction: v3 = v2/2, i_L = (v2 - v3)/Ra; x0 keeps 0.5 on (i1, v1, i2, v2)
+    np.testing.assert_allclose(np.asarray(x0), [0.5, 0.5, 0.5, 0.5, 0.25, 0.25 / p["Ra"]], rtol=1e-12)
+    np.testing.assert_allclose((ref["A"] @ np.asarray(x0))[4:], 0.0, atol=1e-14)  # the algebraic rows
+    Bw, Cd = fojax.design.hinf_uncertainty_channel(ref["dA"], hinf_vs_region.LC_DELTA_MAX)
+    np.testing.assert_allclose(Bw @ Cd, ref["dA"], atol=1e-14)  # w = delta Cd x with |delta| <= 1
+    st = hinf_vs_region.study(None, "lc", 16, 1, 0.5, 0.05, seed=3)
+    delta, noise = (f.values for f in st.uncertainty)
+    delta, noise = np.asarray(delta.value), np.asarray(noise.values)
+    assert delta.shape == (16, 1) and np.all(np.abs(delta) <= 1.0) and np.ptp(delta) > 1.0
+    assert noise.shape[0] == 16 and noise.shape[-1] == 2  # (i1, v2)
+    assert st.signal_names == ("i2",)
