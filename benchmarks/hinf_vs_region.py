@@ -22,6 +22,8 @@ y (`fojax.studies.NoisyPlant`), 10 s on a 0.01 s output grid:
   re-solves iL from the same slow part), zero input, the same 10 s horizon (the plant's
   slowest pole, -0.17 ± 0.79j at δ = 1, has not decayed by then, so no shorter horizon),
   noise on both outputs (``Dv = σ I₂``).
+- ``lc_noise``: the same with x0 = 0 (the filter stays at rest, δ has no effect): the
+  estimation error is the response to the output noise alone.
 
 Observers: region-only and H∞ designs of the proportional and generalized kinds in the disk
 (-3, 2) of `fojax/examples/example_3_3_7.toml`. H∞ channels: ``Bw = δ̄ Bδ`` with
@@ -99,7 +101,7 @@ def lc_model():
 
 def designs(ex, case, sigma, h2_q0, q0=None):
     """Region-only, H∞ and H2 designs (proportional, generalized) of one case, with γ, ν and norms."""
-    if case == "lc":
+    if case in ("lc", "lc_noise"):
         m, sys_, _, _ = lc_model()
         L, dA, dmax = m["L"], m["dA"], LC_DELTA_MAX
     else:
@@ -172,8 +174,8 @@ def solver(args):
 
 
 def study(ex, case, n_delta, n_fault, sigma, noise_dt, seed):
-    if case == "lc":
-        return lc_study(n_delta, sigma, noise_dt, seed)
+    if case in ("lc", "lc_noise"):
+        return lc_study(n_delta, sigma, noise_dt, seed, at_rest=case == "lc_noise")
     faults = case == "faults"
     n = 9 if faults else 6
     x0_value = 0.0 if case == "noise" else 0.5
@@ -193,9 +195,10 @@ def study(ex, case, n_delta, n_fault, sigma, noise_dt, seed):
         signal_names=SIGNALS if faults else SIGNALS[:2])
 
 
-def lc_study(n_delta, sigma, noise_dt, seed):
-    """The LC filter with constant delta in [-1, 1], consistent x0, zero input, noise on (i1, v2)."""
+def lc_study(n_delta, sigma, noise_dt, seed, at_rest=False):
+    """The LC filter with constant delta in [-1, 1], consistent x0 (or 0), zero input, noise on (i1, v2)."""
     m, _, base, x0 = lc_model()
+    x0 = 0.0 * x0 if at_rest else x0
     plant = S.NoisyPlant(base, fojax.Constant(jnp.zeros(2)))
     ts = jnp.linspace(0.0, T_END, int(round(T_END / DT)) + 1)
     k1, _, k3 = jax.random.split(jax.random.PRNGKey(seed), 3)
@@ -214,7 +217,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sigma", type=float, nargs="+", default=[0.05, 0.5])
     ap.add_argument("--seed", type=int, default=18_2026)
     ap.add_argument("--noise-dt", type=float, default=0.05, help="hold time of the output noise [s]")
-    ap.add_argument("--cases", nargs="+", default=["states", "noise", "faults"], choices=["states", "noise", "faults", "lc"])
+    ap.add_argument("--cases", nargs="+", default=["states", "noise", "faults"], choices=["states", "noise", "faults", "lc", "lc_noise"])
     ap.add_argument("--q0", type=int, default=None,
                     help="order q0 of the region-only and H∞ designs (default: the design's own choice)")
     ap.add_argument("--h2-q0", type=int, default=4, help="observer order of the H2 design")
@@ -294,7 +297,7 @@ def main(argv=None) -> int:
              "the estimated signals) and peak error (max over signals); case 'lc' (a model of our own): the "
              "two-stage LC filter of benchmarks/lc_filter.py (plain units, index 1, n = 6, y = (i1, v2), "
              "z = i2), constant delta in [-1, 1] on dA (load Ra (1 + 0.5 delta)), x0 = 0.5 on the differential "
-             "states with consistent algebraic states, Bw = hinf_uncertainty_channel(dA, 1), Dv = sigma I2; "
+             "states with consistent algebraic states ('lc_noise': x0 = 0), Bw = hinf_uncertainty_channel(dA, 1), Dv = sigma I2; "
              "measured under load",
         loadavg=list(os.getloadavg()), rows=rows, details=details)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

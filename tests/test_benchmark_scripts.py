@@ -304,3 +304,5 @@ def test_hinf_vs_region_lc_case_is_the_lc_filter_with_consistent_x0():
     assert delta.shape == (16, 1) and np.all(np.abs(delta) <= 1.0) and np.ptp(delta) > 1.0
     assert noise.shape[0] == 16 and noise.shape[-1] == 2  # (i1, v2)
     assert st.signal_names == ("i2",)
+    np.testing.assert_array_equal(np.asarray(st.x0), np.asarray(x0))
+    assert not np.any(np.asarray(hinf_vs_region.study(None, "lc_noise", 2, 1, 0.5, 0.05, seed=3).x0))  # at rest
