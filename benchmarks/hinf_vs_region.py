@@ -47,6 +47,12 @@ Two more designs per kind:
     python benchmarks/hinf_vs_region.py --deltas 4 --faults 2 --sigma 0.05 --cases states --tune-steps 5
     python benchmarks/hinf_vs_region.py --cases lc --deltas 8 --train-deltas 4 --tune-steps 10 --solver tsit5 \
         --out benchmarks/results/hinf_vs_region_lc_latest.json
+    # the same at order 4 (region-only and H∞: at the default order 1 / 2 the H∞ design has one live
+    # parameter and equals the region-only one), and noise alone (x0 = 0, no tuning):
+    python benchmarks/hinf_vs_region.py --cases lc --q0 4 --deltas 8 --train-deltas 4 --tune-steps 10 \
+        --solver tsit5 --out benchmarks/results/hinf_vs_region_lc_q4_latest.json
+    python benchmarks/hinf_vs_region.py --cases lc_noise --q0 4 --deltas 8 --tune-steps 0 --solver tsit5 \
+        --out benchmarks/results/hinf_vs_region_lc_noise_q4_latest.json
 
 ``--solver tsit5`` passes ``diffrax.Tsit5()`` to `fojax.run_study` and `fojax.tune` (the
 studies with output noise run on the ``vmap-simulate`` engine); default: `fojax.simulate`'s
