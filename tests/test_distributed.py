@@ -194,8 +194,23 @@ def test_study_distributed_refuses_bad_environment_before_joining(monkeypatch, c
     assert message in capsys.readouterr().err
 
 
+def _plain(v):
+    """A design file's JSON skeleton (`fojax._serialize`) with its encoded dicts
+    (``{"$": "dict", "items": [[key, value], ...]}``) as plain dicts, so keys have paths."""
+    if isinstance(v, dict) and v.get("$") == "dict" and isinstance(v.get("items"), list):
+        return {str(k): _plain(x) for k, x in v["items"]}
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_plain(x) for x in v]
+    return v
+
+
 def _differences(x, y, path=""):
     """The paths at which two JSON values differ, but for the solver's wall-clock time."""
+    x, y = _plain(x), _plain(y)
+    if isinstance(x, list) and isinstance(y, list) and len(x) == len(y):
+        return [d for i, (a, b) in enumerate(zip(x, y, strict=True)) for d in _differences(a, b, f"{path}/{i}")]
     if isinstance(x, dict) and isinstance(y, dict):
         return [d for k in sorted(set(x) | set(y)) for d in _differences(x.get(k), y.get(k), f"{path}/{k}")]
     if path.endswith("/solve_time"):  # the solver's wall clock
