@@ -273,10 +273,13 @@ def test_lc_filter_is_index1_and_its_twin_is_the_same_circuit():
                      [0, 0, 1 / p["C2"], -1 / (2 * p["Ra"] * p["C2"])]])
     want = np.linalg.eigvals(Ared)
     plain, twin = lc_filter.lc_filter(), lc_filter.lc_filter(scaled=True)
-    for m in (plain, twin):
+    # unbalanced QZ is backward stable relative to the pencil's norm: on the twin, whose rows and
+    # states span 1e-3 .. 1e3, it keeps about 6 fewer digits (measured 1.5e-9 relative under
+    # OPENBLAS_CORETYPE=Sandybridge, 1e-10 under the default kernel), hence its own tolerance
+    for m, rtol in ((plain, 1e-9), (twin, 1e-6)):
         sys_ = fojax.DescriptorSystem(m["E"], m["A"], m["B"], m["C"])
         assert fojax.analysis.nilpotency_index(sys_) == 1
-        assert_eigenvalues_match(_finite_poles(m["A"], m["E"]), want, rtol=1e-9)
+        assert_eigenvalues_match(_finite_poles(m["A"], m["E"]), want, rtol=rtol)
     S = twin["Dc"]
     assert np.ptp(np.log10(np.diag(S))) == 6 and np.ptp(np.log10(lc_filter.TWIN_ROWS)) == 6  # 1e-3 .. 1e3
     x = np.arange(1.0, 7.0)
