@@ -116,7 +116,7 @@ def run_tune(design, train, heldout, steps, lr, precondition):
     opt = fojax.tuning.shared_optimizer("adam", learning_rate=lr)
     kw = dict(heldout=heldout, optimizer=opt, precondition=precondition, eval_every=max(steps, 1), method="exact")
     fojax.tune(design, train, steps=1, **kw)
-    before = fojax.tuning.TRACE_COUNTS["tune_step"]
+    before = fojax.tuning._tune.TRACE_COUNTS["tune_step"]
     res, wall = clock(lambda: fojax.tune(design, train, steps=steps, **kw))
     h = res.history
     return res, wall, dict(
@@ -127,7 +127,7 @@ def run_tune(design, train, heldout, steps, lr, precondition):
         accepted_steps=int(np.sum(h["accepted"])), rejected_steps=int(len(h["accepted"]) - np.sum(h["accepted"])),
         live_parameters=res.live_parameters.live, free_parameters=res.live_parameters.total,
         final_verified=bool(res.design.report.passed), final_region_margin=float(res.design.report.region_margin),
-        retraced_in_timed_run=int(fojax.tuning.TRACE_COUNTS["tune_step"] - before),
+        retraced_in_timed_run=int(fojax.tuning._tune.TRACE_COUNTS["tune_step"] - before),
     )
 
 

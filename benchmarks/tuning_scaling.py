@@ -18,7 +18,7 @@ is as square as possible, e.g. 32 = 8 × 4, and is recorded). For each B in ``--
 Reported: per-step time ``(t_{1+k} − t_1) / k`` (the fixed per-call costs cancel), the
 compile time ≈ ``t_cold − per-step`` (it also holds the one-off host work of the first call),
 the warm fixed overhead per call ``t_1 − per-step``, samples·steps/s, whether the warm calls
-retraced the step (``fojax.tuning.TRACE_COUNTS``), the training losses (finite) and the peak
+retraced the step (``fojax.tuning._tune.TRACE_COUNTS``), the training losses (finite) and the peak
 RSS. With ``--repeats r`` the warm pair (2, 3) is repeated and the medians are used.
 Options as in the notebook: ``optax.adam(0.3)``, ``method="exact"`` (``--method``),
 ``quiet=True``; only the public `tune` API is used.
@@ -105,11 +105,11 @@ def worker(spec: dict) -> dict:
     opt = optax.adam(0.3)
 
     def run(steps):
-        before = sum(tuning.TRACE_COUNTS.values())
+        before = sum(tuning._tune.TRACE_COUNTS.values())
         t0 = time.perf_counter()
         out = tuning.tune(design, study, steps=steps, optimizer=opt, method=spec["method"], quiet=True)
         t = time.perf_counter() - t0
-        return t, sum(tuning.TRACE_COUNTS.values()) - before, out
+        return t, sum(tuning._tune.TRACE_COUNTS.values()) - before, out
 
     rss0 = _common.current_rss_mib()
     res["t_cold_s"], res["traces_cold"], out = run(1)

@@ -131,10 +131,10 @@ def main():
     k = args.extra_steps
     opts = dict(method="exact", quiet=True)
     _, t_cold, c_cold = clock(lambda: fojax.tune(design, study, steps=1, **opts).history["train_loss"][-1])
-    before = fojax.tuning.TRACE_COUNTS["tune_step"]
+    before = fojax.tuning._tune.TRACE_COUNTS["tune_step"]
     _, t1, c1 = clock(lambda: fojax.tune(design, study, steps=1, **opts).history["train_loss"][-1])
     res, tk, ck = clock(lambda: fojax.tune(design, study, steps=1 + k, **opts))
-    retraced = fojax.tuning.TRACE_COUNTS["tune_step"] - before
+    retraced = fojax.tuning._tune.TRACE_COUNTS["tune_step"] - before
     step_w, step_c = (tk - t1) / k, (ck - c1) / k
     row = dict(
         B=args.B, grid_steps=int(study.ts.shape[0]) - 1,

@@ -10,7 +10,7 @@ from .cli import _startup as _startup  # first: the `fojax` program ends on Ctrl
 
 
 # isort: split
-import importlib.metadata
+import importlib.metadata as _metadata
 
 from . import (
     analysis as analysis,
@@ -153,15 +153,23 @@ from .plant import (
 )
 from .results import load_design as load_design, save_design as save_design
 from .simulation import (
+    AbstractStepper as AbstractStepper,
+    Auto as Auto,
+    Bands as Bands,
     consistent_initial_condition as consistent_initial_condition,
+    Diffrax as Diffrax,
+    Exact as Exact,
+    Exponential as Exponential,
     Index1Reduction as Index1Reduction,
+    Metrics as Metrics,
     reduce_index1 as reduce_index1,
     simulate as simulate,
     simulate_batch_exponential as simulate_batch_exponential,
     Solution as Solution,
+    Trajectory as Trajectory,
 )
 from .studies import run_study as run_study, Study as Study, StudyResult as StudyResult
 from .tuning import tune as tune
 
 
-__version__ = importlib.metadata.version("fojax")
+__version__ = _metadata.version("fojax")

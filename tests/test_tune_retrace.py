@@ -1,7 +1,7 @@
 """Data are leaves: tuning with new numbers (region, δ range, key, gains) reuses the compiled step.
 
 Oracles: the trace counters of the jitted tuning step and of the differentiable study loss
-(`fojax.tuning.TRACE_COUNTS`, `fojax.studies._exact.TRACE_COUNTS`), and
+(`fojax._tune.TRACE_COUNTS`, `fojax.studies._exact.TRACE_COUNTS`), and
 `equinox.debug.assert_max_traces`; for the regions' host behaviour, the values given to
 the constructors (equality, hashing, JSON round trip).
 """
@@ -18,6 +18,7 @@ import fojax
 from fojax import studies as S, tuning
 from fojax.design import design_functional_observer, Disk, HalfPlane, region_from_dict, Sector
 from fojax.studies import _exact
+from fojax.tuning import _tune
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +61,7 @@ def test_tune_with_new_region_delta_range_key_and_gains_does_not_retrace(setup):
     d2 = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.5, 1.2))
     assert not np.allclose(d1.params["Y1"], d2.params["Y1"])  # other gains
     tuning.tune(d1, study(0, (-0.3, 0.3)), steps=1, method="exact")  # compiles the step once
-    steps, losses = tuning.TRACE_COUNTS["tune_step"], _exact.TRACE_COUNTS["study_loss_exact"]
+    steps, losses = _tune.TRACE_COUNTS["tune_step"], _exact.TRACE_COUNTS["study_loss_exact"]
     runs = [
         dict(design=d1, train_study=study(0, (-0.3, 0.3)), region=Disk(-2.1, 1.5)),  # new region numbers
         dict(design=d1, train_study=study(1, (-0.8, 0.5))),  # new δ range and samples
@@ -71,5 +72,5 @@ def test_tune_with_new_region_delta_range_key_and_gains_does_not_retrace(setup):
         res = tuning.tune(steps=1, method="exact", **kw)
         assert np.isfinite(res.history["train_loss"][0])
         assert res.design.report.passed
-    assert tuning.TRACE_COUNTS["tune_step"] == steps
+    assert _tune.TRACE_COUNTS["tune_step"] == steps
     assert _exact.TRACE_COUNTS["study_loss_exact"] == losses

@@ -9,6 +9,7 @@ import pytest
 import fojax
 from fojax import studies as S, tuning
 from fojax.design import design_functional_observer, Disk
+from fojax.tuning import _tune
 
 
 SIGNALS = ("z1", "z2", "f1", "f2", "f3")
@@ -73,10 +74,10 @@ ADAM = tuning.shared_optimizer("adam", learning_rate=0.1)
 
 def test_tuning_improves_heldout_iae_and_stays_certified(setup):
     _, d, train, heldout = setup
-    before = tuning.TRACE_COUNTS["tune_step"]
+    before = _tune.TRACE_COUNTS["tune_step"]
     res = tuning.tune(d, train, heldout=heldout, steps=30, optimizer=ADAM, method="exact",
                       eval_every=30)
-    assert tuning.TRACE_COUNTS["tune_step"] == before + 1  # one jitted step, compiled once
+    assert _tune.TRACE_COUNTS["tune_step"] == before + 1  # one jitted step, compiled once
     assert all(res.history["accepted"]) and min(res.history["margin"]) > 0
     reduction = 1 - res.final_heldout / res.initial_heldout
     print(f"held-out mean IAE: LMI {res.initial_heldout:.4f} → tuned {res.final_heldout:.4f} "
@@ -101,7 +102,7 @@ def test_resume_from_checkpoint_equals_uninterrupted(setup, tmp_path):
     # asked for anew: the same configuration gives the same object, hence the same compiled step
     opts = dict(optimizer=tuning.shared_optimizer("adam", learning_rate=0.1), method="exact")
     assert opts["optimizer"] is ADAM
-    before = tuning.TRACE_COUNTS["tune_step"]
+    before = _tune.TRACE_COUNTS["tune_step"]
     full = tuning.tune(d, train, steps=4, **opts)
     path = tmp_path / "ckpt"
     tuning.tune(d, train, steps=2, checkpoint=path, **opts)
@@ -116,7 +117,7 @@ def test_resume_from_checkpoint_equals_uninterrupted(setup, tmp_path):
     # the parameters moved (a resume that silently restarted or froze would still be equal)
     assert any(not np.array_equal(np.asarray(full.params[k]), np.asarray(v))
                for k, v in tuning.initial_parameters(d)[1].items())
-    assert tuning.TRACE_COUNTS["tune_step"] <= before + 1
+    assert _tune.TRACE_COUNTS["tune_step"] <= before + 1
 
 
 def test_non_disk_region_is_refused(setup):
@@ -174,7 +175,7 @@ def test_extra_loss_is_part_of_the_objective_and_changes_the_result(setup):
 ])
 def test_extra_loss_is_checked_before_compiling(setup, bad, match):
     _, d, train, _ = setup
-    before = tuning.TRACE_COUNTS["tune_step"]
+    before = _tune.TRACE_COUNTS["tune_step"]
     with pytest.raises(fojax.InputError, match=match):
         tuning.tune(d, train, steps=1, optimizer=ADAM, extra_loss=bad)
-    assert tuning.TRACE_COUNTS["tune_step"] == before
+    assert _tune.TRACE_COUNTS["tune_step"] == before

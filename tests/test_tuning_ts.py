@@ -23,7 +23,8 @@ from fojax.design import (
 from fojax.models import example_3_3_7, robot_arm, robot_arm_ts
 from fojax.studies import parameter_uncertainty, run_study, Study
 from fojax.studies._runner import SimConfig, study_loss
-from fojax.tuning import TRACE_COUNTS, tune_takagi_sugeno
+from fojax.tuning import tune_takagi_sugeno
+from fojax.tuning._tune import TRACE_COUNTS
 
 
 def initial_ts_parameters(des, region=None):

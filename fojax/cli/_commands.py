@@ -777,9 +777,11 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         # agree to ~1e-6.
         import diffrax
 
+        from ..simulation import Auto, Bands, Diffrax, Metrics
+
         res = studies.run_study(st, [d.observer for d in designs.values()], observer_names=names,
-                                quantiles=(0.05, 0.5, 0.95), quiet=out.quiet, solver=diffrax.Tsit5(),
-                                settle_tol=ss.SETTLE_TOL)
+                                stepper=Auto(diffrax=Diffrax(diffrax.Tsit5())), quiet=out.quiet,
+                                save=Metrics(settle_tol=ss.SETTLE_TOL, bands=Bands((0.05, 0.5, 0.95))))
         check_interrupted()  # a signal during the run whose interruption was swallowed
     flat = ss.flat_metrics(res)  # {metric: (observer, sample, signal)}
     # the samples are joint draws along one axis (the Study's fault axis has size 1): save
@@ -906,7 +908,9 @@ def _tune(tuning, cfg, design, train, **kw):
     if cfg.is_takagi_sugeno:
         import diffrax
 
-        kw.update(solver=diffrax.Tsit5(), barrier=TS_BARRIER)
+        from ..simulation import Auto, Diffrax
+
+        kw.update(stepper=Auto(diffrax=Diffrax(diffrax.Tsit5())), barrier=TS_BARRIER)
     return tuning.tune(design, train, **kw)  # LTI and T-S designs: one `tune`
 
 

@@ -7,5 +7,13 @@ from ._reduction import (
     Index1Reduction as Index1Reduction,
     reduce_index1 as reduce_index1,
 )
+from ._save import Bands as Bands, Metrics as Metrics, Trajectory as Trajectory
 from ._simulate import simulate as simulate
 from ._solution import Solution as Solution
+from ._steppers import (
+    AbstractStepper as AbstractStepper,
+    Auto as Auto,
+    Diffrax as Diffrax,
+    Exact as Exact,
+    Exponential as Exponential,
+)

@@ -64,7 +64,6 @@ from .._errors import InputError, ShapeError
 from .._small_linalg import expm_small, solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
-from ..plant._uncertain import UncertainDescriptorSystem
 from ._implicit import default_implicit_solver
 from ._reduction import (
     check_x0,
@@ -80,7 +79,9 @@ from ._reduction import (
     svd_split,
     SVDSplit,
 )
+from ._save import Trajectory
 from ._solution import Solution
+from ._steppers import _breakpoints, AbstractStepper, resolve_stepper, UNIFORM_GRID_RTOL  # noqa: F401
 
 
 #: Number of traces of the compiled simulation core (tests use it to prove that a
@@ -89,12 +90,8 @@ TRACE_COUNTS: collections.Counter = collections.Counter()
 
 #: Gauss–Legendre nodes per grid interval of the exact stepper.
 QUADRATURE_NODES = 4
-#: Relative tolerance on ``|ts_k − (t0 + k h)| / h`` for a grid to count as uniform.
-UNIFORM_GRID_RTOL = 1e-9
 #: A projected initial state must satisfy the constraints to this relative level.
 IC_RESIDUAL_RTOL = 1e-8
-
-_METHODS = ("auto", "exact", "diffrax")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,11 +117,13 @@ def simulate(
     *,
     observers: Sequence[AbstractObserver] = (),
     observer_x0=None,
-    method: str = "auto",
+    stepper: AbstractStepper | None = None,
+    save: Trajectory | None = None,
+    method: str | None = None,
     solver: diffrax.AbstractSolver | None = None,
-    rtol: float = 1e-8,
-    atol: float = 1e-10,
-    max_steps: int = 100_000,
+    rtol: float | None = None,
+    atol: float | None = None,
+    max_steps: int | None = None,
     strict: bool = False,
     consistency_tol: float = 1e-10,
     throw: bool = True,
@@ -145,26 +144,30 @@ def simulate(
     - `x0`: ``(n,)`` initial state at ``ts[0]`` (projected onto the constraints
       unless `strict`).
     - `ts`: ``(T,)`` increasing output times, ``T ≥ 2``; ``ts[0]`` is the initial time.
-      ``method="exact"`` needs a uniform grid (e.g. `jnp.linspace`).
+      `fojax.Exact` needs a uniform grid (e.g. `jnp.linspace`).
     - `u`: input signal (`fojax.AbstractSignal`), a constant ``(m,)`` vector, or
       ``None`` (zero).
     - `observers`: a sequence of `fojax.AbstractObserver`, integrated together with
       the plant.
     - `observer_x0`: one initial state per observer (``None``: each observer's
       `initial_state()`).
-    - `method`: ``"auto"`` (``"exact"`` when the plant is a `DescriptorSystem` or an
+    - `stepper`: how to step (`fojax.simulation._steppers`): `fojax.Auto()` (default:
+      `fojax.Exact()` when the plant is a `DescriptorSystem` or an
       `UncertainDescriptorSystem` with constant ``δ``, every observer has
       `linear_matrices()`, the grid is uniform and the input's breakpoints lie on
-      it; ``"diffrax"`` otherwise), ``"exact"`` or ``"diffrax"``. When ``ts`` (or the
-      input's breakpoints) are traced, ``"auto"`` cannot inspect them and assumes a
+      it; its `fojax.Diffrax` otherwise), `fojax.Exact()` or `fojax.Diffrax(solver,
+      rtol, atol, max_steps)` (default solver: `diffrax.Kvaerno5`, stiff-safe, whose
+      Newton step uses fojax's LAPACK-free `SmallLU`, so that it also runs inside
+      `jax.vmap` and `jax.shard_map` — see `fojax.simulation._implicit`; a plain
+      ``diffrax.Kvaerno5()`` fails inside `fojax.studies.run_study`). When ``ts`` (or
+      the input's breakpoints) are traced, `Auto` cannot inspect them and assumes a
       uniform grid; a non-uniform traced grid then fails at run time (``throw``) or
-      sets ``stats["success"] = False``.
-    - `solver`: diffrax solver (default: `diffrax.Kvaerno5`, stiff-safe, whose Newton
-      step uses fojax's LAPACK-free `SmallLU`, so that it also runs inside `jax.vmap`
-      and `jax.shard_map` — see `fojax.simulation._implicit`; a plain
-      ``diffrax.Kvaerno5()`` fails inside `fojax.studies.run_study`).
-    - `rtol`, `atol`: tolerances of the `diffrax.PIDController`.
-    - `max_steps`: diffrax step budget.
+      sets ``stats["success"] = False``. `fojax.Exponential` runs studies only.
+    - `save`: `fojax.Trajectory()` (the default and only choice here: states, outputs
+      and estimates on ``ts``).
+    - `method`, `solver`, `rtol`, `atol`, `max_steps`: the legacy spelling of `stepper`
+      (``method="auto"|"exact"|"diffrax"``; mapped by
+      `fojax.simulation._steppers.as_stepper`); not together with `stepper`.
     - `strict`: raise `fojax.InconsistentInitialConditionError` when
       ``‖U2ᵀ f(t0, x0, u0)‖ > consistency_tol`` instead of projecting.
     - `throw`: raise on solver failure or non-finite results; with ``False`` check
@@ -178,12 +181,12 @@ def simulate(
     **Raises:** `fojax.ShapeError` (shapes of ``x0``, ``u``, observer states),
     `fojax.IrregularSystemError`, `fojax.ImpulsiveSystemError`,
     `fojax.InconsistentInitialConditionError` (`strict`), `fojax.InputError` (bad
-    grid or method). Structural checks run on the host whenever the inputs are
+    grid, stepper or save). Structural checks run on the host whenever the inputs are
     concrete arrays; under `jax.vmap`/`jax.grad` they run inside XLA (`throw=True`)
     with the same meaning but as `equinox` runtime errors.
 
-    Compilation happens once per *structure* (types, shapes, static fields, method,
-    solver, tolerances); new numbers reuse the compiled code. Batch with `jax.vmap`
+    Compilation happens once per *structure* (types, shapes, static fields, the
+    stepper); new numbers reuse the compiled code. Batch with `jax.vmap`
     (write the single-trajectory call inside), differentiate with `jax.grad`.
 
     !!! example
@@ -197,17 +200,22 @@ def simulate(
     """
     if not isinstance(plant, AbstractPlant):
         raise InputError(f"plant must be a fojax.AbstractPlant, got {type(plant).__name__}.")
-    if method not in _METHODS:
-        raise InputError(f"method must be one of {_METHODS}, got {method!r}.")
+    stepper = resolve_stepper(stepper, method, solver, rtol, atol, max_steps, who="simulate")
+    if save is not None and not isinstance(save, Trajectory):
+        raise InputError(
+            f"simulate(save=...) keeps one trajectory: save=fojax.Trajectory() (the default); got "
+            f"{type(save).__name__}. Metrics need a target z = Lx and run on studies: "
+            "fojax.run_study(fojax.Study(plant, x0, ts, L, ...), observers, save=fojax.Metrics(...))."
+        )
     x0 = check_x0(plant, x0)
     ts = _check_ts(ts)
     u = as_signal(u, plant.m)
     observers, xi0s = _check_observers(observers, observer_x0)
     concrete = is_concrete(plant, x0, u)
     host_initial_checks(plant, x0, ts[0], u, strict=strict, tol=consistency_tol)
-    method = _resolve_method(method, plant, observers, ts, u)
-    if solver is None:
-        solver = default_implicit_solver()
+    chosen = stepper.select(plant, observers, ts, u)  # Exact() or a Diffrax (fojax.simulation._steppers)
+    opts = chosen.diffrax_options
+    solver = default_implicit_solver() if opts.solver is None else opts.solver
     if adjoint is None:
         adjoint = diffrax.RecursiveCheckpointAdjoint()
     runtime_checks = not (concrete and is_concrete(ts))
@@ -215,10 +223,10 @@ def simulate(
     # code (and its cache key) when it must be checked at run time.
     runtime_strict = bool(strict) and runtime_checks
     cfg = _Config(
-        method=method,
-        rtol=float(rtol),
-        atol=float(atol),
-        max_steps=int(max_steps),
+        method=chosen.method,
+        rtol=float(opts.rtol),
+        atol=float(opts.atol),
+        max_steps=int(opts.max_steps),
         throw=bool(throw),
         strict=runtime_strict,
         consistency_tol=float(consistency_tol) if runtime_strict else 0.0,
@@ -277,62 +285,12 @@ def _check_observers(observers, observer_x0):
     return observers, tuple(out)
 
 
-def _breakpoints(plant, u) -> list:
-    bps = [u.breakpoints()]
-    if isinstance(plant, UncertainDescriptorSystem):
-        bps.append(plant.delta.breakpoints())
-    return bps
-
-
 def _grid_deviation(ts):
     """``max_k |ts_k − (t0 + k h)| / h`` with ``h = (t_end − t0)/(T − 1)``."""
     T = ts.shape[0]
     h = (ts[-1] - ts[0]) / (T - 1)
     k = jnp.arange(T, dtype=ts.dtype)
     return jnp.max(jnp.abs(ts - (ts[0] + k * h))) / h, h
-
-
-def _resolve_method(method, plant, observers, ts, u) -> str:
-    lti = lti_matrices(plant) is not None
-    obs_lin = all(o.linear_matrices() is not None for o in observers)
-    uniform, on_grid, dev = True, True, 0.0
-    if is_concrete(ts):
-        # NumPy, not jax.numpy: inside an outer `jax.jit` jnp operations on a concrete
-        # ts return tracers, and float() of them would fail.
-        t = np.asarray(ts)
-        h = (t[-1] - t[0]) / (t.shape[0] - 1)
-        dev = float(np.max(np.abs(t - (t[0] + np.arange(t.shape[0]) * h))) / h)
-        uniform = dev <= UNIFORM_GRID_RTOL
-        bps = [b for b in _breakpoints(plant, u) if is_concrete(b)]
-        if uniform and bps:
-            b = np.concatenate([np.asarray(v).ravel() for v in bps])
-            t0, t1 = float(t[0]), float(t[-1])
-            b = b[(b > t0) & (b < t1)]
-            k = (b - t0) / h
-            on_grid = bool(np.all(np.abs(k - np.round(k)) <= 1e-9 * np.maximum(1.0, k)))
-    if method == "auto":
-        return "exact" if (lti and obs_lin and uniform and on_grid) else "diffrax"
-    if method == "exact":
-        if not lti:
-            raise InputError(
-                f"method='exact' needs a linear time-invariant plant (DescriptorSystem, or "
-                f"UncertainDescriptorSystem with a Constant δ); got {type(plant).__name__}. "
-                "Use method='diffrax' (or 'auto')."
-            )
-        if not obs_lin:
-            bad = [type(o).__name__ for o in observers if o.linear_matrices() is None]
-            raise InputError(
-                f"method='exact' needs LTI observers (linear_matrices() not None); "
-                f"{bad} are not. Use method='diffrax' (or 'auto')."
-            )
-        if not uniform:
-            raise InputError(
-                "method='exact' steps on a uniform grid with one matrix exponential "
-                f"expm(As·h); ts is not uniform (max |ts_k − (t0 + k h)| / h = {dev:.2e} > "
-                f"{UNIFORM_GRID_RTOL:.0e}). Use ts = jnp.linspace(t0, t1, T), or "
-                "method='diffrax' for non-uniform output times."
-            )
-    return method
 
 
 # --------------------------------------------------------------------------- core

@@ -18,7 +18,6 @@ from ._runner import (
     Study as Study,
     study_loss as study_loss,
     StudyResult as StudyResult,
-    TRACE_COUNTS as TRACE_COUNTS,
 )
 from ._wrappers import (
     FaultProfile as FaultProfile,

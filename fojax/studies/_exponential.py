@@ -81,15 +81,16 @@ from ..simulation._exponential import (
     setup_data,
 )
 from ..simulation._reduction import host_initial_checks, is_concrete
-from ..simulation._simulate import UNIFORM_GRID_RTOL
+from ..simulation._steppers import Exponential, UNIFORM_GRID_RTOL
 from ._exact import StudyProblem
 
 
+#: Defaults of `fojax.Exponential` (`step_rate`, `startup_factor`), which sets the schedule.
 #: Largest step × rate: the step resolves the fastest mode of the nominal loop
 #: (``|λ|max(A0)``) and the fastest `fojax.Sine` signal (``ω``), ``h_step · rate ≤ STEP_RATE``.
-STEP_RATE = 0.5
+STEP_RATE = Exponential().step_rate
 #: Over the initial layer the step is this many times smaller.
-STARTUP_FACTOR = 2
+STARTUP_FACTOR = Exponential().startup_factor
 #: A signal breakpoint counts as on the step grid within this fraction of a step (below
 #: `fojax.simulation._exponential.SIDE_OFFSET`, the offset of the one-sided signal values).
 BREAKPOINT_RTOL = 1e-10
@@ -193,15 +194,17 @@ def _off_step_grid(bps: np.ndarray, t0: float, t1: float, h_step: float) -> np.n
     return b[np.abs(k - np.round(k)) > BREAKPOINT_RTOL]
 
 
-def exponential_problem(study, observers, settle_tol: float, keep: bool, strict: bool):
+def exponential_problem(study, observers, settle_tol: float, keep: bool, strict: bool,
+                        options: Exponential = Exponential()):
     """Host: ``((problem, None, (iu, jf)), None)`` for `run_batched`, or ``(None,
-    reason)`` when the study does not qualify (with `strict`: raise `fojax.InputError`)."""
+    reason)`` when the study does not qualify (with `strict`: raise `fojax.InputError`).
+    `options`: the `fojax.Exponential` stepper (its step schedule)."""
 
     def refuse(reason):
         if strict:
             raise InputError(
-                f"run_study(method='exponential') cannot run this study: {reason}. Use method='auto' "
-                "(which then takes the adaptive diffrax path) or method='diffrax'."
+                f"stepper {options!r} (method='exponential') cannot run this study: {reason}. Use "
+                "stepper=Auto() (which then takes the adaptive diffrax path) or Diffrax()."
             )
         return None, reason
 
@@ -240,8 +243,7 @@ def exponential_problem(study, observers, settle_tol: float, keep: bool, strict:
     A0k = A0[kept][:, kept]
     lam = float(np.max(np.abs(np.linalg.eigvals(np.asarray(A0k))), initial=0.0)) if kept.size else 0.0
     rate = max(lam, float(np.max(np.abs(omega), initial=0.0)))
-    substeps = max(1, math.ceil(rate * h / STEP_RATE))
-    sub_start = STARTUP_FACTOR * substeps
+    substeps, sub_start = options.schedule(rate, h)  # default: STEP_RATE, STARTUP_FACTOR
     n_start = min(T - 1, math.ceil(5.0 / (lam * h))) if lam > 0 else 0
     off = _off_step_grid(bps, float(t[0]), float(t[-1]), h / substeps)
     if off.size:
@@ -261,7 +263,7 @@ def _zero_stand_in(observer):
     return jax.tree.map(lambda a: np.zeros(jnp.shape(a), jnp.result_type(a)) if eqx.is_array(a) else a, observer)
 
 
-def exponential_metrics_traced(study, observers, settle_tol):
+def exponential_metrics_traced(study, observers, settle_tol, options: Exponential = Exponential()):
     r"""Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of a concrete `study` on the
     exponential engine, reverse-differentiable with respect to the `observers` (which may
     be traced, e.g. under `jax.grad`), or ``None`` when the study does not qualify (the
@@ -290,7 +292,7 @@ def exponential_metrics_traced(study, observers, settle_tol):
         return None
     host_obs = observers if is_concrete(observers) else tuple(_zero_stand_in(o) for o in observers)
     with jax.ensure_compile_time_eval():  # host passes on concrete data, also inside an outer jit
-        prepared, _ = exponential_problem(study, host_obs, settle_tol, False, strict=False)
+        prepared, _ = exponential_problem(study, host_obs, settle_tol, False, strict=False, options=options)
     if prepared is None:
         return None
     schedule = prepared[0].schedule

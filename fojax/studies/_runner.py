@@ -59,6 +59,15 @@ from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
 from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, gather_across_processes, run_batched
+from ..simulation._save import (  # noqa: F401  (error_metrics: re-exported, fojax.studies.error_metrics)
+    DEFAULT_BAND_POINTS,
+    error_metrics,
+    METRIC_NAMES,
+    Metrics,
+    resolve_save,
+    UNSET,
+)
+from ..simulation._steppers import AbstractStepper, Exponential, resolve_stepper
 from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
 from ._exponential import exponential_metrics_traced, exponential_problem
 from ._families import Family
@@ -76,10 +85,7 @@ from ._wrappers import FaultyPlant
 #: Number of traces of the compiled study chunk and of the study loss.
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
-METRICS = ("iae", "ise", "itae", "peak", "settling_time")
-
-#: Default number of time points of the quantile bands (`run_study`'s `band_points`).
-DEFAULT_BAND_POINTS = 201
+METRICS = METRIC_NAMES  # the one vocabulary: fojax.simulation._save
 
 
 def band_stride(T: int, band_points: int | None) -> int:
@@ -223,53 +229,45 @@ class Study(eqx.Module):
 
 @dataclasses.dataclass(frozen=True)
 class SimConfig:
-    """Static options of the simulation inside a study (hashable: part of the compile key)."""
+    """Static options of the simulation inside a study (hashable: part of the compile key).
 
-    method: str = "auto"
-    rtol: float = 1e-8
-    atol: float = 1e-10
-    max_steps: int = 100_000
+    `stepper` (a `fojax.simulation` stepper, default `fojax.Auto()`) says how samples are
+    stepped; `method`, `rtol`, `atol`, `max_steps`, `solver` are its legacy spelling
+    (`fojax.simulation._steppers.as_stepper`; not together with `stepper`). After
+    construction both are set: the legacy fields read back the stepper's ``method`` and
+    its diffrax options (``StudyResult.attrs`` records them)."""
+
+    method: str | None = None
+    rtol: float | None = None
+    atol: float | None = None
+    max_steps: int | None = None
     settle_tol: float = 0.05
     solver: object = None  # a diffrax solver (hashable module) or None: simulate's default
     # `study_loss` / `tune`: devices the samples are spread over (e.g. jax.devices() of a
     # jax.distributed run; fojax.studies._sharding), None: one block on the default device
     devices: tuple | None = None
+    stepper: AbstractStepper | None = None
 
+    def __post_init__(self):
+        st = self.stepper
+        if not (isinstance(st, AbstractStepper) and self.method == st.method and self._legacy_matches(st)):
+            st = resolve_stepper(st, self.method, self.solver, self.rtol, self.atol, self.max_steps,
+                                 who="SimConfig")
+        d = st.diffrax_options
+        for k, v in dict(stepper=st, method=st.method, rtol=float(d.rtol), atol=float(d.atol),
+                         max_steps=int(d.max_steps), solver=d.solver).items():
+            object.__setattr__(self, k, v)
 
-def error_metrics(ts, e, settle_tol: float = 0.05) -> dict[str, Array]:
-    r"""IAE, ISE, ITAE, peak and settling time of errors ``e`` ``(T, q)`` on the grid ``ts``.
-
-    Trapezoidal rule on the grid; settling time: first grid time ``t_k - t_0`` after
-    which ``|e| ≤ settle_tol`` for good (``inf`` if violated at the last time).
-    """
-    a = jnp.abs(e)
-    dt = jnp.diff(ts)[:, None]
-    tr = ts - ts[0]
-
-    def trap(v):
-        return jnp.sum(0.5 * (v[1:] + v[:-1]) * dt, axis=0)
-
-    above = a > settle_tol
-    T = ts.shape[0]
-    k = jnp.arange(T)[:, None]
-    last = jnp.max(jnp.where(above, k, -1), axis=0)
-    settle = jnp.where(last < 0, 0.0, jnp.where(last == T - 1, jnp.inf, tr[jnp.minimum(last + 1, T - 1)]))
-    return {
-        "iae": trap(a),
-        "ise": trap(e**2),
-        "itae": trap(tr[:, None] * a),
-        "peak": jnp.max(a, axis=0),
-        "settling_time": settle,
-    }
+    def _legacy_matches(self, st) -> bool:
+        """The legacy fields already read back `st` (e.g. `dataclasses.replace` of a built one)."""
+        d = st.diffrax_options
+        return (self.rtol, self.atol, self.max_steps, self.solver) == (d.rtol, d.atol, d.max_steps, d.solver)
 
 
 def sample_errors(study: Study, observers, i, j, cfg: SimConfig):
     """Errors ``ẑ_k − z`` ``(T, q)`` of every observer for sample ``(i, j)``, and success."""
     plant, x0 = study.sample(i, j)
-    sol = simulate(
-        plant, x0, study.ts, study.u, observers=tuple(observers), method=cfg.method, rtol=cfg.rtol,
-        atol=cfg.atol, max_steps=cfg.max_steps, throw=False, solver=cfg.solver,
-    )
+    sol = simulate(plant, x0, study.ts, study.u, observers=tuple(observers), stepper=cfg.stepper, throw=False)
     z = study.target(plant, study.ts, sol.xs)
     return tuple(zh - z for zh in sol.estimates), sol.stats["success"]
 
@@ -391,13 +389,15 @@ def run_study(
     observer_names: Sequence[str] | None = None,
     chunk_size: int | None = None,
     devices=None,
-    quantiles: Sequence[float] = (0.05, 0.25, 0.5, 0.75, 0.95),
-    band_points: int | None = DEFAULT_BAND_POINTS,
-    settle_tol: float = 0.05,
-    method: str = "auto",
-    rtol: float = 1e-8,
-    atol: float = 1e-10,
-    max_steps: int = 100_000,
+    stepper: AbstractStepper | None = None,
+    save: Metrics | None = None,
+    quantiles: Sequence[float] = UNSET,
+    band_points: int | None = UNSET,
+    settle_tol: float = UNSET,
+    method: str | None = None,
+    rtol: float | None = None,
+    atol: float | None = None,
+    max_steps: int | None = None,
     solver=None,
     quiet: bool = False,
 ) -> StudyResult:
@@ -418,41 +418,49 @@ def run_study(
       bit-identical to a one-device run, and the processes must pass the same study and
       observers (checked; `fojax.DistributedError` otherwise, and when another process
       dies). See ``docs/distributed.md``.
-    - `quantiles`: levels of the time-wise error quantiles (``()``: none; then the
-      per-chunk errors are not kept on the host).
-    - `band_points`: most time points of the quantile bands (default 201): the errors are
+    - `stepper`: how the samples are stepped (`fojax.simulation._steppers`; default
+      `fojax.Auto()`). `run_study` tries the stepper's engines in order
+      (``attrs["engine"]`` records the one that ran):
+
+      - ``"exact-batch"`` (`fojax.Exact()`, `fojax.Auto()`): when every sample is an LTI
+        loop driven by known signals (plant `DescriptorSystem` or
+        `UncertainDescriptorSystem` with a constant δ, possibly in a `FaultyPlant` with
+        `FaultProfile` step/ramp faults at any onset; LTI observers; uniform grid; input
+        zero, constant, step, ramp, sine, piecewise constant or sums of them), the exact
+        batch-last matrix-exponential kernel of `fojax.simulation.simulate_lti_batch`
+        (`fojax.studies._exact`; the metrics accumulated inside the time loop, no
+        trajectory stored unless quantile bands are asked for);
+      - ``"exponential-batch"`` (`fojax.Auto()`, `fojax.Exponential(...)`): samples that
+        vary in time only through signals entering the differential equations affinely
+        (a time-varying δ(t) such as `sinusoidal_delta` or `piecewise_constant_delta`,
+        `FaultyPlant` faults, any known input), with LTI observers and every signal
+        breakpoint (fault onset, switching time) on the step grid: the exponential
+        integrator (ETDRK4, fourth order, steps a fraction of the grid chosen from the
+        loop's fastest rate, see `fojax.Exponential` and `fojax.studies._exponential`) on
+        the same batch kernel; an explicit `Exponential` raises `fojax.InputError` saying
+        why a study does not qualify;
+      - ``"vmap-simulate"`` (`fojax.Auto()`, `fojax.Exact()`, `fojax.Diffrax(...)`):
+        every sample runs `fojax.simulate` with the stepper under `jax.vmap`
+        (``throw=False``; failed samples are flagged in ``metrics["success"]``; `Exact`
+        then needs an LTI plant as in `fojax.simulate`). For non-stiff studies an explicit
+        solver, ``Diffrax(diffrax.Tsit5())``, compiles and runs much faster than the
+        default implicit one.
+    - `save`: `fojax.Metrics(kinds, settle_tol, reduce, bands)` (default ``Metrics()``:
+      all five metrics per signal, settling tolerance 0.05, ``Bands()``: quantiles 0.05,
+      0.25, 0.5, 0.75, 0.95 on at most 201 time points). With `fojax.Bands` the errors are
       kept only on every ``k``-th grid point, ``ts[::k]`` with the smallest ``k`` giving at
-      most `band_points` points (`band_stride`; ``coords["time"]``), and the quantiles are
-      exactly ``np.quantile`` of the full-resolution errors at those times. ``None``: every
-      grid point (memory ``8 T · observers · signals · B`` bytes on the host).
-    - `settle_tol`: tolerance of the settling time.
-    - `method`: ``"auto"`` or ``"exact"``: when every sample is an LTI loop driven by
-      known signals (plant `DescriptorSystem` or `UncertainDescriptorSystem` with a
-      constant δ, possibly in a `FaultyPlant` with `FaultProfile` step/ramp faults at any
-      onset; LTI observers; uniform grid; input zero, constant, step, ramp, sine,
-      piecewise constant or sums of them), the study runs on the exact batch-last
-      matrix-exponential kernel of `fojax.simulation.simulate_lti_batch`
-      (`fojax.studies._exact`; ``attrs["engine"] == "exact-batch"``, the metrics
-      accumulated inside the time loop, no trajectory stored unless quantile bands are
-      asked for). Otherwise (time-varying δ(t), nonlinear or Takagi–Sugeno plants,
-      noise, other signals) every sample runs `fojax.simulate` under `jax.vmap`
-      (``attrs["engine"] == "vmap-simulate"``; ``"exact"`` then needs an LTI plant
-      as in `fojax.simulate`), as does ``method="diffrax"``.
-      Samples that vary in time only through signals entering the differential equations
-      affinely (a time-varying δ(t) such as `sinusoidal_delta` or
-      `piecewise_constant_delta`, `FaultyPlant` faults, any known input), with LTI
-      observers and every signal breakpoint (fault onset, switching time) on the step
-      grid, run instead on the exponential integrator (ETDRK4, fourth order, steps a
-      fraction of the grid chosen from the loop's fastest rate; see
-      `fojax.studies._exponential`) on the same batch kernel
-      (``attrs["engine"] == "exponential-batch"``): with ``"auto"`` when the exact engine
-      does not apply, or asked for with ``method="exponential"`` (an `InputError` says
-      why a study does not qualify). `study_loss` uses the same engine, reverse-differentiable
-      (see there).
-    - `rtol`, `atol`, `max_steps`, `solver`: passed to `fojax.simulate` on the
-      ``"vmap-simulate"`` engine (``throw=False``; failed samples are flagged in
-      ``metrics["success"]``). For non-stiff studies an explicit solver
-      (``diffrax.Tsit5()``) compiles and runs much faster than the default implicit one.
+      most ``points`` points (`band_stride`; ``coords["time"]``), and the quantiles are
+      exactly ``np.quantile`` of the full-resolution errors at those times
+      (``points=None``: every grid point, memory ``8 T · observers · signals · B`` bytes
+      on the host); ``bands=None``: no trajectories are kept. ``reduce="sum"`` sums
+      ``"iae"``/``"ise"``/``"itae"`` over the signals (the metric table of
+      `fojax.simulation._save`).
+    - `quantiles`, `band_points`, `settle_tol`: the legacy spelling of `save`
+      (``Metrics(settle_tol=settle_tol, bands=Bands(quantiles, band_points))``, no bands
+      for ``quantiles=()``; `fojax.simulation._save.as_save`); not together with `save`.
+    - `method`, `rtol`, `atol`, `max_steps`, `solver`: the legacy spelling of `stepper`
+      (``method="auto"|"exact"|"exponential"|"diffrax"``;
+      `fojax.simulation._steppers.as_stepper`); not together with `stepper`.
     - `quiet`: no progress bar.
 
     **Returns:** a `StudyResult`.
@@ -471,27 +479,57 @@ def run_study(
     names = tuple(observer_names) if observer_names is not None else tuple(f"observer{k}" for k in range(len(observers)))
     if len(names) != len(observers):
         raise ShapeError("observer_names", len(observers), len(names))
-    cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps),
-                    settle_tol=float(settle_tol), solver=solver)
-    stride = band_stride(study.ts.shape[0], band_points)
+    stepper = resolve_stepper(stepper, method, solver, rtol, atol, max_steps, who="run_study")
+    save = resolve_save(save, quantiles, band_points, settle_tol, who="run_study")
+    settle_tol = save.settle_tol
+    quantiles = save.bands.quantiles if save.bands is not None else ()
+    cfg = SimConfig(stepper=stepper, settle_tol=settle_tol)
+    stride = band_stride(study.ts.shape[0], save.bands.points if save.bands is not None else None)
     keep = stride if len(quantiles) > 0 else 0  # 0: no error trajectories; else their stride
     if spans_processes(devices):  # a global mesh (jax.distributed): same inputs everywhere
         check_same_on_every_process((study, observers), "run_study")
     with distributed_errors("run_study"):
-        if method in ("auto", "exact"):
-            prepared, _reason = exact_problem(study, observers, settle_tol, keep)
-            if prepared is not None:
-                return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, stride=stride)
-        if method in ("auto", "exponential"):
-            prepared, _reason = exponential_problem(study, observers, settle_tol, keep,
-                                                    strict=method == "exponential")
-            if prepared is not None:
-                n_start, sub_start, substeps = prepared[0].schedule
-                return _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, method="exponential",
-                                  solver=f"ETDRK4, {substeps} steps per grid interval ({sub_start} in the first "
-                                         f"{n_start})", engine="exponential-batch", stride=stride)
-        return _run_vmap(study, observers, names, quantiles, cfg, chunk_size, devices, keep, solver, quiet,
-                         stride)
+        for engine in stepper.engines:  # the order is the stepper's (fojax.simulation._steppers)
+            if engine == "exact-batch":
+                prepared, _reason = exact_problem(study, observers, settle_tol, keep)
+                if prepared is not None:
+                    res = _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, stride=stride)
+                    return _apply_save(res, save)
+            elif engine == "exponential-batch":
+                options = stepper if isinstance(stepper, Exponential) else Exponential()
+                prepared, _reason = exponential_problem(study, observers, settle_tol, keep,
+                                                        strict=isinstance(stepper, Exponential), options=options)
+                if prepared is not None:
+                    n_start, sub_start, substeps = prepared[0].schedule
+                    res = _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices,
+                                     method="exponential",
+                                     solver=f"ETDRK4, {substeps} steps per grid interval ({sub_start} in the "
+                                            f"first {n_start})", engine="exponential-batch", stride=stride)
+                    return _apply_save(res, save)
+            else:  # "vmap-simulate"
+                solver = stepper.diffrax_options.solver
+                res = _run_vmap(study, observers, names, quantiles, cfg, chunk_size, devices, keep, solver, quiet,
+                                stride)
+                return _apply_save(res, save)
+    raise AssertionError(f"stepper {stepper!r} has no engine that ran")  # every stepper ends with one
+
+
+def _apply_save(res: StudyResult, save: Metrics) -> StudyResult:
+    """Keep the metrics `save` names (``"success"`` and ``"quantiles"`` always), summed over
+    the signals for ``reduce="sum"`` (the signal axis dropped: axes ``(observer,
+    uncertainty, fault)``). The default `Metrics()` returns `res` unchanged."""
+    if save.kinds == METRIC_NAMES and save.reduce == "none":
+        return res
+    for name in METRIC_NAMES:
+        if name not in save.kinds:
+            res.metrics.pop(name)
+            res.axes.pop(name)
+        elif save.reduce == "sum":
+            res.metrics[name] = np.sum(res.metrics[name], axis=-1)
+            res.axes[name] = res.axes[name][:-1]
+    res.attrs["metrics"] = list(save.kinds)
+    res.attrs["reduce"] = save.reduce
+    return res
 
 
 def _run_vmap(study, observers, names, quantiles, cfg: SimConfig, chunk_size, devices, keep, solver,
@@ -549,7 +587,8 @@ def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, stride: int,
         "quantile": np.asarray(quantiles, dtype=float),
         "time": np.asarray(study.ts)[::stride],
     }
-    merged = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("solver", "devices")}
+    merged = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)
+              if f.name not in ("solver", "devices", "stepper")}
     merged["band_stride"] = int(stride)
     merged.update(attrs)
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=merged)
@@ -599,7 +638,7 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     the mean over samples, or the `quantile` (e.g. 0.9) of the per-sample values.
     Traceable (use inside `jax.jit` / `jax.grad`).
 
-    With ``cfg.method`` ``"auto"`` or ``"exact"`` and a study of LTI samples with known
+    With ``cfg.stepper`` `Auto` or `Exact` (``cfg.method`` ``"auto"`` or ``"exact"``) and a study of LTI samples with known
     signals (the types `run_study`'s exact engine accepts; a traced grid is assumed
     uniform), every sample runs on the exact batch-last kernel, reverse-differentiable with
     respect to the observer (`fojax.studies._exact.sample_metrics_traced`: blocks of 32
@@ -608,7 +647,8 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     checkpointed, so memory does not grow with the number of time steps; like `jax.grad`,
     it takes the derivative of $|e|$ as $\mathrm{sign}(e)$, 0 at 0; differentiating with
     respect to the study's arrays raises `fojax.InputError`: use
-    ``cfg=SimConfig(method="diffrax")`` for that). With ``cfg.method="auto"``, no
+    ``cfg=SimConfig(stepper=fojax.Diffrax())`` for that). With ``cfg.stepper`` `Auto` (or
+    `Exponential`), no
     ``cfg.devices`` and a *concrete* study whose samples vary in time only through signals
     entering the differential equations affinely (`run_study`'s exponential engine: a
     time-varying δ(t), faults on the step grid, known inputs), the samples run on that
@@ -630,17 +670,26 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
     w = jnp.full((study.num_signals,), 1.0 / study.num_signals) if weights is None else jnp.asarray(weights)
     mesh = sample_mesh(cfg.devices)
-    if cfg.method in ("auto", "exact") and traced_qualifies(study, (observer,)):
+    stepper = cfg.stepper  # its engines, in order (fojax.simulation._steppers)
+    if "exact-batch" in stepper.engines and traced_qualifies(study, (observer,)):
         # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
         mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh, metric=loss)
         per = w @ mets[0]  # (B,)
         return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
-    if cfg.method == "auto" and mesh is None:
+    if "exponential-batch" in stepper.engines and mesh is None:
         # time-varying affine samples: the exponential engine, checkpointed (fojax.studies._exponential)
-        out = exponential_metrics_traced(study, (observer,), cfg.settle_tol)
+        explicit = isinstance(stepper, Exponential)
+        out = exponential_metrics_traced(study, (observer,), cfg.settle_tol,
+                                         options=stepper if explicit else Exponential())
         if out is not None:
             per = w @ out[0][METRICS.index(loss)]  # (B,)
             return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
+    if "vmap-simulate" not in stepper.engines:
+        raise InputError(
+            f"study_loss: stepper {stepper!r} cannot run this study (the exponential engine needs a concrete "
+            "study of time-varying affine samples on one device; run_study(stepper=...) says why not). Use "
+            "SimConfig(stepper=fojax.Auto()) or Diffrax()."
+        )
     iu, jf = (jnp.asarray(a) for a in _indices(study))
 
     def local(study, p):

@@ -6,7 +6,6 @@ from ._tune import (
     initial_parameters as initial_parameters,
     make_parameterization as make_parameterization,
     observer_from_parameters as observer_from_parameters,
-    TRACE_COUNTS as TRACE_COUNTS,
     tune as tune,
     TuneResult as TuneResult,
 )

@@ -79,6 +79,7 @@ from ..design._tunable import (
     SteinDisk,
     unflatten,
 )
+from ..simulation._steppers import resolve_stepper
 from ..studies._runner import SimConfig, Study, study_loss
 from ..studies._sharding import (
     check_same_on_every_process,
@@ -245,10 +246,11 @@ def tune(
     checkpoint: str | os.PathLike | None = None,
     checkpoint_every: int = 1,
     resume: bool = False,
-    method: str = "auto",
-    rtol: float = 1e-8,
-    atol: float = 1e-10,
-    max_steps: int = 100_000,
+    stepper=None,
+    method: str | None = None,
+    rtol: float | None = None,
+    atol: float | None = None,
+    max_steps: int | None = None,
     solver=None,
     callback: Callable | None = None,
     quiet: bool = True,
@@ -287,7 +289,11 @@ def tune(
     - `eval_every`: held-out evaluation period (steps).
     - `key`: PRNG key stored with the checkpoint (reserved for stochastic training).
     - `checkpoint`, `checkpoint_every`, `resume`: see the module docstring.
-    - `method`, `rtol`, `atol`, `max_steps`, `solver`: simulation options (`fojax.simulate`).
+    - `stepper`: how the study's samples are stepped (`fojax.Auto()` by default,
+      `fojax.Exact()`, `fojax.Exponential(...)`, `fojax.Diffrax(...)`; see
+      `fojax.studies.study_loss`).
+    - `method`, `rtol`, `atol`, `max_steps`, `solver`: the legacy spelling of `stepper`
+      (`fojax.simulation._steppers.as_stepper`); not together with `stepper`.
     - `callback`: called as ``callback(step, record)`` after every step; ``record`` is the
       step's history entry plus ``params`` (the current, accepted parameters).
     - `quiet`: no progress bar.
@@ -326,7 +332,7 @@ def tune(
     optimizer = shared_optimizer("adam", learning_rate=1e-2) if optimizer is None else optimizer
     opt_state = optimizer.init(xi)
     key = jax.random.PRNGKey(0) if key is None else key
-    cfg = SimConfig(method=method, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps), solver=solver,
+    cfg = SimConfig(stepper=resolve_stepper(stepper, method, solver, rtol, atol, max_steps, who="tune"),
                     devices=None if devices is None else tuple(devices))
     if devices is not None and spans_processes(devices):
         check_same_on_every_process((params0, train_study, heldout), "tune")
