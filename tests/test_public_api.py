@@ -27,3 +27,11 @@ def test_import_fojax_makes_studies_and_tuning_attributes_without_cvxpy():
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.split() == ["True", "True", "False"], out.stdout + out.stderr
+
+
+def test_stepper_and_save_objects_are_top_level_and_instrumentation_is_not_public():
+    for name in ("Auto", "Exact", "Exponential", "Diffrax", "AbstractStepper", "Trajectory", "Metrics", "Bands"):
+        assert getattr(fojax, name) is getattr(fojax.simulation, name), name
+    assert "importlib" not in dir(fojax)
+    assert "TRACE_COUNTS" not in dir(fojax.studies)
+    assert "TRACE_COUNTS" not in dir(fojax.tuning)

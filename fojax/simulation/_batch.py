@@ -61,6 +61,9 @@ TRACE_COUNTS: collections.Counter = collections.Counter()
 
 #: Reductions understood by `simulate_lti_batch` (``kind`` of a metric).
 METRIC_KINDS = ("iae", "ise", "iae_l1", "ise_l2")
+#: ``(kind, C, "sum")`` of the one metric vocabulary (`fojax.simulation._save`) → the kernel's
+#: summed integrand (``"iae_l1"``, ``"ise_l2"``: their legacy names, still accepted as kinds).
+_SUMMED = {"iae": "iae_l1", "ise": "ise_l2"}
 
 #: Default number of samples per compiled call (discretised together).
 DEFAULT_CHUNK = 4096
@@ -741,11 +744,20 @@ def _check_metrics(metrics, size):
         raise InputError("metrics must be a non-empty mapping name -> (kind, C).")
     names, kinds, mats = [], [], []
     for name, spec in metrics.items():
-        if not (isinstance(spec, tuple) and len(spec) == 2 and spec[0] in METRIC_KINDS):
+        ok = isinstance(spec, tuple) and (
+            (len(spec) == 2 and spec[0] in METRIC_KINDS)
+            or (len(spec) == 3 and spec[0] in ("iae", "ise") and spec[2] in ("none", "sum"))
+        )
+        if not ok:
             raise InputError(
-                f"metrics[{name!r}] must be a tuple (kind, C) with kind in {METRIC_KINDS}; got {spec!r}."
+                f"metrics[{name!r}] must be a tuple (kind, C) or (kind, C, reduce) with kind 'iae' or 'ise' "
+                f"and reduce 'none' (per row of C) or 'sum' (over the rows: the metric table of "
+                f"fojax.simulation._save; legacy kinds 'iae_l1' = ('iae', C, 'sum'), 'ise_l2' = "
+                f"('ise', C, 'sum')); got {spec!r}."
             )
-        kind, C = spec
+        kind, C = spec[0], spec[1]
+        if len(spec) == 3 and spec[2] == "sum":
+            kind = _SUMMED[kind]  # the kernel's name of the summed integrand
         C = as_float_array(f"metrics[{name!r}] C", C)
         if C.ndim == 1:
             C = C[None, :]
@@ -845,8 +857,12 @@ def simulate_lti_batch(
 
     - ``"iae"``: $\int |o_i|\,\mathrm dt$ per row of ``C`` → ``(B, k)``;
     - ``"ise"``: $\int o_i^2\,\mathrm dt$ per row → ``(B, k)``;
-    - ``"iae_l1"``: $\int \|o\|_1\,\mathrm dt$ → ``(B,)``;
-    - ``"ise_l2"``: $\int \|o\|_2^2\,\mathrm dt$ → ``(B,)``.
+    - ``("iae", C, "sum")`` (legacy ``"iae_l1"``): $\int \|o\|_1\,\mathrm dt$ → ``(B,)``;
+    - ``("ise", C, "sum")`` (legacy ``"ise_l2"``): $\int \|o\|_2^2\,\mathrm dt$ → ``(B,)``.
+
+    This is the exact stepper's batch kernel (`fojax.Exact`): `fojax.run_study` with
+    ``stepper=Exact()`` or ``Auto()`` runs the same kernel (`run_batched`) on a `Study`;
+    this function is its entry for a user's own ``model(params)``.
 
     **How it runs.** No trajectory is stored. Batches are streamed in chunks of
     `chunk_size` samples (rounded up to a multiple of ``block × devices``; the last
@@ -876,8 +892,12 @@ def simulate_lti_batch(
     - `x0`: ``(B, n)`` initial plant states (made consistent by keeping their slow part,
       as `fojax.simulate` does).
     - `ts`: ``(T,)`` uniform increasing output grid.
-    - `metrics`: mapping ``name -> (kind, C)``, ``kind`` in ``METRIC_KINDS``, ``C`` of
-      shape ``(k, n + Σ observer sizes)`` (or ``(n + Σ,)``).
+    - `metrics`: mapping ``name -> (kind, C)`` or ``(kind, C, reduce)``, ``kind``
+      ``"iae"`` or ``"ise"``, ``reduce`` ``"none"`` (default, per row) or ``"sum"`` (over
+      the rows; the legacy kinds ``"iae_l1"``, ``"ise_l2"`` mean ``("iae", C, "sum")``,
+      ``("ise", C, "sum")``): the names of `fojax.Metrics` (metric table of
+      `fojax.simulation._save`). ``C`` of shape ``(k, n + Σ observer sizes)`` (or
+      ``(n + Σ,)``).
     - `chunk_size`: samples per compiled call (default 4096).
     - `block`: samples stepped together in one time loop (default 256): ``Φ`` and the
       output maps of a block, ``8 (N² + k N) · block`` bytes, should fit in the CPU's

@@ -985,7 +985,13 @@ def simulate_batch_exponential(
     method on the uniform grid ``ts``, `substeps` steps per grid interval. For each
     metric ``name: (kind, C)`` with $o = C\,[x; \xi_1; \dots]$ the trapezoid rule on ``ts``
     is accumulated during the time loop (kinds as in `simulate_lti_batch`: ``"iae"``,
-    ``"ise"`` per row → ``(B, k)``, ``"iae_l1"``, ``"ise_l2"`` → ``(B,)``).
+    ``"ise"`` per row → ``(B, k)``, ``("iae", C, "sum")``, ``("ise", C, "sum")`` (legacy
+    ``"iae_l1"``, ``"ise_l2"``) → ``(B,)``; the metric table of `fojax.simulation._save`).
+
+    This is the exponential stepper's batch kernel (`fojax.Exponential`): `fojax.run_study`
+    with ``stepper=Exponential()`` or ``Auto()`` runs the same ETDRK4 kernel on a `Study`
+    (choosing the substeps itself); this function is its entry for a user's own
+    ``model(params)`` with explicit `substeps`.
 
     **The common linear part.** $A_0$ is the joint slow matrix of ``model(reference)``
     with every signal inside its plant set to zero (for an uncertain plant: the nominal
