@@ -68,6 +68,10 @@ def test_dumper_round_trip(tmp_path):
     ex = fojax.models.example_4_1_3()
     assert np.array_equal(cfg.A, ex.A) and np.array_equal(cfg.L, ex.L)
     assert cfg.observers[0].region == Disk(-2.0, 1.0) and cfg.study.samples == 4
+    assert cfg.study.stepper == "auto"  # the default
+    d = base()
+    d["study"]["stepper"] = "exact"
+    assert load_config(write(tmp_path, d, "exact.toml")).study.stepper == "exact"
 
 
 def test_examples_are_package_data():
@@ -196,6 +200,7 @@ MALFORMED = [
     (("study", "samples"), 0, "study.samples", r"expected a positive number, got 0"),
     (("study", "dt"), 2.0, "study.dt", r"smaller than study\.horizon"),
     (("study", "sample"), 3, "study.sample", r"Did you mean 'samples'"),
+    (("study", "stepper"), "exponentail", "study.stepper", r"Did you mean 'exponential'"),
     (("tuning", "learning_rate"), -0.1, "tuning.learning_rate", r"positive"),
     (("observers",), [{"kind": "PI"}], "observers", r"unknown key 'observers'\. Did you mean 'observer'"),
     (("faults",), {"Fa": [[1.0]] * 4, "Fs": [[1.0, 0.0]] * 3}, "faults.Fs", r"has 2 columns but faults\.Fa has 1"),

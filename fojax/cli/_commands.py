@@ -777,10 +777,12 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         # agree to ~1e-6.
         import diffrax
 
-        from ..simulation import Auto, Bands, Diffrax, Metrics
+        from ..simulation import Auto, Bands, Diffrax, Exact, Exponential, Metrics
 
+        stepper = {"auto": Auto(diffrax=Diffrax(diffrax.Tsit5())), "exact": Exact(), "exponential": Exponential(),
+                   "diffrax": Diffrax(diffrax.Tsit5())}[spec.stepper]  # [study] stepper
         res = studies.run_study(st, [d.observer for d in designs.values()], observer_names=names,
-                                stepper=Auto(diffrax=Diffrax(diffrax.Tsit5())), quiet=out.quiet,
+                                stepper=stepper, quiet=out.quiet,
                                 save=Metrics(settle_tol=ss.SETTLE_TOL, bands=Bands((0.05, 0.5, 0.95))))
         check_interrupted()  # a signal during the run whose interruption was swallowed
     flat = ss.flat_metrics(res)  # {metric: (observer, sample, signal)}

@@ -120,7 +120,9 @@ _OBSERVER = {"name", "kind", "region", "R", "q0", "q1", "objective", "Bw", "Dv",
 OBJECTIVES = ("region", "hinf", "h2", "centre")
 _REGION = {"disk", "decay", "damping"}
 _DISK = {"center", "radius"}
-_STUDY = {"samples", "horizon", "dt", "seed"}
+_STUDY = {"samples", "horizon", "dt", "seed", "stepper"}
+#: ``[study] stepper``: the stepper of the Monte Carlo run (`fojax.cli` builds the object).
+STEPPERS = ("auto", "exact", "exponential", "diffrax")
 _TUNING = {"steps", "learning_rate"}
 
 
@@ -155,12 +157,14 @@ class ObserverSpec:
 
 @dataclasses.dataclass(frozen=True)
 class StudySpec:
-    """``[study]``: Monte Carlo `samples`, `horizon` [s], time step `dt` [s], `seed`."""
+    """``[study]``: Monte Carlo `samples`, `horizon` [s], time step `dt` [s], `seed`, and
+    the `stepper` of the Monte Carlo run (one of `STEPPERS`)."""
 
     samples: int = 64
     horizon: float = 10.0
     dt: float = 0.01
     seed: int = 0
+    stepper: str = "auto"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -676,6 +680,8 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
             kw["dt"] = float(v.number("study.dt", s["dt"], positive=True))
         if "seed" in s:
             kw["seed"] = v.number("study.seed", s["seed"], integer=True, nonneg=True)
+        if "stepper" in s:
+            kw["stepper"] = v.string("study.stepper", s["stepper"], STEPPERS)
         study = StudySpec(**kw)
         if study.dt >= study.horizon:
             raise v.err("study.dt", f"is {study.dt}; expected a time step smaller than study.horizon = {study.horizon}.")
