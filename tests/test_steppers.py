@@ -229,6 +229,8 @@ def test_explicit_stepper_that_is_not_exact_for_the_study_names_itself():
         fojax.run_study(st, obs, stepper=fojax.Exponential(), quiet=True)
     with pytest.raises(fojax.InputError, match=r"stepper Exact\(\).*needs a linear time-invariant plant"):
         fojax.run_study(st, obs, stepper=fojax.Exact(), quiet=True)
+    with pytest.raises(fojax.InputError, match=r"study_loss: stepper Exponential\(\) cannot run this study"):
+        S.study_loss(st, obs, cfg=SimConfig(stepper=fojax.Exponential()))
 
 
 # --------------------------------------------------------------------------- one vocabulary

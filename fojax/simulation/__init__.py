@@ -1,4 +1,6 @@
-"""Simulation layer: index-1 reduction, consistent initial conditions, `simulate`."""
+"""Simulation layer: index-1 reduction, consistent initial conditions, `simulate`, the stepper
+objects (`Auto`, `Exact`, `Exponential`, `Diffrax`) and what to save (`Trajectory`, `Metrics`,
+`Bands`)."""
 
 from ._batch import simulate_lti_batch as simulate_lti_batch
 from ._exponential import simulate_batch_exponential as simulate_batch_exponential

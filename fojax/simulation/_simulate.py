@@ -1,5 +1,10 @@
 r"""`simulate`: plants and observers on an output grid, exact (LTI) or with diffrax.
 
+The method is a stepper object (`fojax.simulation._steppers`): ``"exact"`` below is
+`fojax.Exact()`, ``"diffrax"`` is `fojax.Diffrax(solver, rtol, atol, max_steps)`, and
+`fojax.Auto()` (the default) picks between them; the strings are the legacy
+``method=`` spelling and `Solution.method` records the one that ran.
+
 Both methods work in the SVD coordinates of ``E`` described in
 `fojax.simulation._reduction` (full-size coordinates with a slow mask, so that
 shapes never depend on ``rank E`` and plants built inside `jax.jit`/`jax.vmap`

@@ -9,7 +9,8 @@ family substituted. The flat batch of ``N_u N_f`` index pairs is simulated with
 numbers (a new key, new observer gains) reuse the compiled code; only a new
 *structure* (types, shapes, chunk size, options) compiles again (`TRACE_COUNTS`).
 
-**Exact engine.** LTI studies with known signals (see `run_study`'s `method`) do not
+**Engines.** Which engine runs is the stepper's choice (`run_study`'s `stepper`, default
+`fojax.Auto()`; `fojax.simulation._steppers`). LTI studies with known signals do not
 take this path: they run on the batch-last exact kernel shared with
 `fojax.simulation.simulate_lti_batch` (`fojax.studies._exact`), which streams chunks,
 pads and shards with the same kernel code (`fojax.simulation._batch.run_batched`).
