@@ -290,3 +290,20 @@ class _Model:
 
     def __hash__(self):
         return 0
+
+
+def test_one_uniform_grid_test_for_every_entry():
+    from fojax.simulation import simulate_batch_exponential
+    from fojax.simulation._steppers import grid_deviation
+
+    assert grid_deviation(np.linspace(0.0, 1.0, 11))[0] <= 1e-12
+    assert grid_deviation(np.linspace(1.0, 0.0, 11))[0] == np.inf  # decreasing: never uniform
+    bad = TS.copy()
+    bad[3] += 1e-4
+    p = {"delta": jnp.zeros((1, 1))}
+    x0 = jnp.asarray(X0)[None]
+    for fn in (simulate_lti_batch, simulate_batch_exponential):
+        with pytest.raises(fojax.InputError, match=rf"{fn.__name__} steps on a uniform increasing grid.*2\.00e-03"):
+            fn(_Model(), p, x0, bad, metrics={"x": ("iae", np.eye(6))})
+    with pytest.raises(fojax.InputError, match=r"stepper Exact\(\).*not uniform \(max .* = 2\.00e-03"):
+        fojax.Exact().select(lti_plant(), (), jnp.asarray(bad), as_signal(None, 2))

@@ -53,7 +53,7 @@ from ._reduction import (
     reduce_linear_masked,
     svd_split,
 )
-from ._simulate import UNIFORM_GRID_RTOL
+from ._steppers import grid_deviation, UNIFORM_GRID_RTOL
 
 
 #: Number of traces of the compiled chunk kernel (tests prove no retrace with it).
@@ -773,18 +773,19 @@ def _check_metrics(metrics, size):
     return names, tuple(kinds), jnp.concatenate(mats, axis=0)
 
 
-def _step_size(ts):
+def _step_size(ts, who: str = "simulate_lti_batch"):
+    """``(T, h, ts)`` of a uniform increasing grid (the batch kernels' entries; `who` names
+    the caller in the error): the host test is `fojax.simulation._steppers.grid_deviation`,
+    a traced grid is checked at run time."""
     ts = as_float_array("ts", ts, ndim=1)
     T = ts.shape[0]
     if T < 2:
         raise ShapeError("ts", "(T,) with T >= 2", tuple(ts.shape), "ts[0] is the initial time.")
     if is_concrete(ts):
-        t = np.asarray(ts)
-        h = (t[-1] - t[0]) / (T - 1)
-        dev = np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h if h > 0 else np.inf
-        if not dev <= UNIFORM_GRID_RTOL:
+        dev, h = grid_deviation(ts)
+        if not dev <= UNIFORM_GRID_RTOL:  # also refuses decreasing grids (h <= 0)
             raise InputError(
-                "simulate_lti_batch steps on a uniform increasing grid; ts is not one "
+                f"{who} steps on a uniform increasing grid; ts is not one "
                 f"(max |ts_k − (t0 + k h)| / h = {dev:.2e} > {UNIFORM_GRID_RTOL:.0e}, h = {h:g}). "
                 "Use ts = jnp.linspace(t0, t1, T)."
             )
@@ -794,8 +795,8 @@ def _step_size(ts):
     dev = jnp.max(jnp.abs(ts - (ts[0] + k * h))) / h
     h = eqx.error_if(
         h,
-        ~(dev <= UNIFORM_GRID_RTOL),
-        "simulate_lti_batch needs a uniform grid ts (runtime check).",
+        ~((dev <= UNIFORM_GRID_RTOL) & (h > 0)),
+        f"{who} needs a uniform increasing grid ts (runtime check).",
     )
     return T, h, ts
 

@@ -91,7 +91,14 @@ from .._errors import InputError, ShapeError
 from .._small_linalg import solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal, Constant
-from ._batch import _check_metrics, _matvec_last, _ModelProblem, METRIC_KINDS, run_batched
+from ._batch import (
+    _check_metrics,
+    _matvec_last,
+    _ModelProblem,
+    _step_size,
+    METRIC_KINDS,
+    run_batched,
+)
 from ._reduction import (
     host_initial_checks,
     is_concrete,
@@ -99,7 +106,6 @@ from ._reduction import (
     solve_fast,
     svd_split,
 )
-from ._simulate import UNIFORM_GRID_RTOL
 
 
 #: Number of traces of the compiled kernels (tests prove no retrace with them).
@@ -924,33 +930,6 @@ def _step_table(T: int, n_start: int, sub_start: int, substeps: int) -> np.ndarr
 # --------------------------------------------------------------------------- public entry
 
 
-def _grid(ts):
-    ts = as_float_array("ts", ts, ndim=1)
-    T = ts.shape[0]
-    if T < 2:
-        raise ShapeError("ts", "(T,) with T >= 2", tuple(ts.shape), "ts[0] is the initial time.")
-    if is_concrete(ts):
-        t = np.asarray(ts)
-        h = (t[-1] - t[0]) / (T - 1)
-        dev = np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h if h > 0 else np.inf
-        if not dev <= UNIFORM_GRID_RTOL:  # also refuses decreasing grids (h <= 0)
-            raise InputError(
-                "simulate_batch_exponential steps on a uniform increasing grid; ts is not one "
-                f"(max |ts_k − (t0 + k h)| / h = {dev:.2e} > {UNIFORM_GRID_RTOL:.0e}, h = {h:g}). "
-                "Use ts = jnp.linspace(t0, t1, T)."
-            )
-        return T, jnp.asarray(h, dtype=ts.dtype), ts
-    h = (ts[-1] - ts[0]) / (T - 1)
-    k = jnp.arange(T, dtype=ts.dtype)
-    dev = jnp.max(jnp.abs(ts - (ts[0] + k * h))) / h
-    h = eqx.error_if(
-        h,
-        ~((dev <= UNIFORM_GRID_RTOL) & (h > 0)),
-        "simulate_batch_exponential needs a uniform increasing grid ts (runtime check).",
-    )
-    return T, h, ts
-
-
 def _positive_int(name, value, what, zero=False):
     ok = isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= (0 if zero else 1)
     if not ok:
@@ -1097,7 +1076,7 @@ def simulate_batch_exponential(
     sub_start = _positive_int("startup[1]", startup[1], "steps per start-up interval")
     chunk_size = _positive_int("chunk_size", chunk_size, "samples per compiled call")
     block = _positive_int("block", block, "samples stepped together")
-    T, h, ts = _grid(ts)
+    T, h, ts = _step_size(ts, who="simulate_batch_exponential")
     n_start = min(n_start, T - 1)
     schedule = (n_start, sub_start, substeps)
     params = jax.tree.map(jnp.asarray, params)

@@ -231,6 +231,19 @@ class Auto(AbstractStepper):
         return Exact() if exact else self.diffrax
 
 
+def grid_deviation(t) -> tuple[float, float]:
+    """``(max_k |t_k − (t_0 + k h)| / h, h)`` of a concrete grid ``t`` with ``h = (t_{T-1} − t_0)/(T − 1)``
+    (``inf`` deviation when ``h ≤ 0``): the one uniform-grid test on the host (a grid is
+    uniform when the deviation is ``≤ UNIFORM_GRID_RTOL``), used by `Auto`/`Exact`, the
+    batch kernels' entries and the studies' engines."""
+    t = np.asarray(t)
+    T = t.shape[0]
+    h = float((t[-1] - t[0]) / (T - 1))
+    if not h > 0:
+        return float("inf"), h
+    return float(np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h), h
+
+
 def _breakpoints(plant, u) -> list:
     bps = [u.breakpoints()]
     if isinstance(plant, UncertainDescriptorSystem):
@@ -250,8 +263,7 @@ def capabilities(plant, observers, ts, u) -> dict:
         # NumPy, not jax.numpy: inside an outer `jax.jit` jnp operations on a concrete
         # ts return tracers, and float() of them would fail.
         t = np.asarray(ts)
-        h = (t[-1] - t[0]) / (t.shape[0] - 1)
-        dev = float(np.max(np.abs(t - (t[0] + np.arange(t.shape[0]) * h))) / h)
+        dev, h = grid_deviation(t)
         uniform = dev <= UNIFORM_GRID_RTOL
         bps = [b for b in _breakpoints(plant, u) if is_concrete(b)]
         if uniform and bps:

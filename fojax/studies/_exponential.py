@@ -81,7 +81,7 @@ from ..simulation._exponential import (
     setup_data,
 )
 from ..simulation._reduction import host_initial_checks, is_concrete
-from ..simulation._steppers import Exponential, UNIFORM_GRID_RTOL
+from ..simulation._steppers import Exponential, grid_deviation, UNIFORM_GRID_RTOL
 from ._exact import StudyProblem
 
 
@@ -214,9 +214,9 @@ def exponential_problem(study, observers, settle_tol: float, keep: bool, strict:
         return refuse("the study's arrays are traced")
     t = np.asarray(study.ts)
     T = t.shape[0]
-    h = (t[-1] - t[0]) / (T - 1)
-    if not (T >= 2 and h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL):
+    if not (T >= 2 and grid_deviation(t)[0] <= UNIFORM_GRID_RTOL):
         return refuse("the grid is not uniform")
+    h = (t[-1] - t[0]) / (T - 1)
     plant0, x00 = study.sample(0, 0)
     try:
         _check_structure(plant0, tuple(observers))
