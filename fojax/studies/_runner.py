@@ -60,8 +60,7 @@ from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
 from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, gather_across_processes, run_batched
-from ..simulation._save import (  # noqa: F401  (error_metrics: re-exported, fojax.studies.error_metrics)
-    DEFAULT_BAND_POINTS,
+from ..simulation._save import (
     error_metrics,
     METRIC_NAMES,
     Metrics,
