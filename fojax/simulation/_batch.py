@@ -750,7 +750,7 @@ def _check_metrics(metrics, size):
         )
         if not ok:
             raise InputError(
-                f"metrics[{name!r}] must be a tuple (kind, C) or (kind, C, reduce) with kind 'iae' or 'ise' "
+                f"metrics[{name!r}] must be a tuple (kind, C) or (kind, C, reduce) with kind in ('iae', 'ise') "
                 f"and reduce 'none' (per row of C) or 'sum' (over the rows: the metric table of "
                 f"fojax.simulation._save; legacy kinds 'iae_l1' = ('iae', C, 'sum'), 'ise_l2' = "
                 f"('ise', C, 'sum')); got {spec!r}."
