@@ -41,6 +41,7 @@ from ._parameterization import (
     observer_structure as observer_structure,
     ObserverMatrices as ObserverMatrices,
     pieces as pieces,
+    project_parameters as project_parameters,
     zero_params as zero_params,
 )
 from ._regions import (

@@ -47,16 +47,12 @@ not depend on how the plant's states and equations are scaled (the response
 $(u, y) \mapsto \hat z$ does not).
 
 **Exactness at any size.** Conditions a.–d. hold by construction; their float64 residual
-stays at rounding relative to the terms of each condition for gains $Y_1, Y_2, Y_3, J, G$
-and $Z$ up to 1e12 along directions that act on the observer (the projector
-$I - \Sigma\Sigma^+$ is exactly zero when $[R;\Psi]$ has full row rank,
-`fojax.design._parameterization.left_null_projector`). *Not fixed:* a huge component of
-``Z`` along a direction that $I - \Gamma\Gamma^+$ annihilates in exact arithmetic leaves
-$\|Z\|\varepsilon$ of rounding in $T$ (measured: the hand example of
-``tests/test_tunable.py`` with ``Z + 1e12`` in every entry gives a relative residual
-3.7e-4; 1e8 gives 3e-8); removing it needs ``Z`` re-parameterized on the range of
-$I - \Gamma\Gamma^+$, which changes the shape of ``design.params["Z"]``. Tuning does
-not create such components: a coordinate that is dead by itself is frozen.
+stays at rounding relative to the terms of each condition for every block $Z, Y_1, Y_2,
+Y_3, J, G$ up to 1e12 and beyond, also along *dead* directions (components that cannot
+change the observer): `fojax.design.observer_matrices` projects them out before they
+enter a product (derivation in `fojax.design._parameterization`, *Exactness at any
+size*; `fojax.design.project_parameters`). Certified designs store the parameters as
+given (``design.params``); their observer is that of the projected parameters.
 """
 
 from __future__ import annotations
