@@ -70,6 +70,7 @@ from ._tunable import (
     live_parameters as live_parameters,
     LiveParameters as LiveParameters,
     SteinDisk as SteinDisk,
+    unflatten as unflatten,
 )
 from ._unknown_input import (
     check_unknown_input_modes as check_unknown_input_modes,
