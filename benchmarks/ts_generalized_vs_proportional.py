@@ -6,7 +6,7 @@ velocities better than its proportional one. With fojax's LMI designs the opposi
 measured (issue 18: IAE of [x2, x4] generalized [3.41, 0.885] vs proportional [2.06, 0.888]
 in Disk(-2, 1)). An LMI design is just one admissible point; the fair comparison is between
 the best observers of each family that a user can get, so both are tuned the same way
-(`fojax.tuning.tune_takagi_sugeno`: common certificate fixed, same steps, same optimizer,
+(`fojax.tuning.tune`, T-S default `CommonCertificate`: common certificate fixed, same steps, same optimizer,
 same training samples) and compared on samples never used for training.
 
 Setup: the shipped model file ``robot_arm_ts.toml`` (`fojax study robot_arm_ts` runs the
@@ -52,7 +52,7 @@ from fojax.cli._study_samples import make_study  # noqa: E402
 from fojax.config import example_path, load_config, ObserverSpec  # noqa: E402
 from fojax.design import design_ts_observer  # noqa: E402
 from fojax.studies import run_study  # noqa: E402
-from fojax.tuning import shared_optimizer, tune_takagi_sugeno  # noqa: E402
+from fojax.tuning import shared_optimizer, tune  # noqa: E402
 
 
 def main(argv=None) -> dict:
@@ -79,9 +79,9 @@ def main(argv=None) -> dict:
         designs[spec.name] = d
         t1 = time.perf_counter()
         # the call `fojax study` makes (fojax.cli._commands._tune), with the file's settings
-        tr = tune_takagi_sugeno(d, train, heldout=curve, steps=args.steps,
-                                optimizer=shared_optimizer("adam", learning_rate=lr),
-                                eval_every=max(1, args.steps // 10), solver=solver, barrier=1e-3)
+        tr = tune(d, train, heldout=curve, steps=args.steps,
+                  optimizer=shared_optimizer("adam", learning_rate=lr),
+                  eval_every=max(1, args.steps // 10), solver=solver, barrier=1e-3)
         tuned[spec.name] = tr.design
         timings[spec.name] = {"design_s": t1 - t0, "tune_s": time.perf_counter() - t1}
         curves[spec.name] = {"heldout_curve_before": float(tr.initial_heldout),

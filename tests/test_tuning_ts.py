@@ -21,9 +21,8 @@ from fojax.design import (
     TakagiSugenoObserverDesign,
 )
 from fojax.models import example_3_3_7, robot_arm, robot_arm_ts
-from fojax.studies import parameter_uncertainty, run_study, Study
-from fojax.studies._runner import SimConfig, study_loss
-from fojax.tuning import tune_takagi_sugeno
+from fojax.studies import parameter_uncertainty, run_study, SimConfig, Study, study_loss
+from fojax.tuning import tune
 from fojax.tuning._tune import TRACE_COUNTS
 
 
@@ -69,8 +68,8 @@ def run(setup):
     des, train, heldout = setup
     iterates = []
     before = TRACE_COUNTS["tune_step"]
-    res = tune_takagi_sugeno(des, train, heldout=heldout, steps=STEPS, optimizer=OPT, barrier=BARRIER,
-                             solver=SOLVER, callback=lambda k, rec: iterates.append(rec))
+    res = tune(des, train, heldout=heldout, steps=STEPS, optimizer=OPT, barrier=BARRIER,
+               solver=SOLVER, callback=lambda k, rec: iterates.append(rec))
     return res, iterates, TRACE_COUNTS["tune_step"] - before
 
 
@@ -185,7 +184,7 @@ def test_refusals():
     arm = robot_arm()
     one_signal = Study(arm.system, robot_arm_ts().x0, TS, L_ARM[:1], u=U)
     with pytest.raises(fojax.InputError, match=r"the study has 1 signals but the observer estimates 2"):
-        tune_takagi_sugeno(des, one_signal, steps=1)
+        tune(des, one_signal, steps=1)
 
 
 def test_proportional_design_parameters():
@@ -203,10 +202,10 @@ def test_proportional_design_parameters():
 def test_resume_from_checkpoint_equals_uninterrupted(setup, run, tmp_path):
     des, train, _ = setup
     opts = dict(optimizer=OPT, barrier=BARRIER, solver=SOLVER)  # the compiled step of `run` is reused
-    ref = tune_takagi_sugeno(des, train, steps=5, **opts)
+    ref = tune(des, train, steps=5, **opts)
     path = str(tmp_path / "ckpt")
-    tune_takagi_sugeno(des, train, steps=3, checkpoint=path, **opts)
-    res = tune_takagi_sugeno(des, train, steps=5, checkpoint=path, resume=True, **opts)
+    tune(des, train, steps=3, checkpoint=path, **opts)
+    res = tune(des, train, steps=5, checkpoint=path, resume=True, **opts)
     for k in ref.params:
         np.testing.assert_array_equal(np.asarray(res.params[k]), np.asarray(ref.params[k]))
     assert res.history["step"] == [1, 2, 3, 4, 5]
@@ -247,8 +246,8 @@ def _g_penalty(obs, p):  # a user term on the per-rule generalized-state gains G
 def test_extra_loss_is_part_of_the_ts_objective(setup, run):
     des, train, _ = setup
     opts = dict(steps=2, optimizer=OPT, barrier=BARRIER, solver=SOLVER)
-    plain = tune_takagi_sugeno(des, train, **opts)  # the step compiled by `run`
-    pen = tune_takagi_sugeno(des, train, extra_loss=_g_penalty, **opts)
+    plain = tune(des, train, **opts)  # the step compiled by `run`
+    pen = tune(des, train, extra_loss=_g_penalty, **opts)
     # step 0 is evaluated at the LMI design: the objectives differ by the term (NumPy, design's G)
     np.testing.assert_allclose(pen.history["train_loss"][0] - plain.history["train_loss"][0],
                                G_WEIGHT * np.sum(np.asarray(des.params["G"]) ** 2), rtol=1e-10)

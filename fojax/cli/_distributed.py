@@ -107,7 +107,7 @@ def process_folders(out_dir, resume):
     """``(out_dir, resume, quiet)`` for this process: unchanged on process 0; on the others a
     temporary folder, removed at the end. With `resume`, process 0 reads the files of that
     folder a resume needs *before* it writes anything and sends them to every other process
-    (`fojax.studies._sharding.broadcast_bytes`), which continue from that copy: every
+    (`fojax.studies.broadcast_bytes`), which continue from that copy: every
     process sees the same designs and tuning checkpoints, and the folder need not be
     visible to the other hosts."""
     import io
@@ -115,7 +115,7 @@ def process_folders(out_dir, resume):
 
     import jax
 
-    from ..studies._sharding import broadcast_bytes
+    from ..studies import broadcast_bytes
 
     snapshot = None
     if resume is not None:  # every process takes part, before any can fail or write

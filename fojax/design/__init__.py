@@ -41,6 +41,7 @@ from ._parameterization import (
     observer_structure as observer_structure,
     ObserverMatrices as ObserverMatrices,
     pieces as pieces,
+    project_parameters as project_parameters,
     zero_params as zero_params,
 )
 from ._regions import (
@@ -69,6 +70,7 @@ from ._tunable import (
     live_parameters as live_parameters,
     LiveParameters as LiveParameters,
     SteinDisk as SteinDisk,
+    unflatten as unflatten,
 )
 from ._unknown_input import (
     check_unknown_input_modes as check_unknown_input_modes,

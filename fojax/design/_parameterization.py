@@ -40,6 +40,38 @@ $\mathbb A_1 = \operatorname{diag}(N_1 - Z_{\rm eff}N_2, 0)$,
 $\mathbb Y = \begin{bmatrix}Y_1&J\\Y_2&G\end{bmatrix}$,
 $\mathbb A_2 = \operatorname{diag}(N_3, -I)$ (3.33).
 
+**Exactness at any size (the dead components are projected out first).** Write
+$P_\Gamma = I - \Gamma\Gamma^+ = [T_2\;K_2]$ and $P_\Sigma = I - \Sigma\Sigma^+$ (exactly zero
+when $\Sigma$ has full row rank, `left_null_projector`). The parameters act on the observer
+only through $Z_{\rm eff}P_\Gamma$ and $Y_iP_\Sigma$: $T, K$ are $[T_1\;K_1] - Z_{\rm eff}P_\Gamma$
+and $N, F, S, M, P, Q$ contain $Y_i$ only as $Y_i[N_3\;F_3] = Y_iP_\Sigma[I_{q_0}\;\tilde K]$.
+Since $\operatorname{range}V \subseteq \operatorname{range}P_\Gamma$ ($V = T_2A(\cdot)$,
+$T_2 = P_\Gamma[I;0]$), the projectors $\Pi_Z$ and $P_\Gamma$ commute and
+$W = \Pi_ZP_\Gamma$ is the orthogonal projector onto $\operatorname{range}P_\Gamma \cap
+(\operatorname{range}V)^\perp$; so $Z\,\Pi_Z T_2 = ZWT_2$, and every component of $Z$
+outside $\operatorname{range}W$, or of a row of $Y_i$ in $\operatorname{range}\Sigma$, is
+*dead*: it cannot change the observer. In exact arithmetic nothing else is needed. In
+float64 the computed projector leaks $\epsilon$ of a dead direction, so a dead component
+of size $\delta$ left $\epsilon\delta$ in the matrices where the conditions need an exact
+zero: condition c., for instance, is $-Y_2P_\Sigma\Sigma = 0$, and its residual was
+$\epsilon\|Y_2\|\|\Sigma\|$ while its terms are $\|Y_2P_\Sigma\|\|\Sigma\|$ — measured on the
+thesis's example 3.3.7 with $10^8\times$ a dead direction added to $Y_2$: relative
+residual 1.2e-5 (1e-1 at $10^{12}$); $Z$ and $Y_1, Y_3$ likewise (4e-8 … 4e-7 at $10^8$).
+fojax therefore evaluates the *live parts first*, $\hat Z = (ZW)W$ and $\hat Y_i = Y_iP_\Sigma$,
+and only then the matrices with them ($Z_{\rm eff} = Z_0 + \hat Z$,
+$Y_iN_3 = \hat Y_iP_\Sigma[I;0]$). The first product rounds to $ZW + \eta$ with
+$\|\eta\| \lesssim \epsilon\|Z\|$ in any direction; the second leaves of its dead part
+only $\epsilon(\|ZW\| + \|\eta\|)$, so what enters the conditions is of the size of the live
+part (plus $\epsilon^2\|Z\|$), and so is their residual — relative to terms of that size it
+stays at rounding for any size of the parameters (measured up to $10^{13}$ in every
+block: at the unperturbed design's own level, ≤ 2e-15 on 3.3.7 and on the hand example of
+``tests/test_tunable.py``, and on the LC filter of ``benchmarks/lc_filter.py``; $Y_i$ needs no second product: $\hat Y_i$ is multiplied by
+$P_\Sigma$ again inside $N_3, F_3$). The observer is that of the projected parameters
+(`project_parameters`) up to rounding of their size. What cannot be recovered is the
+live part's own rounding in a huge parameter: $\|\eta\|\approx\epsilon\|Z\|$, i.e. a
+parameter stored as $10^{12}$ carries its live content only to about $10^{-4}$ — that moves
+the observer to another valid observer (a.–d. still hold), it does not break one.
+
 **Measured-signal choices.** ``psi="descriptor"`` uses $\Psi = [E^\perp A; C]$ (eq. 3.5);
 ``psi="output"`` uses $\Psi = C$ (the Takagi–Sugeno observer 3.152, where
 $E^\perp A_i$ differs between rules, and standard systems with $E = I$).
@@ -344,6 +376,49 @@ def _rule_param(x, k, xp=jnp):
     return x if x.ndim == 3 else xp.broadcast_to(x, (k,) + x.shape)
 
 
+def _z_projector(s: FunctionalObserverStructure, pc: ParameterizationPieces, xp):
+    r"""$W = \Pi_Z(I - \Gamma\Gamma^+)$: ``Z`` acts on the observer only through ``Z W``."""
+    PG = xp.concatenate([pc.T2, pc.K2], axis=1)  # I − ΓΓ⁺ = [T2  K2]
+    return xp.asarray(s.PiZ) @ PG
+
+
+def _live_part(s: FunctionalObserverStructure, pc: ParameterizationPieces, Z, Y1, Y2, Y3, xp) -> dict:
+    r"""The live parts ``(Z W) W`` and ``Y_i P_\Sigma`` of the parameters (module docstring,
+    *Exactness at any size*), and $P_\Sigma = I - \Sigma\Sigma^+$ (``"PS"``)."""
+    W = _z_projector(s, pc, xp)
+    PS = left_null_projector(xp, pc.Sigma)
+    out = {"Z": (xp.asarray(Z) @ W) @ W, "PS": PS}
+    for name, Y in (("Y1", Y1), ("Y2", Y2), ("Y3", Y3)):
+        out[name] = xp.asarray(Y) @ PS
+    return out
+
+
+def project_parameters(s: FunctionalObserverStructure, params: dict, *, xp=jnp) -> dict:
+    r"""The parameters with their dead components removed (traceable; ``xp=numpy`` on the host).
+
+    ``Z`` $\to ZW$ with $W = \Pi_Z(I - \Gamma\Gamma^+)$, $Y_{1,2,3} \to Y_iP_\Sigma$ with
+    $P_\Sigma = I - \Sigma\Sigma^+$ (exactly zero when $[R;\Psi]$ has full row rank); ``J``
+    and ``G`` are kept. In exact arithmetic `observer_matrices` gives the same observer for
+    `params` and for the result; in float64 the two agree to rounding of the *projected*
+    size (the dead components, however large, never enter a product; module docstring).
+    Used by `fojax.design.certify`, so a certified design stores only what acts.
+
+    **Arguments:** `s` the structure, `params` a dict with (some of) ``Z, Y1, Y2, Y3, J, G``
+    (``Y`` blocks may carry a leading rule axis).
+
+    **Returns:** a dict with the same keys.
+    """
+    pc = pieces(s, xp=xp)
+    out = dict(params)
+    if "Z" in params:
+        out["Z"] = xp.asarray(params["Z"]) @ _z_projector(s, pc, xp)
+    PS = left_null_projector(xp, pc.Sigma)
+    for name in ("Y1", "Y2", "Y3"):
+        if name in params:
+            out[name] = xp.asarray(params[name]) @ PS
+    return out
+
+
 def observer_matrices(
     s: FunctionalObserverStructure, Z, Y1, Y2, Y3, J, G, *, xp=jnp
 ) -> ObserverMatrices:
@@ -351,23 +426,26 @@ def observer_matrices(
 
     `Z` is common to all rules (one ``T``); `Y1, Y2, Y3, J, G` may carry a leading
     rule axis. Conditions a.–d. hold for *every* value of the parameters (when the
-    existence conditions hold; see `design_residuals`). Returned matrices have a
-    leading rule axis of size ``k`` (1 for LTI plants). ``xp=numpy`` evaluates the same
-    formulas on the host (used for float64 verification without JAX dispatch).
+    existence conditions hold; see `design_residuals`), in float64 to rounding relative to
+    the terms of each condition for parameters of any size: the dead components of ``Z``
+    and ``Y_i`` are projected out before they enter a product (module docstring,
+    *Exactness at any size*; ``Z_eff`` is returned with them removed). Returned matrices
+    have a leading rule axis of size ``k`` (1 for LTI plants). ``xp=numpy`` evaluates the
+    same formulas on the host (used for float64 verification without JAX dispatch).
     """
     k = s.num_rules
     pc = pieces(s, xp=xp)
-    Z = xp.asarray(Z)
-    Z_eff = xp.asarray(s.Z0) + Z @ xp.asarray(s.PiZ)
+    live = _live_part(s, pc, Z, Y1, Y2, Y3, xp)
+    Z_eff = xp.asarray(s.Z0) + live["Z"]
     T = pc.T1 - Z_eff @ pc.T2
     K = pc.K1 - Z_eff @ pc.K2
     Sp, Sig = pc.Sigma_pinv, pc.Sigma
-    PS = left_null_projector(xp, Sig)
+    PS = live["PS"]
     Iq = xp.eye(Sig.shape[0], s.q0)
     KI = xp.concatenate([K, xp.eye(s.nw)], axis=0)
     N3 = PS @ Iq
     F3 = PS @ KI
-    Y1, Y2, Y3 = (_rule_param(y, k, xp) for y in (Y1, Y2, Y3))
+    Y1, Y2, Y3 = (_rule_param(live[y], k, xp) for y in ("Y1", "Y2", "Y3"))
     J, G = _rule_param(J, k, xp), _rule_param(G, k, xp)
     As = xp.asarray(s.rules_A())
     Bs = xp.broadcast_to(xp.asarray(s.rules_B()), (k,) + s.rules_B().shape[-2:])
@@ -443,6 +521,7 @@ __all__ = [
     "observer_matrices",
     "observer_structure",
     "pieces",
+    "project_parameters",
     "zero_params",
 ]
 

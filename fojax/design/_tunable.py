@@ -47,16 +47,12 @@ not depend on how the plant's states and equations are scaled (the response
 $(u, y) \mapsto \hat z$ does not).
 
 **Exactness at any size.** Conditions a.–d. hold by construction; their float64 residual
-stays at rounding relative to the terms of each condition for gains $Y_1, Y_2, Y_3, J, G$
-and $Z$ up to 1e12 along directions that act on the observer (the projector
-$I - \Sigma\Sigma^+$ is exactly zero when $[R;\Psi]$ has full row rank,
-`fojax.design._parameterization.left_null_projector`). *Not fixed:* a huge component of
-``Z`` along a direction that $I - \Gamma\Gamma^+$ annihilates in exact arithmetic leaves
-$\|Z\|\varepsilon$ of rounding in $T$ (measured: the hand example of
-``tests/test_tunable.py`` with ``Z + 1e12`` in every entry gives a relative residual
-3.7e-4; 1e8 gives 3e-8); removing it needs ``Z`` re-parameterized on the range of
-$I - \Gamma\Gamma^+$, which changes the shape of ``design.params["Z"]``. Tuning does
-not create such components: a coordinate that is dead by itself is frozen.
+stays at rounding relative to the terms of each condition for every block $Z, Y_1, Y_2,
+Y_3, J, G$ up to 1e12 and beyond, also along *dead* directions (components that cannot
+change the observer): `fojax.design.observer_matrices` projects them out before they
+enter a product (derivation in `fojax.design._parameterization`, *Exactness at any
+size*; `fojax.design.project_parameters`). Certified designs store the parameters as
+given (``design.params``); their observer is that of the projected parameters.
 """
 
 from __future__ import annotations
@@ -235,9 +231,13 @@ class AbstractParameterization(eqx.Module):
         p = {k: np.asarray(v, dtype=float) for k, v in self.design_params(params).items()}
         X = self.certificate(params)
         if not np.all(np.isfinite(X)):
+            # no certificate: the one verification routine without one names the eigenvalue
+            # outside the region and by how much (it raises here)
+            report = verify_structure_design(self.structure, p, self.region, None)[1]
             raise DesignVerificationError(
-                f"{type(self).__name__}.certify: no finite certificate for these parameters (their error "
-                f"dynamics are not inside {self.region.describe()}).")
+                f"{type(self).__name__}.certify: no finite certificate for these parameters although their "
+                f"error dynamics are inside {self.region.describe()} (margin {report.region_margin:.3e}); "
+                "please report this.", report)
         mats, report = verify_structure_design(self.structure, p, self.region, X)
         return self._design(p, mats, X, report)
 
@@ -657,11 +657,48 @@ class CommonCertificate(AbstractParameterization):
 
 
 def certify(parameterization: AbstractParameterization, params):
-    """The verified design of `params` under `parameterization` (host, float64).
+    """The verified design of `params` under `parameterization` (host, float64): the one
+    public call that turns tuned (or hand-set) parameters into a design.
 
-    Equivalent to ``parameterization.certify(params)``: residuals of a.–d. (≤ 1e-8
-    relative), eigenvalues in the region, and the region LMI at the certificate are checked
-    by `fojax.design.verify`; a failure raises `fojax.DesignVerificationError`.
+    Equivalent to ``parameterization.certify(params)``: the residuals of a.–d. (≤ 1e-8
+    relative to the terms of each condition), the eigenvalues of the error dynamics in the
+    region and the region LMI at the certificate (`SteinDisk`: the Stein solution of these
+    parameters; `FixedCertificateDisk`, `CommonCertificate`: the design's fixed ``X``, plus
+    the common Lyapunov inequality for T-S) are checked by `fojax.design.verify`. Parameters
+    of any size are accepted: dead components are projected out
+    (`fojax.design.project_parameters`); ``design.params`` keeps them as given.
+
+    **Arguments:**
+
+    - `parameterization`: an `AbstractParameterization` (`SteinDisk(design)`,
+      `FixedCertificateDisk(design)`, `CommonCertificate(ts_design)`, or
+      ``fojax.tuning.make_parameterization(design)``).
+    - `params`: a dict of its parameters, e.g. ``parameterization.init(design)``, or those
+      of a tuning run: ``certify(result.parameterization, result.params)`` for
+      ``result = fojax.tuning.tune(...)`` rebuilds ``result.design``.
+
+    **Returns:** a `FunctionalObserverDesign` (`TakagiSugenoObserverDesign` for
+    `CommonCertificate`) whose ``report`` holds the numbers; ``design.verify()`` re-runs the
+    check and ``design.save(path)`` stores it.
+
+    **Raises:** `fojax.DesignVerificationError` with the failed checks and their numbers
+    (e.g. ``"eigenvalue 5 is outside the region (disk centred at -2 with radius 1) by
+    6.000e+00"``, ``"region LMI re-checked in float64 has max eigenvalue ..."``) and the
+    `VerificationReport` as ``err.report``; `fojax.InputError` if `parameterization` is not
+    an `AbstractParameterization`.
+
+    !!! example
+
+        ```python
+        from fojax.design import certify, design_functional_observer, Disk, SteinDisk
+
+        design = design_functional_observer(plant, L, kind="generalized", q1=1, region=Disk(-2.0, 1.0))
+        par = SteinDisk(design)
+        params = par.init(design)
+        params["G"] = params["G"] - 0.5      # any change: conditions a.–d. hold by construction
+        verified = certify(par, params)      # raises DesignVerificationError outside Disk(-2, 1)
+        print(verified.report.relative_residual, verified.report.region_margin)
+        ```
     """
     if not isinstance(parameterization, AbstractParameterization):
         raise InputError(f"certify needs an AbstractParameterization (e.g. fojax.design.SteinDisk(design)), got "

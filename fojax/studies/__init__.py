@@ -1,4 +1,11 @@
-"""Monte Carlo studies: uncertainty and fault families, the batched study runner, metrics."""
+"""Monte Carlo studies: uncertainty and fault families, the batched study runner, metrics.
+
+Also the multi-process helpers of a computation spread over the devices of several
+processes (`fojax.tuning.tune` and ``fojax study --distributed`` use them):
+`spans_processes`, `writes_files` (only process 0 writes), `replicate`,
+`check_same_on_every_process`, `broadcast_bytes` (process 0's bytes on every process) and
+`distributed_errors` (a lost peer becomes `fojax.DistributedError`).
+"""
 
 from ._families import (
     constant_delta as constant_delta,
@@ -18,6 +25,14 @@ from ._runner import (
     Study as Study,
     study_loss as study_loss,
     StudyResult as StudyResult,
+)
+from ._sharding import (
+    broadcast_bytes as broadcast_bytes,
+    check_same_on_every_process as check_same_on_every_process,
+    distributed_errors as distributed_errors,
+    replicate as replicate,
+    spans_processes as spans_processes,
+    writes_files as writes_files,
 )
 from ._wrappers import (
     FaultProfile as FaultProfile,

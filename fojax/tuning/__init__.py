@@ -9,4 +9,3 @@ from ._tune import (
     tune as tune,
     TuneResult as TuneResult,
 )
-from ._tune_ts import tune_takagi_sugeno as tune_takagi_sugeno

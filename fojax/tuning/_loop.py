@@ -18,8 +18,8 @@ import numpy as np
 from tqdm import tqdm
 
 from .._errors import InputError
-from ..studies._runner import _atomic_write
-from ..studies._sharding import broadcast_bytes, spans_processes, writes_files
+from .._io import atomic_write
+from ..studies import broadcast_bytes, spans_processes, writes_files
 
 
 def check_extra_loss(extra_loss, observer, design_params) -> None:
@@ -68,9 +68,9 @@ def save_checkpoint(path, params, opt_state, step, key, history):
     arrays = {f"leaf{i}": np.asarray(x) for i, x in enumerate(leaves)}
     arrays["key"] = np.asarray(key)
     arrays["step"] = np.asarray(int(step))
-    _atomic_write(path + ".npz", lambda f: np.savez(f, **arrays))
+    atomic_write(path + ".npz", lambda f: np.savez(f, **arrays), overwrite=True)
     meta = {"step": int(step), "history": history}
-    _atomic_write(path + ".json", lambda f: f.write(json.dumps(meta).encode()))
+    atomic_write(path + ".json", lambda f: f.write(json.dumps(meta).encode()), overwrite=True)
 
 
 def read_checkpoint(path) -> bytes | None:
@@ -139,7 +139,7 @@ def run_loop(
 
     With `devices` spanning several processes (a `jax.distributed` run, every process
     running the same loop) only process 0 writes the checkpoint, and on `resume` process 0
-    reads it and sends its bytes to the others (`fojax.studies._sharding.broadcast_bytes`):
+    reads it and sends its bytes to the others (`fojax.studies.broadcast_bytes`):
     every process continues from process 0's checkpoint, whatever its own `path` holds
     (no file system shared by the hosts is needed). `place` maps a loaded ``(params,
     opt_state)`` to the placement of the jitted step's inputs (so that it does not compile

@@ -25,8 +25,7 @@ def shared_optimizer(name: str = "adam", **hyperparameters) -> optax.GradientTra
     r"""The optax transformation ``optax.<name>(**hyperparameters)``, one object per configuration.
 
     Two calls with the same `name` and hyperparameters return *the same* object, so
-    `fojax.tuning.tune` and `fojax.tuning.tune_takagi_sugeno` reuse their compiled step
-    across runs (they default to ``shared_optimizer("adam", learning_rate=1e-2)``).
+    `fojax.tuning.tune` reuses its compiled step across runs (it defaults to ``shared_optimizer("adam", learning_rate=1e-2)``).
 
     **Arguments:**
 

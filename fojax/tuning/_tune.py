@@ -71,21 +71,24 @@ import numpy as np
 import optax
 
 from .._errors import InputError
-from ..design._tunable import (
+from ..design import (
     AbstractParameterization,
     CommonCertificate,
     FixedCertificateDisk,
     LiveParameters,
     SteinDisk,
+    TakagiSugenoObserverDesign,
     unflatten,
 )
 from ..simulation._steppers import resolve_stepper
-from ..studies._runner import SimConfig, Study, study_loss
-from ..studies._sharding import (
+from ..studies import (
     check_same_on_every_process,
     distributed_errors,
     replicate,
+    SimConfig,
     spans_processes,
+    Study,
+    study_loss,
 )
 from ._loop import backtracked_update, check_extra_loss, run_loop
 from ._optimizer import shared_optimizer
@@ -109,8 +112,6 @@ def make_parameterization(design, parameterization=None, region=None, *, tune_Z=
     if isinstance(parameterization, AbstractParameterization):
         return parameterization
     if parameterization is None:
-        from ..design import TakagiSugenoObserverDesign
-
         cls = CommonCertificate if isinstance(design, TakagiSugenoObserverDesign) else SteinDisk
     elif isinstance(parameterization, str):
         if parameterization not in _NAMES:
@@ -300,7 +301,7 @@ def tune(
     - `devices`: spread the training samples over these devices (e.g. ``jax.devices()``
       after `jax.distributed.initialize`: every process's devices; each process computes
       its share of the loss and gradient). The iterates are bit-identical to the default
-      (``None``: one device), see `fojax.studies._sharding`. Every process runs the same
+      (``None``: one device), see `fojax.studies` (its multi-process helpers). Every process runs the same
       `tune` call (checked; `fojax.DistributedError` otherwise or when another dies).
       With `checkpoint`, only process 0 writes it (at its `checkpoint` path), and with
       `resume` every process continues from process 0's checkpoint (sent to the others:
