@@ -227,6 +227,21 @@ def test_bad_ts_faults_keys_name_the_key(mutate, key, what):
     assert info.value.key == key
 
 
+def test_sample_read_back_compiles_once_per_structure():
+    """Regression (issue 18 timing): `describe_samples` jitted a new closure per call, so
+    every sample set recompiled its read-back (3 compiles in a robot-arm study, 2 needed).
+    New draws of one structure must not trace again (on a small LTI model with faults: the
+    same function, compiled in seconds)."""
+    from fojax.cli import _study_samples as ss
+
+    cfg = load_config(example_path("example_4_2_2"))
+    a = ss.describe_samples(ss.make_study(cfg, 11, 2, 0.5, 0.05), cfg, {})
+    traces = ss.READ_TRACES["read_back"]
+    b = ss.describe_samples(ss.make_study(cfg, 12, 2, 0.5, 0.05), cfg, {})
+    assert ss.READ_TRACES["read_back"] == traces
+    assert not np.array_equal(a["fault_onset"], b["fault_onset"])  # new numbers
+
+
 # ------------------------------------------------------------------ study --resume
 
 
