@@ -204,6 +204,23 @@ def test_ts_faults_config_loads_and_designs_for_z_only():
     assert tomllib.loads("\n".join(block)) == {"faults": ARM_FAULTS}
 
 
+def test_check_and_design_of_a_ts_file_with_faults(tmp_path, capsys):
+    """`fojax check` says what a T-S file's faults do; `fojax design` designs its observers for
+    z = L x (verified; the refusal of T-S files with [faults] is gone)."""
+    d = _arm_file()
+    d["faults"] = dict(ARM_FAULTS)
+    d["observer"] = [o for o in d["observer"] if o["kind"] == "proportional"]
+    path = tmp_path / "arm.toml"
+    path.write_text(dumps(d))
+    assert main(["check", str(path)]) == 0
+    assert "the Takagi-Sugeno observers estimate z = L x only" in capsys.readouterr().out
+    assert main(["--quiet", "design", str(path), "--out", str(tmp_path / "out")]) == 0
+    (folder,) = (tmp_path / "out").iterdir()
+    design = load_design(folder / "proportional.npz")
+    assert type(design) is TakagiSugenoObserverDesign and design.report.passed
+    assert np.asarray(design.observer.P).shape[1] == 2  # estimates z = [x2, x4] only
+
+
 def _with_faults(**faults):
     return lambda d: d.update(faults=faults)
 
