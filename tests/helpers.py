@@ -187,3 +187,27 @@ def joint_error_system(sys_, L, obs, Bw, Dv):
     Cj = np.hstack([Q @ Wy @ C - np.asarray(L), P, np.zeros((P.shape[0], q1))])
     Dj = np.hstack([np.zeros((P.shape[0], mw)), Q @ Wy @ Dv])
     return Ej, Aj, Bj, Cj, Dj
+
+
+def plain_skeleton(v):
+    """A design file's JSON skeleton (`fojax._serialize`) with its encoded dicts
+    (``{"$": "dict", "items": [[key, value], ...]}``) as plain dicts, so keys have paths."""
+    if isinstance(v, dict) and v.get("$") == "dict" and isinstance(v.get("items"), list):
+        return {str(k): plain_skeleton(x) for k, x in v["items"]}
+    if isinstance(v, dict):
+        return {k: plain_skeleton(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [plain_skeleton(x) for x in v]
+    return v
+
+
+def json_differences(x, y, path=""):
+    """The paths at which two JSON values differ, but for the solver's wall-clock time."""
+    x, y = plain_skeleton(x), plain_skeleton(y)
+    if isinstance(x, list) and isinstance(y, list) and len(x) == len(y):
+        return [d for i, (a, b) in enumerate(zip(x, y, strict=True)) for d in json_differences(a, b, f"{path}/{i}")]
+    if isinstance(x, dict) and isinstance(y, dict):
+        return [d for k in sorted(set(x) | set(y)) for d in json_differences(x.get(k), y.get(k), f"{path}/{k}")]
+    if path.endswith("/solve_time") or "/solve_time/" in path:  # the solver's wall clock (a float node)
+        return []
+    return [] if x == y else [(path, x, y)]

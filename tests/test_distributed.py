@@ -25,6 +25,7 @@ import jax
 import numpy as np
 import pytest
 from distributed_worker import studies, study_and_tuning
+from helpers import json_differences as _differences
 
 import fojax
 from fojax import studies as S
@@ -192,30 +193,6 @@ def test_study_distributed_refuses_bad_environment_before_joining(monkeypatch, c
         monkeypatch.setenv(k, v)
     assert main(["study", "--distributed", "--quiet"]) == 2
     assert message in capsys.readouterr().err
-
-
-def _plain(v):
-    """A design file's JSON skeleton (`fojax._serialize`) with its encoded dicts
-    (``{"$": "dict", "items": [[key, value], ...]}``) as plain dicts, so keys have paths."""
-    if isinstance(v, dict) and v.get("$") == "dict" and isinstance(v.get("items"), list):
-        return {str(k): _plain(x) for k, x in v["items"]}
-    if isinstance(v, dict):
-        return {k: _plain(x) for k, x in v.items()}
-    if isinstance(v, list):
-        return [_plain(x) for x in v]
-    return v
-
-
-def _differences(x, y, path=""):
-    """The paths at which two JSON values differ, but for the solver's wall-clock time."""
-    x, y = _plain(x), _plain(y)
-    if isinstance(x, list) and isinstance(y, list) and len(x) == len(y):
-        return [d for i, (a, b) in enumerate(zip(x, y, strict=True)) for d in _differences(a, b, f"{path}/{i}")]
-    if isinstance(x, dict) and isinstance(y, dict):
-        return [d for k in sorted(set(x) | set(y)) for d in _differences(x.get(k), y.get(k), f"{path}/{k}")]
-    if path.endswith("/solve_time") or "/solve_time/" in path:  # the solver's wall clock (a float node)
-        return []
-    return [] if x == y else [(path, x, y)]
 
 
 def _study_folder(out: pathlib.Path) -> pathlib.Path:

@@ -100,7 +100,7 @@ def check(config_path: str, quiet: bool = False) -> int:
             out.say(f"Takagi-Sugeno rule {i + 1} of {len(systems)} (E, A_{i + 1}, B_{i + 1}, C):")
         out.say(structure_report(sys_, cfg.L))
         out.say("")
-    if cfg.has_faults:
+    if cfg.augments_faults:
         aug = cfg.design_system()
         out.say(
             f"Fault-augmented system (eq. 3.196, {aug.n} states) with the functional of the "
@@ -113,6 +113,10 @@ def check(config_path: str, quiet: bool = False) -> int:
             "admissible' is expected here; what matters for the observers is observability "
             "and Assumption 1)"
         )
+        out.say("")
+    elif cfg.has_faults:  # Takagi-Sugeno: faults of the simulated plant only
+        out.say("Faults ([faults]): they act on the simulated plant in `fojax study`; the "
+                "Takagi-Sugeno observers estimate z = L x only (no fault-augmented T-S design).")
         out.say("")
     if cfg.dA is not None:
         out.say(
@@ -153,7 +157,7 @@ def design(
     """
     import sys
 
-    from .._errors import ConfigError, FojaxError, InputError
+    from .._errors import FojaxError, InputError
     from .._io import folder_manifest, name_problem, NAME_RULE, suggest_name
     from ..design import design_functional_observer, design_ts_observer
     from ..results import (
@@ -173,13 +177,6 @@ def design(
         )
     out = _Progress(quiet)
     cfg = _load(config_path)
-    if cfg.is_takagi_sugeno and cfg.has_faults:
-        raise ConfigError(
-            config_path,
-            "faults",
-            "fault estimation for Takagi-Sugeno models is not available; remove [faults] to "
-            "design Takagi-Sugeno functional observers of z = L x.",
-        )
     from ..config import ObserverSpec
 
     observers = cfg.observers or (ObserverSpec("generalized", "generalized", _default_region()),)
@@ -198,7 +195,7 @@ def design(
                 + (f"; kept {', '.join(replaced['kept_changed'])} (changed since that run wrote them)"
                    if replaced["kept_changed"] else ""))
     atomic_write_bytes(folder / "config.toml", pathlib.Path(config_path).read_bytes(), overwrite=overwrite)
-    if cfg.has_faults:
+    if cfg.augments_faults:
         out.say(f"  designing for the fault-augmented system ({sys_.n} states), functional {L.shape[0]} x {L.shape[1]}")
     if cfg.is_takagi_sugeno:
         out.say(f"  Takagi-Sugeno model with {sys_.num_rules} rules: one observer per [[observer]] with "
@@ -513,9 +510,6 @@ def study(
         raise ConfigError(path, f"observer[{i}].kind", f"'{kind}' observers have no Monte Carlo study yet "
                           "(the study compares z estimates of generalized/PI/proportional observers); "
                           f"use `fojax design {path}` to design and verify it.")
-    if cfg.is_takagi_sugeno and cfg.has_faults:
-        raise ConfigError(path, "faults", "fault estimation for Takagi-Sugeno models is not available; remove "
-                          "[faults] to study Takagi-Sugeno functional observers of z = L x.")
     spec = cfg.study or StudySpec()
     tspec = cfg.tuning or TuningSpec()
     if resume is None:
@@ -750,7 +744,10 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
             "plan": plan.to_dict(), "sets": sample_meta,
             "keys": {"evaluation": f"jax.random.split(PRNGKey({spec.seed})) -> (delta key, fault key)",
                      "training": f"PRNGKey({spec.seed + 1}), split the same way",
-                     "training_heldout_curve": f"PRNGKey({spec.seed + 2}), split the same way"},
+                     "training_heldout_curve": f"PRNGKey({spec.seed + 2}), split the same way",
+                     **({"takagi_sugeno": "the delta key draws the physical parameters, the fault key the "
+                         "initial states, jax.random.fold_in(fault key, 1) the fault scenarios"}
+                        if cfg.is_takagi_sugeno else {})},
             "arrays": {
                 "ts": "time grid (T,)", "u": "input on the grid (T, m), the same for every sample",
                 "x0": "plant initial state per sample as given (N, n); the simulation projects it onto "

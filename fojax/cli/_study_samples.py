@@ -23,6 +23,7 @@ training draw — except for a deterministic model, where all three are the same
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 
 import numpy as np
@@ -72,7 +73,15 @@ def _uniform_delta(cfg) -> bool:
 
 
 def _augmented_training(cfg) -> bool:
-    return cfg.has_faults and not cfg.ramp and (cfg.profile or {}).get("kind") in (None, "uniform")
+    return cfg.augments_faults and not cfg.ramp and (cfg.profile or {}).get("kind") in (None, "uniform")
+
+
+def ts_fault_key(k_f):
+    """The fault-scenario key of a Takagi–Sugeno study: ``fold_in(fault key, 1)``, since the
+    fault key itself draws the initial states (`make_study`)."""
+    import jax
+
+    return jax.random.fold_in(k_f, 1)
 
 
 def _nf(cfg) -> int:
@@ -170,16 +179,20 @@ def make_study(cfg, seed: int, count: int, horizon: float, dt: float):
     k_u, k_f = jax.random.split(jax.random.PRNGKey(seed))
     plant = cfg.plant()
     families, prefix = [], ("plant",)
-    if cfg.is_takagi_sugeno:  # physical parameters (δ key) and x0 (fault key), drawn jointly
-        if cfg.parameter_spread:
-            families.append(studies.parameter_uncertainty(k_u, count, plant.theta, cfg.parameter_spread))
-        if cfg.x0_spread is not None and (cfg.x0_spread > 0).any():
-            sp = jnp.asarray(cfg.x0_spread)
-            families.append(studies.initial_conditions(k_f, count, _x0(cfg), bounds=(-sp, sp)))
     if cfg.has_faults:
         nf = _nf(cfg)
         plant = studies.FaultyPlant(plant, cfg.Fa, cfg.Fs, fault=studies.FaultProfile(jnp.zeros(nf)))
         prefix = ("plant", "base")
+    if cfg.is_takagi_sugeno:  # physical parameters (δ key) and x0 (fault key), drawn jointly
+        if cfg.parameter_spread:
+            theta = plant.base.theta if cfg.has_faults else plant.theta
+            families.append(studies.parameter_uncertainty(k_u, count, theta, cfg.parameter_spread,
+                                                          path=prefix + ("theta",)))
+        if cfg.x0_spread is not None and (cfg.x0_spread > 0).any():
+            sp = jnp.asarray(cfg.x0_spread)
+            families.append(studies.initial_conditions(k_f, count, _x0(cfg), bounds=(-sp, sp)))
+        # the fault key already draws x0: the fault scenarios take their own key
+        k_f = ts_fault_key(k_f)
     if _uniform_delta(cfg):
         b = float(cfg.profile["bound"])
         families.append(studies.constant_delta(k_u, count, cfg.dA.shape[0], bounds=(-b, b),
@@ -258,7 +271,8 @@ def describe_samples(study, cfg, observers: dict) -> dict:
     (plants, x0s, x0c), u = _read_back(study, iu, jf)
     out = {"ts": np.asarray(study.ts), "u": np.asarray(u), "x0": np.asarray(x0s), "x0_consistent": np.asarray(x0c)}
     base = plants
-    theta = getattr(plants, "theta", None)  # a nonlinear plant's physical parameters
+    # a nonlinear plant's physical parameters (under the fault wrapper, if any)
+    theta = getattr(plants.base if isinstance(plants, FaultyPlant) else plants, "theta", None)
     if isinstance(theta, dict):
         for name, val in theta.items():
             out[f"theta/{name}"] = np.broadcast_to(np.asarray(val), (N,)).copy()
@@ -286,22 +300,36 @@ def describe_samples(study, cfg, observers: dict) -> dict:
     return out
 
 
+#: Traces of the read-back of `describe_samples` (one per study structure and sample count).
+READ_TRACES: collections.Counter = collections.Counter()
+_READ = None
+
+
 def _read_back(study, iu, jf):
-    import equinox as eqx
-    import jax
+    """The sampled plants, initial states and input of `study`, in one compiled call. The
+    jitted function is built once per process (it was a new closure per call, so the
+    training and held-out sets, of one structure, compiled it twice: about 11 s of a
+    robot-arm study's 34 s of read-back compilation, measured under load)."""
+    global _READ
+    if _READ is None:
+        import equinox as eqx
+        import jax
 
-    from ..simulation import consistent_initial_condition
+        from ..simulation import consistent_initial_condition
 
-    @eqx.filter_jit
-    def read(study, iu, jf):
-        def one(i, j):
-            plant, x0 = study.sample(i, j)
-            x0c, _ = consistent_initial_condition(plant, x0, t0=study.ts[0], u=study.u)
-            return plant, x0, x0c
+        @eqx.filter_jit
+        def read(study, iu, jf):
+            READ_TRACES["read_back"] += 1
 
-        return jax.vmap(one)(iu, jf), jax.vmap(study.u)(study.ts)
+            def one(i, j):
+                plant, x0 = study.sample(i, j)
+                x0c, _ = consistent_initial_condition(plant, x0, t0=study.ts[0], u=study.u)
+                return plant, x0, x0c
 
-    return read(study, iu, jf)
+            return jax.vmap(one)(iu, jf), jax.vmap(study.u)(study.ts)
+
+        _READ = read
+    return _READ(study, iu, jf)
 
 
 def summarize_samples(arrays: dict) -> dict:

@@ -22,6 +22,8 @@ examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
     Fs = [[...]]                         # (p, nf)
     ramp = false                         # Remark 9: ramp faults (f'' = 0)
     estimate_faults = true               # design for [L 0; 0 I] (estimate z and f)
+    # a T-S model's faults act on the simulated plant only: its observers estimate z = L x
+    # (no fault-augmented T-S design), so it needs estimate_faults = false (and no ramp)
 
     [uncertainty]                        # optional: A + sum_j delta_j(t) dA_j
     dA = [[[...]]]                       # list of (n, n) directions (or one matrix)
@@ -222,6 +224,14 @@ class Config:
     def has_faults(self) -> bool:
         return self.Fa is not None or self.Fs is not None
 
+    @property
+    def augments_faults(self) -> bool:
+        """Whether observers are designed for the fault-augmented system (eq. 3.196): LTI
+        models with ``[faults]``. A Takagi–Sugeno model's faults act on the simulated plant
+        only; its observers estimate ``z = L x`` of the nominal T–S model (the T–S design
+        has no fault augmentation, so ``estimate_faults = true`` is refused at load)."""
+        return self.has_faults and not self.is_takagi_sugeno
+
     def closed_loop_A(self) -> np.ndarray:
         """``A + B K`` with the `feedback` K (or `A`), per rule for T-S models."""
         if self.feedback is None:
@@ -255,18 +265,19 @@ class Config:
 
     def design_system(self):
         """The system observers are designed for: fault-augmented (eq. 3.196) if
-        ``[faults]`` is given, else `system`."""
+        ``[faults]`` is given (LTI models, `augments_faults`), else `system`."""
         from ..plant import augment_faults
 
         sys_ = self.system()
-        if self.has_faults:
+        if self.augments_faults:
             return augment_faults(sys_, self.Fa, self.Fs, ramp=self.ramp)
         return sys_
 
     def design_L(self) -> np.ndarray:
         """The functional of the designed system: `L`, or ``[L 0; 0 I]`` (``[L 0]`` when
-        ``estimate_faults = false``) with faults (``[L 0 0; 0 I 0]`` for ramp faults)."""
-        if not self.has_faults:
+        ``estimate_faults = false``) with faults (``[L 0 0; 0 I 0]`` for ramp faults);
+        `L` for a Takagi–Sugeno model (see `augments_faults`)."""
+        if not self.augments_faults:
             return self.L
         nf = (self.Fa if self.Fa is not None else self.Fs).shape[1]
         extra = 2 * nf if self.ramp else nf
@@ -572,6 +583,8 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
         ramp = v.boolean("faults.ramp", f["ramp"]) if "ramp" in f else False
         if "estimate_faults" in f:
             estimate_faults = v.boolean("faults.estimate_faults", f["estimate_faults"])
+        if ts_raw is not None:  # T-S: faults of the simulated plant only (no augmented design)
+            _ts_faults(v, f, ramp, estimate_faults)
 
     dA = profile = None
     parameter_spread = None
@@ -630,7 +643,7 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
         x0_spread = _initial_state(v, data["initial_state"], n, ts_raw is not None)
 
     n_design = n
-    if Fa is not None or Fs is not None:
+    if (Fa is not None or Fs is not None) and ts_raw is None:
         nf = (Fa if Fa is not None else Fs).shape[1]
         n_design = n + (2 * nf if ramp else nf)
     observers = []
@@ -756,6 +769,23 @@ def _special_observer(v: _V, key: str, o: dict, kind: str, n: int, ts: bool, fau
         regions = tuple(disks)
     method = v.string(_join(key, "method"), o["method"], FINITE_TIME_METHODS) if "method" in o else "auto"
     return {"delay": h, "regions": regions, "method": method}
+
+
+def _ts_faults(v: _V, f: dict, ramp: bool, estimate_faults: bool) -> None:
+    """``[faults]`` of a Takagi–Sugeno model: the faults act on the simulated plant (through
+    `fojax.studies.FaultyPlant`), the observers estimate ``z = L x`` only, since the T–S
+    design (`fojax.design.design_ts_observer`) has no fault-augmented form. So
+    ``estimate_faults`` must be given as ``false`` (its default ``true`` would ask for fault
+    estimates) and ``ramp`` (the fault model of the augmented design) cannot be ``true``."""
+    if estimate_faults:
+        raise v.err("faults.estimate_faults", ("is true" if "estimate_faults" in f else "is missing (default true)")
+                    + ": Takagi-Sugeno observers estimate z = L x only (the T-S design has no "
+                    "fault-augmented form), so a T-S model's faults act on the simulated plant only. "
+                    "Set estimate_faults = false in [faults].")
+    if ramp:
+        raise v.err("faults.ramp", "is true: ramp is the fault model of the fault-augmented design "
+                    "(Remark 9), which Takagi-Sugeno observers do not use; remove it (the study's "
+                    "faults are steps at a random onset).")
 
 
 def _parameter_spread(v: _V, u, ts_raw) -> dict:
