@@ -13,14 +13,19 @@ rule on the grid). Used by ``study_default.py`` (the §3.3.7 study) and ``scalin
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import scipy.linalg
 
 
-def study_peer(d, bands=None, settle_tol=0.05):
+def study_peer(d, bands=None, settle_tol=0.05, timings: dict | None = None):
     """The SciPy/NumPy peer: metrics ``(5, B, K)``; with ``bands = (stride, quantiles)`` also
     the quantile bands the way a NumPy user computes them (errors kept on ``ts[::stride]``,
-    then ``np.quantile`` over the samples): ``(nq, T_c, K)``."""
+    then ``np.quantile`` over the samples): ``(nq, T_c, K)``. With a dict `timings`, the
+    wall time of its stages is written into it (``build_s``: reduction and joint matrices;
+    ``expm_s``; ``stepping_s``: the recurrence and the metrics)."""
+    t0 = time.perf_counter()
     E, C, L, ts = d["E"], d["C"], d["L"], d["ts"]
     B = d["delta"].shape[0]
     U, s, Vt = np.linalg.svd(E)
@@ -48,7 +53,9 @@ def study_peer(d, bands=None, settle_tol=0.05):
         off += sz
     G = np.concatenate(G, axis=1)  # (B, K, N)
     h = ts[1] - ts[0]
+    t1 = time.perf_counter()
     Phi = scipy.linalg.expm(h * Aj)  # (B, N, N)
+    t2 = time.perf_counter()
     w = np.zeros((B, N))
     w[:, :r] = d["x0"] @ V[:, :r]
     PhiT, GT = np.swapaxes(Phi, 1, 2), np.swapaxes(G, 1, 2)
@@ -74,6 +81,8 @@ def study_peer(d, bands=None, settle_tol=0.05):
         if bands is not None and k % bands[0] == 0:
             kept.append(e)
     T = ts.shape[0]
+    if timings is not None:
+        timings.update(build_s=t1 - t0, expm_s=t2 - t1, stepping_s=time.perf_counter() - t2)
     iae = h * (s1 + 0.5 * a0 - 0.5 * a)
     ise = h * (s2 + 0.5 * e0**2 - 0.5 * e**2)
     itae = h * (s3 - 0.5 * tr[-1] * a)

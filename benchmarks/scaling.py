@@ -495,8 +495,10 @@ def study_worker(spec: dict) -> dict:
     d = study_peer_inputs(sp, delta, x0, design_path.with_suffix(".obs.npz"))
     bands_arg = None if mode == "metrics" else (band_stride(grid().size), QUANTILES)
 
+    stages: dict = {}
+
     def peer_call():
-        out = study_peer(d, bands_arg)
+        out = study_peer(d, bands_arg, timings=stages)
         return (out, None) if bands_arg is None else out
 
     if spec["task"] == "check":
@@ -540,11 +542,64 @@ def study_worker(spec: dict) -> dict:
     if spec["task"] == "fojax":
         res.update(compile_s=max(first - med, 0.0), compile_note="first call - median (caches cleared)",
                    compile_cpu_s=max(cpu[0] - res["median_cpu_s"], 0.0) if len(cpu) > 1 else None)
+    else:
+        res["stages_last_call_s"] = dict(stages)
     np.save(spec["save"], out[0])
     return res
 
 
+def peak_gemm_gflops(sizes=(1000, 2000), repeats: int = 3) -> float:
+    """The machine's measured float64 GEMM rate (``numpy.matmul`` of random square matrices,
+    the BLAS thread count of `_common.limit_blas_threads`: one thread), best of `repeats`
+    per size, GFLOP/s (``2 k³`` flops per product). Measured under the same load as the rows."""
+    best = 0.0
+    rng = np.random.default_rng(0)
+    for k in sizes:
+        a, b = rng.standard_normal((k, k)), rng.standard_normal((k, k))
+        a @ b
+        for _ in range(repeats):
+            t = time.perf_counter()
+            a @ b
+            best = max(best, 2 * k**3 / (time.perf_counter() - t) / 1e9)
+    return best
+
+
+def flop_model(n: int, B: int, dsg: dict, peer: dict, peak: float | None) -> dict:
+    r"""Flop counts of one row (``T`` grid points, ``N = r + q_0`` joint states, ``K``
+    error outputs), for the statement of what is reachable:
+
+    - ``peer_stepping``: the peer's recurrence, exactly ``B (T-1) (2N^2 + 2KN)`` (one
+      ``N × N`` and one ``K × N`` matrix-vector product per sample and step), and the rate
+      it achieved (its ``stepping_s`` stage);
+    - ``min_stepping``: a lower bound of any method that steps the joint loop on the grid:
+      the loop matrix is block lower-triangular (the plant does not depend on the observer),
+      so a step needs at least ``2 (r^2 + r q_0 + q_0^2)`` flops per sample (``Φ_{pp}``,
+      ``Φ_{op}``, ``Φ_{oo}``), without the matrix exponential and the outputs;
+    - ``ratio_bound_at_peak``: the peer's median time over ``min_stepping / peak`` (the
+      machine's measured GEMM rate): no stepping method can beat the peer by more than this
+      on this machine (an upper bound of ``t_peer / t_fojax``; computing ``Φ`` costs more)."""
+    T = grid().size
+    N, q0 = dsg["joint_states"], dsg["q0"]
+    r = N - q0
+    K = N_FUNCTIONALS
+    out = dict(T=T, N=N, r=r, q0=q0, K=K, peak_gemm_gflops=peak)
+    st = B * (T - 1) * (2 * N * N + 2 * K * N)
+    out["peer_stepping_gflop"] = st / 1e9
+    stages = peer.get("stages_last_call_s") or {}
+    if stages.get("stepping_s"):
+        out["peer_stepping_gflops_achieved"] = st / stages["stepping_s"] / 1e9
+        out["peer_stages_s"] = stages
+    mn = B * (T - 1) * 2 * (r * r + r * q0 + q0 * q0)
+    out["min_stepping_gflop"] = mn / 1e9
+    if peak:
+        out["min_stepping_s_at_peak"] = mn / (peak * 1e9)
+        out["ratio_bound_at_peak"] = peer["median_s"] / out["min_stepping_s_at_peak"]
+    return out
+
+
 def _run_study(args, state: dict, tmp: Path) -> int:
+    state["peak_gemm_gflops"] = peak_gemm_gflops()
+    print(f"# peak float64 GEMM (numpy, 1 BLAS thread): {state['peak_gemm_gflops']:.1f} GFLOP/s", flush=True)
     base = dict(seed=args.seed, chunk=args.chunk, repeats=args.repeats, budget=args.budget)
 
     def entry(task, n, B, mode, tag):
@@ -591,6 +646,7 @@ def _run_study(args, state: dict, tmp: Path) -> int:
             row["peer_over_fojax"] = p["median_s"] / f["median_s"]
             row["peer_over_fojax_cpu"] = p["median_cpu_s"] / f["median_cpu_s"]
             row["fojax_over_peer_peak_rss"] = f["peak_rss_mib"] / p["peak_rss_mib"]
+            row["flops"] = flop_model(n, B, dsg, p, state.get("peak_gemm_gflops"))
             if not row["rel_diff"] <= TOL:
                 row["status"] = f"disagree at B ({row['rel_diff']:.1e})"
         return row
@@ -767,6 +823,7 @@ def write(state: dict, status: str, echo: bool = False, name: str = "scaling") -
                           observer="proportional functional observer, Riccati route, Disk(-2, 1), q0 ~ n/2",
                           metrics=list(STUDY_METRICS), band_quantiles=list(QUANTILES), band_points=BAND_POINTS,
                           peer="_study_peer.study_peer (NumPy/SciPy, scipy.linalg.expm on the stack)", tolerance=TOL),
+            peak_gemm_gflops=state.get("peak_gemm_gflops"),
             dims=state["dims"], memory=state["memory"], failures=state["failed"],
         )
         _common.write_results(args.out, name, payload, render_study_markdown(payload), echo=echo)

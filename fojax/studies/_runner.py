@@ -567,7 +567,7 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
     chunk = min(B, default) if chunk_size is None else int(chunk_size)
     devices = jax.devices() if devices is None else devices  # all processes' devices, as `_mesh`
     out, layout = run_batched(problem, idx, study.ts, chunk_size=chunk, block=DEFAULT_BLOCK, devices=devices,
-                              basis=basis)
+                              basis=basis, host=True)
     if keep:
         (mets, ok), traj = out
     else:
