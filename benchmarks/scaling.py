@@ -1,5 +1,33 @@
-r"""Issue 7, item 3: how fojax's batched LTI simulation scales with the state dimension n
-(and its memory with the batch size B).
+r"""Issue 16 (and 7, item 3): how fojax scales with the state dimension n, and its memory
+with the batch size B.
+
+Study workload (the default, ``--workload study``: what users run)
+--------------------------------------------------------------------
+For each n in ``--dims`` (default 4 … 256): the public `fojax.run_study` on a `fojax.Study`
+of an uncertain descriptor plant of size n (`study_plant`: the random stable index-1
+system of `random_stable_index1`, ``p = max(1, n // 4)`` random outputs, zero input,
+$A_k = A + \delta_k\,dA$ with $\delta_k \in [-0.3, 0.3]$, random initial states) with one
+proportional functional observer of $z = Lx$ (``L`` 2 random rows; designed by fojax's
+Riccati route before anything is timed, `design_observer`), ``--batch`` samples
+(default 1,000), 1001 grid points; metrics of the estimation error only (IAE, ISE, ITAE,
+peak, settling time: the 2 outputs of ẑ − z, not all n states). Against
+`_study_peer.study_peer`, the vectorised NumPy/SciPy peer (``scipy.linalg.expm`` on the
+``(B, N, N)`` stack, a batched recurrence), on the same samples; a check entry on
+``--check-b`` samples must agree to ``<= 1e-8`` relative before anything is timed, and
+the timed outputs are compared again. Each entry (design, check, fojax, peer) runs in a
+fresh process (`_common.run_worker`): fojax's compile time (first call − median, caches
+cleared) and each method's peak RSS (the peer's process never imports JAX) are its own.
+Memory rows (``--memory-sizes``, default B = 100,000 at ``--memory-n`` = 8) run
+`run_study` with ``quantiles=()`` (``metrics``) and with its default settings
+(``default``: quantile bands on 201 points) against the peer computing the same. Each
+row records the peer's stage times and a flop model (`flop_model`), and the run the
+machine's measured peak float64 GEMM rate (`peak_gemm_gflops`), so the speed ratio can
+be compared with what the machine allows. Results: ``results/scaling_latest.json``.
+
+Kernel workload (``--workload kernel``; results ``scaling_kernel_*``)
+-------------------------------------------------------------------
+The previous rows, kept and labelled as such: `simulate_lti_batch` with all K = n
+outputs per step (not what `run_study` asks for). Described below.
 
 What is measured
 ----------------
@@ -37,12 +65,13 @@ What is measured
 Every entry (one method at one (n, B)) runs in a fresh Python process
 (`_common.run_worker`): the compile time is a cold start, the peak RSS belongs to that
 entry alone, and a hung entry is killed after ``--hard-timeout`` s and reported as such.
-Results: ``results/scaling_<date>.{md,json}`` and ``results/scaling_latest.{md,json}``.
+Results: ``results/scaling_kernel_<date>.{md,json}`` and ``results/scaling_kernel_latest.{md,json}``.
 
 Examples::
 
-    python benchmarks/scaling.py                                  # the full study
-    python benchmarks/scaling.py --dims 4 8 --batch 100 --memory-sizes 1 100 --repeats 2
+    python benchmarks/scaling.py                                  # the study workload
+    python benchmarks/scaling.py --dims 8 32 --batch 200 --memory-sizes 2000 --repeats 2
+    python benchmarks/scaling.py --workload kernel --dims 4 8 --batch 100 --memory-sizes 1 100
 """
 
 from __future__ import annotations
@@ -349,6 +378,339 @@ def worker(spec: dict) -> dict:
     return res
 
 
+# ============================================================================ the study workload
+# (the default: what users run) -- `fojax.run_study` on a Study of an uncertain descriptor
+# plant of size n with a functional observer, metrics of the estimation error only
+N_FUNCTIONALS = 2  # z = L x: the error has this many outputs (not all n)
+QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)  # run_study's default quantile levels
+BAND_POINTS = 201  # run_study's default band_points
+
+
+def band_stride(T: int, band_points: int = BAND_POINTS) -> int:
+    """`fojax.studies._runner.band_stride` (restated: the peer process never imports fojax)."""
+    return max(1, -(-int(T) // int(band_points)))
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyPlant:
+    r"""The plant of the study workload: `random_stable_index1` (``E``, ``A``, ``dA``) with
+    ``p = max(1, n // 4)`` random outputs ``C`` and a random functional ``L`` of
+    ``N_FUNCTIONALS`` rows (i.i.d. normal entries); one input column (zero input)."""
+
+    loop: RandomLoop
+    B: np.ndarray  # (n, 1)
+    C: np.ndarray  # (p, n)
+    L: np.ndarray  # (2, n)
+
+
+def study_plant(n: int, seed: int) -> StudyPlant:
+    loop = random_stable_index1(n, seed + n)
+    rng = np.random.default_rng([seed, n, 2])
+    return StudyPlant(loop=loop, B=rng.standard_normal((n, 1)), C=rng.standard_normal((max(1, n // 4), n)),
+                      L=rng.standard_normal((N_FUNCTIONALS, n)))
+
+
+def study_samples(n: int, B: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``delta`` ``(B,)`` uniform in ``[-DELTA, DELTA]`` (every sample stable, see
+    `random_stable_index1`) and ``x0`` ``(B, n)`` standard normal (not consistent: fojax
+    and the peer both keep its slow part in the SVD coordinates of ``E``, as
+    `fojax.simulate` does); two streams of one SeedSequence, sample k the same for every B."""
+    s_delta, s_x0 = np.random.SeedSequence([seed, n, 3]).spawn(2)
+    return (np.random.default_rng(s_delta).uniform(-DELTA, DELTA, B),
+            np.random.default_rng(s_x0).standard_normal((B, n)))
+
+
+def design_observer(sp: StudyPlant, path: Path) -> dict:
+    """The observer of the study (fojax, outside every timed region): a proportional
+    functional observer for ``z = L x`` by the Riccati route (`design_functional_observer`,
+    default region ``Disk(-2, 1)``, verified), order ``q0 = max(2, n // 2)`` (random plants
+    with few outputs need about that many; raised by ``n // 4`` when the rank conditions
+    fail). Saved to `path` (``.npz``, fojax's design file) and its linear matrices to
+    ``path.with_suffix('.obs.npz')`` for the peer."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import fojax
+    from fojax.design import design_functional_observer
+
+    plant = fojax.DescriptorSystem(sp.loop.E, sp.loop.A, sp.B, sp.C)
+    n = sp.loop.n
+    q0 = max(2, n // 2)
+    t = time.perf_counter()
+    while True:
+        try:
+            d = design_functional_observer(plant, sp.L, kind="proportional", method="riccati", q0=q0)
+            break
+        except fojax.RankConditionError:
+            if q0 >= n:
+                raise
+            q0 = min(n, q0 + max(1, n // 4))
+    design_s = time.perf_counter() - t
+    d.save(path, overwrite=True)
+    lm = d.observer.linear_matrices()
+    np.savez(path.with_suffix(".obs.npz"), **{k: np.asarray(getattr(lm, k)) for k in ("A", "By", "C", "Dy")})
+    return {"q0": int(d.observer.state_size), "design_s": design_s,
+            "joint_states": int(sp.loop.r + d.observer.state_size)}
+
+
+def study_peer_inputs(sp: StudyPlant, delta, x0, obs_path: Path) -> dict:
+    m = np.load(obs_path)
+    return dict(E=sp.loop.E, A0=sp.loop.A, dA=sp.loop.dA, C=sp.C, L=sp.L, delta=delta, x0=x0,
+                obs=[tuple(m[k] for k in ("A", "By", "C", "Dy"))], ts=grid())
+
+
+def study_fojax_call(sp: StudyPlant, delta, x0, design_path: Path, mode: str, chunk_size=None):
+    """``() -> (metrics (5, B, K), bands (nq, T_c, K) or None)`` by the public
+    `fojax.run_study` (``mode``: ``"metrics"``, ``quantiles=()``; ``"default"``: its
+    default settings, quantile bands included)."""
+    import jax
+    import jax.numpy as jnp
+
+    import fojax
+    from fojax.studies import Family
+
+    obs = fojax.load_design(design_path, verify=False).observer
+    plant = fojax.UncertainDescriptorSystem(fojax.DescriptorSystem(sp.loop.E, sp.loop.A, sp.B, sp.C),
+                                            dA=sp.loop.dA[None], delta=fojax.Constant(jnp.zeros(1)))
+    fams = (Family(jax.vmap(fojax.Constant)(jnp.asarray(delta)[:, None]), ("plant", "delta")),
+            Family(jnp.asarray(x0), ("x0",)))
+    study = fojax.Study(plant, jnp.zeros(sp.loop.n), jnp.asarray(grid()), sp.L, None, uncertainty=fams)
+    kw = dict(quiet=True, chunk_size=chunk_size)
+    if mode == "metrics":
+        kw["quantiles"] = ()
+
+    def call():
+        res = fojax.run_study(study, obs, **kw)
+        assert res.attrs["engine"] == "exact-batch", res.attrs
+        mets = np.stack([res.metrics[k][0, :, 0, :] for k in STUDY_METRICS])  # (5, B, K)
+        bands = None if mode == "metrics" else res.metrics["quantiles"][0]  # (nq, T_c, K)
+        return mets, bands
+
+    return call
+
+
+STUDY_METRICS = ("iae", "ise", "itae", "peak", "settling_time")
+
+
+def study_agreement(a, b) -> float:
+    """Largest relative difference of two metric stacks over their finite entries
+    (``inf`` when the finite patterns differ)."""
+    fin = np.isfinite(b)
+    if not np.array_equal(np.isfinite(a), fin):
+        return float("inf")
+    ref = np.abs(b[fin])
+    return float(np.max(np.abs(a[fin] - b[fin]) / np.maximum(ref, 1e-12 * ref.max())))
+
+
+def study_worker(spec: dict) -> dict:
+    """One entry of the study workload in this (fresh) process: ``spec["task"]`` is
+    ``"design"``, ``"check"`` (fojax and the peer on ``B`` samples, agreement), ``"fojax"``
+    or ``"peer"`` (timed, with peak RSS as `worker` records it); ``spec["mode"]``:
+    ``"metrics"`` or ``"default"`` (quantile bands)."""
+    from _study_peer import study_peer
+
+    n, B, seed, mode = spec["n"], spec["B"], spec["seed"], spec.get("mode", "metrics")
+    sp = study_plant(n, seed)
+    design_path = Path(spec["design"])
+    res: dict = {"task": spec["task"], "n": n, "B": B, "mode": mode, "status": "ok"}
+    if spec["task"] == "design":
+        res.update(design_observer(sp, design_path))
+        return res
+    if spec["task"] != "peer":  # the peer never imports JAX (its RSS is NumPy/SciPy only)
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    delta, x0 = study_samples(n, B, seed)
+    d = study_peer_inputs(sp, delta, x0, design_path.with_suffix(".obs.npz"))
+    bands_arg = None if mode == "metrics" else (band_stride(grid().size), QUANTILES)
+
+    stages: dict = {}
+
+    def peer_call():
+        out = study_peer(d, bands_arg, timings=stages)
+        return (out, None) if bands_arg is None else out
+
+    if spec["task"] == "check":
+        fm, fb = study_fojax_call(sp, delta, x0, design_path, mode, spec.get("chunk"))()
+        pm, pb = peer_call()
+        res["rel_diff"] = study_agreement(fm, pm)
+        if fb is not None:
+            res["bands_rel_diff"] = float(np.max(np.abs(fb - pb)) / np.max(np.abs(pb)))
+        res["iae_range"] = [float(np.min(fm[0])), float(np.max(fm[0]))]
+        return res
+    mem: dict = {}
+
+    def after_first():
+        mem["peak_rss_first_call_mib"] = _common.peak_rss_mib()
+        mem["peak_reset"] = _common.reset_peak_rss()
+
+    rss_before = _common.current_rss_mib()
+    call = study_fojax_call(sp, delta, x0, design_path, mode, spec.get("chunk")) if spec["task"] == "fojax" \
+        else peer_call
+    cpu = []
+
+    def call_cpu():
+        c = time.process_time()
+        o = call()
+        cpu.append(time.process_time() - c)
+        return o
+
+    if spec["task"] == "fojax":
+        import jax
+
+        jax.clear_caches()
+    out, first, times = _common.time_repeated(call_cpu, spec["repeats"], spec["budget"], after_first,
+                                              first_counts=spec["task"] == "peer")
+    med = statistics.median(times)
+    res.update(first_s=first, median_s=med, all_s=times, reps=len(times), first_cpu_s=cpu[0],
+               median_cpu_s=statistics.median(cpu[1:]) if len(cpu) > 1 else cpu[0],
+               peak_rss_repeats_mib=_common.peak_rss_mib(), rss_before_first_call_mib=rss_before, **mem)
+    res["peak_rss_mib"] = max(res["peak_rss_first_call_mib"], res["peak_rss_repeats_mib"])
+    if rss_before is not None and mem.get("peak_reset"):
+        res["rss_increase_mib"] = res["peak_rss_repeats_mib"] - rss_before
+    if spec["task"] == "fojax":
+        res.update(compile_s=max(first - med, 0.0), compile_note="first call - median (caches cleared)",
+                   compile_cpu_s=max(cpu[0] - res["median_cpu_s"], 0.0) if len(cpu) > 1 else None)
+    else:
+        res["stages_last_call_s"] = dict(stages)
+    np.save(spec["save"], out[0])
+    return res
+
+
+def peak_gemm_gflops(sizes=(1000, 2000), repeats: int = 3) -> float:
+    """The machine's measured float64 GEMM rate (``numpy.matmul`` of random square matrices,
+    the BLAS thread count of `_common.limit_blas_threads`: one thread), best of `repeats`
+    per size, GFLOP/s (``2 k³`` flops per product). Measured under the same load as the rows."""
+    best = 0.0
+    rng = np.random.default_rng(0)
+    for k in sizes:
+        a, b = rng.standard_normal((k, k)), rng.standard_normal((k, k))
+        a @ b
+        for _ in range(repeats):
+            t = time.perf_counter()
+            a @ b
+            best = max(best, 2 * k**3 / (time.perf_counter() - t) / 1e9)
+    return best
+
+
+def flop_model(n: int, B: int, dsg: dict, peer: dict, peak: float | None) -> dict:
+    r"""Flop counts of one row (``T`` grid points, ``N = r + q_0`` joint states, ``K``
+    error outputs), for the statement of what is reachable:
+
+    - ``peer_stepping``: the peer's recurrence, exactly ``B (T-1) (2N^2 + 2KN)`` (one
+      ``N × N`` and one ``K × N`` matrix-vector product per sample and step), and the rate
+      it achieved (its ``stepping_s`` stage);
+    - ``min_stepping``: a lower bound of any method that steps the joint loop on the grid:
+      the loop matrix is block lower-triangular (the plant does not depend on the observer),
+      so a step needs at least ``2 (r^2 + r q_0 + q_0^2)`` flops per sample (``Φ_{pp}``,
+      ``Φ_{op}``, ``Φ_{oo}``), without the matrix exponential and the outputs;
+    - ``ratio_bound_at_peak``: the peer's median time over ``min_stepping / peak`` (the
+      machine's measured GEMM rate): no stepping method can beat the peer by more than this
+      on this machine (an upper bound of ``t_peer / t_fojax``; computing ``Φ`` costs more);
+    - ``cheapest_exact_model``: that stepping plus ``Φ`` by a block-triangular degree-7
+      Padé approximant (5 product-equivalents; a model, not a bound), and the ratio the
+      peer's time (wall and CPU) allows at the peak GEMM rate."""
+    T = grid().size
+    N, q0 = dsg["joint_states"], dsg["q0"]
+    r = N - q0
+    K = N_FUNCTIONALS
+    out = dict(T=T, N=N, r=r, q0=q0, K=K, peak_gemm_gflops=peak)
+    st = B * (T - 1) * (2 * N * N + 2 * K * N)
+    out["peer_stepping_gflop"] = st / 1e9
+    stages = peer.get("stages_last_call_s") or {}
+    if stages.get("stepping_s"):
+        out["peer_stepping_gflops_achieved"] = st / stages["stepping_s"] / 1e9
+        out["peer_stages_s"] = stages
+    mn = B * (T - 1) * 2 * (r * r + r * q0 + q0 * q0)
+    out["min_stepping_gflop"] = mn / 1e9
+    # the cheapest exact method modelled: the block-triangular stepping above plus Φ by a
+    # degree-7 Padé approximant (what scipy's expm picks for ||h A||_1 <= 0.95: 4 products
+    # and one solve, counted as 5 products) done block-triangularly: (r³ + q0³ + r q0 N)
+    # per product instead of N³; no output cost, no Φ^m for multistep passes
+    cheapest = mn + B * 5 * 2 * (r**3 + q0**3 + r * q0 * N)
+    out["cheapest_exact_model_gflop"] = cheapest / 1e9
+    if peak:
+        out["min_stepping_s_at_peak"] = mn / (peak * 1e9)
+        out["ratio_bound_at_peak"] = peer["median_s"] / out["min_stepping_s_at_peak"]
+        out["cheapest_exact_s_at_peak"] = cheapest / (peak * 1e9)
+        out["ratio_cheapest_exact_at_peak"] = peer["median_s"] / out["cheapest_exact_s_at_peak"]
+        out["ratio_cheapest_exact_at_peak_cpu"] = peer["median_cpu_s"] / out["cheapest_exact_s_at_peak"]
+    return out
+
+
+def _run_study(args, state: dict, tmp: Path) -> int:
+    state["peak_gemm_gflops"] = peak_gemm_gflops()
+    print(f"# peak float64 GEMM (numpy, 1 BLAS thread): {state['peak_gemm_gflops']:.1f} GFLOP/s", flush=True)
+    base = dict(seed=args.seed, chunk=args.chunk, repeats=args.repeats, budget=args.budget)
+
+    def entry(task, n, B, mode, tag):
+        spec = dict(base, task=task, n=n, B=B, mode=mode, design=str(tmp / f"design-{n}.npz"),
+                    save=str(tmp / f"{tag}-{task}-{mode}-{n}-{B}.npy"))
+        res = _common.run_worker(Path(__file__), spec, args.hard_timeout)
+        if res.get("status") == "ok" and task in ("fojax", "peer"):
+            res["_out"] = np.load(spec["save"])
+        return res
+
+    designed: dict = {}
+
+    def measure(n, B, mode, tag) -> dict:
+        row: dict = {"n": n, "B": B, "mode": mode, "load_average_at_start": _common.load_average()}
+        if n not in designed:
+            designed[n] = entry("design", n, 1, "metrics", tag)
+        dsg = designed[n]
+        if dsg.get("status") != "ok":
+            row.update(status=f"design {dsg.get('status')}", error=dsg.get("error"), stderr=dsg.get("stderr"))
+            return row
+        row["observer"] = {k: dsg[k] for k in ("q0", "design_s", "joint_states")}
+        chk = entry("check", n, min(args.check_b, B), mode, tag)
+        if chk.get("status") != "ok":
+            row.update(status=f"check {chk.get('status')}", error=chk.get("error"), stderr=chk.get("stderr"))
+            return row
+        row["check_B"], row["check_rel_diff"] = chk["B"], chk["rel_diff"]
+        if "bands_rel_diff" in chk:
+            row["check_bands_rel_diff"] = chk["bands_rel_diff"]
+        if not (chk["rel_diff"] <= TOL and chk.get("bands_rel_diff", 0.0) <= TOL):
+            row["status"] = f"disagree ({chk['rel_diff']:.1e}): not timed"
+            return row
+        f = entry("fojax", n, B, mode, tag)
+        row["fojax"] = {k: v for k, v in f.items() if not k.startswith("_")}
+        p = entry("peer", n, B, mode, tag) if not args.no_peer else None
+        if p is not None:
+            row["peer"] = {k: v for k, v in p.items() if not k.startswith("_")}
+        if f.get("status") != "ok":
+            row["status"] = f"fojax {f.get('status')}"
+            return row
+        row["status"] = "ok"
+        row["load_average_at_end"] = _common.load_average()
+        if p is not None and p.get("status") == "ok":
+            row["rel_diff"] = study_agreement(f["_out"], p["_out"])
+            row["peer_over_fojax"] = p["median_s"] / f["median_s"]
+            row["peer_over_fojax_cpu"] = p["median_cpu_s"] / f["median_cpu_s"]
+            row["fojax_over_peer_peak_rss"] = f["peak_rss_mib"] / p["peak_rss_mib"]
+            row["flops"] = flop_model(n, B, dsg, p, state.get("peak_gemm_gflops"))
+            if not row["rel_diff"] <= TOL:
+                row["status"] = f"disagree at B ({row['rel_diff']:.1e})"
+        return row
+
+    for n in args.dims:
+        print(f"\n## n = {n}, B = {args.batch} (study, metrics only)", flush=True)
+        row = measure(n, args.batch, "metrics", "dims")
+        state["dims"].append(row)
+        _print_row(row)
+        if not row["status"].startswith("ok"):
+            state["failed"].append(f"n={n}: {row['status']}")
+        write(state, "partial", name="scaling")
+    for B in sorted(set(args.memory_sizes)):
+        for mode in args.memory_modes:
+            print(f"\n## memory: n = {args.memory_n}, B = {B}, {mode}", flush=True)
+            row = measure(args.memory_n, B, mode, "mem")
+            state["memory"].append(row)
+            _print_row(row)
+            write(state, "partial", name="scaling")
+    write(state, "complete", echo=True, name="scaling")
+    return 1 if state["failed"] else 0
+
+
 # ============================================================================ driver
 def batch_scaling_from_reference(path: Path) -> dict | None:
     """fojax and peer (d) vs B from reference_workload's JSON (not re-measured)."""
@@ -366,12 +728,18 @@ def batch_scaling_from_reference(path: Path) -> dict | None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--worker", help=argparse.SUPPRESS)
-    ap.add_argument("--dims", type=int, nargs="+", default=list(DIMS), help="state dimensions n (default 4 … 256)")
+    ap.add_argument("--dims", type=int, nargs="*", default=list(DIMS), help="state dimensions n (default 4 … 256)")
     ap.add_argument("--batch", type=int, default=1000, help="samples B of the n study (default 1000)")
     ap.add_argument("--check-b", type=int, default=100, help="samples of the agreement check before timing")
+    ap.add_argument("--workload", choices=("study", "kernel"), default="study",
+                    help="study (default): fojax.run_study, the product workload; kernel: the old "
+                         "simulate_lti_batch rows (all n outputs), written as scaling_kernel_*")
     ap.add_argument("--memory-n", type=int, default=8, help="state dimension of the memory-vs-B sweep")
-    ap.add_argument("--memory-sizes", type=int, nargs="*", default=list(MEMORY_SIZES),
-                    help="batch sizes of the memory-vs-B sweep (none: skip it)")
+    ap.add_argument("--memory-sizes", type=int, nargs="*", default=None,
+                    help="batch sizes of the memory-vs-B sweep (none: skip it; default: 100,000 for the "
+                         "study workload, 1 ... 100,000 for the kernel workload)")
+    ap.add_argument("--memory-modes", nargs="+", default=["metrics", "default"], choices=["metrics", "default"],
+                    help="study workload: run_study settings of the memory rows (metrics only / default bands)")
     ap.add_argument("--no-peer", action="store_true", help="time fojax only (agreement is still checked)")
     ap.add_argument("--peer-variants", nargs="+", default=list(PEER_VARIANTS), choices=list(PEER_VARIANTS),
                     help="axis orders of peer (d) to time (the faster is kept)")
@@ -385,8 +753,11 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=_common.RESULTS)
     args = ap.parse_args(argv)
     if args.worker:
-        _common.emit_worker_result(worker(json.loads(args.worker)))
+        spec = json.loads(args.worker)
+        _common.emit_worker_result(study_worker(spec) if "mode" in spec else worker(spec))
         return 0
+    if args.memory_sizes is None:
+        args.memory_sizes = [100_000] if args.workload == "study" else list(MEMORY_SIZES)
     if args.repeats < 1:
         ap.error("--repeats must be at least 1")
 
@@ -395,7 +766,7 @@ def main(argv=None) -> int:
     state = {"info": info, "args": args, "dims": [], "memory": [], "failed": []}
     tmp = Path(tempfile.mkdtemp(prefix="fojax-scaling-"))  # the workers' outputs (.npy), removed at the end
     try:
-        return _run(args, state, tmp)
+        return _run_study(args, state, tmp) if args.workload == "study" else _run(args, state, tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -450,7 +821,7 @@ def _run(args, state: dict, tmp: Path) -> int:
         _print_row(row)
         if not row["status"].startswith("ok"):
             state["failed"].append(f"n={n}: {row['status']}")
-        write(state, "partial")
+        write(state, "partial", name="scaling_kernel")
     if args.memory_sizes:
         print(f"\n## memory vs B (n = {args.memory_n})", flush=True)
         chk_done = False
@@ -459,9 +830,9 @@ def _run(args, state: dict, tmp: Path) -> int:
             chk_done = chk_done or "check_rel_diff" in row
             state["memory"].append(row)
             _print_row(row)
-            write(state, "partial")
+            write(state, "partial", name="scaling_kernel")
     state["reference"] = batch_scaling_from_reference(args.reference_json)
-    write(state, "complete", echo=True)
+    write(state, "complete", echo=True, name="scaling_kernel")
     return 1 if state["failed"] else 0
 
 
@@ -477,15 +848,29 @@ def _print_row(row):
     )
 
 
-def write(state: dict, status: str, echo: bool = False) -> None:
+def write(state: dict, status: str, echo: bool = False, name: str = "scaling") -> None:
     args = state["args"]
     for rows in (state["dims"], state["memory"]):
         for r in rows:
             for m in ("fojax", "peer"):
                 if r.get(m, {}).get("median_s"):
                     r[m]["samples_per_s"] = r["B"] / r[m]["median_s"]
+    if args.workload == "study":
+        payload = _common.result_payload(
+            name, status, state["info"], args,
+            note="measured under load: a 2-core machine shared with other jobs (see the load averages)",
+            workload=dict(entry_point="fojax.run_study", horizon_s=T_END, dt=DT, points=grid().size, delta=DELTA,
+                          abscissa_bound=ABSCISSA_BOUND, functionals=N_FUNCTIONALS,
+                          observer="proportional functional observer, Riccati route, Disk(-2, 1), q0 ~ n/2",
+                          metrics=list(STUDY_METRICS), band_quantiles=list(QUANTILES), band_points=BAND_POINTS,
+                          peer="_study_peer.study_peer (NumPy/SciPy, scipy.linalg.expm on the stack)", tolerance=TOL),
+            peak_gemm_gflops=state.get("peak_gemm_gflops"),
+            dims=state["dims"], memory=state["memory"], failures=state["failed"],
+        )
+        _common.write_results(args.out, name, payload, render_study_markdown(payload), echo=echo)
+        return
     payload = _common.result_payload(
-        "scaling",
+        name,
         status,
         state["info"],
         args,
@@ -496,7 +881,38 @@ def write(state: dict, status: str, echo: bool = False) -> None:
         batch_scaling_reference=state.get("reference"),
         failures=state["failed"],
     )
-    _common.write_results(args.out, "scaling", payload, render_markdown(payload), echo=echo)
+    _common.write_results(args.out, name, payload, render_markdown(payload), echo=echo)
+
+
+def render_study_markdown(d: dict) -> str:
+    s, fmt = d["settings"], _common.fmt
+    lines = [
+        "# Scaling of fojax.run_study with the state dimension n (issue 16)",
+        "",
+        f"- status: {d['status']}; {d['note']}",
+        *_common.machine_lines(d["machine"]),
+        f"- a Study of an uncertain random stable index-1 descriptor plant (n_alg = max(1, n // 4), δ ∈ "
+        f"[-{DELTA}, {DELTA}], random x0), one proportional functional observer of z = L x ({N_FUNCTIONALS} rows), "
+        f"[0, {T_END:g}] s on a {DT} s grid; metrics IAE/ISE/ITAE/peak/settling time of ẑ − z; peer: "
+        "NumPy/SciPy (`_study_peer`), same samples, agreement checked first; every entry a fresh process",
+        "",
+        "| n | mode | B | N joint | agreement | fojax compile (s) | fojax median (s) | peer median (s) | "
+        "t_peer/t_fojax | CPU ratio | peak RSS fojax (MiB) | peak RSS peer (MiB) | status |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for r in d["dims"] + d["memory"]:
+        f, p = r.get("fojax", {}), r.get("peer", {})
+        lines.append(
+            f"| {r['n']} | {r['mode']} | {r['B']} | {r.get('observer', {}).get('joint_states', '—')} | "
+            f"{fmt(r.get('rel_diff', r.get('check_rel_diff')), '.1e')} | {fmt(f.get('compile_s'), '.2f')} | "
+            f"{fmt(f.get('median_s'), '.3g')} | {fmt(p.get('median_s'), '.3g')} | {fmt(r.get('peer_over_fojax'), '.3g')} | "
+            f"{fmt(r.get('peer_over_fojax_cpu'), '.3g')} | {fmt(f.get('peak_rss_mib'), '.0f')} | "
+            f"{fmt(p.get('peak_rss_mib'), '.0f')} | {r['status']} |"
+        )
+    if d["failures"]:
+        lines += ["", "**Failures:** " + "; ".join(d["failures"])]
+    _ = s
+    return "\n".join(lines) + "\n"
 
 
 def render_markdown(d: dict) -> str:

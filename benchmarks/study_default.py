@@ -52,7 +52,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-import scipy.linalg  # noqa: E402
+from _study_peer import study_peer as peer  # noqa: E402
 
 import fojax  # noqa: E402
 from fojax import studies as S  # noqa: E402
@@ -102,72 +102,6 @@ def peer_inputs(ex, plant, obs, study):
         obs=[tuple(np.asarray(m) for m in (lm.A, lm.By, lm.C, lm.Dy)) for lm in lms],
         ts=np.asarray(study.ts),
     )
-
-
-def peer(d, bands=None):
-    """The SciPy/NumPy peer: metrics ``(5, B, K)``; with ``bands = (stride, quantiles)`` also
-    the quantile bands the way a NumPy user computes them (errors kept on ``ts[::stride]``,
-    then ``np.quantile`` over the samples): ``(nq, T_c, K)``."""
-    E, C, L, ts = d["E"], d["C"], d["L"], d["ts"]
-    A = d["A0"][None] + d["delta"][:, None, None] * d["dA"][None]  # (B, n, n)
-    B = A.shape[0]
-    U, s, Vt = np.linalg.svd(E)
-    r = int(np.sum(s > 1e-12 * s[0]))
-    V = Vt.T
-    At = U.T @ A @ V
-    K = -np.linalg.solve(At[:, r:, r:], At[:, r:, :r])  # (B, n-r, r)
-    Tx = V[None, :, :r] + V[None, :, r:] @ K  # (B, n, r)
-    As = (At[:, :r, :r] + At[:, :r, r:] @ K) / s[None, :r, None]
-    sizes = [o[0].shape[0] for o in d["obs"]]
-    N = r + sum(sizes)
-    Aj = np.zeros((B, N, N))
-    Aj[:, :r, :r] = As
-    G = []
-    off = r
-    for (Ao, By, Co, Dy), sz in zip(d["obs"], sizes):
-        Aj[:, off : off + sz, :r] = By @ C @ Tx
-        Aj[:, off : off + sz, off : off + sz] = Ao
-        g = np.zeros((B, Co.shape[0], N))
-        g[:, :, :r] = (Dy @ C - L) @ Tx
-        g[:, :, off : off + sz] = Co
-        G.append(g)
-        off += sz
-    G = np.concatenate(G, axis=1)  # (B, K, N)
-    h = ts[1] - ts[0]
-    Phi = scipy.linalg.expm(h * Aj)  # (B, N, N)
-    w = np.zeros((B, N))
-    w[:, :r] = d["x0"] @ V[:, :r]
-    PhiT, GT = np.swapaxes(Phi, 1, 2), np.swapaxes(G, 1, 2)
-    e = np.einsum("bn,bnk->bk", w, GT)
-    a = np.abs(e)
-    a0, e0 = a, e
-    s1 = np.zeros_like(a)
-    s2 = np.zeros_like(a)
-    s3 = np.zeros_like(a)
-    peak = a.copy()
-    last = np.where(a > SETTLE_TOL, 0, -1)
-    tr = ts - ts[0]
-    kept = [e] if bands is not None else None
-    for k in range(1, ts.shape[0]):
-        w = np.einsum("bn,bnm->bm", w, PhiT)
-        e = np.einsum("bn,bnk->bk", w, GT)
-        a = np.abs(e)
-        s1 += a
-        s2 += e * e
-        s3 += tr[k] * a
-        np.maximum(peak, a, out=peak)
-        last = np.where(a > SETTLE_TOL, k, last)
-        if bands is not None and k % bands[0] == 0:
-            kept.append(e)
-    T = ts.shape[0]
-    iae = h * (s1 + 0.5 * a0 - 0.5 * a)
-    ise = h * (s2 + 0.5 * e0**2 - 0.5 * e**2)
-    itae = h * (s3 - 0.5 * tr[-1] * a)
-    settle = np.where(last < 0, 0.0, np.where(last == T - 1, np.inf, tr[np.minimum(last + 1, T - 1)]))
-    mets = np.stack([iae, ise, itae, peak, settle])  # (5, B, K)
-    if bands is None:
-        return mets
-    return mets, np.quantile(np.stack(kept, axis=1), bands[1], axis=0)  # (nq, T_c, K)
 
 
 def fojax_metrics(res):

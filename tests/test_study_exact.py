@@ -250,3 +250,28 @@ def test_study_loss_runs_exact_kernel_and_its_gradient_matches_finite_difference
         e = jnp.zeros_like(params[name]).at[idx].set(eps)
         fd = (vg({**params, name: params[name] + e}, study)[0] - vg({**params, name: params[name] - e}, study)[0]) / (2 * eps)
         assert abs(float(g[name][idx]) - float(fd)) <= 1e-5 * abs(float(fd)), (name, float(g[name][idx]), float(fd))
+
+
+def test_metrics_and_bands_do_not_change_with_chunk_size(ex337):
+    # run_study streams chunks into one host array (run_batched(host=True)) so that memory
+    # follows the chunk, not the batch: the numbers must not depend on the chunking. Oracle:
+    # the same study in one chunk (other block widths: <= 1e-12), and run_batched without
+    # `host` at the same chunk size (the same kernel calls: bit for bit).
+    _, obs, _, _ = ex337
+    study = study337(ex337, 5, nu=5, nf=2)  # 10 samples
+    one = jax.devices()[:1]
+    ref = S.run_study(study, obs, quiet=True, devices=one)
+    res = S.run_study(study, obs, quiet=True, devices=one, chunk_size=4)
+    assert ref.attrs["num_chunks"] == 1 and res.attrs["num_chunks"] == 3  # 4 + 4 + 2 (padded)
+    assert ref.attrs["engine"] == res.attrs["engine"] == "exact-batch"
+    for k in METRICS + ("quantiles", "success"):
+        np.testing.assert_allclose(res.metrics[k], ref.metrics[k], rtol=1e-12, atol=0, err_msg=k)
+    prepared, _ = _exact.exact_problem(study, obs, 0.05, res.attrs["band_stride"])
+    problem, basis, idx = prepared
+    kw = dict(chunk_size=4, block=_batch.DEFAULT_BLOCK, devices=one, basis=basis)
+    streamed, layout = _batch.run_batched(problem, idx, study.ts, host=True, **kw)
+    joined, _ = _batch.run_batched(problem, idx, study.ts, **kw)
+    assert layout["num_chunks"] == 3
+    for a, b in zip(jax.tree.leaves(streamed), jax.tree.leaves(joined), strict=True):
+        assert isinstance(a, np.ndarray) and a.shape == b.shape and a.shape[-1] == 10
+        np.testing.assert_array_equal(a, np.asarray(b))

@@ -703,13 +703,23 @@ def gather_across_processes(tree, mesh):
     return jax.tree.map(lambda a: lax.with_sharding_constraint(a, rep), tree)
 
 
-def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, basis=None):
+def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, basis=None, host: bool = False):
     """Run a batch-kernel `problem` over every sample of ``p`` (leaves with a leading
     batch axis ``B``), streamed in fixed-size chunks (the last one padded with copies of
     the last sample; one compilation serves every chunk and every ``B``) and spread over
     `devices`. ``ts`` must be a concrete uniform grid. Returns the problem's reduction
-    with the batch as the last axis ``B`` (JAX arrays), and the layout used (chunk size
-    after rounding to ``block × devices``, number of chunks, devices, block)."""
+    with the batch as the last axis ``B`` (JAX arrays; NumPy arrays with `host`), and the
+    layout used (chunk size after rounding to ``block × devices``, number of chunks,
+    devices, block).
+
+    **Memory.** Besides the result itself, only one chunk's work is alive at a time: with
+    `host` (`run_study`) each chunk's result is copied into one preallocated NumPy array
+    of the whole batch while the next chunk computes, then dropped, so the peak is the
+    result plus about two chunks' outputs (before: every chunk's output, their
+    concatenation and its slice to ``B``, three copies of the result: the quantile bands'
+    error trajectories, ``8 · T_c · K · B`` bytes, are the one output of size ``B``).
+    Without `host` the chunks' valid parts are concatenated once (two copies at the
+    peak)."""
     T, h, ts = _step_size(ts)
     Bn = jax.tree.leaves(p)[0].shape[0]
     mesh = _mesh_for(devices)
@@ -730,13 +740,33 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
         p = jax.tree.map(
             lambda a: jnp.concatenate([a, jnp.repeat(lax.slice_in_dim(a, Bn - 1, Bn), pad, axis=0)], axis=0), p
         )
-    outs = []
+    layout = dict(chunk_size=bc, num_chunks=n_chunks, num_devices=D, block=block)
+    outs, result, pending = [], None, None
+
+    def store(i, o):  # host: chunk i's valid samples into the preallocated result, then drop it
+        nonlocal result
+        o = jax.tree.map(np.asarray, o)  # waits for chunk i (chunk i + 1 is already dispatched)
+        if result is None:
+            result = jax.tree.map(lambda a: np.empty(a.shape[:-1] + (Bn,), a.dtype), o)
+        nv = min(Bn - i * bc, bc)
+        for dst, src in zip(jax.tree.leaves(result), jax.tree.leaves(o)):
+            dst[..., i * bc : i * bc + nv] = src[..., :nv]
+
     for i in range(n_chunks):
         pc = jax.tree.map(lambda a, i=i: lax.slice_in_dim(a, i * bc, (i + 1) * bc), p)
-        outs.append(_chunk_core(problem, pc, jnp.asarray(min(Bn - i * bc, bc)), h, ts, block, basis, mesh))
+        nv = min(Bn - i * bc, bc)
+        o = _chunk_core(problem, pc, jnp.asarray(nv), h, ts, block, basis, mesh)
+        if host:
+            if pending is not None:
+                store(*pending)
+            pending = (i, o)
+        else:
+            outs.append(jax.tree.map(lambda a, nv=nv: a[..., :nv], o))
+    if host:
+        store(*pending)
+        return result, layout
     out = outs[0] if n_chunks == 1 else jax.tree.map(lambda *a: jnp.concatenate(a, axis=-1), *outs)
-    return jax.tree.map(lambda a: a[..., :Bn], out), dict(chunk_size=bc, num_chunks=n_chunks, num_devices=D,
-                                                          block=block)
+    return out, layout
 
 
 def _check_metrics(metrics, size):

@@ -409,9 +409,12 @@ def run_study(
     - `observers`: one observer or a sequence; each must estimate ``study.num_signals``
       signals.
     - `observer_names`: labels (default ``"observer0", ...``).
-    - `chunk_size`: samples per compiled call (default: the whole batch); rounded up to a
-      multiple of the number of devices. The last chunk is padded, so one compilation
-      serves every chunk.
+    - `chunk_size`: samples per compiled call; rounded up to a multiple of the number of
+      devices. The last chunk is padded, so one compilation serves every chunk. Default:
+      on the exact and exponential engines 4,096 samples (2,048 with quantile bands), so
+      their working memory follows the chunk, not the batch (only the per-sample results,
+      and the band errors, ``8 · T_c · K · B`` bytes, are batch-sized); on the
+      ``"vmap-simulate"`` engine the whole batch.
     - `devices`: devices of the 1-d mesh the batch axis is sharded over (default
       `jax.devices()`: after `jax.distributed.initialize`, the devices of every process,
       each process computing its share; every process then receives the whole result,
@@ -606,7 +609,7 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
     chunk = min(B, default) if chunk_size is None else int(chunk_size)
     devices = jax.devices() if devices is None else devices  # all processes' devices, as `_mesh`
     out, layout = run_batched(problem, idx, study.ts, chunk_size=chunk, block=DEFAULT_BLOCK, devices=devices,
-                              basis=basis)
+                              basis=basis, host=True)
     if keep:
         (mets, ok), traj = out
     else:
