@@ -15,11 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import fojax
 from fojax import studies as S
-from fojax.design import design_functional_observer, Disk
 from fojax.studies import _exact
 from fojax.studies._adjoint import split_recurrence_reduce
+from tests.helpers import small_step_input_study
 
 
 class _Metrics(eqx.Module):
@@ -137,16 +136,7 @@ def test_vmap_of_grad_equals_per_element_grad(data):
 def test_study_loss_with_jumps_equals_former_reverse_mode(monkeypatch):
     # a step input between grid points (a jump of the exosystem state): study_loss's
     # gradient with the adjoint equals jax.grad through the kernel's own scan
-    ex = fojax.models.example_3_3_7()
-    d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
-    dA = np.zeros((1, 9, 9))
-    dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
-    x0 = jnp.zeros(9).at[:6].set(0.5)
-    k1, k2 = jax.random.split(jax.random.PRNGKey(2))
-    study = S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, fojax.Step(jnp.array([0.4, -0.3]), 0.33),
-                    uncertainty=(S.constant_delta(k1, 2, 1, bounds=(-0.3, 0.3)),),
-                    scenarios=(S.constant_faults(k2, 2, x0, 3),))
+    study, d = small_step_input_study(2, 2, 2)
     dyn, st = eqx.partition(d.observer, eqx.is_inexact_array)
 
     def vg(loss):
