@@ -211,3 +211,29 @@ def json_differences(x, y, path=""):
     if path.endswith("/solve_time") or "/solve_time/" in path:  # the solver's wall clock (a float node)
         return []
     return [] if x == y else [(path, x, y)]
+
+
+def small_step_input_study(seed: int, n_delta: int, n_faults: int):
+    """``(study, design)``: the short §3.3.7 study of the study-loss tests (fault-augmented
+    plant, constant δ in [-0.3, 0.3] × constant faults, 21 points on [0, 1], a step input
+    at t = 0.33 between grid points: a jump of the exosystem state) and the generalized
+    LMI design in ``Disk(-2, 1)``; ``n_delta × n_faults`` samples from ``PRNGKey(seed)``.
+    Imports fojax/JAX lazily (the other helpers are NumPy only)."""
+    import jax
+    import jax.numpy as jnp
+
+    import fojax
+    from fojax import studies as S
+    from fojax.design import design_functional_observer, Disk
+
+    ex = fojax.models.example_3_3_7()
+    d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
+    dA = np.zeros((1, 9, 9))
+    dA[0, :6, :6] = ex.dA
+    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    x0 = jnp.zeros(9).at[:6].set(0.5)
+    k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
+    study = S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, fojax.Step(jnp.array([0.4, -0.3]), 0.33),
+                    uncertainty=(S.constant_delta(k1, n_delta, 1, bounds=(-0.3, 0.3)),),
+                    scenarios=(S.constant_faults(k2, n_faults, x0, 3),))
+    return study, d

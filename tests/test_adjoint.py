@@ -4,8 +4,9 @@ Oracles: (1) a plain `jax.lax.scan` of the same recurrence written here, differe
 by `jax.grad` (what `study_loss` used before the custom VJP); (2) a NumPy loop for the
 forward values; (3) central finite differences; (4) `study_loss` on a study with jumps (a
 step input between grid points) with the kernel's former time loop, through `jax.grad`.
-The split loop (`split_recurrence_reduce`: plant constant, adjoint at the observers' size)
-is checked against (1) on a block lower-triangular Φ: the blocks of `jax.grad` of the joint scan.
+Every check runs on the split loop (`split_recurrence_reduce`: plant constant, adjoint at
+the observers' size; the joint `linear_recurrence_reduce` was removed as unused) on a block
+lower-triangular Φ: (1) as the matching blocks of `jax.grad` of the joint scan.
 """
 
 import equinox as eqx
@@ -14,11 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import fojax
 from fojax import studies as S
-from fojax.design import design_functional_observer, Disk
 from fojax.studies import _exact
-from fojax.studies._adjoint import linear_recurrence_reduce, split_recurrence_reduce
+from fojax.studies._adjoint import split_recurrence_reduce
+from tests.helpers import small_step_input_study
 
 
 class _Metrics(eqx.Module):
@@ -59,16 +59,35 @@ def plain(diff, kon):
     return acc, w
 
 
-def scalar(out):
-    (s1, s2, s3, peak, _), w = out
-    return jnp.sum(s1) + 0.7 * jnp.sum(s2) - 0.3 * jnp.sum(s3) + 0.2 * jnp.sum(peak) + jnp.sum(jnp.sin(w))
+#: plant part p = w[:M] (constant), observers ξ = w[M:]: Φ block lower triangular
+M = 2
+
+
+def split_data(data):
+    """The split loop's arguments from the joint ``data``: ``(d0, plant, ts, kon)`` with
+    ``d0 = (Φ_ξξ, Φ_ξp, G_ξ, G_p, ξ_0, jv_ξ)`` (differentiated) and Φ's upper right block zero."""
+    (Phi, w0, G, jv, ts), kon = data
+    Phi = Phi.at[:M, M:].set(0.0)
+    d0 = (Phi[M:, M:], Phi[M:, :M], G[:, M:], G[:, :M], w0[M:], jv[:, M:])
+    return d0, (Phi[:M, :M], w0[:M], jv[:, :M]), ts, kon
+
+
+def split_scalar(d, plant, ts, kon, segment):
+    """A scalar of every accumulator and of ξ_n, through `split_recurrence_reduce`."""
+    (s1, s2, s3, peak, _), p_end, xi_end = split_recurrence_reduce(d + (ts,), plant, PROB, kon, segment)
+    return jnp.sum(s1) + 0.7 * jnp.sum(s2) - 0.3 * jnp.sum(s3) + 0.2 * jnp.sum(peak) + jnp.sum(jnp.sin(xi_end))
 
 
 def test_forward_matches_numpy_loop(data):
-    diff, kon = data
-    (s1, s2, s3, peak, last), w = linear_recurrence_reduce(diff, PROB, kon, segment=5)
-    Phi, w0, G, jv, ts = (np.asarray(x) for x in diff)
-    kon = np.asarray(kon)
+    d0, plant, ts, kon = split_data(data)
+    (s1, s2, s3, peak, last), p_end, xi_end = split_recurrence_reduce(d0 + (ts,), plant, PROB, kon, segment=5)
+    Poo, Pop, Go, Gp, xi0, jvo = (np.asarray(x) for x in d0)
+    Ppp, p0, jvp = (np.asarray(x) for x in plant)
+    Phi = np.concatenate([np.concatenate([Ppp, np.zeros((M, N - M, B))], axis=1),
+                          np.concatenate([Pop, Poo], axis=1)], axis=0)
+    G, w0, jv = np.concatenate([Gp, Go], axis=1), np.concatenate([p0, xi0]), np.concatenate([jvp, jvo], axis=1)
+    ts, kon = np.asarray(ts), np.asarray(kon)
+    w = np.concatenate([np.asarray(p_end), np.asarray(xi_end)])
     for b in range(B):
         w_ = w0[:, b].copy()
         os_ = [G[:, :, b] @ w_]
@@ -86,38 +105,27 @@ def test_forward_matches_numpy_loop(data):
         np.testing.assert_array_equal(last[:, b], lastk)
 
 
-@pytest.mark.parametrize("segment", [None, 1, 5, 11, 20])
-def test_grad_equals_jax_grad_of_plain_scan(data, segment):
-    # every checkpoint layout: padding steps (5, 20), one segment (11), one step per segment (1)
-    diff, kon = data
-    g = jax.jit(jax.grad(lambda d: scalar(linear_recurrence_reduce(d, PROB, kon, segment))))(diff)
-    g0 = jax.grad(lambda d: scalar(plain(d, kon)))(diff)
-    for a, b in zip(g, g0):
-        np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12 * float(jnp.max(jnp.abs(b))))
-
-
 def test_grad_matches_central_differences(data):
-    diff, kon = data
-    f = jax.jit(lambda d: scalar(linear_recurrence_reduce(d, PROB, kon, 4)))
-    g = jax.grad(f)(diff)
-    keys = jax.random.split(jax.random.PRNGKey(11), 4)
+    d0, plant, ts, kon = split_data(data)
+    f = jax.jit(lambda d: split_scalar(d, plant, ts, kon, 4))
+    g = jax.grad(f)(d0)
+    keys = jax.random.split(jax.random.PRNGKey(11), len(d0))
     eps = 1e-6
-    for i in range(4):  # Phi, w0, G, jv along a random direction
-        v = jax.random.normal(keys[i], diff[i].shape)
-        up = tuple(x + eps * v if k == i else x for k, x in enumerate(diff))
-        dn = tuple(x - eps * v if k == i else x for k, x in enumerate(diff))
+    for i in range(len(d0)):  # Φ_ξξ, Φ_ξp, G_ξ, G_p, ξ_0, jv_ξ along a random direction
+        v = jax.random.normal(keys[i], d0[i].shape)
+        up = tuple(x + eps * v if k == i else x for k, x in enumerate(d0))
+        dn = tuple(x - eps * v if k == i else x for k, x in enumerate(d0))
         fd = (f(up) - f(dn)) / (2 * eps)
         an = jnp.sum(g[i] * v)
         assert abs(float(an - fd)) <= 1e-6 * max(1.0, abs(float(fd))), (i, float(an), float(fd))
 
 
 def test_vmap_of_grad_equals_per_element_grad(data):
-    diff, kon = data
+    d0, plant, ts, kon = split_data(data)
     scale = jnp.array([0.5, 1.0, 1.3])
 
     def loss(c):
-        Phi, w0, G, jv, ts = diff
-        return scalar(linear_recurrence_reduce((c * Phi, w0, G, jv, ts), PROB, kon, 5))
+        return split_scalar((c * d0[0],) + d0[1:], plant, ts, kon, 5)
 
     gv = jax.jit(jax.vmap(jax.grad(loss)))(scale)
     g1 = jax.jit(jax.grad(loss))
@@ -128,16 +136,7 @@ def test_vmap_of_grad_equals_per_element_grad(data):
 def test_study_loss_with_jumps_equals_former_reverse_mode(monkeypatch):
     # a step input between grid points (a jump of the exosystem state): study_loss's
     # gradient with the adjoint equals jax.grad through the kernel's own scan
-    ex = fojax.models.example_3_3_7()
-    d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
-    dA = np.zeros((1, 9, 9))
-    dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
-    x0 = jnp.zeros(9).at[:6].set(0.5)
-    k1, k2 = jax.random.split(jax.random.PRNGKey(2))
-    study = S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, fojax.Step(jnp.array([0.4, -0.3]), 0.33),
-                    uncertainty=(S.constant_delta(k1, 2, 1, bounds=(-0.3, 0.3)),),
-                    scenarios=(S.constant_faults(k2, 2, x0, 3),))
+    study, d = small_step_input_study(2, 2, 2)
     dyn, st = eqx.partition(d.observer, eqx.is_inexact_array)
 
     def vg(loss):
@@ -152,31 +151,28 @@ def test_study_loss_with_jumps_equals_former_reverse_mode(monkeypatch):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12 * float(jnp.max(jnp.abs(b))))
 
 
-@pytest.mark.parametrize("segment", [None, 1, 4, 11, 20])
+@pytest.mark.parametrize("segment", [None, 1, 4, 5, 11, 20])
 def test_split_loop_equals_joint_scan_and_its_gradient_blocks(data, segment):
-    # plant p = w[:M] (constant), observers ξ = w[M:]: Φ block lower triangular; the split
-    # loop's value and its gradient w.r.t. Φ_ξξ, Φ_ξp, G, ξ_0 and the observer part of the
-    # jumps equal the joint scan's and the matching blocks of jax.grad of the joint scan;
-    # every segment layout (a tail of 3 steps at 4, none at 11, one segment at 20)
-    (Phi, w0, G, jv, ts), kon = data
-    M = 2
+    # the split loop's value and its gradient w.r.t. Φ_ξξ, Φ_ξp, G, ξ_0 and the observer
+    # part of the jumps equal the joint scan's and the matching blocks of jax.grad of the
+    # joint scan; every segment layout (a tail of 3 steps at 4, 1 at 5, none at 11, one
+    # segment at 20, one step per segment at 1)
+    d0, plant, ts, kon = split_data(data)
+    (Phi, w0, G, jv, _), _ = data
     Phi = Phi.at[:M, M:].set(0.0)
 
     def scalar1(acc, xi_end):
-        (s1, s2, s3, peak, _), = (acc,)
+        s1, s2, s3, peak, _ = acc
         return jnp.sum(s1) + 0.7 * jnp.sum(s2) - 0.3 * jnp.sum(s3) + 0.2 * jnp.sum(peak) + jnp.sum(jnp.sin(xi_end))
 
     def split(d):
-        Poo, Pop, Go, Gp, xi0, jvo = d
-        plant = (Phi[:M, :M], w0[:M], jv[:, :M])
-        acc, p_end, xi_end = split_recurrence_reduce((Poo, Pop, Go, Gp, xi0, jvo, ts), plant, PROB, kon, segment)
+        acc, p_end, xi_end = split_recurrence_reduce(d + (ts,), plant, PROB, kon, segment)
         return scalar1(acc, xi_end), p_end
 
     def joint(Phi_, w0_, G_, jv_):
         acc, w = plain((Phi_, w0_, G_, jv_, ts), kon)
         return scalar1(acc, w[M:]), w[:M]
 
-    d0 = (Phi[M:, M:], Phi[M:, :M], G[:, M:], G[:, :M], w0[M:], jv[:, M:])
     (v, p_end), g = jax.jit(jax.value_and_grad(split, has_aux=True))(d0)
     (v0, p0_end), (gP, gw, gG, gj) = jax.value_and_grad(joint, argnums=(0, 1, 2, 3), has_aux=True)(Phi, w0, G, jv)
     np.testing.assert_allclose(v, v0, rtol=1e-13)

@@ -16,23 +16,14 @@ import pytest
 
 import fojax
 from fojax import studies as S
-from fojax.design import design_functional_observer, Disk
 from fojax.studies import _exact
+from tests.helpers import small_step_input_study
 
 
 @pytest.fixture(scope="module")
 def case():
     # 3 δ × 2 faults = 6 samples; blocks of 4 below: one full block and one padded with 2 copies
-    ex = fojax.models.example_3_3_7()
-    d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
-    dA = np.zeros((1, 9, 9))
-    dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
-    x0 = jnp.zeros(9).at[:6].set(0.5)
-    k1, k2 = jax.random.split(jax.random.PRNGKey(5))
-    study = S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, fojax.Step(jnp.array([0.4, -0.3]), 0.33),
-                    uncertainty=(S.constant_delta(k1, 3, 1, bounds=(-0.3, 0.3)),),
-                    scenarios=(S.constant_faults(k2, 2, x0, 3),))
+    study, d = small_step_input_study(5, 3, 2)
     res = S.run_study(study, (d.observer,), method="exact", quantiles=(), quiet=True, devices=jax.devices()[:1])
     assert res.attrs["engine"] == "exact-batch"
     return study, d.observer, res

@@ -18,4 +18,5 @@ from ._steppers import (
     Diffrax as Diffrax,
     Exact as Exact,
     Exponential as Exponential,
+    resolve_stepper as resolve_stepper,
 )

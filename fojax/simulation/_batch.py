@@ -410,7 +410,8 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
 
     `time_loop` (with ``basis=None``): a replacement of the time loop,
     ``time_loop(problem, Phi, w0, G, jv, kon, ts) -> (acc, w_end)`` (``jv``/``kon``
-    ``None`` without jumps), e.g. `fojax.studies._adjoint.linear_recurrence_reduce`, whose
+    ``None`` without jumps), e.g. `fojax.studies._exact._split_loop` (through
+    `fojax.studies._adjoint.split_recurrence_reduce`), whose
     custom VJP is the adjoint recurrence; the reduction's `final` is applied here.
     """
     if not differentiable and time_loop is None:

@@ -12,7 +12,10 @@ $o^2$, $(t_k - t_0)|o|$, the running peak $\max|o|$ and the last index above the
 threshold for `run_study`'s metrics). `jax.grad` of the plain `jax.lax.scan` stores the
 residuals of every step and differentiates the batched matrix–vector product generically
 (at ``B = 1,000``, 1,000 steps: forward 0.25 s, value-and-gradient 2.0 s). This module
-gives the loop a hand-written VJP.
+gives the loop a hand-written VJP, in the split form of `split_recurrence_reduce` (the
+joint adjoint below is its derivation; its implementation, ``linear_recurrence_reduce``,
+was no longer called by fojax and was removed: its forward, finite-difference and vmap
+tests now run on the split loop).
 
 **Derivation.** Let $\ell$ be a scalar function of the outputs ``(acc_n, w_n)`` and write
 $\bar x = \partial\ell/\partial x$. Walking the loop backwards, the accumulator's
@@ -45,10 +48,9 @@ modes grow), so the states are *checkpointed*: the forward keeps $(w, acc)$ only
 start of each of $\lceil n/S\rceil$ segments of $S = \lceil\sqrt n\,\rceil$ steps; the
 backward recomputes one segment at a time (storing its $S$ states) and then runs the
 adjoint through it. Memory is $O(2\sqrt n\, N b)$ instead of $O(n N b)$; the cost is one
-extra forward pass. Padding steps beyond $n$ (to fill the last segment) leave $w$ and
-$acc$ unchanged and are skipped by the adjoint.
+extra forward pass (the last segment is shorter when $S \nmid n$).
 
-Only ``(Phi, w0, G, jv, ts)`` are differentiated; ``update`` and ``init`` must depend on
+Only the observers' arrays (and ``ts``) are differentiated; ``update`` and ``init`` must depend on
 the problem's own arrays only through non-differentiable quantities (the settling
 threshold enters only an integer index).
 """
@@ -85,147 +87,8 @@ def _jump(w, jv, kon, k):
     return w
 
 
-def _select(pred, a, b):
-    return jax.tree.map(lambda x, y: jnp.where(pred, x, y), a, b)
-
-
-def _layout(T: int, segment: int | None):
-    n = T - 1
-    S = max(1, math.ceil(math.sqrt(n))) if segment is None else int(segment)
-    return n, S, max(1, math.ceil(n / S))
-
-
-def _step(problem, Phi, G, jv, kon, ts, n, w, acc, k):
-    """Step ``k`` (``1 ≤ k``; no-op beyond ``n``): ``(w_k, acc_k)``."""
-    wn = _jump(_matvec_last(Phi, w), jv, kon, k)
-    an = problem.update(acc, _matvec_last(G, wn), jnp.minimum(k, n), ts)
-    live = k <= n
-    return jnp.where(live, wn, w), _select(live, an, acc)
-
-
-def _forward(problem, Phi, w0, G, jv, kon, ts, segment, checkpoints: bool):
-    n, S, nseg = _layout(ts.shape[0], segment)
-    acc0 = problem.init(_matvec_last(G, w0))
-
-    def inner(carry, k):
-        return _step(problem, Phi, G, jv, kon, ts, n, *carry, k), None
-
-    def outer(carry, s):
-        ks = 1 + s * S + jnp.arange(S)
-        out, _ = lax.scan(inner, carry, ks)
-        return out, (carry if checkpoints else None)
-
-    (w_end, acc), saved = lax.scan(outer, (w0, acc0), jnp.arange(nseg))
-    return (acc, w_end), saved
-
-
-def linear_recurrence_reduce(diff, problem, kon, segment=None):
-    r"""``(acc_n, w_n)`` of the loop of the module docstring, with the adjoint VJP.
-
-    **Arguments:**
-
-    - `diff`: ``(Phi, w0, G, jv, ts)``: ``Phi`` ``(N, N, b)``, ``w0`` ``(N, b)``, ``G``
-      ``(K, N, b)``, ``jv`` ``(J, N, b)`` or ``None`` (jump vectors), ``ts`` ``(T,)``.
-    - `problem`: gives ``init(o0)`` and ``update(acc, o, k, ts)`` (not differentiated).
-    - `kon`: ``(J, b)`` grid index of each jump (``-1``: none) or ``None``.
-    - `segment`: checkpoint segment length (default ``⌈√(T−1)⌉``).
-
-    **Returns:** ``(acc, w_end)``.
-    """
-    # the problem's arrays are not differentiated (module docstring)
-    problem = jax.tree.map(lambda x: lax.stop_gradient(x) if eqx.is_array(x) else x, problem)
-    return _reduce(diff, problem, kon, segment)
-
-
-@eqx.filter_custom_vjp
-def _reduce(diff, problem, kon, segment=None):
-    Phi, w0, G, jv, ts = diff
-    out, _ = _forward(problem, Phi, w0, G, jv, kon, ts, segment, checkpoints=False)
-    return out
-
-
-@_reduce.def_fwd
-def _fwd(perturbed, diff, problem, kon, segment=None):
-    Phi, w0, G, jv, ts = diff
-    out, saved = _forward(problem, Phi, w0, G, jv, kon, ts, segment, checkpoints=True)
-    return out, saved
-
-
 def _float_part(tree):
     return eqx.partition(tree, eqx.is_inexact_array)
-
-
-@_reduce.def_bwd
-def _bwd(saved, grad_obj, perturbed, diff, problem, kon, segment=None):
-    Phi, w0, G, jv, ts = diff
-    n, S, nseg = _layout(ts.shape[0], segment)
-    ws_ck, accs_ck = saved  # (nseg, N, b), acc pytree with leading nseg
-    acc_bar, w_bar = grad_obj
-    acc_f0, _ = _float_part(problem.init(_matvec_last(G, w0)))
-    # cotangents of the float accumulator leaves (None: not differentiated → zeros);
-    # integer leaves (None in acc_f0) carry none
-    given = (acc_f0 if acc_bar is None else _float_part(acc_bar)[0])
-    acc_bar = jax.tree.map(
-        lambda z, g: None if z is None else (jnp.zeros_like(z) if g is None or acc_bar is None else g),
-        acc_f0, given, is_leaf=lambda x: x is None)
-    mu = jnp.zeros_like(w0) if w_bar is None else w_bar
-
-    def update_vjp(acc_prev, o, k, cot):
-        accf, acci = _float_part(acc_prev)
-
-        def f(accf, o, ts):
-            return _float_part(problem.update(eqx.combine(accf, acci), o, k, ts))[0]
-
-        _, vjp = jax.vjp(f, accf, o, ts)
-        return vjp(cot)
-
-    def back_step(carry, x):
-        mu, acc_bar, tb = carry
-        w_k, acc_prev, k = x
-        live = k <= n
-        a_prev_bar, o_bar, t_bar = update_vjp(acc_prev, _matvec_last(G, w_k), jnp.minimum(k, n), acc_bar)
-        o_bar = jnp.where(live, o_bar, 0.0)
-        # Gᵀō as a dot: written as FMAs, XLA fused it (and ō) into every element of the
-        # Φᵀλ product below and recomputed it there (backward 6x slower)
-        lam = jnp.where(live, mu + jnp.einsum("kib,kb->ib", G, o_bar), 0.0)
-        tb = tb + jnp.where(live, t_bar, 0.0)
-        mu = jnp.where(live, _rmatvec_last(Phi, lam), mu)
-        acc_bar = _select(live, a_prev_bar, acc_bar)
-        return (mu, acc_bar, tb), (lam, o_bar)
-
-    def segment_back(carry, s):
-        mu, acc_bar, Pb, Gb, jb, tb = carry
-        w_s = ws_ck[s]
-        acc_s = jax.tree.map(lambda a: a[s], accs_ck)
-        ks = 1 + s * S + jnp.arange(S)
-
-        def rec(c, k):
-            new = _step(problem, Phi, G, jv, kon, ts, n, *c, k)
-            return new, (c[0], c[1], new[0])
-
-        _, (w_prev, acc_prev, w_k) = lax.scan(rec, (w_s, acc_s), ks)  # states before/after each step
-        (mu, acc_bar, tb), (lam, o_bar) = lax.scan(back_step, (mu, acc_bar, tb), (w_k, acc_prev, ks),
-                                                   reverse=True)
-        # the outer-product sums of the segment as batched products over its S steps (a
-        # per-step accumulation into the (N, N, b) carry was 20x slower on XLA CPU)
-        Pb = Pb + jnp.einsum("kib,kjb->ijb", lam, w_prev)
-        Gb = Gb + jnp.einsum("kib,kjb->ijb", o_bar, w_k)
-        if jb is not None:
-            hit = jnp.where(kon[None] == ks[:, None, None], 1.0, 0.0)  # (S, J, b); padded k never hit
-            jb = jb + jnp.einsum("kjb,kib->jib", hit, lam)
-        return (mu, acc_bar, Pb, Gb, jb, tb), None
-
-    zeros = jnp.zeros_like
-    jb0 = None if jv is None else zeros(jv)
-    carry0 = (mu, acc_bar, zeros(Phi), zeros(G), jb0, zeros(ts))
-    (mu, acc_bar, Pb, Gb, jb, tb), _ = lax.scan(segment_back, carry0, jnp.arange(nseg), reverse=True)
-    # k = 0: acc_0 = init(G w0)
-    o0 = _matvec_last(G, w0)
-    _, vjp0 = jax.vjp(lambda o: _float_part(problem.init(o))[0], o0)
-    (o0_bar,) = vjp0(acc_bar)
-    lam0 = mu + _rmatvec_last(G, o0_bar)
-    Gb = Gb + o0_bar[:, None, :] * w0[None, :, :]
-    return (Pb, lam0, Gb, jb, tb)
 
 
 # --- the loop split into the plant (constant) and the observers (differentiated) ----------
@@ -242,9 +105,9 @@ def _split_step(problem, plant, diff, kon, p, xi, acc, k):
 
 def _split_layout(T: int, segment: int | None):
     """``(n, S, full, tail)``: ``n = T − 1`` steps in ``full`` segments of ``S`` steps and
-    one of ``tail < S`` steps. (The joint loop pads the last segment and skips the padded
-    steps with selects; in the split loop those selects made XLA CPU's step 40x slower,
-    measured, so the segments here have exact lengths.)"""
+    one of ``tail < S`` steps. (A padded last segment whose extra steps are skipped with
+    selects made XLA CPU's step 40x slower, measured, so the segments have exact
+    lengths.)"""
     n = T - 1
     S = max(1, math.ceil(math.sqrt(n))) if segment is None else int(segment)
     return n, S, n // S, n % S
@@ -309,7 +172,9 @@ def split_recurrence_reduce(diff, plant, problem, kon, segment=None):
       reach. Differentiating with respect to them (e.g. `jax.grad` with respect to the
       study's own arrays) raises `fojax.InputError` when the reverse pass is traced: the
       plant part of the adjoint is not computed, so such a gradient would be incomplete.
-    - `problem`, `kon`, `segment`: as in `linear_recurrence_reduce`.
+    - `problem`: gives ``init(o0)`` and ``update(acc, o, k, ts)`` (not differentiated).
+    - `kon`: ``(J, b)`` grid index of each jump (``-1``: none) or ``None``.
+    - `segment`: checkpoint segment length (default ``⌈√(T−1)⌉``).
 
     **Returns:** ``(acc, p_end, xi_end)``.
     """
@@ -365,7 +230,8 @@ def _split_bwd(saved, grad_obj, perturbed, args, problem, kon, segment=None):
         p_k, xi_k, acc_prev, k = x
         o_k = _matvec_last(Go, xi_k) + _matvec_last(Gp, p_k)
         acc_bar, o_bar, t_bar = update_vjp(acc_prev, o_k, k, acc_bar)
-        # Gᵀō as a dot (see `_bwd`)
+        # Gᵀō as a dot: written as FMAs, XLA fused it (and ō) into every element of the
+        # Φᵀλ product and recomputed it there (backward 6x slower)
         lam = mu + jnp.einsum("kib,kb->ib", Go, o_bar)
         return (_rmatvec_last(Poo, lam), acc_bar, tb + t_bar), (lam, o_bar)
 

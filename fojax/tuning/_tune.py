@@ -80,7 +80,7 @@ from ..design import (
     TakagiSugenoObserverDesign,
     unflatten,
 )
-from ..simulation._steppers import resolve_stepper
+from ..simulation import resolve_stepper
 from ..studies import (
     check_same_on_every_process,
     distributed_errors,

@@ -1,0 +1,101 @@
+"""Issue 13 (`fojax study` ≤ 30 s): where the time of the README's first command goes.
+
+Runs ``fojax study --out <tmp>`` (the default example, §3.3.7) in this process through the
+public CLI entry point (`fojax.cli.main`), after the imports (install and import time
+excluded, as in the issue's target), and records:
+
+- the total wall and process CPU seconds of the command;
+- each phase the command reports (``<message> ...`` then ``done in X s``: designs,
+  tuning, Monte Carlo study, report/figures), parsed from its own output;
+- the trace counts of the compiled study / tuning functions after the run
+  (`fojax.tuning.TRACE_COUNTS`, the study engines' counters), which show whether a phase
+  compiled its function again;
+- ``os.getloadavg()`` before and after: the reference machine is a shared 2-core box, so
+  the numbers are measured under load unless the load average is below 1.
+
+    python benchmarks/cli_study.py            # writes benchmarks/results/cli_study_latest.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import _common  # noqa: E402
+
+
+_common.limit_blas_threads()
+_common.prefer_checkout()
+
+import fojax  # noqa: E402
+import fojax.cli  # noqa: E402
+from fojax.studies import _exact, _runner  # noqa: E402
+
+
+class _Tee(io.TextIOBase):
+    def __init__(self, *streams):
+        self.streams = streams
+
+    def write(self, s):
+        for st in self.streams:
+            st.write(s)
+        return len(s)
+
+    def flush(self):
+        for st in self.streams:
+            st.flush()
+
+
+def phases(text: str) -> list[dict]:
+    """``[{phase, s}]``: every ``<message> ...`` line followed (later) by ``done in X s``."""
+    out, open_ = [], []
+    for line in text.splitlines():
+        line = line.split("\r")[-1]
+        m = re.match(r"^\s*done in ([0-9.]+) s", line)
+        if m and open_:
+            out.append(dict(phase=open_.pop(), s=float(m.group(1))))
+        elif line.rstrip().endswith("...") and not line.startswith(" "):
+            open_.append(line.rstrip()[:-3].strip())
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--example", default=None, help="a config or shipped example (default: the command's own)")
+    ap.add_argument("--out", default=str(_common.RESULTS / "cli_study_latest.json"))
+    args = ap.parse_args()
+    info = _common.machine_info()
+    load0 = _common.load_average()
+    buf = io.StringIO()
+    with tempfile.TemporaryDirectory() as tmp:
+        w, c = time.perf_counter(), time.process_time()
+        with contextlib.redirect_stdout(_Tee(sys.stdout, buf)), contextlib.redirect_stderr(_Tee(sys.stderr, buf)):
+            rc = fojax.cli.main(["study"] + ([args.example] if args.example else []) + ["--out", tmp])
+        wall, cpu = time.perf_counter() - w, time.process_time() - c
+    traces = {f"tuning.{k}": v for k, v in fojax.tuning.TRACE_COUNTS.items()}
+    traces.update({f"studies.{k}": v for k, v in _runner.TRACE_COUNTS.items()})
+    traces.update({f"studies._exact.{k}": v for k, v in _exact.TRACE_COUNTS.items()})
+    result = dict(
+        status="complete" if rc == 0 else f"failed (exit {rc})",
+        benchmark="cli_study (issue 13): `fojax study` on the default example, install/import excluded",
+        target="fojax study <= 30 s",
+        command=f"fojax study {args.example or ''} --out <tmp>".replace("  ", " "),
+        wall_s=wall, cpu_s=cpu, phases=phases(buf.getvalue()), trace_counts=traces,
+        machine=info, load_average_before=load0, load_average_after=_common.load_average(),
+        note="measured once; on a shared 2-core machine under load unless the load averages are < 1",
+    )
+    _common.write_result(args.out, result)
+    print(f"wall {wall:.1f} s, cpu {cpu:.1f} s, phases {result['phases']}, traces {traces}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
