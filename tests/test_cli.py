@@ -126,3 +126,65 @@ def test_output_into_a_closed_pipe_ends_quietly():
     r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert r.returncode == 141, r.stderr
     assert r.stderr == ""
+
+
+# ------------------------------------------------------------ resuming from saved designs
+# Oracle: the design saved by the first run itself (every array bit-identical after the
+# round trip, `helpers.assert_designs_identical`), and the spec it was saved for.
+
+
+def test_saved_design_of_a_finite_time_observer_is_reloaded(tmp_path):
+    """Regression: `_saved_design` (a resumed study reloads each observer's design) read
+    ``d.kind`` and ``d.solver``, which a finite-time design (a pair of designs) does not
+    have, and compared its two disks with the unused ``region``: it raised for every
+    finite-time design. It now takes any `fojax.design.AbstractDesign`."""
+    import dataclasses
+
+    import pytest
+    from helpers import assert_designs_identical
+
+    import fojax
+    from fojax.cli._commands import _saved_design
+    from fojax.config import ObserverSpec
+    from fojax.design import Disk
+
+    ex = fojax.models.example_3_1_2()
+    regions = (Disk(-5.0, 0.5), Disk(-2.0, 0.5))
+    d = fojax.design_finite_time_observer(ex.system, ex.L, h=0.5, regions=regions)
+    path = d.save(tmp_path / "ft.npz", metadata={"observer": "ft"})
+    spec = ObserverSpec("ft", "finite-time", Disk(-2.0, 1.0), delay=0.5, regions=regions)
+    loaded = _saved_design(path, spec)
+    assert assert_designs_identical(d, loaded) >= 60
+    assert all("saved" not in inner.solver for inner in loaded.designs)  # the file's metadata dropped
+    for other in (dataclasses.replace(spec, name="other"),
+                  dataclasses.replace(spec, regions=(Disk(-5.0, 0.5), Disk(-3.0, 0.5))),
+                  dataclasses.replace(spec, kind="generalized")):
+        with pytest.raises(fojax.InputError, match=r"is not the design of observer"):
+            _saved_design(path, other)
+
+
+def test_saved_design_of_the_other_kinds_is_reloaded(tmp_path):
+    """The same function on the committed designs of thesis examples (`tests/data/designs_v2`,
+    see `test_design_base`; no LMI solved): a generalized design (§4.1.3) and an
+    unknown-input design (§4.1.3 with D = e3), each refused for another kind."""
+    import dataclasses
+    import pathlib
+
+    import pytest
+    from helpers import assert_designs_identical
+
+    import fojax
+    from fojax.cli._commands import _saved_design
+    from fojax.config import ObserverSpec
+
+    v2 = pathlib.Path(__file__).parent / "data" / "designs_v2"
+    for case, kind in (("functional", None), ("uio", "unknown-input")):
+        d = fojax.load_design(v2 / f"{case}.npz")
+        path = d.save(tmp_path / f"{case}.npz", metadata={"observer": case})
+        spec = ObserverSpec(case, kind or d.kind, d.region)
+        loaded = _saved_design(path, spec)
+        assert assert_designs_identical(d, loaded) >= 30
+        assert "saved" not in loaded.solver
+        other = "generalized" if kind else "unknown-input"
+        with pytest.raises(fojax.InputError, match=r"is not the design of observer"):
+            _saved_design(path, dataclasses.replace(spec, kind=other))

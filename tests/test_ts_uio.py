@@ -417,6 +417,55 @@ def test_uio_parameterization_holds_for_every_parameter_value(uio, rng):
     assert float(worst({k: jnp.asarray(rng.standard_normal(sh)) for k, sh in shapes.items()})) <= 1e-10
 
 
+def test_uio_matrices_are_observer_matrices_of_its_parameters(uio):
+    """The UIO has one map from parameters to T, N, F, ...: `observer_matrices`; Δ = TD,
+    Φ = -Y4 N3, W = Y4 F3 with N3, F3 from the projector I - ΣΣ⁺ = U0 U0ᵀ (U0 an orthonormal
+    basis of the left null space of Σ = [R; Ψ], scipy.linalg.null_space: independent)."""
+    from fojax.design import observer_matrices
+
+    s, D, p, o = uio.structure, uio.D, uio.params, uio.observer
+    m = observer_matrices(s, *(p[k] for k in ("Z", "Y1", "Y2", "Y3", "J", "G")), xp=np)
+    for name in "NJFHSGMPQ":
+        np.testing.assert_allclose(np.asarray(getattr(o, name)), np.asarray(getattr(m, name))[0],
+                                   rtol=0, atol=1e-12 * max(1.0, np.abs(getattr(m, name)).max()), err_msg=name)
+    for name in ("T", "K", "Z_eff"):
+        np.testing.assert_allclose(getattr(uio, name), np.asarray(getattr(m, name)),
+                                   rtol=0, atol=1e-12 * max(1.0, np.abs(getattr(m, name)).max()), err_msg=name)
+    E, A, C, R, Ep = (np.asarray(x) for x in (s.E, s.A, s.C, s.R, s.Eperp))
+    Psi = np.vstack([Ep @ A, C])
+    U0 = scipy.linalg.null_space(np.vstack([R, Psi]).T)
+    PS = U0 @ U0.T
+    K = np.asarray(m.K)
+    N3, F3 = PS[:, : s.q0], PS @ np.vstack([K, np.eye(s.nw)])
+    scale = max(1.0, np.abs(p["Y4"]).max())
+    np.testing.assert_allclose(np.asarray(o.Delta), uio.T @ D, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(o.Phi), -p["Y4"] @ N3, rtol=0, atol=1e-10 * scale)
+    np.testing.assert_allclose(np.asarray(o.W), p["Y4"] @ F3, rtol=0, atol=1e-10 * scale * max(1.0, np.abs(K).max()))
+
+
+def test_uio_lmi_certifies_the_error_matrix_of_the_returned_observer(uio, rng):
+    """Regression: the LMI data 𝔸1 (N1 - Z N2 and TD) came from a second copy of
+    ``T = T1 - (Z0 + Z Π_Z) T2``, while the observer uses `observer_matrices`, which
+    projects the dead components of Z out first. With a dead component of size 1e10 in Z
+    (rows in the row space of Γ = [E; Ψ], which T, K ignore: (I - ΓΓ⁺)Γ = 0) the two
+    differed by ~1e-6 (ε·1e10 in different directions); now 𝔸1 - 𝕐𝔸2 is the observer's
+    error matrix [N J Δ; S G 0; Φ Λ 0] to rounding, for the designed Z and for that one."""
+    from fojax.design import unknown_input_error_dynamics
+    from fojax.design._unknown_input import _lmi_data
+
+    s, D, p = uio.structure, uio.D, uio.params
+    E, A, C, Ep = (np.asarray(x) for x in (s.E, s.A, s.C, s.Eperp))
+    Gam = np.vstack([E, Ep @ A, C])
+    dead = (Gam @ rng.standard_normal((s.n, s.q0))).T
+    for Z in (p["Z"], p["Z"] + 1e10 * dead / np.abs(dead).max()):
+        q = {**p, "Z": Z}
+        mats = unknown_input_observer_matrices(s, D, **q, xp=np)
+        Aobs = np.asarray(unknown_input_error_dynamics(mats, xp=np))
+        A1, A2 = _lmi_data(s, D, Z)
+        Yb = np.block([[q["Y1"], q["J"]], [q["Y2"], q["G"]], [q["Y4"], q["Lambda"]]])
+        np.testing.assert_allclose(A1 - Yb @ A2, Aobs, rtol=0, atol=1e-12 * np.abs(Aobs).max())
+
+
 # --------------------------------------------------------------------------- UIO existence errors
 
 

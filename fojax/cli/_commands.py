@@ -926,22 +926,31 @@ def _cell(v) -> str:
 
 
 def _saved_design(path, spec):
-    """The design a first run saved for observer `spec` (checked to be that observer's)."""
-    import dataclasses
-
+    """The design a first run saved for observer `spec` (checked to be that observer's), for
+    any `fojax.design.AbstractDesign`: the kind is the design's ``kind`` (generalized, PI,
+    proportional) or its class (unknown-input, finite-time: no ``kind`` field), the region
+    that of `_design_observer` (the two disks of a finite-time design), and the file's
+    metadata is removed from every ``solver`` dict of the tree (a finite-time design has
+    none of its own, its two designs have one each)."""
     from .._errors import InputError
+    from ..design import FiniteTimeObserverDesign, UnknownInputObserverDesign
+    from ..design._base import _mark_saved
     from ..results import load_design, read_design_metadata
 
     meta = read_design_metadata(path)
     d = load_design(path)
-    if (meta.get("user", {}).get("observer") != spec.name or getattr(d, "kind", None) != spec.kind
-            or d.region != spec.region):
+    special = {"unknown-input": UnknownInputObserverDesign, "finite-time": FiniteTimeObserverDesign}
+    same_kind = (isinstance(d, special[spec.kind]) if spec.kind in special
+                 else getattr(d, "kind", None) == spec.kind)
+    region = tuple(spec.regions) if spec.kind == "finite-time" else spec.region
+    if meta.get("user", {}).get("observer") != spec.name or not same_kind or d.region != region:
         raise InputError(
             f"{path} is not the design of observer '{spec.name}' ({spec.kind}, "
-            f"{spec.region.describe()}) of the folder's config.toml; the folder was changed after "
+            f"{_region_words(spec)}) of the folder's config.toml; the folder was changed after "
             "the first run. Start a new study instead."
         )
-    return dataclasses.replace(d, solver={k: v for k, v in d.solver.items() if k != "saved"})
+    _mark_saved(d, None)  # the loaded design is ours: drop the file's metadata in place
+    return d
 
 
 def _checkpoint_step(checkpoint) -> int | None:

@@ -237,12 +237,16 @@ def read_metadata(path) -> dict:
         return metadata(data, path)
 
 
-def _mark_saved(obj, saved: dict) -> None:
-    """Put the file's metadata in ``solver["saved"]`` of every design in the tree."""
+def _mark_saved(obj, saved: dict | None) -> None:
+    """Put the file's metadata in ``solver["saved"]`` of every design in the tree (the
+    nested designs of a finite-time design included); ``saved=None`` removes it."""
     if isinstance(obj, AbstractDesign):
         solver = getattr(obj, "solver", None)
         if isinstance(solver, dict):
-            solver["saved"] = saved
+            if saved is None:
+                solver.pop("saved", None)
+            else:
+                solver["saved"] = saved
         for f in dataclasses.fields(obj):
             v = getattr(obj, f.name)
             for item in v if isinstance(v, tuple | list) else (v,):

@@ -303,15 +303,30 @@ def _check_functional_observability(E, A, C, L, Ep, D) -> None:
         )
 
 
+def _fixed_part(s: FunctionalObserverStructure, Z) -> tuple[np.ndarray, np.ndarray]:
+    r"""``(N1 - Z N2, T)`` at `Z` (host, float64): $N$ with the gains $Y_1 = 0$ (the constant
+    block of $\mathbb A_1$) and $T$, both from `fojax.design.observer_matrices`, the one map
+    from the free parameters to the observer matrices (so the dead components of `Z` are
+    projected out exactly as in the observer that is verified and returned)."""
+    shapes = s.param_shapes()
+    gains = {k: np.zeros(shapes[k]) for k in ("Y1", "Y2", "Y3", "J", "G")}
+    m = observer_matrices(s, np.asarray(Z, float), **gains, xp=np)
+    return np.asarray(m.N[0]), np.asarray(m.T)
+
+
 def _ui_mode_matrix_any_Z(s: FunctionalObserverStructure, D: np.ndarray) -> np.ndarray:
-    """``[[N1', T1' D], [N2', Π T2 D], [N3, 0]]``: rank < q0 + l ⇒ no Z works."""
+    """``[[N1', T1' D], [N2', Π T2 D], [N3, 0]]``: rank < q0 + l ⇒ no Z works.
+
+    ``N1', T1'`` are ``N, T`` at ``Z = 0`` (`_fixed_part`); ``N2' = Π_Z N2`` and ``Π_Z T2``
+    are the coefficients of ``-Z`` in them (``T(Z) = T1' - Z Π_Z T2``, checked against
+    `observer_matrices` in the tests)."""
     pc = pieces(s, xp=np)
-    T1p = pc.T1 - pc.Z0 @ pc.T2
+    N1p, T1p = _fixed_part(s, np.zeros(s.param_shapes()["Z"]))
     l = D.shape[1]
     N3 = np.asarray(pc.N3)
     return np.block(
         [
-            [pc.N1[0], T1p @ D],
+            [N1p, T1p @ D],
             [pc.N2[0], pc.PiZ @ pc.T2 @ D],
             [N3, np.zeros((N3.shape[0], l))],
         ]
@@ -351,9 +366,8 @@ def check_unknown_input_modes(s: FunctionalObserverStructure, D: np.ndarray, reg
         if r < need:
             _raise_ui_mode(r, need, q0, l, None, True)
         return
-    pc = pieces(s, xp=np)
-    N1z = np.asarray(pc.N1[0] - Z @ pc.N2[0])
-    N3 = np.asarray(pc.N3)
+    N1z, T = _fixed_part(s, Z)
+    N3 = np.asarray(pieces(s, xp=np).N3)
     bad = [lam for lam in unobservable_modes(N1z, N3) if not region.contains([lam])]
     if bad:
         raise DetectabilityError(
@@ -364,7 +378,6 @@ def check_unknown_input_modes(s: FunctionalObserverStructure, D: np.ndarray, reg
             lhs=bad,
             rhs=region.describe(),
         )
-    T = np.asarray(pc.T1 - (pc.Z0 + Z @ pc.PiZ) @ pc.T2)
     TD = T @ D
     Mx = np.block([[N1z, TD], [N3, np.zeros((N3.shape[0], l))]])
     r = rank(Mx)
@@ -636,6 +649,24 @@ def _preconditioner(A1: np.ndarray, A2: np.ndarray, region: AbstractRegion) -> n
     return (V * np.sqrt(w)) @ V.T
 
 
+def _lmi_data(s: FunctionalObserverStructure, D: np.ndarray, Z) -> tuple[np.ndarray, np.ndarray]:
+    r"""$(\mathbb A_1, \mathbb A_2)$ of the module docstring at `Z` (host): $\mathbb A_1$ from
+    `_fixed_part` (i.e. `observer_matrices`), so $\mathbb A_1 - \mathbb Y\mathbb A_2$ is
+    the error matrix of the observer built from the same parameters."""
+    q0, q1, l = s.q0, s.q1, D.shape[1]
+    N3 = np.asarray(pieces(s, xp=np).N3)
+    c = N3.shape[0]
+    d = q0 + q1 + l
+    N1z, T = _fixed_part(s, Z)
+    A1 = np.zeros((d, d))
+    A1[:q0, :q0] = N1z
+    A1[:q0, q0 + q1 :] = T @ D
+    A2 = np.zeros((c + q1, d))
+    A2[:c, :q0] = N3
+    A2[c:, q0 : q0 + q1] = -np.eye(q1)
+    return A1, A2
+
+
 def _solve_lmi(s, D, Z, region, *, margin, solver):
     """Region LMI in (X full, 𝒲 = X𝕐) with Z fixed (module docstring). Returns ``(X, 𝕐, info)``.
 
@@ -653,19 +684,8 @@ def _solve_lmi(s, D, Z, region, *, margin, solver):
     unobservable mode inside the region) or these LMIs are not solved, the plain LMI
     is tried.
     """
-    pc = pieces(s, xp=np)
-    q0, q1, l = s.q0, s.q1, D.shape[1]
-    N3 = np.asarray(pc.N3)
-    c = N3.shape[0]
-    d = q0 + q1 + l
-    N1z = np.asarray(pc.N1[0] - Z @ pc.N2[0])
-    T = np.asarray(pc.T1 - (pc.Z0 + Z @ pc.PiZ) @ pc.T2)
-    A1 = np.zeros((d, d))
-    A1[:q0, :q0] = N1z
-    A1[:q0, q0 + q1 :] = T @ D
-    A2 = np.zeros((c + q1, d))
-    A2[:c, :q0] = N3
-    A2[c:, q0 : q0 + q1] = -np.eye(q1)
+    A1, A2 = _lmi_data(s, D, Z)
+    d = A1.shape[0]
     name = "unknown-input observer (region LMI in X, 𝒲 = X 𝕐, Z fixed)"
     hint = (
         "No gain places the error dynamics (including the unknown-input modes) in the "
