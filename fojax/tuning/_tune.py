@@ -357,6 +357,10 @@ def tune(
                    parameterization=type(par).__name__, precondition=precondition, extra_loss=_name(extra_loss),
                    live_parameters=live.live, free_parameters=live.total)
     tuned = dataclasses.replace(tuned, solver=dict(design.solver, tuning=options))
+    if "balance" in tuned.solver:  # a balance=True start: T in the model's units, verified there too
+        dl = np.asarray(tuned.solver["balance"]["row_factors"], dtype=float)
+        tuned = dataclasses.replace(tuned, T=np.asarray(tuned.T) * dl[None, :])
+        tuned = dataclasses.replace(tuned, report=tuned.verify())
     return TuneResult(design=tuned, params=params, history=history, initial_heldout=initial_heldout,
                       final_heldout=final_heldout, live_parameters=live, parameterization=par)
 
