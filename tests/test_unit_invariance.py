@@ -31,7 +31,7 @@ import pytest
 from helpers import assert_eigenvalues_match
 
 import fojax
-from fojax.analysis._balance import unit_scaling
+from fojax.analysis import unit_scaling
 from fojax.design import design_functional_observer, Disk, live_parameters, observer_matrices
 from fojax.design._functional import build_observer
 
@@ -95,7 +95,7 @@ def test_twin_gets_the_same_verified_observer(lc_designs, kind):
     for d, m in ((a, m0), (b, m1)):
         assert d.report.passed and d.verify().passed  # verified on the model as given (and unit-free)
         assert max(_observer_error(d.observer, m, s) for s in POINTS) <= 1e-9
-        np.testing.assert_array_equal(d.L, m["L"])  # the design speaks the model's units
+        np.testing.assert_allclose(d.L, m["L"], rtol=1e-15, atol=0)  # the design speaks the model's units
     assert_eigenvalues_match(b.report.eigenvalues, a.report.eigenvalues, rtol=1e-8)
     assert b.report.region_margin == pytest.approx(a.report.region_margin, rel=1e-8)
     for s in POINTS:
@@ -191,3 +191,30 @@ def test_balanced_design_saves_and_loads(lc_designs, tmp_path):
     assert back.report.passed
     np.testing.assert_array_equal(back.R, d.R)
     np.testing.assert_array_equal(np.asarray(back.observer.N), np.asarray(d.observer.N))
+
+
+def test_tuning_a_balanced_design_keeps_model_units():
+    """`tune` from a ``balance=True`` design: the tuned design's ``T`` is in the model's units
+    (``[T K][E; Ψ] = R`` with the model's own matrices, Ψ = [E⊥A; C] with the E⊥ that maps the
+    unit-free one back) and it is verified in both frames."""
+    import jax.numpy as jnp
+
+    from fojax import studies as S, tuning
+
+    A = np.array([[-1.0, 0.0, 0.0], [1.0, -2.0, 0.0], [0.0, 1.0, -3.0]])
+    Dr, Dx = np.diag([1e-3, 1.0, 1e3]), np.diag([1e3, 1e-3, 1.0])
+    E_, A_, B_, C_ = Dr @ Dx, Dr @ A @ Dx, Dr @ np.array([[1.0], [0.0], [0.0]]), np.array([[1.0, 0.0, 0.0]]) @ Dx
+    L_ = np.array([[0.0, 1.0, 0.0]]) @ Dx
+    sysm = fojax.DescriptorSystem(E_, A_, B_, C_)
+    d = design_functional_observer(sysm, L_, kind="generalized", q1=1, region=Disk(-2.0, 1.0), R=L_, balance=True)
+    st = S.Study(sysm, jnp.asarray(np.array([1.0, -1.0, 0.5]) / np.diag(Dx)), jnp.linspace(0.0, 2.0, 21), L_,
+                 fojax.Sine(jnp.array([1.0]), 1.0))
+    res = tuning.tune(d, st, steps=2, optimizer=tuning.shared_optimizer("adam", learning_rate=0.05), method="exact")
+    t = res.design
+    assert "balance" in t.solver and t.report.passed and t.verify().passed
+    assert "unit-free" in t.report.extra["balanced"]
+    dl = np.asarray(t.solver["balance"]["row_factors"])
+    Ep = np.asarray(t.structure.Eperp) * dl[None, :]  # E⊥ of the model as given (E⊥ E = 0 for this E = I case)
+    Psi = np.vstack([Ep @ A_, C_])
+    np.testing.assert_allclose(t.T @ E_ + t.K @ Psi, t.R, rtol=0, atol=1e-10 * np.abs(t.R).max())
+    np.testing.assert_allclose(t.R, L_, rtol=1e-15, atol=0)
