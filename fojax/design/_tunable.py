@@ -48,8 +48,10 @@ decision does not change with the units of $u$, $y$, $\hat z$; the parameters ar
 design's, which are unit-free for a ``balance=True`` design
 (`fojax.design.design_functional_observer`), so the count is then the same for a model and
 any diagonal rescaling of its states and equations (``tests/test_unit_invariance.py``:
-1 of 20 and 7 of 97 on the LC filter and its 1e-3…1e3 twin; with the raw designs they were
-1 vs 2 and 12 vs 11, the twin's because its raw design was not an observer of $z$). The
+on the LC filter and its 1e-3…1e3 twin, 1 of 20 for the proportional design at the default
+order, 13 of 97 at $q_0 = 3$ and 7 of 97 for the centred $q_0 = 3$ design; with the raw
+designs they were 1 vs 2 and 12 vs 11, the twin's order-1 one because its raw design was
+not an observer of $z$). The
 number of live directions is the rank of the weighted Jacobian, decided by fojax's one rank
 rule (`fojax._linalg`, relative tolerance ``RANK_RTOL``). *Checked* against central
 differences of the Markov parameters $D$, $C_oA_o^kB_o$ in NumPy (same rank, with a gap of
