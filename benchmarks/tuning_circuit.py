@@ -24,10 +24,13 @@ with ``q0 = 3``, and, for reference, the plain (min-gain) LMI design.
     the budget; the jitted loss compiled before the clock starts, as (a)'s step is compiled by a
     warm-up call); the result is certified (``SteinDisk.certify``) before it is evaluated.
     Run on the plain model, at the wall time of its ``precondition="live"`` run.
-(c) the twin, tuned the same way (``precondition`` ``"live"``, the default, and ``"whiten"``), once
-    designed as a user would (default ``R``: ``"twin"``) and once with the plain design's ``R``
-    in the twin's units (``R_plain D_c``: ``"twin_sameR"``), which separates the scaling of
-    the tuning from the design's scale-dependent choice of ``R``.
+(c) the twin, tuned the same way (``precondition`` ``"live"``, the default, and ``"whiten"``).
+    Both models are designed with ``balance=True`` (``--balance 1``, the default here): the
+    design and its free parameters are unit-free (`fojax.design.design_functional_observer`),
+    so the twin starts from the same observer in the same coordinates. With ``--balance 0``
+    (the raw design, as recorded before) the twin is designed once as a user would (default
+    ``R``: ``"twin"``) and once with the plain design's ``R`` in the twin's units
+    (``R_plain D_c``: ``"twin_sameR"``).
 
 Learning rate 0.1 (Adam), 100 steps: chosen from a 60-step pilot on 16 training samples
 (learning rates 0.05 and 0.2: held-out −21 % / −22 % on the plain model with ``"live"``),
@@ -205,7 +208,8 @@ def long_run(args):
     load0 = _common.load_average()
     m, sys_, train = build(False, args.nu, args.nx, seed=0)
     _, _, held = build(False, args.heldout_nu, args.heldout_nx, seed=1)
-    d = design_functional_observer(sys_, m["L"], kind="generalized", region=REGION, q0=args.q0, objective="centre")
+    d = design_functional_observer(sys_, m["L"], kind="generalized", region=REGION, q0=args.q0, objective="centre",
+                                   balance=bool(args.balance))
     opt = fojax.tuning.shared_optimizer("adam", learning_rate=args.lr)
     res, wall = clock(lambda: fojax.tune(d, train, heldout=held, optimizer=opt, steps=args.long_steps,
                                          eval_every=100, method="exact"))
@@ -234,7 +238,8 @@ def dfo_rerun(args):
     load0 = _common.load_average()
     m, sys_, train = build(False, args.nu, args.nx, seed=0)
     _, _, held = build(False, args.heldout_nu, args.heldout_nx, seed=1)
-    d = design_functional_observer(sys_, m["L"], kind="generalized", region=REGION, q0=args.q0, objective="centre")
+    d = design_functional_observer(sys_, m["L"], kind="generalized", region=REGION, q0=args.q0, objective="centre",
+                                   balance=bool(args.balance))
     budget = out["tune"]["plain/live"]["wall_s"]
     if "dfo_certify_at_end" not in out:
         out["dfo_certify_at_end"] = out["dfo"]
@@ -264,6 +269,9 @@ def main():
     ap.add_argument("--heldout-nu", type=int, default=8)
     ap.add_argument("--heldout-nx", type=int, default=16)
     ap.add_argument("--preconditions", default="live,whiten")
+    ap.add_argument("--balance", type=int, default=1,
+                    help="1 (default): design with balance=True (unit-free start, issue 14 item 3); 0: the raw "
+                         "design of the previous recorded run, plus the 'twin_sameR' row")
     ap.add_argument("--out", default=str(_common.RESULTS / "tuning_circuit_latest.json"))
     ap.add_argument("--long-steps", type=int, default=0,
                     help="only run (a) on the plain model for this many steps (held-out every 100) and add it "
@@ -290,10 +298,12 @@ def main():
     # "twin": designed as a user would (default R); "twin_sameR": R = R_plain Dc, the plain
     # design's observer structure in the twin's units (isolates the scaling of the tuning
     # from the design's scale-dependent choice of R)
-    for name, scaled in (("plain", False), ("twin", True), ("twin_sameR", True)):
+    names = (("plain", False), ("twin", True)) + (() if args.balance else (("twin_sameR", True),))
+    for name, scaled in names:
         m, sys_, train = build(scaled, args.nu, args.nx, seed=0)
         _, _, held = build(scaled, args.heldout_nu, args.heldout_nx, seed=1)
         rkw = dict(q0=args.q0) if name != "twin_sameR" else dict(R=R_plain @ m["Dc"])
+        rkw["balance"] = bool(args.balance)
         (plain, t_plain) = clock(lambda: design_functional_observer(
             sys_, m["L"], kind="generalized", region=REGION, **rkw))
         (centred, t_c) = clock(lambda: design_functional_observer(
@@ -320,7 +330,7 @@ def main():
 
     # (a) + (c): every precondition on both models
     runs = {}
-    for name in ("plain", "twin", "twin_sameR"):
+    for name, _ in names:
         mdl = models[name]
         for pc in args.preconditions.split(","):
             _, wall, r = run_tune(mdl["design"], mdl["train"], mdl["held"], args.steps, args.lr, pc)
@@ -348,7 +358,7 @@ def main():
         b_gradient_vs_powell=a["final_heldout_iae"] / dfo["plain/Powell"]["final_heldout_iae"] - 1.0,
         b_gradient_vs_nelder_mead=a["final_heldout_iae"] / dfo["plain/Nelder-Mead"]["final_heldout_iae"] - 1.0,
         c_twin_vs_plain={f"{tw}/{pc}": runs[f"{tw}/{pc}"]["final_heldout_iae"] / runs[f"plain/{pc}"]["final_heldout_iae"]
-                         - 1.0 for tw in ("twin", "twin_sameR") for pc in args.preconditions.split(",")},
+                         - 1.0 for tw, _ in names[1:] for pc in args.preconditions.split(",")},
     )
     out["status"] = "complete"
     out["load_average_at_end"] = _common.load_average()

@@ -17,7 +17,10 @@ system by an exact power-of-two diagonal scaling of equations and states,
 ``(D_l E D_r, D_l A D_r, D_l B, C D_r)`` (Ward's least-squares balancing, or SLICOT
 ``TB01ID`` when ``E = I``, with powers of two so that no rounding is added; see
 `balance_system`). It changes no rank, eigenvalue, index or zero; ``balance=False``
-turns it off, and `structure_report` shows the scaling applied.
+turns it off, and `structure_report` shows the scaling applied. `unit_scaling` gives
+the same balancing with unrounded factors (exactly unit-free, but not exact in floating
+point): for *choices* that must not depend on units (the default ``R`` and
+``design_functional_observer(balance=True)``), never for rank decisions.
 
 **The rank-decision rule (one rule, everywhere).** After balancing, the blocks ``E``,
 ``A``, ``B``, ``C`` (and ``L``) are each divided by their spectral norm; a singular
@@ -53,6 +56,7 @@ from ._balance import (
     balance_system as balance_system,
     Balancing as Balancing,
     Scaling as Scaling,
+    unit_scaling as unit_scaling,
 )
 from ._certificate import (
     admissibility_certificate as admissibility_certificate,

@@ -142,7 +142,7 @@ def scaling_of(E, A, B=None, C=None, *, balance: bool = True) -> Scaling:
     return Scaling(el, er, "ward")
 
 
-def _ward_exponents(E, A, B, C) -> tuple[np.ndarray, np.ndarray]:
+def _ward_exponents(E, A, B, C, *, rounded: bool = True) -> tuple[np.ndarray, np.ndarray]:
     r"""Ward's (1981) balancing as an exact least-squares problem, rounded to powers of two.
 
     Minimise $\sum (\ell_i + r_j + o_X + \log_2|x_{ij}|)^2$ over the non-zero entries
@@ -205,8 +205,56 @@ def _ward_exponents(E, A, B, C) -> tuple[np.ndarray, np.ndarray]:
     w, V = np.linalg.eigh(G)
     keep = w > 1e-9 * max(float(w[-1]), 1.0)
     x = V[:, keep] @ ((V[:, keep].T @ rhs) / w[keep])
+    if not rounded:
+        e = np.clip(x[: l + n], -_MAX_EXP, _MAX_EXP)
+        return e[:l], e[l:]
     e = np.clip(np.rint(x[: l + n]), -_MAX_EXP, _MAX_EXP).astype(int)
     return e[:l], e[l:]
+
+
+def unit_scaling(E, A, B=None, C=None) -> tuple[np.ndarray, np.ndarray]:
+    r"""Diagonal factors ``(d_l, d_r)`` that remove the units of the equations and states.
+
+    Host-only. Ward's least squares of `_ward_exponents` *without* rounding the exponents
+    to integers, so that the scaled system $(D_lED_r, D_lAD_r, D_lB, CD_r)$ is the same
+    (up to round-off) whatever diagonal units the equations and states were written in:
+
+    *Equivariance (derivation).* Writing the model in other units, $E' = S_rES_c$,
+    $A' = S_rAS_c$, $B' = S_rB$, $C' = CS_c$ ($S_r, S_c$ positive diagonal), adds
+    $\log_2 s_{r,i} + \log_2 s_{c,j}$ to every $\log_2|x_{ij}|$; the least-squares objective
+    is then the old one at $\ell - \log_2 s_r$, $r - \log_2 s_c$, so the set of minimisers
+    shifts by exactly that. What it leaves free (the null space of the normal equations,
+    which the minimum-norm solution fixes in a unit-dependent way) are, for a connected
+    pattern of $(E, A)$, the two gauges $\ell + c_1$ and $r + c_2$ (the per-block offsets
+    absorb them): they multiply $D_lED_r$ and $D_lAD_r$ by $2^{c_1 + c_2}$, $D_lB$ by
+    $2^{c_1}$ and $CD_r$ by $2^{c_2}$. fojax fixes them by two statements about the scaled
+    matrices only, so unit-free too: $\max(|D_lED_r|, |D_lAD_r|) = 1$ and
+    $\max|D_lB| = \max|CD_r|$ (the second skipped when ``B`` or ``C`` is zero). A pattern
+    of $(E, A)$ that falls into several uncoupled blocks has one more such gauge per block,
+    not fixed here. The factors are not powers of two: applying them rounds (≈1e-16
+    relative per entry), which is why the rank decisions of `fojax.analysis` keep the exact
+    power-of-two `scaling_of`; these factors are for *choices* (the default ``R``, the LMI's
+    coordinates) that must not depend on units
+    (`fojax.design.design_functional_observer`'s ``balance``).
+
+    **Returns:** ``(d_l, d_r)``, positive ``(l,)`` and ``(n,)`` arrays (ones when `E` and `A`
+    are zero or empty).
+    """
+    E = np.asarray(E, dtype=float)
+    A = np.asarray(A, dtype=float)
+    l, n = E.shape
+    B = np.zeros((l, 0)) if B is None else np.asarray(B, dtype=float)
+    C = np.zeros((0, n)) if C is None else np.asarray(C, dtype=float)
+    if l == 0 or n == 0 or not (np.any(A) or np.any(E)):
+        return np.ones(l), np.ones(n)
+    el, er = _ward_exponents(E, A, B, C, rounded=False)
+    dl, dr = 2.0**el, 2.0**er
+    # gauges (docstring): c1 + c2 from max |[E A]| = 1, c1 - c2 from max |B| = max |C|
+    s = -np.log2(max(float(np.max(np.abs(dl[:, None] * M * dr[None, :]), initial=0.0)) for M in (E, A)))
+    bmax = float(np.max(np.abs(dl[:, None] * B), initial=0.0))
+    cmax = float(np.max(np.abs(C * dr[None, :]), initial=0.0))
+    d = np.log2(cmax) - np.log2(bmax) if (bmax > 0 and cmax > 0) else 0.0
+    return dl * 2.0 ** (0.5 * (s + d)), dr * 2.0 ** (0.5 * (s - d))
 
 
 def tg01ad_scaling(E, A, B=None, C=None) -> Scaling:

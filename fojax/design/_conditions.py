@@ -312,8 +312,18 @@ def _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R):
 
 
 def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int | None = None,
-              q1: int = 0, max_iter: int = 3000) -> np.ndarray:
-    """fojax's default choice of R (documented; the thesis leaves R to the user).
+              q1: int = 0, max_iter: int = 3000, balance: bool = True) -> np.ndarray:
+    r"""fojax's default choice of R (documented; the thesis leaves R to the user).
+
+    **Unit-free** (issue 14 item 3; ``balance=True``, the default): the search below runs on
+    the model rescaled by `fojax.analysis.unit_scaling` ($E_b = D_lED_r$, $A_b = D_lAD_r$,
+    $B_b = D_lB$, $C_b = CD_r$, $L_b = LD_r$, $E^\perp_b$ an orthonormal basis of the rows
+    of $E^\perp D_l^{-1}$), and the result is returned as $R = R_bD_r^{-1}$, so that
+    $Rx = R_bx_b$: the same functional of the physical state whatever units the equations
+    and states are written in (before, the orthonormal bases below and the search's
+    penalty depended on them: the LC filter of ``benchmarks/lc_filter.py`` and its twin
+    rescaled by 1e-3…1e3 got different observers). ``balance=False`` searches on the
+    data as given.
 
     1. Orders: start from a row basis of ``L`` (``q0 = rank L``, the smallest order)
        and add rows of an orthonormal basis of the row space of Γ = [E; Ψ] not yet in
@@ -333,6 +343,19 @@ def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int
     B = np.asarray(B, float)
     As = A if A.ndim == 3 else A[None]
     Ep = np.asarray(Eperp, float)
+    if balance:
+        from ..analysis._balance import unit_scaling
+
+        Bs = B if B.ndim == 3 else B[None]
+        dl, dr = unit_scaling(E, As[0], Bs[0], C)
+        Epb = Ep / dl[None, :]
+        if Epb.size:
+            Epb = np.linalg.svd(Epb, full_matrices=False)[2][: Ep.shape[0]]  # orthonormal rows, same row space
+        Rb = default_R(dl[:, None] * E * dr, dl[:, None] * A * dr, dl[..., :, None] * B, C * dr, L * dr, psi=psi,
+                       Eperp=Epb, region=region, q0=q0, q1=q1, max_iter=max_iter, balance=False)
+        if Rb.shape == L.shape and np.array_equal(Rb, L * dr):
+            return L.copy()  # the row basis of L itself (step 1): exactly L, not L D_r / D_r
+        return Rb / dr[None, :]
     Psi = np.vstack([Ep @ As[0], C])
     Gam = np.vstack([E, Psi])
     candidates, G_rows = _order_candidates(Gam, Psi, L, q0)

@@ -26,25 +26,46 @@ the thesis's Lemma 10 $(\mathcal L, \gamma)$ map with the LMI certificate fixed,
 `fojax.design.disk_gain`), `CommonCertificate` (Takagi–Sugeno: the design's common
 certificate fixed, region LMI and Lyapunov inequality for every rule).
 
-**Live parameters.** A direction of the free parameters is *dead* when it cannot reach the
-estimate: the observer's input–output map $(u, y) \mapsto \hat z$ (the observer starts at
-rest, so this map is all of $\hat z$) does not change to first order. `live` measures it by
-the Jacobian of the frequency response $H(s) = C_o(sI - A_o)^{-1}[B_u\;B_y] + [D_u\;D_y]$
+**Live parameters.** A direction of the free parameters is *live* iff it changes the
+observer's input–output map $(u, y) \mapsto \hat z$ to first order, and *dead* otherwise.
+*Why this map and not the error matrix* (derived): every fojax study starts the observer
+at rest, so $\hat z = H * (u, y)$ with
+$H(s) = C_o(sI - A_o)^{-1}[B_u\;B_y] + [D_u\;D_y]$
 (`fojax.observer.GeneralizedFunctionalObserver.linear_matrices`, every rule of a T-S
-observer) at $K = 2d + 2$ points $s_k = i\rho\tan(\pi(k + \tfrac12)/2K)$ on the imaginary
-axis ($d$ the observer order, $\rho$ the spectral radius of the error dynamics at the
-starting point): a rational matrix of McMillan degree $\le d$ is fixed by that many
-values, so a direction with zero Jacobian there leaves $H$ unchanged. The number of live
-directions is the rank of that Jacobian, decided by fojax's one rank rule
-(`fojax._linalg`, relative tolerance ``RANK_RTOL``). Example: when $[R;\Psi]$ has full row
+observer) is all of $\hat z$, and the estimation error $\hat z - z = H * (u, y) - z$ is all
+of what a loss can see. Conditions a.–d. make $H_u + H_yG_y = G_z$ ($G$ the plant's transfer
+functions), so what $H$ adds to $z$ is exactly the error transient $P e^{\mathbb At}\varepsilon(0)$,
+$\varepsilon(0) = -TEx_0$: the error dynamics *as seen from the output*. A change of the
+error matrix $\mathbb A$ alone (a mode of $v$ that $\hat z$ never sees, or that $(u, y)$
+never excites) is dead; a change of the residues or zeros with $\mathbb A$ fixed is live.
+`live` measures it by the Jacobian of $H$ at $K = 2d + 2$ points
+$s_k = i\rho\tan(\pi(k + \tfrac12)/2K)$ on the imaginary axis ($d$ the observer order,
+$\rho$ the spectral radius of the error dynamics at the starting point): a rational matrix
+of McMillan degree $\le d$ is fixed by that many values, so a direction with zero Jacobian
+there leaves $H$ unchanged. *Units:* each entry $H_{ij}$ is weighted by $1/(r_ic_j)$ (the
+norms of output $i$'s and input $j$'s responses at the point, `_channel_weights`), so the
+decision does not change with the units of $u$, $y$, $\hat z$; the parameters are the
+design's, which are unit-free for a ``balance=True`` design
+(`fojax.design.design_functional_observer`), so the count is then the same for a model and
+any diagonal rescaling of its states and equations (``tests/test_unit_invariance.py``:
+on the LC filter and its 1e-3…1e3 twin, 1 of 20 for the proportional design at the default
+order, 13 of 97 at $q_0 = 3$ and 7 of 97 for the centred $q_0 = 3$ design; with the raw
+designs they were 1 vs 2 and 12 vs 11, the twin's order-1 one because its raw design was
+not an observer of $z$). The
+number of live directions is the rank of the weighted Jacobian, decided by fojax's one rank
+rule (`fojax._linalg`, relative tolerance ``RANK_RTOL``). *Checked* against central
+differences of the Markov parameters $D$, $C_oA_o^kB_o$ in NumPy (same rank, with a gap of
+more than 1e4 in the singular values). *The proportional LC design with "1 live parameter"
+that tuning moved by 20 %* (issue 14): the count is right — its one live direction moves the
+observer's only pole $N$ (−1.101 → −1.032 → −0.408 at 0.1 and 1 unit along it) together
+with $Q$; one parameter that sets the error's decay rate can move the IAE by 20 %.
+Example: when $[R;\Psi]$ has full row
 rank, $N_3 = F_3 = 0$, so $Y_1, Y_2, Y_3$ enter no observer matrix and $S = M = 0$ leaves
 $v$ unexcited, so $J, G$ do not reach $\hat z$ either: only ``Z`` can be live. The
 analysis is local (at the starting point); the structural zeros of this example hold
 everywhere. The same Jacobian, through its SVD $J = U\Sigma V^\top$, gives the *whitened*
 coordinates $\theta = \theta_0 + V_r\Sigma_r^{-1}\xi$ used by `fojax.tuning.tune`: one
-unit of every coordinate of $\xi$ moves the response by one unit, and the coordinates do
-not depend on how the plant's states and equations are scaled (the response
-$(u, y) \mapsto \hat z$ does not).
+unit of every coordinate of $\xi$ moves the (weighted) response by one unit.
 
 **Exactness at any size.** Conditions a.–d. hold by construction; their float64 residual
 stays at rounding relative to the terms of each condition for every block $Z, Y_1, Y_2,
@@ -167,8 +188,9 @@ def _response_features(obs, rho, K):
             Xri = jnp.linalg.solve(Mw, jnp.concatenate([B, jnp.zeros_like(B)], axis=0))
             return jnp.stack([C @ Xri[:d] + D, C @ Xri[d:]])
 
-        out.append(jax.vmap(at)(omegas).ravel())
-    return jnp.concatenate(out)
+        resp = jax.vmap(at)(omegas)  # (K, 2, q, m + p)
+        out.append(resp.reshape((-1,) + resp.shape[-2:]))
+    return jnp.concatenate(out)  # (rules * K * 2, q, m + p)
 
 
 def _design_blocks(design, tune_Z: bool) -> dict:
@@ -275,6 +297,23 @@ def _features_and_jacobian(observer_fn, names, flat, rho, K):
     return feat(flat), jax.jacfwd(feat)(flat)
 
 
+def _channel_weights(f0: np.ndarray) -> np.ndarray:
+    r"""Weights $1/(r_ic_j)$ of the response entries $H_{ij}$ (``f0``: ``(points, q, m + p)``):
+    $r_i$ the norm of output $i$'s response over every point and input, then $c_j$ the norm
+    of input $j$'s column after that row scaling. The weighted response is the same for
+    $u$, $y$, $\hat z$ in any diagonal units ($H \to D_zHD_{uy}^{-1}$), so the rank decision
+    (`fojax._linalg`'s relative rule) and the whitened coordinates are too. A channel whose
+    response is zero at the point keeps weight 1 (scaled as the largest other one)."""
+    def inv(norms):
+        ok = norms > 0
+        ref = float(np.max(norms)) if np.any(ok) else 1.0
+        return np.where(ok, 1.0 / np.where(ok, norms, 1.0), 1.0 / ref)
+
+    r = inv(np.linalg.norm(f0, axis=(0, 2)))
+    c = inv(np.linalg.norm(f0 * r[None, :, None], axis=(0, 1)))
+    return np.broadcast_to(r[None, :, None] * c[None, None, :], f0.shape)
+
+
 def _live(observer_fn, params, kind: str = "", error_matrices=None) -> LiveParameters:
     # compiled as two functions (built op by op, the observer compiles ~100 primitives, 30-60 s
     # under load); a parameterization's bound `observer` is a pytree, so a second call with the
@@ -287,8 +326,10 @@ def _live(observer_fn, params, kind: str = "", error_matrices=None) -> LiveParam
     if flat0.size == 0:
         return LiveParameters(0, 0, np.zeros(0), np.zeros((0, 0)), names, 0.0, kind)
     f0, Jm = _features_and_jacobian(observer_fn, names, flat0, jnp.asarray(rho), K)
-    Jm = np.asarray(Jm)
-    fnorm = float(np.linalg.norm(np.asarray(f0)))
+    f0, Jm = np.asarray(f0), np.asarray(Jm)
+    w = _channel_weights(f0)
+    Jm = (w[..., None] * Jm).reshape(-1, Jm.shape[-1])  # (features, parameters), channels weighted
+    fnorm = float(np.linalg.norm(w * f0))
     _, sv, Vt = np.linalg.svd(Jm, full_matrices=False)
     r = int(np.sum(sv > RANK_RTOL * sv[0])) if sv.size and sv[0] > 0 else 0
     return LiveParameters(r, int(flat0.size), sv, Vt[:r].T, names, fnorm, kind)
