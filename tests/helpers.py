@@ -187,3 +187,21 @@ def joint_error_system(sys_, L, obs, Bw, Dv):
     Cj = np.hstack([Q @ Wy @ C - np.asarray(L), P, np.zeros((P.shape[0], q1))])
     Dj = np.hstack([np.zeros((P.shape[0], mw)), Q @ Wy @ Dv])
     return Ej, Aj, Bj, Cj, Dj
+
+
+def h2_by_integral(sys_, L, obs, Bw, Dv) -> float:
+    r"""$\|T - D_j\|_2$ of `joint_error_system` (its strictly proper part) by the frequency-domain
+    definition $\frac1\pi\int_0^\infty \|\mathcal C(j\omega\mathcal E - \mathcal A)^{-1}\mathcal B\|_F^2
+    d\omega$ (`scipy.integrate.quad`, $\omega = \tan\theta$): the H2 oracle of test_h2 and
+    test_tune_robustness."""
+    import scipy.integrate as si
+
+    Ej, Aj, Bj, Cj, _ = joint_error_system(sys_, L, obs, Bw, Dv)
+
+    def f(theta):
+        w = np.tan(theta)
+        G = Cj @ np.linalg.solve(1j * w * Ej - Aj, Bj)
+        return float(np.sum(np.abs(G) ** 2)) * (1.0 + w * w)  # dω = (1 + ω²) dθ
+
+    val, _ = si.quad(f, 0.0, np.pi / 2, limit=400, epsabs=0.0, epsrel=1e-10)
+    return float(np.sqrt(val / np.pi))

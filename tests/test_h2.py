@@ -25,8 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import scipy.integrate as si
-from helpers import joint_error_system
+from helpers import h2_by_integral, joint_error_system
 
 import fojax
 from fojax import InputError
@@ -37,14 +36,7 @@ def integral_h2(sys_, L, obs, Bw, Dv):
     """‖T‖₂ of the joint descriptor system by the frequency-domain integral (module docstring)."""
     Ej, Aj, Bj, Cj, Dj = joint_error_system(sys_, L, obs, Bw, Dv)
     assert np.abs(Dj).max() <= 1e-12 * max(1.0, np.abs(Cj).max()), Dj  # no feedthrough (round-off)
-
-    def f(theta):
-        w = np.tan(theta)
-        G = Cj @ np.linalg.solve(1j * w * Ej - Aj, Bj)
-        return float(np.sum(np.abs(G) ** 2)) * (1.0 + w * w)  # dω = (1 + ω²) dθ
-
-    val, err = si.quad(f, 0.0, np.pi / 2, limit=400, epsabs=0.0, epsrel=1e-10)
-    return float(np.sqrt(val / np.pi))
+    return h2_by_integral(sys_, L, obs, Bw, Dv)
 
 
 def check_design(sys_, L, d, Bw, Dv, region: Disk):

@@ -288,25 +288,29 @@ def hinf_uncertainty_channel(dA, delta_max: float, tol: float = 1e-12) -> tuple[
     return float(delta_max) * U[:, :r] * np.sqrt(s[:r]), np.sqrt(s[:r])[:, None] * Vt[:r]
 
 
-def error_system(s, mats, Bw, Dv):
+def error_system(s, mats, Bw, Dv, xp=np):
     r"""$(\mathbb A, \mathbb B, \mathbb C, \mathbb D)$ of $d = [w;\nu] \mapsto \hat z - z$
-    from the observer matrices (rule 0), host float64."""
-    N, J, S, G = (np.asarray(x)[0] for x in (mats.N, mats.J, mats.S, mats.G))
-    F, M, P, Q = (np.asarray(x)[0] for x in (mats.F, mats.M, mats.P, mats.Q))
-    T = np.asarray(mats.T)
-    Dcal = _dcal(s, Bw, Dv)
-    Bbar = np.hstack([Bw, np.zeros((Bw.shape[0], Dv.shape[1]))])
-    A = np.block([[N, J], [S, G]])
-    B = np.vstack([F @ Dcal - T @ Bbar, M @ Dcal])
-    C = np.hstack([P, np.zeros((P.shape[0], G.shape[0]))])
+    from the observer matrices (rule 0): host float64 (``xp=numpy``), or traceable
+    (``xp=jax.numpy``: the robustness terms of `fojax.tuning.tune` use the same formulas)."""
+    N, J, S, G = (xp.asarray(x)[0] for x in (mats.N, mats.J, mats.S, mats.G))
+    F, M, P, Q = (xp.asarray(x)[0] for x in (mats.F, mats.M, mats.P, mats.Q))
+    T = xp.asarray(mats.T)
+    Bw, Dv = xp.asarray(Bw), xp.asarray(Dv)
+    Dcal = _dcal(s, Bw, Dv, xp)
+    Bbar = xp.concatenate([Bw, xp.zeros((Bw.shape[0], Dv.shape[1]))], axis=1)
+    A = xp.concatenate([xp.concatenate([N, J], axis=1), xp.concatenate([S, G], axis=1)], axis=0)
+    B = xp.concatenate([F @ Dcal - T @ Bbar, M @ Dcal], axis=0)
+    C = xp.concatenate([P, xp.zeros((P.shape[0], G.shape[0]))], axis=1)
     D = Q @ Dcal
     return A, B, C, D
 
 
-def _dcal(s, Bw, Dv):
-    Ep = np.asarray(s.Eperp)
-    r1, p = Ep.shape[0], np.asarray(s.C).shape[0]
-    return np.block([[Ep @ Bw, np.zeros((r1, Dv.shape[1]))], [np.zeros((p, Bw.shape[1])), Dv]])
+def _dcal(s, Bw, Dv, xp=np):
+    Ep = xp.asarray(s.Eperp)
+    r1, p = Ep.shape[0], s.C.shape[0]
+    top = xp.concatenate([Ep @ Bw, xp.zeros((r1, Dv.shape[1]))], axis=1)
+    bot = xp.concatenate([xp.zeros((p, Bw.shape[1])), Dv], axis=1)
+    return xp.concatenate([top, bot], axis=0)
 
 
 def hinf_norm(A, B, C, D) -> tuple[float, float]:
@@ -620,3 +624,22 @@ def design_hinf(s, region, *, kind, margin, solver, Bw, Dv, tighten, method="lmi
 def base_mats(s, params):
     return observer_matrices(s, **{k: np.asarray(v) for k, v in params.items()}, xp=np)
 
+
+
+def error_norms(s, params, Bw, Dv) -> dict:
+    r"""The norms of $d = [w;\nu]\mapsto\hat z - z$ for the observer of `params` (host, float64),
+    by the same independent computations every H∞/H2 design is verified with:
+    ``hinf_norm`` and ``peak_frequency`` (SLICOT AB13DD), ``h2_norm`` (SciPy Lyapunov; ``inf``
+    when the feedthrough $Q\mathcal D$ is not round-off, `FEEDTHROUGH_RTOL`) and ``feedthrough``
+    (relative, `_feedthrough`). Used for the tuned designs of `fojax.tuning.tune`. These are
+    computed norms, not LMI certificates."""
+    Bw, Dv = check_channels(s.n, s.p, Bw, Dv)
+    mats = base_mats(s, params)
+    A, B, C, D = error_system(s, mats, Bw, Dv)
+    if not np.max(np.linalg.eigvals(A).real) < 0:
+        return {"hinf_norm": float("inf"), "peak_frequency": float("nan"), "h2_norm": float("inf"),
+                "feedthrough": float("nan")}
+    g, f = hinf_norm(A, B, C, D)
+    ft = _feedthrough(mats, np.asarray(params["Y3"]), _dcal(s, Bw, Dv))
+    h2 = h2_norm(A, B, C) if ft <= FEEDTHROUGH_RTOL else float("inf")
+    return {"hinf_norm": g, "peak_frequency": f, "h2_norm": h2, "feedthrough": ft}

@@ -11,3 +11,8 @@ from ._tune import (
     TuneResult as TuneResult,
 )
 from ._tune_ts import tune_takagi_sugeno as tune_takagi_sugeno
+from ._robustness import (
+    AbstractRobustnessTerm as AbstractRobustnessTerm,
+    H2Term as H2Term,
+    HinfTerm as HinfTerm,
+)
