@@ -205,3 +205,47 @@ def h2_by_integral(sys_, L, obs, Bw, Dv) -> float:
 
     val, _ = si.quad(f, 0.0, np.pi / 2, limit=400, epsabs=0.0, epsrel=1e-10)
     return float(np.sqrt(val / np.pi))
+
+
+# ------------------------------------------------- plants of the H∞/H2 tests (test_hinf, test_h2,
+# test_tune_robustness)
+
+def scalar_plant(a):
+    r"""$\dot x = ax + u$, $y = x$: with $B_w = D_v = 1$, $z = x$ the scalar Kalman / H∞ closed forms."""
+    import fojax
+
+    return fojax.DescriptorSystem(np.eye(1), a * np.eye(1), np.ones((1, 1)), np.eye(1))
+
+
+def random_descriptor(seed, *, disturb_algebraic_row: bool = True):
+    """``(system, L, Bw, Dv)``: n = 5, rank E = 4 (index 1: A22 kept away from 0), p = 3, q = 2,
+    Dv = 0.3 I. With the default q0 = 2, Σ has q0 + r1 + p = 6 > n rows, so the gains 𝕐, Y3 are
+    free and the H∞ LMI has room. ``disturb_algebraic_row=False`` zeroes the disturbance on the
+    algebraic row (there it reaches ẑ − z directly: an H2 design needs that, and q0 = 4 against
+    the noise's feedthrough). Same random draws either way."""
+    import fojax
+
+    rng = np.random.default_rng(seed)
+    n = 5
+    E = np.diag([1.0, 1, 1, 1, 0])
+    A = rng.standard_normal((n, n))
+    A[4, 4] += 3.0 * np.sign(A[4, 4])
+    B = rng.standard_normal((n, 1))
+    C = rng.standard_normal((3, n))
+    L = rng.standard_normal((2, n))
+    Bw = rng.standard_normal((n, 2))
+    if not disturb_algebraic_row:
+        Bw[4] = 0.0
+    return fojax.DescriptorSystem(E, A, B, C), L, Bw, 0.3 * np.eye(3)
+
+
+def channels_3_3_7(delta_max: float = 0.3, sigma: float = 0.05):
+    """``(example, Bw, Dv)`` of §3.3.7: the uncertainty δΔA, |δ| ≤ `delta_max`, as the disturbance
+    channel (`fojax.design.hinf_uncertainty_channel`; on the differential rows only) and output
+    noise ``Dv = sigma I3``."""
+    import fojax
+    from fojax.design import hinf_uncertainty_channel
+
+    ex = fojax.models.example_3_3_7()
+    Bw, _ = hinf_uncertainty_channel(np.asarray(ex.dA), delta_max)
+    return ex, Bw, sigma * np.eye(3)
