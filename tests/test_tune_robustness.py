@@ -12,6 +12,8 @@ Oracles, independent of the code under test:
   the surrogate must lie in $[\max_k\sigma_k,\ \max_k\sigma_k + \tau\log K]$ and
   $\max_k\sigma_k \le \|T\|_\infty$;
 - **central finite differences** (step 1e-6) for the gradients, under `jax.jit`, `jax.vmap`;
+- **a dense frequency sweep** of the tuned observer's joint system: below the γ reported for
+  the tuned design (`fojax.design._hinf.riccati_gamma`), and equal to its AB13DD norm;
 - **a closed form** for the tuning test: for $\dot x = ax + w$, $y = x + \nu$, $z = x$ every
   LTI estimator has $\|T\|_\infty \ge 1/\sqrt{1 + a^2}$ (`tests/test_hinf.py`'s module docstring),
   so every tuned design's AB13DD norm must respect it.
@@ -26,20 +28,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import h2_by_integral, joint_error_system
+from helpers import channels_3_3_7, h2_by_integral, joint_error_system, scalar_plant
 
 import fojax
 from fojax import InputError, studies as S, tuning
-from fojax.design import design_functional_observer, Disk, hinf_uncertainty_channel
+from fojax.design import design_functional_observer, Disk
 
 
 @pytest.fixture(scope="module")
 def ex337():
     """§3.3.7 with the δ channel (δ̄ = 0.3, on differential rows only: no feedthrough) for the H2
     design, plus output noise σ = 0.05 for the H∞ design (it feeds through at the default q0)."""
-    ex = fojax.models.example_3_3_7()
-    Bw, _ = hinf_uncertainty_channel(np.asarray(ex.dA), 0.3)
-    Dv, region = 0.05 * np.eye(3), Disk(-3.0, 2.0)
+    ex, Bw, Dv = channels_3_3_7(0.3, 0.05)
+    region = Disk(-3.0, 2.0)
     d2 = design_functional_observer(ex.system, ex.L, region=region, objective="h2", Bw=Bw)
     dh = design_functional_observer(ex.system, ex.L, region=region, objective="hinf", Bw=Bw, Dv=Dv)
     return ex, Bw, Dv, d2, dh
@@ -134,7 +135,7 @@ def scalar_runs():
     transient (x0 = 1) with `HinfTerm` of weight 0 (the plain tuning loss) and 10. The weight is a
     leaf: both runs share one compilation of the tuning step."""
     one = np.ones((1, 1))
-    sys_ = fojax.DescriptorSystem(np.eye(1), -np.eye(1), one, one)
+    sys_ = scalar_plant(-1.0)
     d = design_functional_observer(sys_, one, kind="generalized", region=Disk(-2.5, 2.0), objective="hinf",
                                    Bw=one, Dv=one)
     ts = jnp.linspace(0.0, 2.0, 21)
@@ -153,9 +154,62 @@ def test_tuning_with_the_term_keeps_the_hinf_norm_lower(scalar_runs):
     for r in (plain, termed):
         assert r.robustness["initial"]["hinf_norm"] == pytest.approx(d.hinf.norm, rel=1e-9)
         assert r.robustness["final"]["hinf_norm"] >= floor * (1 - 1e-8)
+        # the tuned design's γ (bounded-real Riccati + the designs' float64 BRL check) bounds the gain
+        # of the joint system written from the tuned observer's own matrices, on a dense grid
+        final = r.robustness["final"]
+        one = np.ones((1, 1))
+        Ej, Aj, Bj, Cj, Dj = joint_error_system(scalar_plant(-1.0), one, r.design.observer, one, one)
+        sweep = max(np.linalg.norm(Cj @ np.linalg.solve(1j * w * Ej - Aj, Bj) + Dj, 2)
+                    for w in np.r_[0.0, np.logspace(-3, 3, 600)])
+        assert final["gamma"] is not None, final
+        assert final["hinf_norm"] * (1 - 1e-9) <= final["gamma"] <= final["hinf_norm"] * 1.03
+        assert sweep <= final["gamma"] and sweep == pytest.approx(final["hinf_norm"], rel=1e-6)
         assert r.design.solver["tuning"]["robustness"] == r.robustness
         assert sum(r.history["accepted"]) > 0
     # the untermed run trades the noise gain for the transient; the term holds it near the optimum
     assert plain.robustness["final"]["hinf_norm"] > d.hinf.norm * 1.01, plain.robustness
     assert termed.robustness["final"]["hinf_norm"] < plain.robustness["final"]["hinf_norm"], termed.robustness
     assert termed.robustness["terms"] == ["HinfTerm(weight=10)"]
+
+
+SCALAR_TOML = """
+name = "scalar_robust"
+[model]
+E = [[1.0]]
+A = [[-1.0]]
+B = [[1.0]]
+C = [[1.0]]
+L = [[1.0]]
+[[observer]]
+name = "H2"
+region = { disk = { center = -2.5, radius = 2.0 } }
+objective = "h2"
+Bw = [[1.0]]
+Dv = [[1.0]]
+[tuning]
+steps = 3
+robustness = { hinf = 2, h2 = 0.5 }
+"""
+
+
+def test_config_key_and_the_study_command_helpers(scalar_runs):
+    import tomllib
+
+    from fojax import ConfigError
+    from fojax.cli._commands import _robustness_line, _robustness_terms
+    from fojax.config import parse_config
+
+    cfg = parse_config(tomllib.loads(SCALAR_TOML))
+    assert cfg.tuning.robustness == (("h2", 0.5), ("hinf", 2.0))
+    d, _, termed, _ = scalar_runs  # an objective="hinf" design: the terms take its channels
+    terms = _robustness_terms(tuning, cfg.tuning, d)
+    assert [t.describe() for t in terms] == ["H2Term(weight=0.5)", "HinfTerm(weight=2)"]
+    region_only = design_functional_observer(scalar_plant(-1.0), np.ones((1, 1)), region=Disk(-2.5, 2.0))
+    assert _robustness_terms(tuning, cfg.tuning, region_only) is None  # no channels: tuned without
+    line = _robustness_line(termed.robustness)
+    assert line.startswith("‖T‖∞ (AB13DD) ") and "HinfTerm(weight=10)" in line and "certified γ 0." in line
+    for bad, match in (("hinf = 2, h2 = 0.5", r"tuning\.robustness\.hinff.*Did you mean 'hinf'"),
+                       ("hinf = -1", r"tuning\.robustness\.hinf")):
+        text = SCALAR_TOML.replace("hinf = 2, h2 = 0.5", bad.replace("hinf =", "hinff =") if "2" in bad else bad)
+        with pytest.raises(ConfigError, match=match):
+            parse_config(tomllib.loads(text))

@@ -1,6 +1,11 @@
 """Gradient tuning of observer gains over Monte Carlo studies (optax), certified at every iterate."""
 
 from ._optimizer import shared_optimizer as shared_optimizer
+from ._robustness import (
+    AbstractRobustnessTerm as AbstractRobustnessTerm,
+    H2Term as H2Term,
+    HinfTerm as HinfTerm,
+)
 from ._tune import (
     Coordinates as Coordinates,
     initial_parameters as initial_parameters,
@@ -11,8 +16,3 @@ from ._tune import (
     TuneResult as TuneResult,
 )
 from ._tune_ts import tune_takagi_sugeno as tune_takagi_sugeno
-from ._robustness import (
-    AbstractRobustnessTerm as AbstractRobustnessTerm,
-    H2Term as H2Term,
-    HinfTerm as HinfTerm,
-)

@@ -46,7 +46,9 @@ In every mode the count is reported (`TuneResult.live_parameters`, the design's
 
 **Loss.** The batched mean (or `quantile`) of the IAE/ISE of $\hat z - z$ over the training
 study (`fojax.studies.study_loss`), plus ``barrier · parameterization.barrier(params)``,
-plus the user's `extra_loss`. Loss, gradient, the optax update and the backtracking
+plus the user's `extra_loss`, plus the built-in `robustness` terms (`fojax.tuning.H2Term`,
+`fojax.tuning.HinfTerm`: the H2 norm and a smooth H∞ surrogate of the iterate's error system from
+the disturbance/noise channels, `fojax.tuning._robustness`). Loss, gradient, the optax update and the backtracking
 candidates form one `equinox.filter_jit` function, compiled once
 (``TRACE_COUNTS["tune_step"]``; held-out evaluation ``"evaluate"``).
 
@@ -87,9 +89,9 @@ from ..studies._sharding import (
     replicate,
     spans_processes,
 )
-from ._robustness import robustness_terms
 from ._loop import backtracked_update, check_extra_loss, run_loop
 from ._optimizer import shared_optimizer
+from ._robustness import robustness_terms
 
 
 #: Number of traces of the jitted tuning step and of the held-out evaluation.
@@ -188,9 +190,11 @@ class TuneResult:
         robustness: when the disturbance/noise channels are known (a `robustness` term, or an
             ``objective="hinf"``/``"h2"`` starting design): ``{"terms": [...], "initial": {...},
             "final": {...}}``, the norms of the starting and the tuned design's error system
-            (``hinf_norm`` and ``peak_frequency`` by SLICOT AB13DD, ``h2_norm`` by SciPy's
-            Lyapunov solver, ``inf`` with a feedthrough; `fojax.design._hinf.error_norms`).
-            Computed norms of the returned design, not LMI certificates; ``None`` otherwise.
+            (``hinf_norm`` and ``peak_frequency`` by SLICOT AB13DD; ``gamma``: a certified bound
+            ≥ ‖T‖∞, 1e-4 to 1e-2 above it, from the bounded-real Riccati equation and re-checked by the
+            H∞ designs' float64 BRL test, ``None`` if that fails; ``h2_norm`` by SciPy's
+            Lyapunov solver, ``inf`` with a feedthrough; `fojax.design._hinf.error_norms`);
+            ``None`` otherwise.
     """
 
     design: object
@@ -294,8 +298,9 @@ def tune(
       ``robustness=fojax.tuning.H2Term(weight=0.1)``; the channels default to the starting
       ``objective="hinf"``/``"h2"`` design's (`fojax.tuning._robustness`). Linear designs
       only. Whenever the channels are known (given, or from the starting design's
-      certificate) the result reports the tuned design's ‖T‖∞ (SLICOT AB13DD) and ‖T‖₂
-      (SciPy) in `TuneResult.robustness` and ``solver["tuning"]["robustness"]``.
+      certificate) the result reports the tuned design's ‖T‖∞ (SLICOT AB13DD), a certified
+      γ ≥ ‖T‖∞ (Riccati) and ‖T‖₂ (SciPy) in `TuneResult.robustness` and
+      ``solver["tuning"]["robustness"]``.
     - `region`: the region to stay in (default: the design's region).
     - `parameterization`: an `fojax.design.AbstractParameterization` (instance or class) or
       ``"direct"`` / ``"disk"`` / ``"common_certificate"``; default ``SteinDisk`` (LTI) or
