@@ -73,6 +73,13 @@ The tuned-with-a-term run recorded in ``hinf_vs_region_term_latest.json`` (measu
     python benchmarks/hinf_vs_region.py --cases states --sigma 0.5 --kinds generalized --deltas 8 \
         --train-deltas 4 --tune-steps 10 --term hinf --term-weight 0.0 --skip-region-tuning --solver tsit5 \
         --out benchmarks/results/hinf_vs_region_term0_latest.json
+    # and weight 10 (same command, --term-weight 10.0 --out ..._term10_latest.json)
+
+Measured under load (loadavg 12-15, 8 held-out samples, σ = 0.5, generalized, 10 steps): held-out
+mean IAE / mean peak / ‖T‖∞ — region-only 4.33 / 1.31 / 0.359; H∞ 3.19 / 1.24 / 0.209; tuned from
+region-only 1.99 / 1.23 / 0.312; from H∞ with HinfTerm weight 0: 1.82 / 1.32 / 0.246, weight 1:
+1.86 / 1.33 / 0.248, weight 10: 2.57 / 1.36 / 0.174; H2 (q0 = 4) 1.48 / 1.30 / 0.155. The term
+trades IAE for ‖T‖∞ at weight 10 and is negligible at weight 1.
 
 ``--solver tsit5`` passes ``diffrax.Tsit5()`` to `fojax.run_study` and `fojax.tune` (the
 studies with output noise run on the ``vmap-simulate`` engine); default: `fojax.simulate`'s
