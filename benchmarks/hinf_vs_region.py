@@ -42,6 +42,16 @@ Two more designs per kind:
   parameterization, ``--tune-steps`` Adam steps, learning rate ``--tune-lr``) on a *training*
   study of ``--train-deltas`` samples drawn with another seed (same distribution, fresh noise);
   the comparison study's samples are never seen by it (held out).
+- **tuned+term** (``--term hinf|h2``, default ``hinf``; ``--term none``: no column): `fojax.tune`
+  from the *H∞* design with the same training study, steps and learning rate, and
+  ``robustness=fojax.tuning.HinfTerm(--term-weight)`` (or ``H2Term``) on the H∞ design's own
+  channels (`fojax.tuning._robustness`). ``--kinds`` restricts the observer kinds (each tuning
+  of a noisy study costs minutes).
+
+Every design's ‖T‖∞ (SLICOT AB13DD), a certified γ ≥ ‖T‖∞ (``gamma_riccati``:
+`fojax.design._hinf.riccati_gamma`) and ‖T‖₂ (SciPy; ``inf`` with a feedthrough) of
+d = [w; ν] → ẑ − z are recorded per design (``norms`` in the rows; `fojax.design._hinf.error_norms`,
+the computations that verify the H∞/H2 designs); for the tuned designs there is no LMI certificate.
 
     python benchmarks/hinf_vs_region.py                        # 8 δ (x 4 faults), σ = 0.05, 0.5
     python benchmarks/hinf_vs_region.py --deltas 4 --faults 2 --sigma 0.05 --cases states --tune-steps 5
@@ -54,6 +64,23 @@ Two more designs per kind:
     python benchmarks/hinf_vs_region.py --cases lc_noise --q0 4 --deltas 8 --tune-steps 0 --solver tsit5 \
         --out benchmarks/results/hinf_vs_region_lc_noise_q4_latest.json
 
+The tuned-with-a-term run recorded in ``hinf_vs_region_term_latest.json`` (measured under load):
+
+    python benchmarks/hinf_vs_region.py --cases states --sigma 0.5 --kinds generalized --deltas 8 \
+        --train-deltas 4 --tune-steps 10 --term hinf --term-weight 1.0 --solver tsit5 \
+        --out benchmarks/results/hinf_vs_region_term_latest.json
+    # the control: the same tuning from the H∞ design with the term's weight 0 (no term)
+    python benchmarks/hinf_vs_region.py --cases states --sigma 0.5 --kinds generalized --deltas 8 \
+        --train-deltas 4 --tune-steps 10 --term hinf --term-weight 0.0 --skip-region-tuning --solver tsit5 \
+        --out benchmarks/results/hinf_vs_region_term0_latest.json
+    # and weight 10 (same command, --term-weight 10.0 --out ..._term10_latest.json)
+
+Measured under load (loadavg 12-15, 8 held-out samples, σ = 0.5, generalized, 10 steps): held-out
+mean IAE / mean peak / ‖T‖∞ — region-only 4.33 / 1.31 / 0.359; H∞ 3.19 / 1.24 / 0.209; tuned from
+region-only 1.99 / 1.23 / 0.312; from H∞ with HinfTerm weight 0: 1.82 / 1.32 / 0.246, weight 1:
+1.86 / 1.33 / 0.248, weight 10: 2.57 / 1.36 / 0.174; H2 (q0 = 4) 1.48 / 1.30 / 0.155. The term
+trades IAE for ‖T‖∞ at weight 10 and is negligible at weight 1.
+
 ``--solver tsit5`` passes ``diffrax.Tsit5()`` to `fojax.run_study` and `fojax.tune` (the
 studies with output noise run on the ``vmap-simulate`` engine); default: `fojax.simulate`'s
 own solver (the recorded §3.3.7 runs).
@@ -64,6 +91,7 @@ Writes ``benchmarks/results/hinf_vs_region_latest.json`` (with ``os.getloadavg()
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -91,10 +119,12 @@ from tuning_circuit import build as lc_build  # noqa: E402
 import fojax  # noqa: E402
 from fojax import studies as S  # noqa: E402
 from fojax.design import design_functional_observer, Disk, hinf_uncertainty_channel, live_parameters  # noqa: E402
+from fojax.design._hinf import error_norms  # noqa: E402
 
 
 T_END, DT, DELTA_MAX = 10.0, 0.01, 0.3
 SIGNALS = ("z1", "z2", "f1", "f2", "f3")
+KINDS = ("proportional", "generalized")  # --kinds
 LC_DELTA_MAX = 1.0  # lc_filter's dA is the load change for delta = 1: Ra (1 + 0.5 delta), |delta| <= 1
 
 
@@ -118,7 +148,7 @@ def designs(ex, case, sigma, h2_q0, q0=None):
     Dv = sigma * np.eye(sys_.C.shape[0])
     out, info = {}, {}
     qkw = {} if q0 is None else {"q0": q0}  # --q0: the order of the region-only and H∞ designs
-    for kind in ("proportional", "generalized"):
+    for kind in KINDS:
         t = time.perf_counter()
         out[f"region {kind}"] = design_functional_observer(sys_, L, kind=kind, region=Disk(-3.0, 2.0), **qkw)
         t_region = time.perf_counter() - t
@@ -127,7 +157,7 @@ def designs(ex, case, sigma, h2_q0, q0=None):
                                        **qkw)
         t_hinf = time.perf_counter() - t
         out[f"hinf {kind}"] = d
-        info[kind] = {**{k: v for k, v in d.hinf.to_dict().items() if k not in ("Bw", "Dv")},
+        info[kind] = {**{k: v for k, v in dataclasses.asdict(d.hinf).items() if k not in ("Bw", "Dv")},
                       "design_seconds_region": t_region, "design_seconds_hinf": t_hinf,
                       "q0": q0, "observer_order_region": int(out[f"region {kind}"].observer.state_size),
                       "live_parameters_region": live_parameters(out[f"region {kind}"]).live,
@@ -143,10 +173,10 @@ def designs(ex, case, sigma, h2_q0, q0=None):
             info[kind]["h2"] = {"refused": f"{type(err).__name__}: {err}"}
             continue
         out[f"h2 {kind}"] = d2
-        info[kind]["h2"] = {**{k: v for k, v in d2.h2.to_dict().items() if k not in ("Bw", "Dv")},
+        info[kind]["h2"] = {**{k: v for k, v in dataclasses.asdict(d2.h2).items() if k not in ("Bw", "Dv")},
                             "q0": h2_q0, "design_seconds": time.perf_counter() - t,
                             "max_re_eig": float(np.max(d2.report.eigenvalues.real))}
-    return out, info
+    return out, info, (Bd, Dv)
 
 
 def tuned(ds, ex, case, args, sigma):
@@ -157,16 +187,27 @@ def tuned(ds, ex, case, args, sigma):
     train = study(ex, case, args.train_deltas, args.faults if case == "faults" else 1, sigma, args.noise_dt,
                   args.seed + 1)
     opt = fojax.tuning.shared_optimizer("adam", learning_rate=args.tune_lr)
-    for kind in ("proportional", "generalized"):
-        t = time.perf_counter()
-        res = fojax.tune(ds[f"region {kind}"], train, steps=args.tune_steps, optimizer=opt, quiet=True,
-                         solver=solver(args))
-        out[f"tuned {kind}"] = res.design
-        h = res.history
-        info[kind] = {"steps": args.tune_steps, "learning_rate": args.tune_lr, "train_samples": int(train.num_samples),
-                      "train_loss_first": float(h["train_loss"][0]), "train_loss_last": float(h["train_loss"][-1]),
-                      "accepted_steps": int(np.sum(h["accepted"])), "tune_seconds": time.perf_counter() - t,
-                      "max_re_eig": float(np.max(res.design.report.eigenvalues.real))}
+    runs = [] if args.skip_region_tuning else [("tuned", "region", None)]
+    if args.term != "none":  # --term: from the H∞ design, with a built-in robustness term
+        make = {"h2": fojax.tuning.H2Term, "hinf": fojax.tuning.HinfTerm}[args.term]
+        runs.append(("tuned+term", "hinf", make(args.term_weight)))
+    for kind in KINDS:
+        for label, start, term in runs:
+            t = time.perf_counter()
+            try:
+                res = fojax.tune(ds[f"{start} {kind}"], train, steps=args.tune_steps, optimizer=opt, quiet=True,
+                                 solver=solver(args), robustness=term)
+            except fojax.DesignVerificationError as err:  # recorded, not hidden
+                info[f"{label} {kind}"] = {"failed": f"{type(err).__name__}: {err}", "start": start}
+                continue
+            out[f"{label} {kind}"] = res.design
+            h = res.history
+            info[f"{label} {kind}"] = {
+                "start": start, "robustness": None if term is None else term.describe(),
+                "steps": args.tune_steps, "learning_rate": args.tune_lr, "train_samples": int(train.num_samples),
+                "train_loss_first": float(h["train_loss"][0]), "train_loss_last": float(h["train_loss"][-1]),
+                "accepted_steps": int(np.sum(h["accepted"])), "tune_seconds": time.perf_counter() - t,
+                "max_re_eig": float(np.max(res.design.report.eigenvalues.real))}
     return out, info
 
 
@@ -232,19 +273,30 @@ def main(argv=None) -> int:
     ap.add_argument("--train-deltas", type=int, default=8, help="samples of the training study of the tuned design")
     ap.add_argument("--solver", default="default", choices=["default", "tsit5"],
                     help="simulation solver of the Monte Carlo and training studies (tsit5: diffrax.Tsit5)")
+    ap.add_argument("--kinds", nargs="+", default=["proportional", "generalized"],
+                    choices=["proportional", "generalized"])
+    ap.add_argument("--term", default="hinf", choices=["none", "hinf", "h2"],
+                    help="the 'tuned+term' design: fojax.tune from the H∞ design with robustness=HinfTerm/H2Term")
+    ap.add_argument("--term-weight", type=float, default=1.0,
+                    help="0: the same tuning from the H∞ design with the term's weight 0 (no term)")
+    ap.add_argument("--skip-region-tuning", action="store_true", help="no 'tuned' column (from region-only)")
     ap.add_argument("--out", default=str(_common.RESULTS / "hinf_vs_region_latest.json"))
     args = ap.parse_args(argv)
+    global KINDS
+    KINDS = tuple(args.kinds)
     ex = fojax.models.example_3_3_7()
     info0 = _common.machine_info()
     rows, details = [], []
     for case in args.cases:
         for sigma in args.sigma:
-            ds, info = designs(ex, case, sigma, args.h2_q0, args.q0)
+            ds, info, channels = designs(ex, case, sigma, args.h2_q0, args.q0)
             print(f"{case} sigma={sigma:g}: designed {', '.join(ds)}; tuning ...", flush=True)
             tds, tinfo = tuned(ds, ex, case, args, sigma)
-            secs = ", ".join(f"{k} {v['tune_seconds']:.0f} s" for k, v in tinfo.items())
+            secs = ", ".join(f"{k} {v.get('tune_seconds', float('nan')):.0f} s" for k, v in tinfo.items())
             print(f"{case} sigma={sigma:g}: tuned ({secs}); Monte Carlo ...", flush=True)
             ds.update(tds)
+            # every design's norms from d = [w; ν] to ẑ − z, by the computations that verify H∞/H2 designs
+            norms = {nm: error_norms(d.structure, d.params, *channels) for nm, d in ds.items()}
             st = study(ex, case, args.deltas, args.faults if case == "faults" else 1, sigma, args.noise_dt, args.seed)
             names = list(ds)
             t = time.perf_counter()
@@ -260,10 +312,13 @@ def main(argv=None) -> int:
                 per[nm] = {"mean_iae_total": float(a.sum(-1).mean()),
                            "mean_iae_per_signal": dict(zip(sig, a.mean(0).tolist())),
                            "mean_peak_max_signal": float(pk.max(-1).mean()),
-                           "mean_peak_per_signal": dict(zip(sig, pk.mean(0).tolist()))}
+                           "mean_peak_per_signal": dict(zip(sig, pk.mean(0).tolist())),
+                           "hinf_norm": norms[nm]["hinf_norm"], "h2_norm": norms[nm]["h2_norm"],
+                           "gamma_riccati": norms[nm]["gamma"],
+                           "feedthrough": norms[nm]["feedthrough"]}
             details.append({"case": case, "sigma": sigma, "samples": int(ok.sum()), "study_seconds": t_study,
                             "designs": info, "tuning": tinfo, "monte_carlo": per})
-            for kind in ("proportional", "generalized"):
+            for kind in KINDS:
                 r, h, g = per[f"region {kind}"], per[f"hinf {kind}"], info[kind]
                 rows.append({"case": case, "sigma": sigma, "kind": kind, "q0": g["q0"], "samples": int(ok.sum()),
                              "gamma": g["gamma"], "norm_hinf": g["norm"], "norm_region_only": g["region_only_norm"],
@@ -274,24 +329,33 @@ def main(argv=None) -> int:
                              **({"mean_iae_tuned": per[f"tuned {kind}"]["mean_iae_total"],
                                  "mean_peak_tuned": per[f"tuned {kind}"]["mean_peak_max_signal"]}
                                 if f"tuned {kind}" in per else {}),
+                             **({"mean_iae_tuned_term": per[f"tuned+term {kind}"]["mean_iae_total"],
+                                 "mean_peak_tuned_term": per[f"tuned+term {kind}"]["mean_peak_max_signal"],
+                                 "term": tinfo[f"tuned+term {kind}"]["robustness"]}
+                                if f"tuned+term {kind}" in per else {}),
+                             "norms": {nm.removesuffix(f" {kind}"): {"hinf": per[nm]["hinf_norm"],
+                                                                     "gamma_riccati": per[nm]["gamma_riccati"],
+                                                                     "h2": per[nm]["h2_norm"]}
+                                       for nm in per if nm.endswith(f" {kind}")},
                              **({"nu": g["h2"]["nu"], "norm_h2": g["h2"]["norm"], "h2_q0": g["h2"]["q0"],
                                  "mean_iae_h2": per[f"h2 {kind}"]["mean_iae_total"],
                                  "mean_peak_h2": per[f"h2 {kind}"]["mean_peak_max_signal"]}
                                 if f"h2 {kind}" in per else {"h2": g["h2"].get("refused")})})
-            for kind in ("proportional", "generalized"):
+            for kind in KINDS:
                 r, h, g = per[f"region {kind}"], per[f"hinf {kind}"], info[kind]
                 print(f"{case} sigma={sigma:g} {kind:12s} mean IAE (sum over signals) region {r['mean_iae_total']:.4f} "
                       f"hinf {h['mean_iae_total']:.4f} ({100 * (h['mean_iae_total'] / r['mean_iae_total'] - 1):+.1f} %); "
                       f"mean peak region {r['mean_peak_max_signal']:.4f} hinf {h['mean_peak_max_signal']:.4f}; "
                       f"gamma {g['gamma']:.4g} norm {g['norm']:.4g} (region-only {g['region_only_norm']:.4g}) "
                       f"peak at {g['peak_frequency']:.3g} rad/s", flush=True)
-                for extra in ("tuned", "h2"):
+                for extra in ("tuned", "tuned+term", "h2"):
                     e = per.get(f"{extra} {kind}")
-                    if e is None and extra == "tuned":
+                    if e is None and extra != "h2":
                         continue
-                    print(f"    {extra:5s} mean IAE {e['mean_iae_total']:.4f} "
+                    print(f"    {extra:10s} mean IAE {e['mean_iae_total']:.4f} "
                           f"({100 * (e['mean_iae_total'] / r['mean_iae_total'] - 1):+.1f} % vs region); mean peak "
-                          f"{e['mean_peak_max_signal']:.4f}" if e else f"    {extra}: {g['h2'].get('refused')}", flush=True)
+                          f"{e['mean_peak_max_signal']:.4f}; ‖T‖∞ {e['hinf_norm']:.4g}, ‖T‖₂ {e['h2_norm']:.4g}"
+                          if e else f"    {extra}: {g['h2'].get('refused')}", flush=True)
     payload = _common.result_payload(
         "hinf_vs_region", "complete", info0, args,
         what="§3.3.7, constant delta in [-0.3, 0.3], output noise (ZOH, std sigma); case 'states': the plant "

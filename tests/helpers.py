@@ -237,3 +237,65 @@ def small_step_input_study(seed: int, n_delta: int, n_faults: int):
                     uncertainty=(S.constant_delta(k1, n_delta, 1, bounds=(-0.3, 0.3)),),
                     scenarios=(S.constant_faults(k2, n_faults, x0, 3),))
     return study, d
+
+
+def h2_by_integral(sys_, L, obs, Bw, Dv) -> float:
+    r"""$\|T - D_j\|_2$ of `joint_error_system` (its strictly proper part) by the frequency-domain
+    definition $\frac1\pi\int_0^\infty \|\mathcal C(j\omega\mathcal E - \mathcal A)^{-1}\mathcal B\|_F^2
+    d\omega$ (`scipy.integrate.quad`, $\omega = \tan\theta$): the H2 oracle of test_h2 and
+    test_tune_robustness."""
+    import scipy.integrate as si
+
+    Ej, Aj, Bj, Cj, _ = joint_error_system(sys_, L, obs, Bw, Dv)
+
+    def f(theta):
+        w = np.tan(theta)
+        G = Cj @ np.linalg.solve(1j * w * Ej - Aj, Bj)
+        return float(np.sum(np.abs(G) ** 2)) * (1.0 + w * w)  # dω = (1 + ω²) dθ
+
+    val, _ = si.quad(f, 0.0, np.pi / 2, limit=400, epsabs=0.0, epsrel=1e-10)
+    return float(np.sqrt(val / np.pi))
+
+
+# ------------------------------------------------- plants of the H∞/H2 tests (test_hinf, test_h2,
+# test_tune_robustness)
+
+def scalar_plant(a):
+    r"""$\dot x = ax + u$, $y = x$: with $B_w = D_v = 1$, $z = x$ the scalar Kalman / H∞ closed forms."""
+    import fojax
+
+    return fojax.DescriptorSystem(np.eye(1), a * np.eye(1), np.ones((1, 1)), np.eye(1))
+
+
+def random_descriptor(seed, *, disturb_algebraic_row: bool = True):
+    """``(system, L, Bw, Dv)``: n = 5, rank E = 4 (index 1: A22 kept away from 0), p = 3, q = 2,
+    Dv = 0.3 I. With the default q0 = 2, Σ has q0 + r1 + p = 6 > n rows, so the gains 𝕐, Y3 are
+    free and the H∞ LMI has room. ``disturb_algebraic_row=False`` zeroes the disturbance on the
+    algebraic row (there it reaches ẑ − z directly: an H2 design needs that, and q0 = 4 against
+    the noise's feedthrough). Same random draws either way."""
+    import fojax
+
+    rng = np.random.default_rng(seed)
+    n = 5
+    E = np.diag([1.0, 1, 1, 1, 0])
+    A = rng.standard_normal((n, n))
+    A[4, 4] += 3.0 * np.sign(A[4, 4])
+    B = rng.standard_normal((n, 1))
+    C = rng.standard_normal((3, n))
+    L = rng.standard_normal((2, n))
+    Bw = rng.standard_normal((n, 2))
+    if not disturb_algebraic_row:
+        Bw[4] = 0.0
+    return fojax.DescriptorSystem(E, A, B, C), L, Bw, 0.3 * np.eye(3)
+
+
+def channels_3_3_7(delta_max: float = 0.3, sigma: float = 0.05):
+    """``(example, Bw, Dv)`` of §3.3.7: the uncertainty δΔA, |δ| ≤ `delta_max`, as the disturbance
+    channel (`fojax.design.hinf_uncertainty_channel`; on the differential rows only) and output
+    noise ``Dv = sigma I3``."""
+    import fojax
+    from fojax.design import hinf_uncertainty_channel
+
+    ex = fojax.models.example_3_3_7()
+    Bw, _ = hinf_uncertainty_channel(np.asarray(ex.dA), delta_max)
+    return ex, Bw, sigma * np.eye(3)

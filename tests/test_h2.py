@@ -25,26 +25,23 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import scipy.integrate as si
-from helpers import joint_error_system
+from helpers import (
+    channels_3_3_7,
+    h2_by_integral,
+    joint_error_system,
+    random_descriptor,
+    scalar_plant,
+)
 
-import fojax
 from fojax import InputError
-from fojax.design import design_functional_observer, Disk, hinf_uncertainty_channel
+from fojax.design import design_functional_observer, Disk
 
 
 def integral_h2(sys_, L, obs, Bw, Dv):
     """‖T‖₂ of the joint descriptor system by the frequency-domain integral (module docstring)."""
     Ej, Aj, Bj, Cj, Dj = joint_error_system(sys_, L, obs, Bw, Dv)
     assert np.abs(Dj).max() <= 1e-12 * max(1.0, np.abs(Cj).max()), Dj  # no feedthrough (round-off)
-
-    def f(theta):
-        w = np.tan(theta)
-        G = Cj @ np.linalg.solve(1j * w * Ej - Aj, Bj)
-        return float(np.sum(np.abs(G) ** 2)) * (1.0 + w * w)  # dω = (1 + ω²) dθ
-
-    val, err = si.quad(f, 0.0, np.pi / 2, limit=400, epsabs=0.0, epsrel=1e-10)
-    return float(np.sqrt(val / np.pi))
+    return h2_by_integral(sys_, L, obs, Bw, Dv)
 
 
 def check_design(sys_, L, d, Bw, Dv, region: Disk):
@@ -61,10 +58,6 @@ def check_design(sys_, L, d, Bw, Dv, region: Disk):
     return h.nu / norm
 
 
-def scalar_plant(a):
-    return fojax.DescriptorSystem(np.eye(1), a * np.eye(1), np.ones((1, 1)), np.eye(1))
-
-
 @pytest.mark.parametrize("kind", ["proportional", "generalized"])
 def test_scalar_kalman_closed_form(kind):
     a, one, region = -1.0, np.ones((1, 1)), Disk(-2.5, 2.0)
@@ -75,26 +68,9 @@ def test_scalar_kalman_closed_form(kind):
     np.testing.assert_allclose(d.h2.nu, opt, rtol=1e-4)  # and the LMI reaches it
 
 
-def random_descriptor(seed):
-    """n = 5, rank E = 4 (index 1), p = 3, q = 2; the disturbance on the four differential
-    rows only (on the algebraic row it would reach ẑ − z directly); q0 = 4 is passed to the
-    design (with the default q0 = 2 the noise feeds through, `test_refuses_feedthrough`)."""
-    rng = np.random.default_rng(seed)
-    n = 5
-    E = np.diag([1.0, 1, 1, 1, 0])
-    A = rng.standard_normal((n, n))
-    A[4, 4] += 3.0 * np.sign(A[4, 4])
-    B = rng.standard_normal((n, 1))
-    C = rng.standard_normal((3, n))
-    L = rng.standard_normal((2, n))
-    Bw = rng.standard_normal((n, 2))
-    Bw[4] = 0.0
-    return fojax.DescriptorSystem(E, A, B, C), L, Bw, 0.3 * np.eye(3)
-
-
 @pytest.mark.parametrize("seed", [0, 2])
 def test_random_descriptor_bound(seed):
-    sys_, L, Bw, Dv = random_descriptor(seed)
+    sys_, L, Bw, Dv = random_descriptor(seed, disturb_algebraic_row=False)
     region = Disk(-3.0, 2.5)
     d = design_functional_observer(sys_, L, region=region, objective="h2", Bw=Bw, Dv=Dv, q0=4)
     tight = check_design(sys_, L, d, Bw, Dv, region)
@@ -103,9 +79,8 @@ def test_random_descriptor_bound(seed):
 
 def test_example_3_3_7_tight():
     """§3.3.7 with the uncertainty as disturbance (δ̄ = 0.3) and output noise σ = 0.05, q0 = 4."""
-    ex = fojax.models.example_3_3_7()
-    Bw, _ = hinf_uncertainty_channel(np.asarray(ex.dA), 0.3)
-    Dv, region = 0.05 * np.eye(3), Disk(-3.0, 2.0)
+    ex, Bw, Dv = channels_3_3_7(0.3, 0.05)
+    region = Disk(-3.0, 2.0)
     d = design_functional_observer(ex.system, ex.L, region=region, objective="h2", Bw=Bw, Dv=Dv, q0=4)
     tight = check_design(ex.system, ex.L, d, Bw, Dv, region)
     assert tight < 1.02, tight  # measured 1.0011
@@ -113,7 +88,7 @@ def test_example_3_3_7_tight():
 
 
 def test_refuses_feedthrough():
-    sys_, L, Bw, Dv = random_descriptor(0)
+    sys_, L, Bw, Dv = random_descriptor(0, disturb_algebraic_row=False)
     with pytest.raises(InputError, match=r"objective='h2' needs ẑ − z to have no direct feedthrough.*q0"):
         design_functional_observer(sys_, L, objective="h2", Bw=Bw, Dv=Dv)  # default q0 = 2: noise feeds through
     with pytest.raises(InputError, match="objective='h2' needs a disturbance channel"):

@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 import scipy.optimize as so
 import slycot
-from helpers import joint_error_system
+from helpers import channels_3_3_7, joint_error_system, random_descriptor, scalar_plant
 
 import fojax
 from fojax import InputError, ShapeError
@@ -84,10 +84,6 @@ def check_design(sys_, L, d, Bw, Dv, region: Disk):
     return h.gamma / ab
 
 
-def scalar_plant(a):
-    return fojax.DescriptorSystem(np.eye(1), a * np.eye(1), np.ones((1, 1)), np.eye(1))
-
-
 @pytest.mark.parametrize("kind", ["proportional", "generalized"])
 @pytest.mark.parametrize("a", [-1.0, -2.0])
 def test_scalar_closed_form(kind, a):
@@ -99,22 +95,6 @@ def test_scalar_closed_form(kind, a):
     check_design(scalar_plant(a), one, d, one, one, region)
     assert d.hinf.norm >= opt * (1 - 1e-8)  # nothing beats the closed-form lower bound
     np.testing.assert_allclose(d.hinf.gamma, opt, rtol=1e-5)  # and the LMI reaches it
-
-
-def random_descriptor(seed):
-    """n = 5, rank E = 4 (index 1: A22 kept away from 0), p = 3, q = 2 (default q0 = 2: Σ has
-    q0 + r1 + p = 6 > n rows, so the gains 𝕐, Y3 are free and the H∞ LMI has room)."""
-    rng = np.random.default_rng(seed)
-    n = 5
-    E = np.diag([1.0, 1, 1, 1, 0])
-    A = rng.standard_normal((n, n))
-    A[4, 4] += 3.0 * np.sign(A[4, 4])
-    B = rng.standard_normal((n, 1))
-    C = rng.standard_normal((3, n))
-    L = rng.standard_normal((2, n))
-    Bw = rng.standard_normal((n, 2))
-    Dv = 0.3 * np.eye(3)
-    return fojax.DescriptorSystem(E, A, B, C), L, Bw, Dv
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -153,8 +133,10 @@ def test_uncertainty_channel_factorises_delta_A():
     # §3.3.7's ΔA (ones at (1,3) and (2,2)): rank 2, δ̄ ΔA = Bδ Cδ exactly
     from fojax.design import hinf_uncertainty_channel
 
-    dA = np.asarray(fojax.models.example_3_3_7().dA)
+    ex, Bw, _ = channels_3_3_7(0.3)
+    dA = np.asarray(ex.dA)
     Bd, Cd = hinf_uncertainty_channel(dA, 0.3)
+    np.testing.assert_array_equal(Bd, Bw)
     assert Bd.shape == (6, 2) and Cd.shape == (2, 6)
     np.testing.assert_allclose(Bd @ Cd, 0.3 * dA, atol=1e-15)
 

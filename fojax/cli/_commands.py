@@ -282,8 +282,8 @@ def design(
             summary.append({"name": spec.name, "file": path.name,
                             "status": "verified" if view.passed else "not verified",
                             **view.report, "kind": spec.kind, "q0": view.q0, "q1": view.q1,
-                            **({"hinf": d.hinf.to_dict()} if getattr(d, "hinf", None) is not None else {}),
-                            **({"h2": d.h2.to_dict()} if getattr(d, "h2", None) is not None else {}),
+                            **{k: _certificate_dict(getattr(d, k)) for k in ("hinf", "h2")
+                               if getattr(d, k, None) is not None},
                             **({"live_parameters": {"live": live.live, "free": live.total,
                                                     "live_blocks": list(live.live_blocks()),
                                                     "void_generalized": live.void_generalized}}
@@ -322,6 +322,17 @@ def _live_parameters(d):
     from ..design import FunctionalObserverDesign, live_parameters, TakagiSugenoObserverDesign
 
     return live_parameters(d) if isinstance(d, FunctionalObserverDesign | TakagiSugenoObserverDesign) else None
+
+
+def _certificate_dict(cert) -> dict:
+    """An H∞/H2 certificate (a dataclass) as designs.json stores it: every field, arrays as lists
+    of rows, a non-finite float as ``None`` (`fojax._serialize.json_safe` otherwise)."""
+    import dataclasses
+
+    from .._serialize import json_safe
+
+    return {k: None if isinstance(v, float) and not np.isfinite(v) else json_safe(v)
+            for k, v in dataclasses.asdict(cert).items()}
 
 
 def _hinf_rows(summary) -> tuple[list, list]:
@@ -707,7 +718,8 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                            optimizer=tuning.shared_optimizer("adam", learning_rate=tspec.learning_rate),
                            eval_every=max(1, n_steps // 10), callback=_after_step,
                            checkpoint=checkpoint, resume=resumed, quiet=out.quiet,
-                           devices=_distributed.tuning_devices())
+                           devices=_distributed.tuning_devices(),
+                           robustness=_robustness_terms(tuning, tspec, designs[nm]))
             tuned_name = f"{nm}-tuned"
             designs[tuned_name] = tr.design
             tuned_pairs[tuned_name] = nm
@@ -726,6 +738,8 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
             out.say(f"  {'training-run' if plan.deterministic else 'held-out training-type'} loss "
                     f"{tr.initial_heldout:.4g} -> {tr.final_heldout:.4g}; "
                     f"verification {'PASSED' if tr.design.report.passed else 'FAILED'}; {tr.live_parameters}")
+            if tr.robustness is not None:
+                out.say("  " + _robustness_line(tr.robustness))
 
     # what every sample set simulates, per sample (before the long run: nothing is lost if
     # it is interrupted)
@@ -894,6 +908,25 @@ def _tunable(cfg, design, Disk) -> bool:
     if cfg.is_takagi_sugeno:
         return design.kind in ("generalized", "proportional")
     return design.kind == "generalized" and isinstance(design.region, Disk)
+
+
+def _robustness_terms(tuning, tspec, design):
+    """``[tuning] robustness`` as `fojax.tuning` terms for an ``objective = "hinf"``/``"h2"``
+    design (their channels are its certificate's); ``None`` for any other design."""
+    if not tspec.robustness or (getattr(design, "hinf", None) is None and getattr(design, "h2", None) is None):
+        return None
+    make = {"h2": tuning.H2Term, "hinf": tuning.HinfTerm}
+    return [make[name](weight) for name, weight in tspec.robustness]
+
+
+def _robustness_line(rob: dict) -> str:
+    """The tuning line's norms of the LMI design and the tuned one (AB13DD ‖T‖∞, the tuned design's
+    Riccati-certified γ, SciPy ‖T‖₂)."""
+    a, b = rob["initial"], rob["final"]
+    terms = ", ".join(rob["terms"]) or "no robustness term"
+    gamma = "not certified" if b["gamma"] is None else f"{b['gamma']:.4g}"
+    return (f"‖T‖∞ (AB13DD) {a['hinf_norm']:.4g} -> {b['hinf_norm']:.4g} (tuned: certified γ {gamma}), "
+            f"‖T‖₂ (SciPy) {a['h2_norm']:.4g} -> {b['h2_norm']:.4g} (d = [w; ν] -> ẑ − z; {terms})")
 
 
 #: Barrier weight of the T-S tuning of `fojax study` (tests/test_tuning_ts.py uses the same).

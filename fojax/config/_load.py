@@ -73,6 +73,8 @@ examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
     [tuning]                             # optional gradient tuning settings
     steps = 100
     learning_rate = 0.01
+    robustness = { h2 = 0.1 }            # optional: H2Term / HinfTerm weights ("h2", "hinf") for
+                                         # objective = "hinf"/"h2" observers (their channels)
 
 Every problem raises `fojax.ConfigError` naming the file, the key (dotted path, e.g.
 ``observer[1].region.disk.radius``) and what was expected.
@@ -125,7 +127,7 @@ _DISK = {"center", "radius"}
 _STUDY = {"samples", "horizon", "dt", "seed", "stepper"}
 #: ``[study] stepper``: the stepper of the Monte Carlo run (`fojax.cli` builds the object).
 STEPPERS = ("auto", "exact", "exponential", "diffrax")
-_TUNING = {"steps", "learning_rate"}
+_TUNING = {"steps", "learning_rate", "robustness"}
 
 
 # --------------------------------------------------------------------------- results
@@ -171,10 +173,13 @@ class StudySpec:
 
 @dataclasses.dataclass(frozen=True)
 class TuningSpec:
-    """``[tuning]``: optimisation `steps` and optax `learning_rate`."""
+    """``[tuning]``: optimisation `steps`, optax `learning_rate`, and `robustness`: the built-in
+    terms ``(("h2" | "hinf", weight), ...)`` (`fojax.tuning.H2Term` / `HinfTerm`) added when an
+    ``objective = "hinf"``/``"h2"`` design is tuned."""
 
     steps: int = 100
     learning_rate: float = 0.01
+    robustness: tuple = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -706,6 +711,10 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
             kw["steps"] = v.number("tuning.steps", t["steps"], integer=True, positive=True)
         if "learning_rate" in t:
             kw["learning_rate"] = float(v.number("tuning.learning_rate", t["learning_rate"], positive=True))
+        if "robustness" in t:
+            r = v.table("tuning.robustness", t["robustness"], {"h2", "hinf"})
+            kw["robustness"] = tuple((k, float(v.number(f"tuning.robustness.{k}", r[k], nonneg=True)))
+                                     for k in sorted(r))
         tuning = TuningSpec(**kw)
 
     return Config(

@@ -28,6 +28,9 @@ from ._gain_parameterization import (
     lemma10_gain as lemma10_gain,
 )
 from ._hinf import (
+    check_channels as check_channels,
+    error_norms as error_norms,
+    error_system as error_system,
     H2Certificate as H2Certificate,
     hinf_uncertainty_channel as hinf_uncertainty_channel,
     HinfCertificate as HinfCertificate,

@@ -170,12 +170,6 @@ class HinfCertificate:
                 f"ω = {self.peak_frequency:.4g} rad/s; tightness γ/‖T‖∞ = {self.tightness:.4f}); "
                 f"region-only design: ‖T‖∞ = {self.region_only_norm:.6g}")
 
-    def to_dict(self) -> dict:
-        return {"gamma": self.gamma, "norm": self.norm, "peak_frequency": self.peak_frequency,
-                "tightness": self.tightness, "region_only_norm": self.region_only_norm,
-                "brl_max_eig": self.brl_max_eig, "Bw": np.asarray(self.Bw).tolist(),
-                "Dv": np.asarray(self.Dv).tolist()}
-
     def checks(self, s, params, X) -> list:
         """The H∞ checks of a re-verification (`fojax.design.AbstractDesign.verify`), as
         ``(name, value, failure)`` for `fojax.design.verify`: the bounded-real LMI at
@@ -194,13 +188,6 @@ class HinfCertificate:
             out.append(("H∞ norm (AB13DD)", norm, f"the certified γ = {self.gamma:.8g} is below the norm of the "
                         f"error system computed by SLICOT AB13DD, {norm:.8g} (peak at ω = {freq:.4g} rad/s)"))
         return out
-
-    @classmethod
-    def from_dict(cls, m: dict) -> HinfCertificate:
-        """Inverse of `to_dict` (`fojax.results.load_design`)."""
-        return cls(**{k: float(m[k]) for k in ("gamma", "norm", "peak_frequency", "tightness",
-                                                  "region_only_norm", "brl_max_eig")},
-                   Bw=_matrix(m["Bw"]), Dv=_matrix(m["Dv"]))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,26 +218,6 @@ class H2Certificate:
     def describe(self) -> str:
         return (f"H2 bound ν = {self.nu:.6g} ≥ ‖T‖₂ = {self.norm:.6g} (SciPy Lyapunov; tightness "
                 f"ν/‖T‖₂ = {self.tightness:.4f}); region-only design: ‖T‖₂ = {self.region_only_norm:.6g}")
-
-    def to_dict(self) -> dict:
-        fin = (lambda x: x if np.isfinite(x) else None)
-        return {"nu": self.nu, "norm": self.norm, "tightness": fin(self.tightness),
-                "region_only_norm": fin(self.region_only_norm), "feedthrough": self.feedthrough,
-                "lyapunov_max_eig": self.lyapunov_max_eig, "Bw": np.asarray(self.Bw).tolist(),
-                "Dv": np.asarray(self.Dv).tolist()}
-
-    @classmethod
-    def from_dict(cls, m: dict) -> H2Certificate:
-        """Inverse of `to_dict` (`fojax.results.load_design`); ``None`` is ``inf``."""
-        return cls(**{k: float("inf") if m[k] is None else float(m[k])
-                      for k in ("nu", "norm", "tightness", "region_only_norm", "feedthrough",
-                                "lyapunov_max_eig")},
-                   Bw=_matrix(m["Bw"]), Dv=_matrix(m["Dv"]))
-
-
-def _matrix(rows: list) -> np.ndarray:
-    """A JSON list of rows as an ``(r, c)`` array, also when ``c = 0``."""
-    return np.asarray(rows, dtype=float).reshape(len(rows), len(rows[0]) if rows else 0)
 
 
 def check_channels(n: int, p: int, Bw, Dv, objective: str = "hinf") -> tuple[np.ndarray, np.ndarray]:
@@ -288,25 +255,29 @@ def hinf_uncertainty_channel(dA, delta_max: float, tol: float = 1e-12) -> tuple[
     return float(delta_max) * U[:, :r] * np.sqrt(s[:r]), np.sqrt(s[:r])[:, None] * Vt[:r]
 
 
-def error_system(s, mats, Bw, Dv):
+def error_system(s, mats, Bw, Dv, xp=np):
     r"""$(\mathbb A, \mathbb B, \mathbb C, \mathbb D)$ of $d = [w;\nu] \mapsto \hat z - z$
-    from the observer matrices (rule 0), host float64."""
-    N, J, S, G = (np.asarray(x)[0] for x in (mats.N, mats.J, mats.S, mats.G))
-    F, M, P, Q = (np.asarray(x)[0] for x in (mats.F, mats.M, mats.P, mats.Q))
-    T = np.asarray(mats.T)
-    Dcal = _dcal(s, Bw, Dv)
-    Bbar = np.hstack([Bw, np.zeros((Bw.shape[0], Dv.shape[1]))])
-    A = np.block([[N, J], [S, G]])
-    B = np.vstack([F @ Dcal - T @ Bbar, M @ Dcal])
-    C = np.hstack([P, np.zeros((P.shape[0], G.shape[0]))])
+    from the observer matrices (rule 0): host float64 (``xp=numpy``), or traceable
+    (``xp=jax.numpy``: the robustness terms of `fojax.tuning.tune` use the same formulas)."""
+    N, J, S, G = (xp.asarray(x)[0] for x in (mats.N, mats.J, mats.S, mats.G))
+    F, M, P, Q = (xp.asarray(x)[0] for x in (mats.F, mats.M, mats.P, mats.Q))
+    T = xp.asarray(mats.T)
+    Bw, Dv = xp.asarray(Bw), xp.asarray(Dv)
+    Dcal = _dcal(s, Bw, Dv, xp)
+    Bbar = xp.concatenate([Bw, xp.zeros((Bw.shape[0], Dv.shape[1]))], axis=1)
+    A = xp.concatenate([xp.concatenate([N, J], axis=1), xp.concatenate([S, G], axis=1)], axis=0)
+    B = xp.concatenate([F @ Dcal - T @ Bbar, M @ Dcal], axis=0)
+    C = xp.concatenate([P, xp.zeros((P.shape[0], G.shape[0]))], axis=1)
     D = Q @ Dcal
     return A, B, C, D
 
 
-def _dcal(s, Bw, Dv):
-    Ep = np.asarray(s.Eperp)
-    r1, p = Ep.shape[0], np.asarray(s.C).shape[0]
-    return np.block([[Ep @ Bw, np.zeros((r1, Dv.shape[1]))], [np.zeros((p, Bw.shape[1])), Dv]])
+def _dcal(s, Bw, Dv, xp=np):
+    Ep = xp.asarray(s.Eperp)
+    r1, p = Ep.shape[0], s.C.shape[0]
+    top = xp.concatenate([Ep @ Bw, xp.zeros((r1, Dv.shape[1]))], axis=1)
+    bot = xp.concatenate([xp.zeros((p, Bw.shape[1])), Dv], axis=1)
+    return xp.concatenate([top, bot], axis=0)
 
 
 def hinf_norm(A, B, C, D) -> tuple[float, float]:
@@ -620,3 +591,60 @@ def design_hinf(s, region, *, kind, margin, solver, Bw, Dv, tighten, method="lmi
 def base_mats(s, params):
     return observer_matrices(s, **{k: np.asarray(v) for k, v in params.items()}, xp=np)
 
+
+
+def error_norms(s, params, Bw, Dv) -> dict:
+    r"""The norms of $d = [w;\nu]\mapsto\hat z - z$ for the observer of `params` (host, float64),
+    by the same independent computations every H∞/H2 design is verified with:
+    ``hinf_norm`` and ``peak_frequency`` (SLICOT AB13DD), ``h2_norm`` (SciPy Lyapunov; ``inf``
+    when the feedthrough $Q\mathcal D$ is not round-off, `FEEDTHROUGH_RTOL`) and ``feedthrough``
+    (relative, `_feedthrough`), and ``gamma``: a certified bound ≥ ``hinf_norm`` by
+    `riccati_gamma` (``None`` if it fails). Used for the tuned designs of `fojax.tuning.tune`."""
+    Bw, Dv = check_channels(s.n, s.p, Bw, Dv)
+    mats = base_mats(s, params)
+    A, B, C, D = error_system(s, mats, Bw, Dv)
+    if not np.max(np.linalg.eigvals(A).real) < 0:
+        return {"hinf_norm": float("inf"), "peak_frequency": float("nan"), "gamma": None,
+                "h2_norm": float("inf"), "feedthrough": float("nan")}
+    g, f = hinf_norm(A, B, C, D)
+    ft = _feedthrough(mats, np.asarray(params["Y3"]), _dcal(s, Bw, Dv))
+    h2 = h2_norm(A, B, C) if ft <= FEEDTHROUGH_RTOL else float("inf")
+    return {"hinf_norm": g, "peak_frequency": f, "gamma": riccati_gamma(A, B, C, D, g), "h2_norm": h2,
+            "feedthrough": ft}
+
+
+#: Relative gaps between the AB13DD norm and the γ0 at which `riccati_gamma` tries to certify
+#: (the first that passes is returned; `certify_gamma` may add up to 1 % more).
+RICCATI_GAPS = (1e-4, 1e-3, 1e-2)
+
+
+def riccati_gamma(A, B, C, D, norm) -> float | None:
+    r"""A certified bound γ ≥ ‖T‖∞ for a system without an LMI certificate (a tuned design): the
+    stabilizing solution $Y$ of the bounded-real Riccati equation at $\gamma_0 = $ `norm`
+    ``·(1 + gap)`` (`RICCATI_GAPS`, tried in turn), $A^	op Y + YA + C^	op C + \epsilon I + (YB + C^	op D)
+    (\gamma_0^2I - D^	op D)^{-1}(B^	op Y + D^	op C) = 0$ (SciPy ``solve_continuous_are`` with
+    the negative definite weight $-(\gamma_0^2I - D^	op D)$), gives $X = Y/\gamma_0$ at which the BRL
+    matrix of the designs (`brl_matrix`) is negative definite (Schur complement); `certify_gamma`
+    re-checks it in float64 exactly as for an H∞ design. ``None`` when that fails (reported as
+    "not certified")."""
+    import warnings
+
+    import scipy.linalg as sla
+
+    if not (np.isfinite(norm) and norm > 0) or A.shape[0] == 0:
+        return None
+    Q = C.T @ C
+    Q = Q + 1e-9 * max(1.0, float(np.abs(Q).max())) * np.eye(A.shape[0])
+    for gap in RICCATI_GAPS:  # the Riccati equation is ill-conditioned as γ0 → ‖T‖∞: widen the gap
+        g0 = norm * (1.0 + gap)
+        Rt = g0 * g0 * np.eye(B.shape[1]) - D.T @ D
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                Y = sla.solve_continuous_are(A, B, Q, -Rt, s=C.T @ D)
+            if np.all(np.isfinite(Y)):
+                gamma, _ = certify_gamma(0.5 * (Y + Y.T) / g0, A, B, C, D, g0)
+                return float(gamma)
+        except (np.linalg.LinAlgError, ValueError, DesignVerificationError):
+            pass
+    return None

@@ -13,6 +13,8 @@ written by that code); nothing writes this format any more.
 
 from __future__ import annotations
 
+import numpy as np
+
 from .._errors import InputError
 
 
@@ -97,6 +99,11 @@ def _observer_arrays(arrays: dict, p: str, fields: tuple) -> list:
     return [jnp.asarray(arrays[f"{p}observer/{k}"]) for k in fields]
 
 
+def _rows(rows: list) -> np.ndarray:
+    """A JSON list of rows as an ``(r, c)`` array, also when ``c = 0``."""
+    return np.asarray(rows, dtype=float).reshape(len(rows), len(rows[0]) if rows else 0)
+
+
 def _load_functional(m: dict, arrays: dict, p: str, saved: dict):
     from ..observer import GeneralizedFunctionalObserver
     from . import FunctionalObserverDesign
@@ -106,7 +113,10 @@ def _load_functional(m: dict, arrays: dict, p: str, saved: dict):
     if m.get("hinf"):
         from . import HinfCertificate
 
-        hinf = HinfCertificate.from_dict(m["hinf"])
+        h = m["hinf"]  # the format-1/2 JSON dict (floats; Bw, Dv as lists of rows)
+        hinf = HinfCertificate(**{k: float(h[k]) for k in ("gamma", "norm", "peak_frequency", "tightness",
+                                                            "region_only_norm", "brl_max_eig")},
+                               Bw=_rows(h["Bw"]), Dv=_rows(h["Dv"]))
     return FunctionalObserverDesign(observer=obs, kind=m["kind"], hinf=hinf,
                                     **_structure_design_kwargs(m, arrays, p, saved))
 

@@ -1,6 +1,11 @@
 """Gradient tuning of observer gains over Monte Carlo studies (optax), certified at every iterate."""
 
 from ._optimizer import shared_optimizer as shared_optimizer
+from ._robustness import (
+    AbstractRobustnessTerm as AbstractRobustnessTerm,
+    H2Term as H2Term,
+    HinfTerm as HinfTerm,
+)
 from ._tune import (
     Coordinates as Coordinates,
     initial_parameters as initial_parameters,

@@ -50,7 +50,9 @@ In every mode the count is reported (`TuneResult.live_parameters`, the design's
 
 **Loss.** The batched mean (or `quantile`) of the IAE/ISE of $\hat z - z$ over the training
 study (`fojax.studies.study_loss`), plus ``barrier · parameterization.barrier(params)``,
-plus the user's `extra_loss`. Loss, gradient, the optax update and the backtracking
+plus the user's `extra_loss`, plus the built-in `robustness` terms (`fojax.tuning.H2Term`,
+`fojax.tuning.HinfTerm`: the H2 norm and a smooth H∞ surrogate of the iterate's error system from
+the disturbance/noise channels, `fojax.tuning._robustness`). Loss, gradient, the optax update and the backtracking
 candidates form one `equinox.filter_jit` function, compiled once
 (``TRACE_COUNTS["tune_step"]``; held-out evaluation ``"evaluate"``).
 
@@ -78,6 +80,7 @@ from .._errors import InputError
 from ..design import (
     AbstractParameterization,
     CommonCertificate,
+    error_norms,
     FixedCertificateDisk,
     LiveParameters,
     SteinDisk,
@@ -96,6 +99,7 @@ from ..studies import (
 )
 from ._loop import backtracked_update, check_extra_loss, run_loop
 from ._optimizer import shared_optimizer
+from ._robustness import robustness_terms
 
 
 #: Number of traces of the jitted tuning step and of the held-out evaluation.
@@ -189,6 +193,14 @@ class TuneResult:
         live_parameters: how many free parameters can reach $\\hat z$ (`LiveParameters`).
         parameterization: the `fojax.design.AbstractParameterization` used (its
             ``certify(params)`` rebuilds `design`).
+        robustness: when the disturbance/noise channels are known (a `robustness` term, or an
+            ``objective="hinf"``/``"h2"`` starting design): ``{"terms": [...], "initial": {...},
+            "final": {...}}``, the norms of the starting and the tuned design's error system
+            (``hinf_norm`` and ``peak_frequency`` by SLICOT AB13DD; ``gamma``: a certified bound
+            ≥ ‖T‖∞, 1e-4 to 1e-2 above it, from the bounded-real Riccati equation and re-checked by the
+            H∞ designs' float64 BRL test, ``None`` if that fails; ``h2_norm`` by SciPy's
+            Lyapunov solver, ``inf`` with a feedthrough; `fojax.design._hinf.error_norms`);
+            ``None`` otherwise.
     """
 
     design: object
@@ -198,24 +210,27 @@ class TuneResult:
     final_heldout: float | None
     live_parameters: LiveParameters | None = None
     parameterization: AbstractParameterization | None = None
+    robustness: dict | None = None
 
 
-def _loss_fn(xi, coords, par, study, loss, quantile, weights, cfg, barrier, extra_loss):
+def _loss_fn(xi, coords, par, study, loss, quantile, weights, cfg, barrier, extra_loss, terms=()):
     params = coords.params(xi)
     obs = par.observer(params)
     value = study_loss(study, obs, loss=loss, quantile=quantile, weights=weights, cfg=cfg)
     value = value + barrier * par.barrier(params)
     if extra_loss is not None:
         value = value + extra_loss(obs, par.design_params(params))
+    for term in terms:  # built-in robustness terms (fojax.tuning._robustness)
+        value = value + term(par.structure, par.design_params(params))
     return value
 
 
 @eqx.filter_jit
 def _step(xi, opt_state, coords, par, study, optimizer, loss, quantile, weights, cfg, min_margin, n_back, barrier,
-          extra_loss):
+          extra_loss, terms=()):
     TRACE_COUNTS["tune_step"] += 1
     value, grads = eqx.filter_value_and_grad(_loss_fn)(xi, coords, par, study, loss, quantile, weights, cfg,
-                                                       barrier, extra_loss)
+                                                       barrier, extra_loss, terms)
     updates, new_state = optimizer.update(grads, opt_state, xi)
     new_xi, margin, accepted, backtracks = backtracked_update(
         xi, updates, lambda cand: par.margin(coords.params(cand)), min_margin, n_back)
@@ -239,6 +254,7 @@ def tune(
     quantile: float | None = None,
     weights=None,
     extra_loss: Callable | None = None,
+    robustness=None,
     region=None,
     parameterization=None,
     tune_Z: bool | None = None,
@@ -282,6 +298,16 @@ def tune(
     - `extra_loss`: user terms added to the training loss, ``extra_loss(observer,
       design_params) -> scalar`` (`design_params`: ``Z, Y1, Y2, Y3, J, G``); a pure JAX
       function. The held-out loss is the study loss alone.
+    - `robustness`: built-in robustness terms added to the training loss, a
+      `fojax.tuning.H2Term` (the exact ‖T‖₂² of the iterate's error system from
+      $d = [w;\nu]$ to $\hat z - z$), a `fojax.tuning.HinfTerm` (a smooth surrogate of ‖T‖∞
+      on a frequency grid, not a bound), or a list of them, e.g.
+      ``robustness=fojax.tuning.H2Term(weight=0.1)``; the channels default to the starting
+      ``objective="hinf"``/``"h2"`` design's (`fojax.tuning._robustness`). Linear designs
+      only. Whenever the channels are known (given, or from the starting design's
+      certificate) the result reports the tuned design's ‖T‖∞ (SLICOT AB13DD), a certified
+      γ ≥ ‖T‖∞ (Riccati) and ‖T‖₂ (SciPy) in `TuneResult.robustness` and
+      ``solver["tuning"]["robustness"]``.
     - `region`: the region to stay in (default: the design's region).
     - `parameterization`: an `fojax.design.AbstractParameterization` (instance or class) or
       ``"direct"`` / ``"disk"`` / ``"common_certificate"``; default ``SteinDisk`` (LTI) or
@@ -320,6 +346,7 @@ def tune(
     """
     if loss not in ("iae", "ise"):
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
+    terms, channels = robustness_terms(robustness, design)
     par = make_parameterization(design, parameterization, region, tune_Z=tune_Z)
     params0 = par.init(design)
     out_size = design.observer.output_size
@@ -354,7 +381,7 @@ def tune(
         xi, history = run_loop(
             xi, opt_state, key, steps=steps, step=_step,
             step_args=(coords, par, train_study, optimizer, loss, quantile, w, cfg, jnp.asarray(float(min_margin)),
-                       int(max_backtracks), jnp.asarray(barrier), extra_loss),
+                       int(max_backtracks), jnp.asarray(barrier), extra_loss, terms),
             host_check=lambda x: par.host_check(coords.params(x)),
             heldout_loss=(lambda x: heldout_loss(coords.params(x))) if heldout is not None else None,
             eval_every=eval_every, callback=callback, to_params=coords.params, path=path, resume=resume,
@@ -364,16 +391,21 @@ def tune(
         params = coords.params(xi)
         final_heldout = heldout_loss(params) if heldout is not None else None
     tuned = par.certify(params)
+    robust = None if channels is None else {
+        "terms": [term.describe() for term in terms],
+        "initial": error_norms(design.structure, design.params, *channels),
+        "final": error_norms(tuned.structure, tuned.params, *channels)}
     options = dict(loss=loss, quantile=quantile, steps=steps, tune_Z=tune_Z, barrier=barrier,
                    parameterization=type(par).__name__, precondition=precondition, extra_loss=_name(extra_loss),
-                   live_parameters=live.live, free_parameters=live.total)
+                   live_parameters=live.live, free_parameters=live.total,
+                   **({} if robust is None else {"robustness": robust}))
     tuned = dataclasses.replace(tuned, solver=dict(design.solver, tuning=options))
     if "balance" in tuned.solver:  # a balance=True start: T in the model's units, verified there too
         dl = np.asarray(tuned.solver["balance"]["row_factors"], dtype=float)
         tuned = dataclasses.replace(tuned, T=np.asarray(tuned.T) * dl[None, :])
         tuned = dataclasses.replace(tuned, report=tuned.verify())
     return TuneResult(design=tuned, params=params, history=history, initial_heldout=initial_heldout,
-                      final_heldout=final_heldout, live_parameters=live, parameterization=par)
+                      final_heldout=final_heldout, live_parameters=live, parameterization=par, robustness=robust)
 
 
 def _name(fn) -> str | None:
