@@ -8,7 +8,7 @@ Oracles:
 - *The plant's own transfer functions* (NumPy ``solve``): an observer of z must satisfy
   $H_u(s) + H_y(s)G_y(s) = G_z(s)$ at every $s$ ($G = (sE - A)^{-1}B$ of the plant, $H$ the
   observer's, from its `linear_matrices`). This is what was violated by the twin's design
-  before (``balance=False``: 1.87 absolute at $s = 0.3i$, although its relative residual
+  before (a raw-data design: 1.87 absolute at $s = 0.3i$, although its relative residual
   7e-10 passed verification).
 - *The plain model's design* for the twin's: the same error eigenvalues (matched sets,
   ``tests/helpers.assert_eigenvalues_match``), the same frequency response, the same region
@@ -108,15 +108,29 @@ def test_twin_gets_the_same_verified_observer(lc_designs, kind):
     np.testing.assert_allclose(Rb, a.R, rtol=0, atol=1e-8 * np.abs(a.R).max())
 
 
-def test_regression_unbalanced_twin_design_is_not_an_observer():
-    """Without balancing (``balance=False``, the default), the twin's order-1 design passes its
-    relative residual test but does not estimate z: what ``balance=True`` fixes (the test
-    above). Documents the limitation until the default changes."""
+def test_regression_unbalanced_twin_design_is_refused_or_redesigned():
+    """The twin's order-1 design on the raw data passes the relative residual test there
+    (8e-10: its terms are ~1e6) but does not estimate z (1.87 at s = 0.3i). Regression: it
+    is now also verified in the unit-free frame, where its residual is 2.5e-3, so
+    ``balance=False`` raises `DesignVerificationError` naming that check, and the default
+    (``balance=None``) returns the unit-free design instead, which estimates z (oracle: the
+    plant's transfer functions) and says so in its report."""
     m = lc_filter.lc_filter(True)
     sysm = fojax.DescriptorSystem(m["E"], m["A"], m["B"], m["C"])
-    d = design_functional_observer(sysm, m["L"], kind="proportional", region=REGION, balance=False)
-    assert d.report.passed
-    assert max(_observer_error(d.observer, m, s) for s in POINTS) > 1e-2
+    with pytest.raises(fojax.DesignVerificationError, match="unit-free frame") as err:
+        design_functional_observer(sysm, m["L"], kind="proportional", region=REGION, balance=False)
+    assert err.value.report.relative_residual < 1e-8  # the raw-data test alone passes
+    assert err.value.report.extra["unit-free relative residual"] > 1e-4
+    d = design_functional_observer(sysm, m["L"], kind="proportional", region=REGION)
+    assert "unit-free" in d.report.extra["balance"]
+    assert d.verify().passed
+    assert max(_observer_error(d.observer, m, s) for s in POINTS) < 1e-8
+    # the plain model needs no fallback: the design on its data as given passes both frames
+    m0 = lc_filter.lc_filter(False)
+    d0 = design_functional_observer(fojax.DescriptorSystem(m0["E"], m0["A"], m0["B"], m0["C"]), m0["L"],
+                                    kind="proportional", region=REGION)
+    assert "balance" not in d0.report.extra and d0.report.extra["unit-free relative residual"] < 1e-12
+    assert max(_observer_error(d0.observer, m0, s) for s in POINTS) < 1e-8
 
 
 def _markov(s, p, kind, K):

@@ -112,6 +112,15 @@ class VerificationReport:
         }
 
 
+def relative_residual(residuals: dict, scale: float, scales: dict | None = None) -> float:
+    """The relative residual `verify` compares with ``rtol`` (its docstring has the rule)."""
+    res = {k: float(v) for k, v in residuals.items()}
+    if scales is not None and res:
+        floor = CONDITION_SCALE_FLOOR * max(float(scale), 1.0)
+        return max(v / max(float(scales[k]), floor) for k, v in res.items())
+    return max(res.values()) / max(float(scale), 1.0) if res else 0.0
+
+
 def verify(
     residuals: dict,
     scale: float,
@@ -152,11 +161,7 @@ def verify(
     if error_matrices.ndim == 2:
         error_matrices = error_matrices[None]
     res = {k: float(v) for k, v in residuals.items()}
-    if scales is not None and res:
-        floor = CONDITION_SCALE_FLOOR * max(float(scale), 1.0)
-        rel = max(v / max(float(scales[k]), floor) for k, v in res.items())
-    else:
-        rel = max(res.values()) / max(float(scale), 1.0) if res else 0.0
+    rel = relative_residual(res, scale, scales)
     eigs = (
         np.concatenate([np.linalg.eigvals(Ai) for Ai in error_matrices])
         if error_matrices.shape[-1]
