@@ -168,7 +168,8 @@ def scaling(d: dict, name: str) -> tuple[list[str], list[str]]:
         "",
         source_line(d, name),
         "",
-        "fojax `simulate_lti_batch` vs peer (d) (`scipy.linalg.expm` per sample + vectorised recurrence); "
+        f"fojax `{(d.get('workload') or {}).get('entry_point', 'simulate_lti_batch')}` vs peer (d) "
+        "(`scipy.linalg.expm` per sample + vectorised recurrence); "
         "each entry in a fresh process; speed-up = t_(d) / t_fojax.",
         "",
         "| n | fojax compile (s) | fojax median (s) | fojax samples/s | (d) median (s) | speed-up | max rel. diff | "
@@ -269,9 +270,16 @@ def tuning_scaling(d: dict, name: str) -> tuple[list[str], list[str]]:
 
 
 def _schema_note(name: str, d: dict) -> list[str]:
-    keys = ", ".join(sorted(d)) if isinstance(d, dict) else type(d).__name__
-    return [f"### {name}", "", f"*`{name}_latest.json` exists but its keys are not the expected ones "
-            f"(top level: {keys}); skipped — update `benchmarks/make_readme.py`.*"]
+    """A result file without a table renderer: its scalar top-level values, as a list."""
+    if not isinstance(d, dict):
+        return [f"### {name}", "", f"*`{name}_latest.json` holds a {type(d).__name__}, not a result dict.*"]
+    out = [f"### {name.replace('_', ' ')}", "",
+           f"*Source: [`{_LABEL['results']}/{name}_latest.json`]({_LABEL['link']}/{name}_latest.json); "
+           "no table renderer for this file: its scalar entries follow, the rest is in the file.*", ""]
+    for k, v in d.items():
+        if v is None or isinstance(v, str | int | float | bool):
+            out.append(f"- `{k}`: {fmt(v, '.4g') if isinstance(v, float) else v}")
+    return out
 
 
 def generic(d: dict, name: str) -> tuple[list[str], list[str]]:
@@ -400,7 +408,8 @@ def render_summary(results: Path) -> str:
     for name in names:
         d, err = load(results, name)
         m = (d or {}).get("machine", {}) or {} if isinstance(d, dict) else {}
-        when = f", measured {m.get('date', '?')} on {m.get('cpu', '?')}" if d else " (unreadable)"
+        when = (" (unreadable)" if not d else f", measured {m['date']} on {m.get('cpu', '?')}" if m.get("date")
+                else " (no date or machine recorded in the file)")
         lines.append(f"- [`{name}`](benchmarks/results/{name}_latest.json){when}")
     return "\n".join(lines) + "\n"
 
