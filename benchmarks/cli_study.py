@@ -8,7 +8,7 @@ excluded, as in the issue's target), and records:
 - each phase the command reports (``<message> ...`` then ``done in X s``: designs,
   tuning, Monte Carlo study, report/figures), parsed from its own output;
 - the trace counts of the compiled study / tuning functions after the run
-  (`fojax.tuning.TRACE_COUNTS`, the study engines' counters), which show whether a phase
+  (`fojax.tuning._tune.TRACE_COUNTS`, the study engines' counters), which show whether a phase
   compiled its function again;
 - ``os.getloadavg()`` before and after: the reference machine is a shared 2-core box, so
   the numbers are measured under load unless the load average is below 1.
@@ -39,6 +39,7 @@ _common.prefer_checkout()
 import fojax  # noqa: E402
 import fojax.cli  # noqa: E402
 from fojax.studies import _exact, _runner  # noqa: E402
+from fojax.tuning import _tune  # noqa: E402
 
 
 class _Tee(io.TextIOBase):
@@ -81,7 +82,7 @@ def main():
         with contextlib.redirect_stdout(_Tee(sys.stdout, buf)), contextlib.redirect_stderr(_Tee(sys.stderr, buf)):
             rc = fojax.cli.main(["study"] + ([args.example] if args.example else []) + ["--out", tmp])
         wall, cpu = time.perf_counter() - w, time.process_time() - c
-    traces = {f"tuning.{k}": v for k, v in fojax.tuning.TRACE_COUNTS.items()}
+    traces = {f"tuning.{k}": v for k, v in _tune.TRACE_COUNTS.items()}
     traces.update({f"studies.{k}": v for k, v in _runner.TRACE_COUNTS.items()})
     traces.update({f"studies._exact.{k}": v for k, v in _exact.TRACE_COUNTS.items()})
     result = dict(
