@@ -232,3 +232,38 @@ def test_tuning_a_balanced_design_keeps_model_units():
     Psi = np.vstack([Ep @ A_, C_])
     np.testing.assert_allclose(t.T @ E_ + t.K @ Psi, t.R, rtol=0, atol=1e-10 * np.abs(t.R).max())
     np.testing.assert_allclose(t.R, L_, rtol=1e-15, atol=0)
+
+
+def _eqns(jaxpr):
+    """Every equation of a jaxpr, sub-jaxprs (pjit, scan, while, cond, custom rules) included."""
+    for e in jaxpr.eqns:
+        yield e
+        for v in e.params.values():
+            for sub in v if isinstance(v, tuple | list) else (v,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    yield from _eqns(inner)
+
+
+def test_live_count_makes_no_batched_lapack_call(lc_designs):
+    """Regression: the frequency responses of the live-parameter count used a vmapped solve,
+    i.e. batched LAPACK calls that jaxlib spreads over XLA's intra-op thread pool; two at once
+    deadlocked `fojax study robot_arm_ts` on a quiet 2-core CPU (every thread in futex_wait).
+    The count now solves one point at a time: no `lu`/`triangular_solve` in its compiled
+    function has a batch dimension (read off the jaxpr; a hang itself cannot be tested)."""
+    import jax
+    import jax.numpy as jnp
+
+    from fojax.design._tunable import _features_and_jacobian
+    from fojax.tuning import make_parameterization
+
+    _, designs = lc_designs[False]
+    par = make_parameterization(designs["generalized"])
+    params = par.init(designs["generalized"])
+    names = tuple(sorted((k, tuple(np.shape(v))) for k, v in params.items()))
+    flat = jnp.concatenate([jnp.ravel(jnp.asarray(params[k])) for k, _ in names])
+    jaxpr = jax.make_jaxpr(lambda f: _features_and_jacobian(par.observer, names, f, jnp.asarray(1.0), 8))(flat)
+    solves = [e for e in _eqns(jaxpr.jaxpr) if e.primitive.name in ("lu", "triangular_solve")]
+    assert solves  # the responses are computed by LU solves
+    assert all(v.aval.ndim == 2 for e in solves for v in e.invars), [
+        (e.primitive.name, [v.aval.shape for v in e.invars]) for e in solves if any(v.aval.ndim != 2 for v in e.invars)]

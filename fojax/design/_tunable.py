@@ -188,7 +188,13 @@ def _response_features(obs, rho, K):
             Xri = jnp.linalg.solve(Mw, jnp.concatenate([B, jnp.zeros_like(B)], axis=0))
             return jnp.stack([C @ Xri[:d] + D, C @ Xri[d:]])
 
-        resp = jax.vmap(at)(omegas)  # (K, 2, q, m + p)
+        # lax.map, not vmap: a vmapped solve is one *batched* LAPACK call, which jaxlib spreads
+        # over XLA's intra-op thread pool and waits for; two of them running at once (the
+        # rules, or the forward and tangent parts under jacfwd) can occupy every pool thread
+        # while waiting for each other — a deadlock measured on a quiet 2-core CPU in
+        # `fojax study robot_arm_ts` (every thread in futex_wait, 0 % CPU, inside jaxlib's
+        # TriMatrixEquationSolver / ParallelBatchMap). One unbatched solve per point cannot.
+        resp = jax.lax.map(at, omegas)  # (K, 2, q, m + p)
         out.append(resp.reshape((-1,) + resp.shape[-2:]))
     return jnp.concatenate(out)  # (rules * K * 2, q, m + p)
 
