@@ -276,9 +276,14 @@ def _schema_note(name: str, d: dict) -> list[str]:
     out = [f"### {name.replace('_', ' ')}", "",
            f"*Source: [`{_LABEL['results']}/{name}_latest.json`]({_LABEL['link']}/{name}_latest.json); "
            "no table renderer for this file: its scalar entries follow, the rest is in the file.*", ""]
+    rest = []
     for k, v in d.items():
         if v is None or isinstance(v, str | int | float | bool):
             out.append(f"- `{k}`: {fmt(v, '.4g') if isinstance(v, float) else v}")
+        else:
+            rest.append(f"`{k}`")
+    if rest:
+        out.append(f"- other entries (in the file): {', '.join(rest)}")
     return out
 
 

@@ -172,7 +172,7 @@ def test_make_readme_copies_numbers_and_skips_unknown_schemas(tmp_path):
     assert "3.0e-14" in text
     assert "fojax is slower than (d) expm + recurrence at B = 10 (0.62×)" in text
     assert "6.12 s" in text  # first call at the smallest B, compilation included
-    assert "keys are not the expected ones" in text and "something_else" in text
+    assert "no table renderer for this file" in text and "something_else" in text
     assert "`scaling`" in text and "`design_scaling`" in text  # listed as not measured
 
 
