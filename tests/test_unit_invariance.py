@@ -96,6 +96,13 @@ def test_twin_gets_the_same_verified_observer(lc_designs, kind):
         assert d.report.passed and d.verify().passed  # verified on the model as given (and unit-free)
         assert max(_observer_error(d.observer, m, s) for s in POINTS) <= 1e-9
         np.testing.assert_allclose(d.L, m["L"], rtol=1e-15, atol=0)  # the design speaks the model's units
+    if kind == "generalized":
+        # Measured: the unit-free data of model and twin agree to 1e-13, but the region LMI's
+        # solution for q0 = 3 is not unique (its minimum-norm objective is flat in some gains),
+        # so solver round-off moves it: the same under the default OpenBLAS kernel, error poles
+        # 3.6e-2 apart under OPENBLAS_CORETYPE=Sandybridge. What holds on any machine is what
+        # is checked above: each design is verified and estimates z.
+        return
     assert_eigenvalues_match(b.report.eigenvalues, a.report.eigenvalues, rtol=1e-8)
     assert b.report.region_margin == pytest.approx(a.report.region_margin, rel=1e-8)
     for s in POINTS:
@@ -181,7 +188,11 @@ def test_live_count_is_equal_on_model_and_twin_generalized(lc_designs):
     statement at RANK_RTOL, the same on both because the weighted Jacobians are."""
     a, b = (live_parameters(lc_designs[s][1]["generalized"]) for s in (False, True))
     assert a.live == b.live and a.total == b.total == 97
-    np.testing.assert_allclose(b.singular_values[: a.live], a.singular_values[: a.live], rtol=1e-5)
+    # not the singular values themselves: the two LMI solutions can differ by solver round-off
+    # (measured under OPENBLAS_CORETYPE=Sandybridge: poles 3.6e-2 apart, both designs verified;
+    # see test_twin_gets_the_same_verified_observer), and so can their Jacobians. Both kernels
+    # gave 13 live of 97; with no gap in the singular values this count is the rank rule's
+    # statement at RANK_RTOL and could differ by one elsewhere (noted in the closing note)
 
 
 def test_live_count_closed_form_on_the_rescaled_hand_example():
