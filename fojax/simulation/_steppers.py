@@ -28,6 +28,7 @@ naming the stepper and the reason.
 
 from __future__ import annotations
 
+import abc
 from typing import ClassVar
 
 import equinox as eqx
@@ -60,10 +61,10 @@ class AbstractStepper(eqx.Module):
         the others, the defaults (unused by their own stepping)."""
         return Diffrax()
 
+    @abc.abstractmethod
     def select(self, plant, observers, ts, u) -> AbstractStepper:
         """The stepper one `fojax.simulate` call runs with (`Exact` or `Diffrax`); raises
         `fojax.InputError` when this stepper is not exact for the model."""
-        raise NotImplementedError
 
 
 class Diffrax(AbstractStepper):
