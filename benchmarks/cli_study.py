@@ -69,6 +69,10 @@ def phases(text: str) -> list[dict]:
     return out
 
 
+# The issues' wall-clock targets for the command (install and import excluded).
+TARGETS = {None: "fojax study <= 30 s (issue 13)", "robot_arm_ts": "fojax study robot_arm_ts <= 3 min (issue 18)"}
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--example", default=None, help="a config or shipped example (default: the command's own)")
@@ -87,13 +91,19 @@ def main():
     traces.update({f"studies._exact.{k}": v for k, v in _exact.TRACE_COUNTS.items()})
     result = dict(
         status="complete" if rc == 0 else f"failed (exit {rc})",
-        benchmark="cli_study (issue 13): `fojax study` on the default example, install/import excluded",
-        target="fojax study <= 30 s",
+        benchmark=(
+            "cli_study (issue 13): `fojax study` on the default example, install/import excluded"
+            if args.example is None
+            else f"cli_study (issue 18): `fojax study {args.example}`, install/import excluded"
+        ),
+        target=TARGETS.get(args.example, "none stated"),
         command=f"fojax study {args.example or ''} --out <tmp>".replace("  ", " "),
         wall_s=wall, cpu_s=cpu, phases=phases(buf.getvalue()), trace_counts=traces,
         machine=info, load_average_before=load0, load_average_after=_common.load_average(),
         note="measured once; on a shared 2-core machine under load unless the load averages are < 1",
     )
+    if args.example is not None and args.out == ap.get_default("out"):
+        args.out = str(_common.RESULTS / f"cli_study_{Path(args.example).stem}_latest.json")
     _common.write_result(args.out, result)
     print(f"wall {wall:.1f} s, cpu {cpu:.1f} s, phases {result['phases']}, traces {traces}", flush=True)
 
