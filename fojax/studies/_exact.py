@@ -47,7 +47,7 @@ from ..simulation._reduction import (
     SVDSplit,
 )
 from ..simulation._save import METRIC_NAMES
-from ..simulation._simulate import UNIFORM_GRID_RTOL
+from ..simulation._steppers import grid_deviation, UNIFORM_GRID_RTOL
 from ._adjoint import split_recurrence_reduce
 from ._sharding import per_sample
 from ._wrappers import FaultProfile, FaultyPlant
@@ -300,21 +300,11 @@ def exact_problem(study, observers, settle_tol: float, keep: int, kinds: tuple[s
     """Host: the `StudyProblem` of `study`, or ``(None, reason)`` when it does not qualify.
     ``keep``: 0, or the stride of the kept error trajectories (`StudyProblem.keep`);
     ``kinds``: the metrics to accumulate (`StudyProblem.kinds`)."""
-    if not all(_structure(lambda o: o.linear_matrices(), o) is not None for o in observers):
-        return None, "an observer is not LTI"
     if not is_concrete(study):
         return None, "the study's arrays are traced"
-    t = np.asarray(study.ts)
-    T = t.shape[0]
-    h = (t[-1] - t[0]) / (T - 1)
-    if not (h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL):
-        return None, "the grid is not uniform"
-    plant0 = _structure(lambda s: s.sample(0, 0)[0], study)
-    base, _, _, fault = _unwrap(plant0)
-    if _structure(lambda s: lti_matrices(_unwrap(s.sample(0, 0)[0])[0]), study) is None:
-        return None, f"the plant ({type(base).__name__}) is not LTI"
-    if not exactly_generated(study.u) or (fault is not None and not exactly_generated(fault)):
-        return None, "a signal has no exact exosystem"
+    reason = exact_refusal(study, observers)
+    if reason is not None:
+        return None, reason
     # every sample must share E (one SVD split for all): checked on the host
     iu = np.arange(study.num_samples) // study.num_scenarios
     jf = np.arange(study.num_samples) % study.num_scenarios
@@ -400,24 +390,28 @@ def blocked(fn, p, width: int):
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
 
-def traced_qualifies(study, observers) -> bool:
-    """Whether `study_loss` can use the exact kernel: decided from types only (works on a
-    traced study inside `jax.jit` / `jax.grad`); a traced grid is assumed uniform, as
-    `fojax.simulate`'s ``"auto"`` does."""
-    if not all(o.linear_matrices() is not None for o in observers):
-        return False
-    plant0, _ = study.sample(0, 0)
-    base, _, _, fault = _unwrap(plant0)
-    if lti_matrices(base) is None:
-        return False
+def exact_refusal(study, observers) -> str | None:
+    """Why the exact batch kernel cannot run `study` (``None``: it can): the one test of
+    `exact_problem` (`run_study`) and `traced_qualifies` (`study_loss`). Decided from the
+    types and shapes of sample 0 (no arrays are computed, so it also works on a traced
+    study) and from the grid when it is concrete (`grid_deviation`, the one uniform-grid
+    test; a traced grid is assumed uniform, as `fojax.Auto` does)."""
+    if not all(_structure(lambda o: o.linear_matrices(), o) is not None for o in observers):
+        return "an observer is not LTI"
+    if is_concrete(study.ts) and not grid_deviation(study.ts)[0] <= UNIFORM_GRID_RTOL:
+        return "the grid is not uniform"
+    base, _, _, fault = _unwrap(_structure(lambda s: s.sample(0, 0)[0], study))
+    if _structure(lambda s: lti_matrices(_unwrap(s.sample(0, 0)[0])[0]), study) is None:
+        return f"the plant ({type(base).__name__}) is not LTI"
     if not exactly_generated(study.u) or (fault is not None and not exactly_generated(fault)):
-        return False
-    if is_concrete(study.ts):
-        t = np.asarray(study.ts)
-        T = t.shape[0]
-        h = (t[-1] - t[0]) / (T - 1)
-        return bool(h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL)
-    return True
+        return "a signal has no exact exosystem"
+    return None
+
+
+def traced_qualifies(study, observers) -> bool:
+    """Whether `study_loss` can use the exact kernel (`exact_refusal`; works on a traced
+    study inside `jax.jit` / `jax.grad`)."""
+    return exact_refusal(study, observers) is None
 
 
 def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts):
