@@ -114,13 +114,17 @@ def fojax_metrics(res):
 
 
 def timed(f, repeats):
-    ts = []
+    """``(median wall s, wall runs, last output, process CPU s per run)``: on the shared
+    machine the CPU seconds move less with the load than the wall times (fojax's include
+    XLA's second thread; the peer runs single-threaded BLAS)."""
+    ts, cs = [], []
     out = None
     for _ in range(repeats):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = f()
         ts.append(time.perf_counter() - t)
-    return statistics.median(ts), ts, out
+        cs.append(time.process_time() - c)
+    return statistics.median(ts), ts, out, cs
 
 
 def main():
@@ -151,8 +155,8 @@ def main():
         agree = float(np.max(rel))
         if not (agree <= 1e-8 and np.array_equal(np.isfinite(got), fin)):
             raise SystemExit(f"B={B}: fojax and the peer disagree (max rel {agree:.2e})")
-        med, reps, _ = timed(lambda: fojax.run_study(study, obs, quantiles=(), quiet=True), args.repeats)
-        pmed, preps, _ = timed(lambda: peer(d), max(1, args.repeats if B <= 1000 else 1))
+        med, reps, _, cpu = timed(lambda: fojax.run_study(study, obs, quantiles=(), quiet=True), args.repeats)
+        pmed, preps, _, pcpu = timed(lambda: peer(d), max(1, args.repeats if B <= 1000 else 1))
         t = time.perf_counter()
         qres = fojax.run_study(study, obs, quiet=True)  # default quantile bands: another structure, compiles once
         qfirst = time.perf_counter() - t
@@ -163,8 +167,8 @@ def main():
         band_agree = float(np.max(np.abs(fb - pbands)) / np.max(np.abs(pbands)))
         if not band_agree <= 1e-8:
             raise SystemExit(f"B={B}: fojax's and the peer's quantile bands disagree ({band_agree:.2e})")
-        qmed, qreps, _ = timed(lambda: fojax.run_study(study, obs, quiet=True), args.repeats)
-        qpmed, qpreps, _ = timed(lambda: peer(d, (stride, levels)), 1)
+        qmed, qreps, _, qcpu = timed(lambda: fojax.run_study(study, obs, quiet=True), args.repeats)
+        qpmed, qpreps, _, qpcpu = timed(lambda: peer(d, (stride, levels)), 1)
         row = dict(
             B=B, agreement_max_rel=agree,
             fojax_first_call_s=first, fojax_compile_estimate_s=first - med, fojax_median_s=med, fojax_runs_s=reps,
@@ -176,6 +180,10 @@ def main():
             peer_with_bands_s=qpmed, speedup_default_settings_vs_peer_with_bands=qpmed / qmed,
             peer_median_s=pmed, peer_runs_s=preps, peer_samples_per_s=B / pmed,
             speedup_vs_peer=pmed / med,
+            cpu_s=dict(fojax_metrics_only_min=min(cpu), fojax_default_quantiles_min=min(qcpu), peer=min(pcpu),
+                       peer_with_bands=min(qpcpu)),
+            cpu_ratio_default_settings_vs_peer_with_bands=min(qpcpu) / min(qcpu),
+            cpu_ratio_default_settings_vs_metrics_only_peer=min(pcpu) / min(qcpu),
             load_average=_common.load_average(),
             num_devices=res.attrs["num_devices"],
         )

@@ -159,7 +159,7 @@ def main():
         err_fojax, settle_fojax = max_rel(got[:, ref_idx], ref)
         err_peer, settle_peer = max_rel(peer[:, ref_idx], ref)
         c = time.process_time()
-        med, reps, _ = sd.timed(lambda: fojax.run_study(study, obs, quantiles=(), quiet=True), args.repeats)
+        med, reps, _, _ = sd.timed(lambda: fojax.run_study(study, obs, quantiles=(), quiet=True), args.repeats)
         run_cpu = (time.process_time() - c) / max(1, len(reps))
         peer_rate = len(peer_idx) / peer_s
         row = dict(

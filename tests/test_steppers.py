@@ -278,6 +278,30 @@ def test_metric_vocabulary_is_the_same_everywhere(lti_results):
         simulate_lti_batch(model, p, jnp.asarray(x0)[None], TS, metrics={"x": ("peak", Ce, "sum")})
 
 
+def test_batch_engines_accumulate_only_the_requested_metrics(lti_results):
+    """`Metrics(kinds)` on the exact and exponential kernels: only the named metrics (and the
+    peak, the success test) are accumulated in the time loop, and they equal the full run's
+    bit for bit (the same sums in the same order). Oracle: the default `Metrics()` run."""
+    st, full, _ = lti_results
+    kinds = ("iae", "settling_time")
+    save = fojax.Metrics(kinds=kinds, bands=fojax.Bands((0.1, 0.9), 11))
+    res = fojax.run_study(st, OBS, stepper=fojax.Exact(), save=save, quiet=True)
+    assert set(res.metrics) == {"iae", "settling_time", "success", "quantiles"}
+    for k in ("iae", "settling_time", "success", "quantiles"):
+        np.testing.assert_array_equal(res.metrics[k], full.metrics[k], err_msg=k)
+    (problem, _, _), _ = S._exact.exact_problem(st, (OBS,), SETTLE, 0, kinds=kinds)
+    assert problem.computed == ("iae", "peak", "settling_time")
+    assert len(problem.init(jnp.zeros((2, 3)))) == 3  # three accumulators, not five
+    # the exponential engine reduces with the same problem
+    tv = sine_study()
+    one = fojax.run_study(tv, OBS, stepper=fojax.Exponential(), save=fojax.Metrics(kinds=("ise",), bands=None),
+                          quiet=True)
+    all_ = fojax.run_study(tv, OBS, stepper=fojax.Exponential(), save=fojax.Metrics(bands=None), quiet=True)
+    assert set(one.metrics) == {"ise", "success"}
+    np.testing.assert_array_equal(one.metrics["ise"], all_.metrics["ise"])
+    np.testing.assert_array_equal(one.metrics["success"], all_.metrics["success"])
+
+
 class _Model:
     """``params -> (plant, observers)`` of the LTI study (a stable function object)."""
 

@@ -69,6 +69,17 @@ def test_band_stride_and_band_quantiles_equal_np_quantile():
         one = np.quantile(E[..., :1], q, axis=-1)
     assert got.shape == want.shape and np.array_equal(got, want, equal_nan=True)
     assert np.array_equal(S._runner.band_quantiles(E[..., :1], q), one, equal_nan=True)
+    # overwrite=True (the exact engine's own buffer) sorts in place: same numbers; a
+    # read-only array is copied, never written
+    F = E.copy()
+    with np.errstate(invalid="ignore"):
+        assert np.array_equal(S._runner.band_quantiles(F, q, overwrite=True), want, equal_nan=True)
+    assert np.array_equal(F, np.sort(E, axis=-1), equal_nan=True)
+    R = E.copy()
+    R.flags.writeable = False
+    with np.errstate(invalid="ignore"):
+        assert np.array_equal(S._runner.band_quantiles(R, q, overwrite=True), want, equal_nan=True)
+    assert np.array_equal(R, E, equal_nan=True)
 
 
 def test_vmap_engine_bands_on_the_coarse_grid(bench):

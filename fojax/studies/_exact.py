@@ -46,7 +46,8 @@ from ..simulation._reduction import (
     svd_split,
     SVDSplit,
 )
-from ..simulation._simulate import UNIFORM_GRID_RTOL
+from ..simulation._save import METRIC_NAMES
+from ..simulation._steppers import grid_deviation, UNIFORM_GRID_RTOL
 from ._adjoint import split_recurrence_reduce
 from ._sharding import per_sample
 from ._wrappers import FaultProfile, FaultyPlant
@@ -155,6 +156,15 @@ class StudyProblem(eqx.Module):
     # 0: metrics only; k >= 1: also the error trajectories on every k-th grid point
     # (``ts[::k]``, the quantile bands' grid of `fojax.studies._runner.band_stride`)
     keep: int = eqx.field(static=True, default=0)
+    # the metrics asked for (`fojax.Metrics.kinds`); only these (and "peak") are accumulated
+    kinds: tuple[str, ...] = eqx.field(static=True, default=METRIC_NAMES)
+
+    @property
+    def computed(self) -> tuple[str, ...]:
+        """The metrics accumulated along the grid, in `METRIC_NAMES` order: the requested
+        `kinds` and always ``"peak"`` (one maximum per step; its finiteness is the
+        sample's success test even when only the settling time is asked for)."""
+        return tuple(k for k in METRIC_NAMES if k in self.kinds or k == "peak")
 
     def joint(self, p):
         # p = (i, j) or (i, j, observers): one copy of the observers per sample (`study_loss`
@@ -208,37 +218,51 @@ class StudyProblem(eqx.Module):
         jumps = (exo.jt, dW) if exo.jt.shape[0] else None
         return Aj, w0, G, ok, jumps
 
-    # metrics along the grid, as `error_metrics` defines them
+    # metrics along the grid, as `error_metrics` defines them; one accumulator per computed
+    # metric (`computed`), in that order
     def init(self, o0):
         a = jnp.abs(o0)
         z = jnp.zeros_like(a)
-        return z, z, z, a, jnp.where(a > self.settle_tol, 0, -1)
+        first = dict(peak=a, settling_time=jnp.where(a > self.settle_tol, 0, -1))
+        return tuple(first.get(k, z) for k in self.computed)
 
     def update(self, acc, o, k, ts):
-        s1, s2, s3, peak, last = acc
         a = jnp.abs(o)
-        return s1 + a, s2 + o * o, s3 + (ts[k] - ts[0]) * a, jnp.maximum(peak, a), jnp.where(a > self.settle_tol, k, last)
+        step = dict(iae=lambda s: s + a, ise=lambda s: s + o * o, itae=lambda s: s + (ts[k] - ts[0]) * a,
+                    peak=lambda s: jnp.maximum(s, a), settling_time=lambda s: jnp.where(a > self.settle_tol, k, s))
+        return tuple(step[name](v) for name, v in zip(self.computed, acc))
 
     def update_block(self, acc, O, ks, ts):
         """`update` over ``m`` consecutive steps at once: ``O`` ``(b, K, m)``, ``ks`` ``(m,)``."""
-        s1, s2, s3, peak, last = acc
         a = jnp.abs(O)
-        tk = (ts[ks] - ts[0])[None, None, :]
-        above = jnp.max(jnp.where(a > self.settle_tol, ks[None, None, :], -1), axis=2).T
-        return (s1 + jnp.sum(a, axis=2).T, s2 + jnp.sum(O * O, axis=2).T, s3 + jnp.sum(tk * a, axis=2).T,
-                jnp.maximum(peak, jnp.max(a, axis=2).T), jnp.maximum(last, above))
+
+        def itae(s):
+            tk = (ts[ks] - ts[0])[None, None, :]
+            return s + jnp.sum(tk * a, axis=2).T
+
+        def settle(s):
+            return jnp.maximum(s, jnp.max(jnp.where(a > self.settle_tol, ks[None, None, :], -1), axis=2).T)
+
+        step = dict(iae=lambda s: s + jnp.sum(a, axis=2).T, ise=lambda s: s + jnp.sum(O * O, axis=2).T, itae=itae,
+                    peak=lambda s: jnp.maximum(s, jnp.max(a, axis=2).T), settling_time=settle)
+        return tuple(step[name](v) for name, v in zip(self.computed, acc))
 
     def final(self, acc, o0, o_end, ts, h, ok):
-        s1, s2, s3, peak, last = acc
+        """``(metrics (len(computed), K, b), success (b,))``: NaN metrics where a computed
+        metric other than the settling time is not finite (or ``ok`` is false)."""
         T = ts.shape[0]
         a0, a1 = jnp.abs(o0), jnp.abs(o_end)
         tr = ts - ts[0]
-        iae = h * (s1 + 0.5 * a0 - 0.5 * a1)
-        ise = h * (s2 + 0.5 * o0 * o0 - 0.5 * o_end * o_end)
-        itae = h * (s3 - 0.5 * tr[-1] * a1)
-        settle = jnp.where(last < 0, 0.0, jnp.where(last == T - 1, jnp.inf, tr[jnp.minimum(last + 1, T - 1)]))
-        mets = jnp.stack([iae, ise, itae, peak, settle])  # (5, K, b)
-        good = ok & jnp.all(jnp.isfinite(mets[:4]), axis=(0, 1))
+
+        def settle(last):
+            return jnp.where(last < 0, 0.0, jnp.where(last == T - 1, jnp.inf, tr[jnp.minimum(last + 1, T - 1)]))
+
+        end = dict(iae=lambda s1: h * (s1 + 0.5 * a0 - 0.5 * a1),
+                   ise=lambda s2: h * (s2 + 0.5 * o0 * o0 - 0.5 * o_end * o_end),
+                   itae=lambda s3: h * (s3 - 0.5 * tr[-1] * a1), peak=lambda p: p, settling_time=settle)
+        mets = jnp.stack([end[name](v) for name, v in zip(self.computed, acc)])  # (len(computed), K, b)
+        finite = [i for i, name in enumerate(self.computed) if name != "settling_time"]
+        good = ok & jnp.all(jnp.isfinite(mets[np.array(finite)]), axis=(0, 1))
         return jnp.where(good[None, None], mets, jnp.nan), good
 
 
@@ -272,24 +296,15 @@ def _structure(fn, *args):
     return eqx.filter_eval_shape(fn, *args)
 
 
-def exact_problem(study, observers, settle_tol: float, keep: int):
+def exact_problem(study, observers, settle_tol: float, keep: int, kinds: tuple[str, ...] = METRIC_NAMES):
     """Host: the `StudyProblem` of `study`, or ``(None, reason)`` when it does not qualify.
-    ``keep``: 0, or the stride of the kept error trajectories (`StudyProblem.keep`)."""
-    if not all(_structure(lambda o: o.linear_matrices(), o) is not None for o in observers):
-        return None, "an observer is not LTI"
+    ``keep``: 0, or the stride of the kept error trajectories (`StudyProblem.keep`);
+    ``kinds``: the metrics to accumulate (`StudyProblem.kinds`)."""
     if not is_concrete(study):
         return None, "the study's arrays are traced"
-    t = np.asarray(study.ts)
-    T = t.shape[0]
-    h = (t[-1] - t[0]) / (T - 1)
-    if not (h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL):
-        return None, "the grid is not uniform"
-    plant0 = _structure(lambda s: s.sample(0, 0)[0], study)
-    base, _, _, fault = _unwrap(plant0)
-    if _structure(lambda s: lti_matrices(_unwrap(s.sample(0, 0)[0])[0]), study) is None:
-        return None, f"the plant ({type(base).__name__}) is not LTI"
-    if not exactly_generated(study.u) or (fault is not None and not exactly_generated(fault)):
-        return None, "a signal has no exact exosystem"
+    reason = exact_refusal(study, observers)
+    if reason is not None:
+        return None, reason
     # every sample must share E (one SVD split for all): checked on the host
     iu = np.arange(study.num_samples) // study.num_scenarios
     jf = np.arange(study.num_samples) % study.num_scenarios
@@ -300,7 +315,7 @@ def exact_problem(study, observers, settle_tol: float, keep: int):
     check_index1_host(E0, np.asarray(A0), jacobian_name="A")
     r = int(np.sum(np.asarray(split.slow)))
     problem = StudyProblem(study, tuple(observers), split, jnp.asarray(E0), jnp.asarray(float(settle_tol)), r,
-                           int(keep))
+                           int(keep), tuple(kinds))
     G0, _ = _first_joint(problem, (jnp.asarray(0), jnp.asarray(0)))
     basis = _output_basis(np.asarray(G0))
     basis = None if basis is None else (basis[0], jnp.asarray(basis[1]))
@@ -375,24 +390,28 @@ def blocked(fn, p, width: int):
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
 
-def traced_qualifies(study, observers) -> bool:
-    """Whether `study_loss` can use the exact kernel: decided from types only (works on a
-    traced study inside `jax.jit` / `jax.grad`); a traced grid is assumed uniform, as
-    `fojax.simulate`'s ``"auto"`` does."""
-    if not all(o.linear_matrices() is not None for o in observers):
-        return False
-    plant0, _ = study.sample(0, 0)
-    base, _, _, fault = _unwrap(plant0)
-    if lti_matrices(base) is None:
-        return False
+def exact_refusal(study, observers) -> str | None:
+    """Why the exact batch kernel cannot run `study` (``None``: it can): the one test of
+    `exact_problem` (`run_study`) and `traced_qualifies` (`study_loss`). Decided from the
+    types and shapes of sample 0 (no arrays are computed, so it also works on a traced
+    study) and from the grid when it is concrete (`grid_deviation`, the one uniform-grid
+    test; a traced grid is assumed uniform, as `fojax.Auto` does)."""
+    if not all(_structure(lambda o: o.linear_matrices(), o) is not None for o in observers):
+        return "an observer is not LTI"
+    if is_concrete(study.ts) and not grid_deviation(study.ts)[0] <= UNIFORM_GRID_RTOL:
+        return "the grid is not uniform"
+    base, _, _, fault = _unwrap(_structure(lambda s: s.sample(0, 0)[0], study))
+    if _structure(lambda s: lti_matrices(_unwrap(s.sample(0, 0)[0])[0]), study) is None:
+        return f"the plant ({type(base).__name__}) is not LTI"
     if not exactly_generated(study.u) or (fault is not None and not exactly_generated(fault)):
-        return False
-    if is_concrete(study.ts):
-        t = np.asarray(study.ts)
-        T = t.shape[0]
-        h = (t[-1] - t[0]) / (T - 1)
-        return bool(h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL)
-    return True
+        return "a signal has no exact exosystem"
+    return None
+
+
+def traced_qualifies(study, observers) -> bool:
+    """Whether `study_loss` can use the exact kernel (`exact_refusal`; works on a traced
+    study inside `jax.jit` / `jax.grad`)."""
+    return exact_refusal(study, observers) is None
 
 
 def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts):

@@ -81,6 +81,7 @@ from ..simulation._exponential import (
     setup_data,
 )
 from ..simulation._reduction import host_initial_checks, is_concrete
+from ..simulation._save import METRIC_NAMES
 from ..simulation._steppers import Exponential, grid_deviation, UNIFORM_GRID_RTOL
 from ._exact import StudyProblem
 
@@ -195,10 +196,11 @@ def _off_step_grid(bps: np.ndarray, t0: float, t1: float, h_step: float) -> np.n
 
 
 def exponential_problem(study, observers, settle_tol: float, keep: bool, strict: bool,
-                        options: Exponential = Exponential()):
+                        options: Exponential = Exponential(), kinds: tuple[str, ...] = METRIC_NAMES):
     """Host: ``((problem, None, (iu, jf)), None)`` for `run_batched`, or ``(None,
     reason)`` when the study does not qualify (with `strict`: raise `fojax.InputError`).
-    `options`: the `fojax.Exponential` stepper (its step schedule)."""
+    `options`: the `fojax.Exponential` stepper (its step schedule); `kinds`: the metrics
+    to accumulate (`fojax.studies._exact.StudyProblem.kinds`)."""
 
     def refuse(reason):
         if strict:
@@ -253,7 +255,8 @@ def exponential_problem(study, observers, settle_tol: float, keep: bool, strict:
         )
     hj = jnp.asarray(h)
     phis = (phi_functions(A0k, hj / substeps), phi_functions(A0k, hj / sub_start))
-    reducer = StudyProblem(study, tuple(observers), None, None, jnp.asarray(float(settle_tol)), None, keep)
+    reducer = StudyProblem(study, tuple(observers), None, None, jnp.asarray(float(settle_tol)), None, keep,
+                           tuple(kinds))
     problem = ExponentialProblem(setup, reducer, shared, phis, plan, (n_start, sub_start, substeps))
     return (problem, None, (idx, per)), None
 
