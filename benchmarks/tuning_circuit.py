@@ -36,11 +36,36 @@ Learning rate 0.1 (Adam), 100 steps: chosen from a 60-step pilot on 16 training 
 (learning rates 0.05 and 0.2: held-out −21 % / −22 % on the plain model with ``"live"``),
 not from the recorded run.
 
+**Why (a) stalls near −22 % (``--diagnose``, the JSON's ``"diagnosis"``; one run each, under
+load).** Not the step budget, the barrier, the coordinates or the order; the region and the
+32 training samples, in that order of size:
+
+- *In-sample ceiling.* Fitting the 128 held-out samples themselves (L-BFGS-B, JAX gradients,
+  from the centred design, each optimum certified): −23.4 % in ``Disk(-3, 2)`` (with the
+  barrier), −23.7 % in ``Disk(-6, 5.9)``, −23.5 % there
+  at ``q0 = 5``, and −25.8 % only in ``Disk(-30, 29.9)`` (poles at −28.5 and
+  −0.41 ± 2.01i: faster than −5 and slower than −1). So no training set lets a local search
+  reach −25 % with the poles in ``Disk(-3, 2)``: **the region is the limit** of the target.
+- *Training set.* L-BFGS on the 32 training samples reaches −26.3 % on them but −22.8 %
+  held-out (``Disk(-6, 5.9)``); on 16 × 8 samples of seed 0, −23.1 % held-out: over-fitting
+  costs 1–2 points.
+- *Region in tuning.* ``tune`` in ``Disk(-6, 5.9)``: −22.3 %, in ``Disk(-30, 29.9)``: −23.0 %
+  (vs −21.9 % in ``Disk(-3, 2)``). In ``Disk(-3, 2)`` and ``Disk(-6, 5.9)`` the slow pole goes
+  to about −1 (−1.05, held off the boundary at −1 by the barrier; −1.00 in the larger disk).
+- *Barrier / step rule.* With ``barrier=0`` the iterate reached the boundary and stayed (79
+  of 100 steps rejected, −15.2 %): a defect of the step rule, fixed in
+  `fojax.tuning._loop.backtracked_update` (the tangential step): now 0 rejected, −21.6 %
+  (``"tune_barrier_0_tangential_step"``). The default barrier (1e-3) is negligible at the
+  start (its gradient 3e-6 against 7e-2 for the loss; a separate check, not in the JSON).
+- *Order.* ``q0 = 5`` fitted in-sample: −23.5 %, like ``q0 = 3`` (−23.7 %, same disk).
+
 Every number goes to ``benchmarks/results/tuning_circuit_latest.json`` with the load
 average (the reference machine is a shared 2-core box: wall times are measured under load).
 
     python benchmarks/tuning_circuit.py                  # the recorded run
     python benchmarks/tuning_circuit.py --steps 20 --nu 4 --nx 4 --out /tmp/t.json   # quick
+    python benchmarks/tuning_circuit.py --diagnose        # why (a) stalls (adds "diagnosis")
+    python benchmarks/tuning_circuit.py --diagnose --diagnose-step-rule   # barrier 0 after the fix
 """
 
 from __future__ import annotations
@@ -259,6 +284,121 @@ def dfo_rerun(args):
     _common.write_result(args.out, out)
 
 
+def lbfgs_optimum(design, fit, heldout, region, barrier=0.0, maxiter=150):
+    """A local optimum of the study loss on `fit` over the observers of `design`'s structure
+    whose eigenvalues lie in `region` (``SteinDisk(design, region)``: every value of the
+    parameters satisfies a.-d.), by ``scipy.optimize.minimize(method="L-BFGS-B")`` with
+    JAX gradients, from the design; a candidate outside `region` gets the value 1e3 (and the
+    line search backs off). With `barrier` > 0 the parameterization's barrier is added (as in
+    `tune`). The optimum is certified (``SteinDisk.certify``) before its held-out IAE is
+    evaluated. Diagnostic only (issue 14: why tuning stalls): with ``fit = heldout`` it is
+    an *in-sample* fit to the held-out samples, i.e. the held-out IAE a local search can reach
+    with any training set, not a result of tuning."""
+    par = SteinDisk(design, region=region)
+    p0 = par.init(design)
+    flat0, unravel = ravel_pytree(p0)
+
+    @jax.jit
+    def value_grad(x):
+        def f(x):
+            p = unravel(x)
+            return fojax.studies.study_loss(fit, par.observer(p)) + barrier * par.barrier(p)
+
+        v, g = jax.value_and_grad(f)(x)
+        return v, g, par.margin(unravel(x))
+
+    evals = [0]
+
+    def fun(x):
+        v, g, mg = value_grad(jnp.asarray(x))
+        evals[0] += 1
+        if not (float(mg) > MIN_MARGIN and np.isfinite(float(v))):
+            return 1e3, np.zeros_like(x)
+        return float(v), np.asarray(g)
+
+    t = time.perf_counter()
+    r = scipy.optimize.minimize(fun, np.asarray(flat0), jac=True, method="L-BFGS-B", options=dict(maxiter=maxiter))
+    wall = time.perf_counter() - t
+    params = unravel(jnp.asarray(r.x))
+    certified = par.certify(params)
+    h0, h1 = heldout_iae(par, p0, heldout), heldout_iae(par, params, heldout)
+    ev = np.asarray(certified.report.eigenvalues)
+    return dict(region=region.describe(), barrier=barrier, fit_loss_first=float(fun(np.asarray(flat0))[0]),
+                fit_loss_last=float(r.fun), iterations=int(r.nit), evaluations=evals[0], scipy_message=str(r.message),
+                wall_s=wall, initial_heldout_iae=h0, final_heldout_iae=h1, heldout_change=h1 / h0 - 1.0,
+                final_verified=bool(certified.report.passed),
+                final_region_margin=float(certified.report.region_margin),
+                eigenvalues=sorted([[round(float(z.real), 4), round(float(z.imag), 4)] for z in ev]))
+
+
+def diagnose(args):
+    """Issue 14: why does tuning stall at about -22 %? Adds ``"diagnosis"`` to --out."""
+    import json
+
+    out = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
+    load0 = _common.load_average()
+    m, sys_, train = build(False, args.nu, args.nx, seed=0)
+    _, _, held = build(False, args.heldout_nu, args.heldout_nx, seed=1)
+    big, huge = Disk(-6.0, 5.9), Disk(-30.0, 29.9)  # both contain Disk(-3, 2)
+
+    def design(q0):
+        return design_functional_observer(sys_, m["L"], kind="generalized", region=REGION, q0=q0,
+                                          objective="centre", balance=True)
+
+    d3 = design(args.q0)
+    opt = fojax.tuning.shared_optimizer("adam", learning_rate=args.lr)
+    diag = dict(load_average_at_start=load0, note="measured under load; one run each (not repeated)")
+
+    def tuned(label, **kw):
+        res, wall = clock(lambda: fojax.tune(d3, train, heldout=held, optimizer=opt, steps=args.steps,
+                                             eval_every=args.steps, method="exact", **kw))
+        h = res.history
+        ev = np.asarray(res.design.report.eigenvalues)
+        diag[label] = r = dict(
+            options={k: (v.describe() if hasattr(v, "describe") else v) for k, v in kw.items()}, steps=args.steps,
+            wall_s_including_compile=wall, heldout_change=res.final_heldout / res.initial_heldout - 1.0,
+            final_heldout_iae=res.final_heldout, train_loss_first=float(h["train_loss"][0]),
+            train_loss_last=float(h["train_loss"][-1]),
+            rejected_steps=int(len(h["accepted"]) - np.sum(h["accepted"])),
+            final_region_margin=float(res.design.report.region_margin),
+            eigenvalues=sorted([[round(float(z.real), 4), round(float(z.imag), 4)] for z in ev]))
+        print(label, r, flush=True)
+        _common.write_result(args.out, dict(out, diagnosis=diag))
+
+    def optimum(label, design_, fit, region, **kw):
+        diag[label] = r = lbfgs_optimum(design_, fit, held, region, maxiter=args.lbfgs_maxiter, **kw)
+        print(label, r, flush=True)
+        _common.write_result(args.out, dict(out, diagnosis=diag))
+
+    if args.diagnose_step_rule:  # re-run barrier 0 with the tangential step (fojax.tuning._loop, commit 5790368)
+        diag = out.get("diagnosis", {})
+        tuned("tune_in_Disk(-30,29.9)", region=Disk(-30.0, 29.9))  # the region whose in-sample optimum is < -25 %
+        tuned("tune_barrier_0_tangential_step", barrier=0.0)
+        diag["tune_barrier_0_tangential_step"]["load_average_at_start"] = load0
+        diag["tune_barrier_0_tangential_step"]["note"] = (
+            "after the step-rule fix: when no halving of the update is admissible, the halvings of its "
+            "tangential part are tried ('tune_barrier_0' was measured before it)")
+        out["diagnosis"] = diag
+        _common.write_result(args.out, out)
+        return
+    # the region: tune in a larger disk, from the same design
+    tuned("tune_in_Disk(-6,5.9)", region=big)
+    # the barrier: none (the step rule alone keeps the iterate inside)
+    tuned("tune_barrier_0", barrier=0.0)
+    # training set: a local optimum of the training loss (4 x 8 samples) and of 16 x 8 samples of seed 0
+    optimum("lbfgs_train_4x8_Disk(-6,5.9)", d3, train, big)
+    _, _, train128 = build(False, 16, 8, seed=0)
+    optimum("lbfgs_train_16x8_Disk(-6,5.9)", d3, train128, big)
+    # what any training set could give: fit the held-out samples themselves (in-sample)
+    optimum("lbfgs_heldout_in_sample_Disk(-3,2)_barrier", d3, held, REGION, barrier=1e-3)
+    optimum("lbfgs_heldout_in_sample_Disk(-6,5.9)", d3, held, big)
+    optimum("lbfgs_heldout_in_sample_Disk(-30,29.9)", d3, held, huge)
+    optimum("lbfgs_heldout_in_sample_Disk(-6,5.9)_q0=5", design(5), held, big)
+    diag["load_average_at_end"] = _common.load_average()
+    out["diagnosis"] = diag
+    _common.write_result(args.out, out)
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=100)
@@ -279,7 +419,15 @@ def main():
     ap.add_argument("--dfo-only", action="store_true",
                     help="only re-run (b) with every candidate certified on the host (as tune certifies every "
                          "iterate), at the budget recorded in --out; the first protocol's rows are kept")
+    ap.add_argument("--lbfgs-maxiter", type=int, default=150, help="--diagnose: L-BFGS-B iterations")
+    ap.add_argument("--diagnose-step-rule", action="store_true",
+                    help="with --diagnose: only re-run the barrier=0 tuning (after the step-rule fix) into 'diagnosis'")
+    ap.add_argument("--diagnose", action="store_true",
+                    help="only run the diagnosis of the stall (issue 14: region, barrier, training set, in-sample "
+                         "optimum of the held-out samples, observer order) and add it to --out as 'diagnosis'")
     args = ap.parse_args()
+    if args.diagnose:
+        return diagnose(args)
     if args.long_steps:
         return long_run(args)
     if args.dfo_only:
