@@ -323,7 +323,9 @@ def tune(
     - `checkpoint`, `checkpoint_every`, `resume`: see the module docstring.
     - `stepper`: how the study's samples are stepped (`fojax.Auto()` by default,
       `fojax.Exact()`, `fojax.Exponential(...)`, `fojax.Diffrax(...)`; see
-      `fojax.studies.study_loss`).
+      `fojax.studies.study_loss`). A time-varying affine study (δ(t)) trains on the
+      exponential engine: its schedule is decided on the host before the first step
+      (`fojax.studies.resolve_engine`, with the starting observer).
     - `method`, `rtol`, `atol`, `max_steps`, `solver`: the legacy spelling of `stepper`
       (`fojax.simulation._steppers.as_stepper`); not together with `stepper`.
     - `callback`: called as ``callback(step, record)`` after every step; ``record`` is the
