@@ -684,7 +684,7 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     entering the differential equations affinely (`run_study`'s exponential engine: a
     time-varying δ(t), faults on the step grid, known inputs), or a traced study with
     ``cfg.exponential_schedule`` set by `resolve_engine` on its concrete values (as
-    `fojax.tune` does), the samples run on that engine (`fojax.studies._exponential.exponential_metrics_traced`: ETDRK4 in one block,
+    `fojax.tune` does), the samples run on that engine (`fojax.studies._exponential.exponential_metrics_traced`: ETDRK4 in blocks of 64 samples,
     every term per sample, the time loop in `jax.checkpoint`-ed segments of about √S of the
     S steps, so the memory of the backward pass grows like √S), differentiable with respect
     to the observer; the host decisions (qualification, the affine check, the step
