@@ -72,3 +72,42 @@ def test_no_retrace_for_new_observer_numbers(value_and_grad):
     v0, _ = _loss(value_and_grad, OBSERVER)
     assert dict(TRACE_COUNTS) == before
     assert float(v1) != float(v0)
+
+
+def test_traced_study_with_resolved_schedule_equals_the_concrete_path_and_does_not_retrace(study, value_and_grad):
+    # `fojax.tune`'s situation: the study is an argument of the jitted function (traced); the
+    # schedule was decided on the host by resolve_engine. Oracles: the concrete path (its value
+    # and gradient, the latter checked against central differences above) and run_study.
+    cfg = fojax.studies.resolve_engine(study, OBSERVER, CFG)
+    assert cfg.exponential_schedule is not None and CFG.exponential_schedule is None
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def traced(o, s):
+        return eqx.filter_value_and_grad(lambda o: study_loss(s, o, loss="ise", cfg=cfg))(o)
+
+    v, g = traced(OBSERVER, study)
+    v0, g0 = _loss(value_and_grad, OBSERVER)
+    np.testing.assert_allclose(float(v), float(v0), rtol=1e-12)
+    for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(g0)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-12)
+    # new δ(t) samples and fault amplitudes, same shapes and schedule: data, no new trace
+    other = make_study(jax.random.PRNGKey(7))
+    assert fojax.studies.resolve_engine(other, OBSERVER, CFG).exponential_schedule == cfg.exponential_schedule
+    before = dict(TRACE_COUNTS)
+    v1, _ = traced(OBSERVER, other)
+    assert dict(TRACE_COUNTS) == before
+    res = fojax.run_study(other, OBSERVER, quiet=True, settle_tol=SETTLE_TOL, quantiles=())
+    assert res.attrs["engine"] == "exponential-batch"
+    np.testing.assert_allclose(float(v1), res.metrics["ise"][0].mean(), rtol=1e-12)
+    assert float(v1) != float(v)
+
+
+def test_traced_study_without_schedule_does_not_take_the_exponential_engine(study):
+    # without resolve_engine a traced study cannot be checked on the host: exponential_metrics_traced
+    # refuses it (study_loss then falls back to vmap(simulate))
+    from fojax.studies._exponential import exponential_metrics_traced
+
+    seen = []
+    jax.eval_shape(lambda s: seen.append(exponential_metrics_traced(s, (OBSERVER,), SETTLE_TOL)), study)
+    assert seen == [None]

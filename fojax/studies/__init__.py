@@ -20,6 +20,7 @@ from ._families import (
 )
 from ._runner import (
     error_metrics as error_metrics,
+    resolve_engine as resolve_engine,
     run_study as run_study,
     SimConfig as SimConfig,
     Study as Study,

@@ -44,12 +44,27 @@ the same host decisions, the computation traced with respect to the observer, th
 loop in `jax.checkpoint`-ed segments (memory of the backward pass ~√S for S steps). Its
 gradient is checked against central finite differences (``tests/test_study_loss_exponential.py``).
 A traced study (inside `fojax.tune`'s jitted step, where the study is an argument) cannot
-be checked on the host and keeps the diffrax path.
+be checked there: `fojax.tune` decides on the host, before its first step, with the
+starting observer (`exponential_schedule` through `fojax.studies.resolve_engine`) and hands
+the step the schedule (static integers), so the study stays data.
 
 **Compile time.** The set-up of the decomposition is compiled once, for the host pre-pass
 (`fojax.simulation._exponential.prepare`), which hands the kernel only what it reads; the
 kernel holds one ETDRK4 step body; the host passes are compiled without the backend's
-optimisation passes (`HOST_PASS_COMPILER_OPTIONS`).
+optimisation passes (`HOST_PASS_COMPILER_OPTIONS`); the φ-functions of a concrete $A_0$
+are SciPy's `expm` on the host (nothing compiled). Where the first call's CPU goes
+(§3.3.7 δ(t) study, B = 1,000, measured under load): host passes ~3.4 s (set-up of the
+decomposition, the affine check, breakpoints, initial checks: tracing and compiling at
+level 0), kernel ~3.0 s (its HLO is ~960 instructions before optimisation: no unrolled
+time loop; the time is the CPU backend's; at optimisation level 0 it compiles in ~2.0 s
+but runs ~40 % slower, so it keeps the default).
+
+**Tuning.** `fojax.tune` runs its step with the study as a traced argument: the host
+decisions are taken once before the first step (`exponential_schedule` through
+`fojax.studies.resolve_engine`, with the starting observer) and the step receives the
+schedule, so the loss and its gradient run on this engine and new study numbers do not
+recompile. A pole of the tuned observer faster than the starting loop's is not seen by
+that schedule (the parameterization keeps the poles in the design's region).
 """
 
 from __future__ import annotations
@@ -83,7 +98,7 @@ from ..simulation._exponential import (
 from ..simulation._reduction import host_initial_checks, is_concrete
 from ..simulation._save import METRIC_NAMES
 from ..simulation._steppers import Exponential, grid_deviation, UNIFORM_GRID_RTOL
-from ._exact import StudyProblem
+from ._exact import blocked, LossProblem, StudyProblem
 
 
 #: Defaults of `fojax.Exponential` (`step_rate`, `startup_factor`), which sets the schedule.
@@ -97,6 +112,12 @@ STARTUP_FACTOR = Exponential().startup_factor
 BREAKPOINT_RTOL = 1e-10
 #: Samples per call of the host pre-pass (set-up and plan statistics).
 PREPARE_CHUNK = 2048
+#: Samples stepped together by the differentiable path (`exponential_metrics_traced`): the
+#: blocks run one after another (`fojax.studies._exact.blocked`), so the per-sample data and
+#: the backward pass's per-sample cotangents stay in cache. Measured (one tune step, §3.3.7
+#: δ(t) study, under load): with all samples in one block 7.2 s CPU at B = 256 but 79 s at
+#: B = 1,024 (11× for 4× the samples).
+DIFF_BLOCK = 64
 #: Traces of the differentiable exponential study metrics (tests prove `study_loss` takes
 #: this path and does not retrace for new observer numbers).
 TRACE_COUNTS: collections.Counter = collections.Counter()
@@ -266,39 +287,62 @@ def _zero_stand_in(observer):
     return jax.tree.map(lambda a: np.zeros(jnp.shape(a), jnp.result_type(a)) if eqx.is_array(a) else a, observer)
 
 
-def exponential_metrics_traced(study, observers, settle_tol, options: Exponential = Exponential()):
-    r"""Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of a concrete `study` on the
-    exponential engine, reverse-differentiable with respect to the `observers` (which may
-    be traced, e.g. under `jax.grad`), or ``None`` when the study does not qualify (the
-    rules of `exponential_problem`; a traced study never qualifies).
-
-    **The host decisions** (qualification, breakpoints on the step grid, the affine check,
-    the step schedule) are those of `exponential_problem`, taken with the observers when
-    they are concrete and otherwise with a concrete stand-in of the same structure whose
-    arrays are zeros: the observers are LTI, so their part of the field is affine by
-    construction and the check still tests the plant; the schedule then sees the plant's
-    nominal slow poles and the signal frequencies but not the observer's poles (the
-    observer's poles set the step only when they are faster than the plant's; the
-    schedule of a concrete call, `run_study`'s, includes them).
-
-    **The computation** is traced: the set-up of every sample (`setup_all`), every term
-    applied per sample (no plan, as under an outer `jax.jit`), the φ-functions of the
-    traced $A_0$ (`phi_functions`: matrix products and fixed-length loops), and all
-    samples stepped as one block by `ExponentialProblem.block_kernel` with
-    ``checkpoint=True``: the backward pass recomputes segments of about $\sqrt S$ steps
-    (``S`` steps in all), so its memory grows like $\sqrt S$, not $S$. The values equal
-    `run_study`'s exponential engine to round-off when the schedules agree.
-    """
-    TRACE_COUNTS["study_loss_exponential"] += 1
+def exponential_schedule(study, observers, settle_tol, options: Exponential = Exponential()):
+    """Host: the step schedule ``(n_start, sub_start, substeps)`` (static integers) the
+    exponential engine uses for the concrete `study`, or ``None`` when the study does not
+    qualify (the rules and checks of `exponential_problem`, taken with the observers when
+    they are concrete and otherwise with a zero stand-in of the same structure, see
+    `exponential_metrics_traced`). `fojax.studies.resolve_engine` stores it in the
+    `SimConfig` with which `fojax.tune` runs its jitted step, where the study is traced."""
     observers = tuple(observers)
     if not is_concrete(study):
         return None
     host_obs = observers if is_concrete(observers) else tuple(_zero_stand_in(o) for o in observers)
     with jax.ensure_compile_time_eval():  # host passes on concrete data, also inside an outer jit
         prepared, _ = exponential_problem(study, host_obs, settle_tol, False, strict=False, options=options)
-    if prepared is None:
-        return None
-    schedule = prepared[0].schedule
+    return None if prepared is None else tuple(int(k) for k in prepared[0].schedule)
+
+
+def exponential_metrics_traced(study, observers, settle_tol, options: Exponential = Exponential(),
+                               schedule: tuple | None = None, metric: str | None = None):
+    r"""Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of a `study` on the
+    exponential engine (with `metric`, ``"iae"`` or ``"ise"``, only that one is
+    accumulated, `fojax.studies._exact.LossProblem`, and the metrics are ``(1, K, B)``), reverse-differentiable with respect to the `observers` (which may
+    be traced, e.g. under `jax.grad`), or ``None`` when the study does not qualify (the
+    rules of `exponential_problem`).
+
+    **The host decisions** (qualification, breakpoints on the step grid, the affine check,
+    the step schedule) are those of `exponential_problem` (`exponential_schedule`). With
+    ``schedule=None`` they are taken now, which needs a concrete `study` (a traced one
+    never qualifies), with the observers when they are concrete and otherwise with a
+    concrete stand-in of the same structure whose arrays are zeros: the observers are LTI,
+    so their part of the field is affine by construction and the check still tests the
+    plant; the schedule then sees the plant's nominal slow poles and the signal
+    frequencies but not the observer's poles (the observer's poles set the step only when
+    they are faster than the plant's; the schedule of a concrete call, `run_study`'s,
+    includes them). With a `schedule` (from `exponential_schedule`, taken earlier on the
+    host on this study's concrete values, as `fojax.tune` does through
+    `fojax.studies.resolve_engine`) nothing is decided here and the study may be traced:
+    its numbers are data, so a new study of the same shapes and schedule does not
+    recompile.
+
+    **The computation** is traced: the set-up of every sample (`setup_all`), every term
+    applied per sample (no plan, as under an outer `jax.jit`), the φ-functions of the
+    traced $A_0$ (`phi_functions`: matrix products and fixed-length loops), and all
+    samples stepped in blocks of `DIFF_BLOCK` (one after another) by `ExponentialProblem.block_kernel` with
+    ``checkpoint=True``: the backward pass recomputes segments of about $\sqrt S$ steps
+    (``S`` steps in all), so its memory grows like $\sqrt S$, not $S$. Reverse mode is the
+    exact derivative of the discrete scheme (JAX differentiates the ETDRK4 recurrence
+    itself). The values equal `run_study`'s exponential engine to round-off when the
+    schedules agree.
+    """
+    TRACE_COUNTS["study_loss_exponential"] += 1
+    observers = tuple(observers)
+    if schedule is None:
+        schedule = exponential_schedule(study, observers, settle_tol, options)
+        if schedule is None:
+            return None
+    schedule = tuple(int(k) for k in schedule)
     n_start, sub_start, substeps = schedule
     iu = np.arange(study.num_samples) // study.num_scenarios
     jf = np.arange(study.num_samples) % study.num_scenarios
@@ -310,5 +354,14 @@ def exponential_metrics_traced(study, observers, settle_tol, options: Exponentia
     _, h, ts = _step_size(study.ts)
     phis = (phi_functions(A0, h / substeps), phi_functions(A0, h / sub_start))
     reducer = StudyProblem(study, observers, None, None, jnp.asarray(float(settle_tol)), None, False)
+    if metric is not None:
+        reducer = LossProblem(reducer, metric)
     problem = ExponentialProblem(setup, reducer, shared, phis, plan, schedule)
-    return problem.block_kernel((idx, per), h, ts, checkpoint=True)
+
+    def block(q):  # one block of samples, batch last -> samples first
+        mets, ok = problem.block_kernel(q, h, ts, checkpoint=True)
+        return jnp.moveaxis(mets, -1, 0), ok
+
+    mets, ok = blocked(block, (idx, per), DIFF_BLOCK)
+    mets = jnp.moveaxis(mets, 0, -1)
+    return (mets[None] if mets.ndim == 2 else mets), ok

@@ -69,7 +69,7 @@ from ..simulation._save import (
 )
 from ..simulation._steppers import AbstractStepper, Exponential, resolve_stepper
 from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
-from ._exponential import exponential_metrics_traced, exponential_problem
+from ._exponential import exponential_metrics_traced, exponential_problem, exponential_schedule
 from ._families import Family
 from ._sharding import (
     check_same_on_every_process,
@@ -257,6 +257,10 @@ class SimConfig:
     # jax.distributed run; fojax.studies._sharding), None: one block on the default device
     devices: tuple | None = None
     stepper: AbstractStepper | None = None
+    # `study_loss` on the exponential engine: the step schedule (n_start, sub_start, substeps)
+    # decided on the host for one concrete study by `resolve_engine` (as `fojax.tune` does), so
+    # that the study may then be traced; None: decided on each call (needs a concrete study)
+    exponential_schedule: tuple | None = None
 
     def __post_init__(self):
         st = self.stepper
@@ -602,7 +606,7 @@ def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, stride: int,
         "time": np.asarray(study.ts)[::stride],
     }
     merged = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)
-              if f.name not in ("solver", "devices", "stepper")}
+              if f.name not in ("solver", "devices", "stepper", "exponential_schedule")}
     merged["band_stride"] = int(stride)
     merged.update(attrs)
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=merged)
@@ -645,6 +649,30 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
                    num_devices=layout["num_devices"], engine=engine)
 
 
+def resolve_engine(study: Study, observers, cfg: SimConfig = SimConfig()) -> SimConfig:
+    r"""Host: the `SimConfig` with which `study_loss` runs the concrete `study` on the same
+    engine when the study is later traced (e.g. an argument of a jitted step, as in
+    `fojax.tune`, so that new study numbers do not recompile).
+
+    When the exact engine does not take the study and the exponential one does
+    (`fojax.studies._exponential.exponential_schedule`: the qualification, the affine check
+    and the step schedule, decided with the concrete `observers`, e.g. the starting design
+    of a tuning run), returns `cfg` with ``exponential_schedule`` set to that schedule;
+    otherwise `cfg` unchanged (the exact engine decides on traced studies by itself;
+    anything else runs `fojax.simulate` under `jax.vmap`). The schedule belongs to this
+    study: another study needs its own call.
+    """
+    observers = tuple(observers) if isinstance(observers, (tuple, list)) else (observers,)
+    stepper = cfg.stepper
+    if "exact-batch" in stepper.engines and traced_qualifies(study, observers):
+        return cfg
+    if "exponential-batch" not in stepper.engines or sample_mesh(cfg.devices) is not None:
+        return cfg
+    options = stepper if isinstance(stepper, Exponential) else Exponential()
+    schedule = exponential_schedule(study, observers, cfg.settle_tol, options)
+    return cfg if schedule is None else dataclasses.replace(cfg, exponential_schedule=schedule)
+
+
 def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", quantile: float | None = None,
                weights=None, cfg: SimConfig = SimConfig()) -> Array:
     r"""Differentiable scalar loss of one observer over all samples of `study`.
@@ -666,14 +694,15 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     `Exponential`), no
     ``cfg.devices`` and a *concrete* study whose samples vary in time only through signals
     entering the differential equations affinely (`run_study`'s exponential engine: a
-    time-varying δ(t), faults on the step grid, known inputs), the samples run on that
-    engine (`fojax.studies._exponential.exponential_metrics_traced`: ETDRK4 in one block,
+    time-varying δ(t), faults on the step grid, known inputs), or a traced study with
+    ``cfg.exponential_schedule`` set by `resolve_engine` on its concrete values (as
+    `fojax.tune` does), the samples run on that engine (`fojax.studies._exponential.exponential_metrics_traced`: ETDRK4 in blocks of 64 samples,
     every term per sample, the time loop in `jax.checkpoint`-ed segments of about √S of the
     S steps, so the memory of the backward pass grows like √S), differentiable with respect
     to the observer; the host decisions (qualification, the affine check, the step
     schedule) are taken with the observer when it is concrete and with a zero stand-in of
     it when it is traced (the schedule then ignores the observer's poles). A traced study
-    (as inside `fojax.tune`'s jitted step) does not qualify. Otherwise each sample runs
+    without ``cfg.exponential_schedule`` does not qualify. Otherwise each sample runs
     `fojax.simulate` under `jax.vmap`.
 
     With ``cfg.devices`` (e.g. ``jax.devices()`` after `jax.distributed.initialize`: all
@@ -695,9 +724,10 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
         # time-varying affine samples: the exponential engine, checkpointed (fojax.studies._exponential)
         explicit = isinstance(stepper, Exponential)
         out = exponential_metrics_traced(study, (observer,), cfg.settle_tol,
-                                         options=stepper if explicit else Exponential())
+                                         options=stepper if explicit else Exponential(),
+                                         schedule=cfg.exponential_schedule, metric=loss)
         if out is not None:
-            per = w @ out[0][METRICS.index(loss)]  # (B,)
+            per = w @ out[0][0]  # (B,): the one metric accumulated
             return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
     if "vmap-simulate" not in stepper.engines:
         raise InputError(

@@ -92,6 +92,7 @@ from ..studies import (
     check_same_on_every_process,
     distributed_errors,
     replicate,
+    resolve_engine,
     SimConfig,
     spans_processes,
     Study,
@@ -327,7 +328,9 @@ def tune(
     - `checkpoint`, `checkpoint_every`, `resume`: see the module docstring.
     - `stepper`: how the study's samples are stepped (`fojax.Auto()` by default,
       `fojax.Exact()`, `fojax.Exponential(...)`, `fojax.Diffrax(...)`; see
-      `fojax.studies.study_loss`).
+      `fojax.studies.study_loss`). A time-varying affine study (δ(t)) trains on the
+      exponential engine: its schedule is decided on the host before the first step
+      (`fojax.studies.resolve_engine`, with the starting observer).
     - `method`, `rtol`, `atol`, `max_steps`, `solver`: the legacy spelling of `stepper`
       (`fojax.simulation._steppers.as_stepper`); not together with `stepper`.
     - `callback`: called as ``callback(step, record)`` after every step; ``record`` is the
@@ -378,14 +381,20 @@ def tune(
     w = None if weights is None else jnp.asarray(weights, dtype=jnp.float64)
     path = None if checkpoint is None else os.fspath(checkpoint)
 
+    # the engine of each study decided once on its concrete values (a time-varying study: the
+    # exponential engine's schedule, so the jitted step, where the study is traced, runs on it)
+    obs0 = par.observer(params0)
+    cfg_train = resolve_engine(train_study, obs0, cfg)
+    cfg_held = resolve_engine(heldout, obs0, cfg) if heldout is not None else cfg
+
     def heldout_loss(p):
-        return float(_evaluate(p, par, heldout, loss, quantile, w, cfg))
+        return float(_evaluate(p, par, heldout, loss, quantile, w, cfg_held))
 
     with distributed_errors("tune"):  # every collective of the run (a dead process: DistributedError)
         initial_heldout = heldout_loss(params0) if heldout is not None else None
         xi, history = run_loop(
             xi, opt_state, key, steps=steps, step=_step,
-            step_args=(coords, par, train_study, optimizer, loss, quantile, w, cfg, jnp.asarray(float(min_margin)),
+            step_args=(coords, par, train_study, optimizer, loss, quantile, w, cfg_train, jnp.asarray(float(min_margin)),
                        int(max_backtracks), jnp.asarray(barrier), extra_loss, terms),
             host_check=lambda x: par.host_check(coords.params(x)),
             heldout_loss=(lambda x: heldout_loss(coords.params(x))) if heldout is not None else None,
