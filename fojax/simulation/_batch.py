@@ -17,9 +17,10 @@ A Monte Carlo study of a linear time-invariant loop needs per-sample *numbers*
    chosen by the joint size ``N``: below ``MULTISTEP_MIN_N`` with the batch as the
    **last** axis (state ``(N, b)``, ``Φ`` ``(N, N, b)``: each step is ``N²`` fused
    multiply–adds over the block, whose data stays in cache); from it on (and without
-   jumps) ``MULTISTEP`` grid steps per pass as batched matrix–matrix products
-   ``Φ^m [w_{k+1} … w_{k+m}]`` (`_multistep_block`: compute-bound, a graph independent of
-   ``N``); the requested reductions are accumulated *inside* the loop (trapezoid rule),
+   jumps) ``MULTISTEP`` grid steps per pass from precomputed powers, batch first: the
+   outputs ``[GΦ; …; GΦ^m] w`` and ``Φ^m w`` (`_multistep_block`; ``Φ`` by `expm_first`,
+   block lower-triangular when the problem says which states are the plant's; a graph
+   independent of ``N``); the requested reductions are accumulated *inside* the loop (trapezoid rule),
    so no ``(B, T, N)`` trajectory is ever stored and memory grows linearly with ``B``;
 4. spreads the blocks over all devices with `jax.shard_map` (round-robin, each device
    computing only blocks that hold real samples).
@@ -546,8 +547,46 @@ def block_for(N: int | None, block: int) -> int:
 _FIRST_DEGREE, _FIRST_BLOCK, _FIRST_THETA = 15, 4, 0.6
 
 
+# Batch-first matrices of `_multistep_block`, either full (a 1-tuple ``(M,)``) or block
+# lower-triangular (``(M11, M21, M22)`` = [[M11, 0], [M21, M22]]: the joint loop with the
+# plant first, whose rows do not involve the observers). The same few operations serve both.
+def _mm(P, Q):
+    if len(P) == 1:
+        return (jnp.matmul(P[0], Q[0]),)
+    return (jnp.matmul(P[0], Q[0]), jnp.matmul(P[1], Q[0]) + jnp.matmul(P[2], Q[1]), jnp.matmul(P[2], Q[2]))
+
+
+def _row_mm(R, P):
+    """Rows times a matrix: ``R`` ``(R,)`` or its column blocks ``(R1, R2)``."""
+    if len(P) == 1:
+        return (jnp.matmul(R[0], P[0]),)
+    return (jnp.matmul(R[0], P[0]) + jnp.matmul(R[1], P[1]), jnp.matmul(R[1], P[2]))
+
+
+def _mv(P, w):
+    """Matrix times vectors ``(b, N)`` given as ``(w,)`` or ``(w1, w2)``."""
+    mv = lambda M, v: jnp.einsum("bij,bj->bi", M, v)  # noqa: E731
+    if len(P) == 1:
+        return (mv(P[0], w[0]),)
+    return (mv(P[0], w[0]), mv(P[1], w[0]) + mv(P[2], w[1]))
+
+
+def _eye_like(M):
+    eye = lambda X: jnp.broadcast_to(jnp.eye(X.shape[-1], dtype=X.dtype), X.shape)  # noqa: E731
+    return (eye(M[0]),) if len(M) == 1 else (eye(M[0]), jnp.zeros_like(M[1]), eye(M[2]))
+
+
+def _norm1(M):
+    """Induced 1-norm (largest column sum) per sample ``(b,)``."""
+    col = lambda X: jnp.max(jnp.sum(jnp.abs(X), axis=1), axis=1)  # noqa: E731
+    if len(M) == 1:
+        return col(M[0])
+    return jnp.maximum(jnp.max(jnp.sum(jnp.abs(M[0]), axis=1) + jnp.sum(jnp.abs(M[1]), axis=1), axis=1), col(M[2]))
+
+
 def expm_first(M):
-    r"""Matrix exponentials of a batch stored batch-first: ``M`` ``(b, N, N)`` → ``(b, N, N)``.
+    r"""Matrix exponentials of a batch stored batch-first: ``M`` ``(b, N, N)`` → ``(b, N, N)``,
+    or a block lower-triangular batch ``(M11, M21, M22)`` → the blocks of its exponential.
 
     The forward discretisation of `_multistep_block` (large ``N``): scaling and squaring
     of the degree-15 Taylor polynomial (Paterson–Stockmeyer, 6 batched GEMMs
@@ -556,57 +595,67 @@ def expm_first(M):
     Truncation ≤ 2.4e-17 relative before squaring. Batch-first products are XLA's
     batched GEMM (26–35 GFLOP/s per CPU second at ``N = 160`` measured under load,
     against 16–21 for `expm_last`'s batch-last einsum), and the graph does not grow
-    with ``N``. Not reverse-differentiable (data-dependent loop); agrees with
+    with ``N``. In block-triangular form a product costs ``(r + q)(r² + q²)`` instead of
+    ``(r + q)³`` multiply–adds (about half at ``r = 96``, ``q = 64``), and the zero block
+    stays exactly zero. Not reverse-differentiable (data-dependent loop); agrees with
     `scipy.linalg.expm` to rounding (tested through the study metrics).
     """
     import math
 
-    N = M.shape[-1]
-    norm = jnp.max(jnp.sum(jnp.abs(M), axis=1), axis=1)  # (b,) induced 1-norm (max column sum)
+    full = not isinstance(M, tuple)
+    M = (M,) if full else tuple(M)
+    norm = _norm1(M)
     s = jnp.where(norm > _FIRST_THETA, jnp.ceil(jnp.log2(norm / _FIRST_THETA)), 0.0)
     s = jnp.clip(jnp.where(jnp.isfinite(s), s, 0.0), 0, 1000).astype(jnp.int32)
-    X = M * jnp.exp2(-s.astype(M.dtype))[:, None, None]
-    eye = jnp.broadcast_to(jnp.eye(N, dtype=M.dtype), M.shape)
-    powers = [eye, X]
+    X = tuple(B * jnp.exp2(-s.astype(B.dtype))[:, None, None] for B in M)
+    powers = [_eye_like(M), X]
     for _ in range(2, _FIRST_BLOCK + 1):
-        powers.append(jnp.matmul(powers[-1], X))
+        powers.append(_mm(powers[-1], X))
     coef = [1.0 / math.factorial(k) for k in range(_FIRST_DEGREE + 1)]
     nblk = _FIRST_DEGREE // _FIRST_BLOCK + 1
+    add = lambda P, Q: tuple(a + b for a, b in zip(P, Q))  # noqa: E731
 
     def chunk(j):  # Σ_i c[j·blk + i] X^i
-        terms = [coef[j * _FIRST_BLOCK + i] * powers[i] for i in range(_FIRST_BLOCK)
+        terms = [tuple(coef[j * _FIRST_BLOCK + i] * B for B in powers[i]) for i in range(_FIRST_BLOCK)
                  if j * _FIRST_BLOCK + i <= _FIRST_DEGREE]
-        return sum(terms[1:], terms[0])
+        out = terms[0]
+        for t in terms[1:]:
+            out = add(out, t)
+        return out
 
     E = chunk(nblk - 1)
     for j in range(nblk - 2, -1, -1):
-        E = jnp.matmul(E, powers[_FIRST_BLOCK]) + chunk(j)
+        E = add(_mm(E, powers[_FIRST_BLOCK]), chunk(j))
 
     def square(i, E):
-        return jnp.where((i < s)[:, None, None], jnp.matmul(E, E), E)
+        E2 = _mm(E, E)
+        return tuple(jnp.where((i < s)[:, None, None], a, b) for a, b in zip(E2, E))
 
-    return lax.fori_loop(0, jnp.max(s), square, E)
+    E = lax.fori_loop(0, jnp.max(s), square, E)
+    return E[0] if full else E
 
 
 def _output_rows(Phi, G, m: int):
-    r"""``(R, Φ^m)`` of a batch-first stack ``Φ`` ``(b, N, N)`` and output map ``G``
-    ``(b, K, N)``: ``R`` ``(b, m K, N)`` holds the rows $G\Phi^j$, ``j = 1 … m`` (block
-    ``j − 1`` of ``K`` rows is $G\Phi^j$). By doubling: with the rows up to ``j`` and
-    $\Phi^{2^i}$, the next ones are ``R Φ^{2^i}`` (a ``(jK × N)(N × N)`` product), then
-    $\Phi^{2^{i+1}}$ by one squaring; $\Phi^m$ is the product of the squares of ``m``'s
-    binary digits (``m`` static: ``⌊log₂ m⌋`` squarings, plus one product per further
-    digit)."""
-    R, sq, i = jnp.matmul(G, Phi), [Phi], 0  # sq[i] = Φ^(2^i)
-    while R.shape[1] < m * G.shape[1] or (1 << (i + 1)) <= m:
-        if R.shape[1] < m * G.shape[1]:
-            R = jnp.concatenate([R, jnp.matmul(R[:, : m * G.shape[1] - R.shape[1]], sq[i])], axis=1)
+    r"""``(R, Φ^m)`` of a batch-first stack ``Φ`` (``(Φ,)`` or its lower-triangular blocks,
+    see `expm_first`) and output map ``G`` (``(G,)`` or its column blocks): ``R``
+    ``(b, m K, ·)`` holds the rows $G\Phi^j$, ``j = 1 … m`` (block ``j − 1`` of ``K``
+    rows is $G\Phi^j$). By doubling: with the rows up to ``j`` and $\Phi^{2^i}$, the
+    next ones are ``R Φ^{2^i}`` (a ``(jK × N)(N × N)`` product), then $\Phi^{2^{i+1}}$
+    by one squaring; $\Phi^m$ is the product of the squares of ``m``'s binary digits
+    (``m`` static: ``⌊log₂ m⌋`` squarings, plus one product per further digit)."""
+    K = G[0].shape[1]
+    R, sq, i = _row_mm(G, Phi), [Phi], 0  # sq[i] = Φ^(2^i)
+    while R[0].shape[1] < m * K or (1 << (i + 1)) <= m:
+        if R[0].shape[1] < m * K:
+            more = _row_mm(tuple(x[:, : m * K - R[0].shape[1]] for x in R), sq[i])
+            R = tuple(jnp.concatenate([a, b], axis=1) for a, b in zip(R, more))
         if (1 << (i + 1)) <= m:
-            sq.append(jnp.matmul(sq[i], sq[i]))
+            sq.append(_mm(sq[i], sq[i]))
         i += 1
     Pm = None
     for i, P in enumerate(sq):
         if m >> i & 1:
-            Pm = P if Pm is None else jnp.matmul(Pm, P)
+            Pm = P if Pm is None else _mm(Pm, P)
     return R, Pm
 
 
@@ -650,13 +699,23 @@ def _multistep_block(problem, p, h, ts):
     m = MULTISTEP if stride <= 1 else stride * -(-MULTISTEP // stride)
     Aj, w0, G, ok, _ = jax.vmap(problem.joint)(p)  # (b,N,N), (b,N), (b,K,N), (b,)
     b, K = G.shape[0], G.shape[1]
-    Phi = expm_first(h * Aj)  # (b, N, N)
-    R, Pm = _output_rows(Phi, G, m)  # (b, m K, N), (b, N, N)
-
-    def outputs(w):  # (b, N) -> (b, K, m): the outputs of the m steps after w
-        return jnp.swapaxes(jnp.einsum("brn,bn->br", R, w).reshape(b, m, K), 1, 2)
-
     o0 = jnp.einsum("bkn,bn->kb", G, w0)
+    order = problem.plant_first(Aj.shape[1]) if hasattr(problem, "plant_first") else None
+    if order is None:
+        hA, G, w = (h * Aj,), (G,), (w0,)
+    else:  # [plant; observers]: block lower-triangular, the zero block never multiplied
+        perm, k = order
+        Aj, G, w0 = Aj[:, perm][:, :, perm], G[:, :, perm], w0[:, perm]
+        hA = (h * Aj[:, :k, :k], h * Aj[:, k:, :k], h * Aj[:, k:, k:])
+        G, w = (G[:, :, :k], G[:, :, k:]), (w0[:, :k], w0[:, k:])
+    Phi = expm_first(hA)
+    R, Pm = _output_rows(Phi, G, m)  # rows (b, m K, ·), Φ^m
+
+    def outputs(w):  # the outputs of the m steps after w: (b, K, m)
+        o = sum(jnp.einsum("brn,bn->br", Ri, wi) for Ri, wi in zip(R, w))
+        return jnp.swapaxes(o.reshape(b, m, K), 1, 2)
+
+    w0 = w
     n_pass, rest = divmod(T - 1, m)
     kept = np.flatnonzero((1 + np.arange(m)) % stride == 0) if stride else None
 
@@ -664,7 +723,7 @@ def _multistep_block(problem, p, h, ts):
         w, acc, _ = carry
         O = outputs(w)
         acc = _update_block(problem, acc, O, 1 + q * m + jnp.arange(m), ts)
-        w = jnp.einsum("bij,bj->bi", Pm, w)
+        w = _mv(Pm, w)
         return (w, acc, O[:, :, -1].T), (O[:, :, kept] if stride else None)
 
     (w, acc, o_end), traj = lax.scan(body, (w0, problem.init(o0), o0), jnp.arange(n_pass))
@@ -744,6 +803,37 @@ def _chunk_core(problem, p, nreal, h, ts, block, basis, mesh):
     return gather_across_processes(jax.tree.map(unarrange, out), mesh)
 
 
+#: `eval_shape_cached`'s results by structure (cleared when it holds `_SHAPE_CACHE_MAX`).
+_SHAPE_CACHE: dict = {}
+_SHAPE_CACHE_MAX = 256
+
+
+def eval_shape_cached(fn, *args):
+    """``eqx.filter_eval_shape(fn, *args)``, cached by ``fn`` and the structure of `args`
+    (tree structure, shapes and dtypes of the array leaves, the other leaves by value).
+
+    A shape evaluation traces ``fn`` in Python every time: `run_study` asked for three or
+    four of them per call (the study's plant and observers, the joint system), 10-30 ms of
+    its fixed cost at n = 4 (measured under load). What they return depends only on that
+    key, so a second call with new numbers reuses it. ``fn`` must be a stable object (a
+    module-level function); arguments with unhashable non-array leaves are not cached."""
+    leaves, treedef = jax.tree.flatten(args)
+    key = (fn, treedef) + tuple((x.shape, x.dtype) if eqx.is_array(x) else x for x in leaves)
+    try:
+        hit = key in _SHAPE_CACHE
+    except Exception:  # an unhashable or array-valued leaf: no cache
+        return eqx.filter_eval_shape(fn, *args)
+    if not hit:
+        if len(_SHAPE_CACHE) >= _SHAPE_CACHE_MAX:
+            _SHAPE_CACHE.clear()
+        _SHAPE_CACHE[key] = eqx.filter_eval_shape(fn, *args)
+    return _SHAPE_CACHE[key]
+
+
+def _joint_of(problem, p):
+    return problem.joint(p)
+
+
 def spans_processes(mesh) -> bool:
     """Whether `mesh` holds devices of other processes (a global mesh of
     `jax.distributed.initialize`: ``jax.devices()`` of a multi-process run)."""
@@ -788,7 +878,7 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
     Dw = 1 if spans_processes(mesh) else D
     if getattr(problem, "block_kernel", None) is None:  # the batch kernel's own stepping: block by N
         one = jax.tree.map(lambda a: a[0], p)
-        block = block_for(eqx.filter_eval_shape(problem.joint, one)[0].shape[0], int(block))
+        block = block_for(eval_shape_cached(_joint_of, problem, one)[0].shape[0], int(block))
     block = max(1, min(int(block), -(-min(int(chunk_size), Bn) // Dw)))
     unit = block * D
     bc = -(-int(chunk_size) // unit) * unit

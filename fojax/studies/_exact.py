@@ -35,6 +35,7 @@ from ..simulation._batch import (
     _block_kernel,
     _DIFF_MAX_SQUARINGS,
     _output_basis,
+    eval_shape_cached,
     Exogenous,
     expm_last,
     joint_matrices,
@@ -208,6 +209,19 @@ class StudyProblem(eqx.Module):
         jumps = (exo.jt, dW) if exo.jt.shape[0] else None
         return Aj, w0, G, ok, jumps
 
+    def plant_first(self, N: int):
+        """Static ``(perm, k)`` for `fojax.simulation._batch._multistep_block`: the joint
+        state ``[z; ξ; v]`` reordered plant first, ``[z; v; ξ]``, whose first ``k`` rows do
+        not involve the observers (`joint_matrices`: the plant's and the exosystem's rows
+        have zero observer columns), so the joint matrix is block lower-triangular;
+        ``None`` without a static ``r``."""
+        nq = sum(o.state_size for o in self.observers)
+        if self.r is None or nq == 0 or nq == N:
+            return None
+        r = self.r
+        perm = np.concatenate([np.arange(r), np.arange(r + nq, N), np.arange(r, r + nq)])
+        return perm, N - nq
+
     # metrics along the grid, as `error_metrics` defines them
     def init(self, o0):
         a = jnp.abs(o0)
@@ -268,14 +282,28 @@ SAME_E_BATCH = 256
 
 def _structure(fn, *args):
     """The output structure of ``fn(*args)`` without computing it (``None`` stays ``None``,
-    module types are kept, arrays become shapes)."""
-    return eqx.filter_eval_shape(fn, *args)
+    module types are kept, arrays become shapes); cached by structure
+    (`fojax.simulation._batch.eval_shape_cached`: `fn` is one of the module-level
+    functions below)."""
+    return eval_shape_cached(fn, *args)
+
+
+def _observer_lti(o):
+    return o.linear_matrices()
+
+
+def _first_plant(study):
+    return study.sample(0, 0)[0]
+
+
+def _first_lti(study):
+    return lti_matrices(_unwrap(study.sample(0, 0)[0])[0])
 
 
 def exact_problem(study, observers, settle_tol: float, keep: int):
     """Host: the `StudyProblem` of `study`, or ``(None, reason)`` when it does not qualify.
     ``keep``: 0, or the stride of the kept error trajectories (`StudyProblem.keep`)."""
-    if not all(_structure(lambda o: o.linear_matrices(), o) is not None for o in observers):
+    if not all(_structure(_observer_lti, o) is not None for o in observers):
         return None, "an observer is not LTI"
     if not is_concrete(study):
         return None, "the study's arrays are traced"
@@ -284,9 +312,9 @@ def exact_problem(study, observers, settle_tol: float, keep: int):
     h = (t[-1] - t[0]) / (T - 1)
     if not (h > 0 and np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h <= UNIFORM_GRID_RTOL):
         return None, "the grid is not uniform"
-    plant0 = _structure(lambda s: s.sample(0, 0)[0], study)
+    plant0 = _structure(_first_plant, study)
     base, _, _, fault = _unwrap(plant0)
-    if _structure(lambda s: lti_matrices(_unwrap(s.sample(0, 0)[0])[0]), study) is None:
+    if _structure(_first_lti, study) is None:
         return None, f"the plant ({type(base).__name__}) is not LTI"
     if not exactly_generated(study.u) or (fault is not None and not exactly_generated(fault)):
         return None, "a signal has no exact exosystem"
