@@ -8,6 +8,7 @@ tolerances for faults with onsets between grid points) followed by `error_metric
 """
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -333,3 +334,21 @@ def test_multistep_kernel_matches_scipy(multistep_study):
             errs.append(e)
     want = np.quantile(np.stack(errs), (0.2, 0.5, 0.8), axis=0)[:, ::11]
     np.testing.assert_allclose(bands.metrics["quantiles"][0], want, rtol=1e-8, atol=1e-12)
+
+
+def test_repeated_run_study_traces_nothing(multistep_study):
+    # Issue 16 (fixed cost): a second run_study of the same structure with new numbers runs
+    # compiled programs only; the shape evaluations that traced the joint system in Python
+    # on every call (~10-60 ms at n = 4) are cached by structure (eval_shape_cached).
+    # Oracle: the count of Python traces of StudyProblem.joint, and the results of a
+    # fresh-structure computation (equal metrics for equal numbers).
+    study, obs, _ = multistep_study
+    one = jax.devices()[:1]
+    first = S.run_study(study, obs, devices=one, quantiles=(), quiet=True)
+    before = _exact.TRACE_COUNTS["StudyProblem.joint"]
+    other = eqx.tree_at(lambda s: s.ts, study, study.ts * 1.5)  # new numbers, same structure
+    res = S.run_study(other, obs, devices=one, quantiles=(), quiet=True)
+    again = S.run_study(study, obs, devices=one, quantiles=(), quiet=True)
+    assert _exact.TRACE_COUNTS["StudyProblem.joint"] == before
+    assert not np.allclose(res.metrics["iae"], first.metrics["iae"])
+    np.testing.assert_array_equal(again.metrics["iae"], first.metrics["iae"])

@@ -160,6 +160,7 @@ class StudyProblem(eqx.Module):
     def joint(self, p):
         # p = (i, j) or (i, j, observers): one copy of the observers per sample (`study_loss`
         # on several devices: fojax.studies._sharding)
+        TRACE_COUNTS["StudyProblem.joint"] += 1  # Python traces (run_study's fixed cost: tests count them)
         i, j = p[0], p[1]
         observers = p[2] if len(p) > 2 else self.observers
         study = self.study
@@ -399,7 +400,8 @@ def blocked(fn, p, width: int):
     return jax.tree.map(lambda a: a[:b], out)
 
 
-#: Traces of the differentiable exact study loss (tests prove `study_loss` takes it).
+#: Traces of the differentiable exact study loss (tests prove `study_loss` takes it) and of
+#: `StudyProblem.joint` (a repeated `run_study` of the same structure traces nothing).
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
 
