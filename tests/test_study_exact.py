@@ -307,7 +307,7 @@ def multistep_study():
     return study, obs, (E, A, dA, C, L)
 
 
-def test_multistep_kernel_matches_scipy(multistep_study):
+def test_multistep_kernel_matches_scipy(multistep_study, monkeypatch):
     # Issue 16: the large-N forward kernel (outputs G Φ^j w of m steps per pass, Φ^m w to move
     # on; Φ by `expm_first`; a per-sample reduction of the algebraic block only). Oracle: the
     # independent SciPy recurrence (`scipy_oracle`); bands (stride 11: m = 22 steps per pass,
@@ -319,6 +319,10 @@ def test_multistep_kernel_matches_scipy(multistep_study):
     Aj = problem.joint((idx[0][0], idx[1][0]))[0]
     assert Aj.shape[0] >= _batch.MULTISTEP_MIN_N  # the multistep path, not the batch-last matvec
     res = S.run_study(study, obs, devices=one, quantiles=(), quiet=True)
+    # the bands run (a structure of its own, compiled here) in block lower-triangular form,
+    # the metrics run above in full form (N = 10 < TRIANGULAR_MIN_N)
+    assert Aj.shape[0] < _batch.TRIANGULAR_MIN_N and problem.plant_first(Aj.shape[0]) is not None
+    monkeypatch.setattr(_batch, "TRIANGULAR_MIN_N", 0)
     bands = S.run_study(study, obs, devices=one, quantiles=(0.2, 0.5, 0.8), band_points=8, quiet=True)
     assert bands.attrs["band_stride"] == 11 and res.metrics["success"].all()
     lm = obs.linear_matrices()

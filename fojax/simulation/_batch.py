@@ -526,6 +526,14 @@ MULTISTEP = 16
 MULTISTEP_MIN_N = 10
 
 
+#: Smallest joint size ``N`` that `_multistep_block` steps in block lower-triangular form
+#: (plant first, `StudyProblem.plant_first`); below it three small GEMMs per product cost
+#: more than one full one. run_study CPU per call (n/N, B = 1,000, measured under load),
+#: triangular vs full: 8/10: 40.7 vs 29.7 ms; 16/20: 50.6 vs 44.0 ms; 32/40: 152 vs 167 ms;
+#: one block at 128/160: 14.9 vs 20.1 ms.
+TRIANGULAR_MIN_N = 32
+
+
 #: Bytes of one block's ``Φ^m`` (``8 N² b``) that `block_for` aims at: small enough to
 #: stay in the CPU's cache while the block is stepped.
 BLOCK_BYTES = 2**21
@@ -700,7 +708,7 @@ def _multistep_block(problem, p, h, ts):
     Aj, w0, G, ok, _ = jax.vmap(problem.joint)(p)  # (b,N,N), (b,N), (b,K,N), (b,)
     b, K = G.shape[0], G.shape[1]
     o0 = jnp.einsum("bkn,bn->kb", G, w0)
-    order = problem.plant_first(Aj.shape[1]) if hasattr(problem, "plant_first") else None
+    order = problem.plant_first(Aj.shape[1]) if hasattr(problem, "plant_first") and Aj.shape[1] >= TRIANGULAR_MIN_N else None
     if order is None:
         hA, G, w = (h * Aj,), (G,), (w0,)
     else:  # [plant; observers]: block lower-triangular, the zero block never multiplied
