@@ -8,6 +8,7 @@ tolerances for faults with onsets between grid points) followed by `error_metric
 """
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -64,8 +65,9 @@ def assert_metrics_close(res, refs, i, j, rtol):
             assert np.allclose(got, want, rtol=rtol, atol=atol), (name, o, i, j, got, want)
 
 
-def scipy_oracle(E, A, C, L, obs_mats, x0, ts):
-    """IAE/ISE/ITAE/peak per error signal of one LTI sample (zero input), in NumPy/SciPy."""
+def scipy_oracle(E, A, C, L, obs_mats, x0, ts, errors=False):
+    """IAE/ISE/ITAE/peak per error signal of one LTI sample (zero input), in NumPy/SciPy
+    (with `errors`, also the error trajectory ``(T, K)``)."""
     U, s, Vt = np.linalg.svd(E)
     r = int(np.sum(s > 1e-12 * s[0]))
     V = Vt.T
@@ -100,7 +102,8 @@ def scipy_oracle(E, A, C, L, obs_mats, x0, ts):
     a = np.abs(e)
     tr = np.asarray(ts) - float(ts[0])
     trap = lambda v: np.sum(0.5 * (v[1:] + v[:-1]) * h, axis=0)  # noqa: E731
-    return {"iae": trap(a), "ise": trap(e**2), "itae": trap(tr[:, None] * a), "peak": a.max(axis=0)}
+    mets = {"iae": trap(a), "ise": trap(e**2), "itae": trap(tr[:, None] * a), "peak": a.max(axis=0)}
+    return (mets, e) if errors else mets
 
 
 def test_default_337_study_runs_exact_and_matches_simulate_and_scipy(ex337):
@@ -275,3 +278,81 @@ def test_metrics_and_bands_do_not_change_with_chunk_size(ex337):
     for a, b in zip(jax.tree.leaves(streamed), jax.tree.leaves(joined), strict=True):
         assert isinstance(a, np.ndarray) and a.shape == b.shape and a.shape[-1] == 10
         np.testing.assert_array_equal(a, np.asarray(b))
+
+
+@pytest.fixture(scope="module")
+def multistep_study():
+    """A random stable index-1 plant (n = 8, rank E = 6) with a Riccati-designed proportional
+    observer of q0 = 4 states: joint size N = 10, no jumps, so `run_study` takes the
+    forward kernel `_batch._multistep_block` (several steps per pass from precomputed
+    powers; the per-sample reduction eliminates only the algebraic block)."""
+    rng = np.random.default_rng(16)
+    n, r = 8, 6
+    U, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    V, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    A0 = rng.standard_normal((n, n)) / np.sqrt(n)
+    A0[:r, :r] -= (np.max(np.linalg.eigvalsh(A0[:r, :r] + A0[:r, :r].T)) / 2 + 1.0) * np.eye(r)
+    A0[r:, r:] = -2.0 * np.eye(n - r) + 0.1 * A0[r:, r:]
+    E = U @ np.diag([1.0] * r + [0.0] * (n - r)) @ V
+    A = U @ A0 @ V
+    dA = 0.2 * U @ rng.standard_normal((n, n)) @ V / np.sqrt(n)
+    C, L = rng.standard_normal((2, n)), rng.standard_normal((2, n))
+    base = fojax.DescriptorSystem(E, A, np.zeros((n, 1)), C)
+    obs = design_functional_observer(base, L, kind="proportional", method="riccati", q0=4).observer
+    plant = fojax.UncertainDescriptorSystem(base, dA=dA[None], delta=fojax.Constant(jnp.zeros(1)))
+    fam = S.Family(jax.vmap(fojax.Constant)(jnp.asarray([[-0.3], [0.1], [0.3]])), ("plant", "delta"))
+    x0 = S.Family(jnp.asarray(rng.standard_normal((2, n))), ("x0",))
+    ts = jnp.linspace(0.0, 2.0, 86)  # T - 1 = 85 = 5·16 + 5: passes plus a remainder
+    study = S.Study(plant, jnp.zeros(n), ts, L, None, uncertainty=(fam,), scenarios=(x0,))
+    return study, obs, (E, A, dA, C, L)
+
+
+def test_multistep_kernel_matches_scipy(multistep_study, monkeypatch):
+    # Issue 16: the large-N forward kernel (outputs G Φ^j w of m steps per pass, Φ^m w to move
+    # on; Φ by `expm_first`; a per-sample reduction of the algebraic block only). Oracle: the
+    # independent SciPy recurrence (`scipy_oracle`); bands (stride 11: m = 22 steps per pass,
+    # not a power of two, kept points inside the remainder) against np.quantile of its errors.
+    study, obs, (E, A, dA, C, L) = multistep_study
+    one = jax.devices()[:1]
+    prepared, _ = _exact.exact_problem(study, (obs,), 0.05, 0)
+    problem, _, idx = prepared
+    Aj = problem.joint((idx[0][0], idx[1][0]))[0]
+    assert Aj.shape[0] >= _batch.MULTISTEP_MIN_N  # the multistep path, not the batch-last matvec
+    res = S.run_study(study, obs, devices=one, quantiles=(), quiet=True)
+    # the bands run (a structure of its own, compiled here) in block lower-triangular form,
+    # the metrics run above in full form (N = 10 < TRIANGULAR_MIN_N)
+    assert Aj.shape[0] < _batch.TRIANGULAR_MIN_N and problem.plant_first(Aj.shape[0]) is not None
+    monkeypatch.setattr(_batch, "TRIANGULAR_MIN_N", 0)
+    bands = S.run_study(study, obs, devices=one, quantiles=(0.2, 0.5, 0.8), band_points=8, quiet=True)
+    assert bands.attrs["band_stride"] == 11 and res.metrics["success"].all()
+    lm = obs.linear_matrices()
+    mats = [tuple(np.asarray(getattr(lm, k)) for k in ("A", "By", "C", "Dy"))]
+    errs = []
+    for i, d in enumerate((-0.3, 0.1, 0.3)):
+        for j in range(2):
+            _, x0 = study.sample(i, j)
+            ref, e = scipy_oracle(E, A + d * dA, C, L, mats, np.asarray(x0), np.asarray(study.ts), errors=True)
+            for name, want in ref.items():
+                for r_ in (res, bands):
+                    np.testing.assert_allclose(r_.metrics[name][0, i, j], want, rtol=1e-8, atol=1e-14, err_msg=name)
+            errs.append(e)
+    want = np.quantile(np.stack(errs), (0.2, 0.5, 0.8), axis=0)[:, ::11]
+    np.testing.assert_allclose(bands.metrics["quantiles"][0], want, rtol=1e-8, atol=1e-12)
+
+
+def test_repeated_run_study_traces_nothing(multistep_study):
+    # Issue 16 (fixed cost): a second run_study of the same structure with new numbers runs
+    # compiled programs only; the shape evaluations that traced the joint system in Python
+    # on every call (~10-60 ms at n = 4) are cached by structure (eval_shape_cached).
+    # Oracle: the count of Python traces of StudyProblem.joint, and the results of a
+    # fresh-structure computation (equal metrics for equal numbers).
+    study, obs, _ = multistep_study
+    one = jax.devices()[:1]
+    first = S.run_study(study, obs, devices=one, quantiles=(), quiet=True)
+    before = _exact.TRACE_COUNTS["StudyProblem.joint"]
+    other = eqx.tree_at(lambda s: s.ts, study, study.ts * 1.5)  # new numbers, same structure
+    res = S.run_study(other, obs, devices=one, quantiles=(), quiet=True)
+    again = S.run_study(study, obs, devices=one, quantiles=(), quiet=True)
+    assert _exact.TRACE_COUNTS["StudyProblem.joint"] == before
+    assert not np.allclose(res.metrics["iae"], first.metrics["iae"])
+    np.testing.assert_array_equal(again.metrics["iae"], first.metrics["iae"])

@@ -17,9 +17,10 @@ A Monte Carlo study of a linear time-invariant loop needs per-sample *numbers*
    chosen by the joint size ``N``: below ``MULTISTEP_MIN_N`` with the batch as the
    **last** axis (state ``(N, b)``, ``Φ`` ``(N, N, b)``: each step is ``N²`` fused
    multiply–adds over the block, whose data stays in cache); from it on (and without
-   jumps) ``MULTISTEP`` grid steps per pass as batched matrix–matrix products
-   ``Φ^m [w_{k+1} … w_{k+m}]`` (`_multistep_block`: compute-bound, a graph independent of
-   ``N``); the requested reductions are accumulated *inside* the loop (trapezoid rule),
+   jumps) ``MULTISTEP`` grid steps per pass from precomputed powers, batch first: the
+   outputs ``[GΦ; …; GΦ^m] w`` and ``Φ^m w`` (`_multistep_block`; ``Φ`` by `expm_first`,
+   block lower-triangular when the problem says which states are the plant's; a graph
+   independent of ``N``); the requested reductions are accumulated *inside* the loop (trapezoid rule),
    so no ``(B, T, N)`` trajectory is ever stored and memory grows linearly with ``B``;
 4. spreads the blocks over all devices with `jax.shard_map` (round-robin, each device
    computing only blocks that hold real samples).
@@ -126,7 +127,7 @@ def joint_matrices(E, A, B, C, observers, x0, split=None, r=None, exo: Exogenous
     Bin = jnp.zeros((n, 0), A.dtype) if exo is None else B if exo.Hin.shape[0] == B.shape[1] else None
     if Bin is None:
         raise ShapeError("Exogenous.Hin", f"({B.shape[1]}, nv)", tuple(exo.Hin.shape))
-    red = reduce_linear_masked(E, A, Bin, split)
+    red = reduce_linear_masked(E, A, Bin, split, r)
     As, Tx, Bs, Tu = red.As, red.Tx, red.Bs, red.Tu
     z0 = red.split.slow * (red.split.V.T @ x0)
     if r is None:
@@ -525,6 +526,14 @@ MULTISTEP = 16
 MULTISTEP_MIN_N = 10
 
 
+#: Smallest joint size ``N`` that `_multistep_block` steps in block lower-triangular form
+#: (plant first, `StudyProblem.plant_first`); below it three small GEMMs per product cost
+#: more than one full one. run_study CPU per call (n/N, B = 1,000, measured under load),
+#: triangular vs full: 8/10: 40.7 vs 29.7 ms; 16/20: 50.6 vs 44.0 ms; 32/40: 152 vs 167 ms;
+#: one block at 128/160: 14.9 vs 20.1 ms.
+TRIANGULAR_MIN_N = 32
+
+
 #: Bytes of one block's ``Φ^m`` (``8 N² b``) that `block_for` aims at: small enough to
 #: stay in the CPU's cache while the block is stepped.
 BLOCK_BYTES = 2**21
@@ -539,17 +548,123 @@ def block_for(N: int | None, block: int) -> int:
     return max(1, min(block, max(4, BLOCK_BYTES // (8 * N * N))))
 
 
-def _matrix_power(P, m: int):
-    """``P^m`` of a batch-first stack ``P`` ``(b, N, N)`` by binary powering (``m ≥ 1``
-    static: ``⌊log₂ m⌋`` squarings and at most as many products)."""
-    out, base = None, P
-    while m:
-        if m & 1:
-            out = base if out is None else jnp.matmul(out, base)
-        m >>= 1
-        if m:
-            base = jnp.matmul(base, base)
-    return out
+#: Taylor degree, Paterson–Stockmeyer block and scaling threshold of `expm_first`: for
+#: ‖X‖₁ ≤ θ the remainder of the degree-15 Taylor polynomial is
+#: ≤ θ¹⁶/16! · e^θ ≈ 2.4e-17 (θ = 0.6); evaluated with 6 products (X², X³, X⁴, then 3
+#: Horner steps in X⁴), one fewer than `expm_last`'s degree 18 (θ = 1, 7 products).
+_FIRST_DEGREE, _FIRST_BLOCK, _FIRST_THETA = 15, 4, 0.6
+
+
+# Batch-first matrices of `_multistep_block`, either full (a 1-tuple ``(M,)``) or block
+# lower-triangular (``(M11, M21, M22)`` = [[M11, 0], [M21, M22]]: the joint loop with the
+# plant first, whose rows do not involve the observers). The same few operations serve both.
+def _mm(P, Q):
+    if len(P) == 1:
+        return (jnp.matmul(P[0], Q[0]),)
+    return (jnp.matmul(P[0], Q[0]), jnp.matmul(P[1], Q[0]) + jnp.matmul(P[2], Q[1]), jnp.matmul(P[2], Q[2]))
+
+
+def _row_mm(R, P):
+    """Rows times a matrix: ``R`` ``(R,)`` or its column blocks ``(R1, R2)``."""
+    if len(P) == 1:
+        return (jnp.matmul(R[0], P[0]),)
+    return (jnp.matmul(R[0], P[0]) + jnp.matmul(R[1], P[1]), jnp.matmul(R[1], P[2]))
+
+
+def _mv(P, w):
+    """Matrix times vectors ``(b, N)`` given as ``(w,)`` or ``(w1, w2)``."""
+    mv = lambda M, v: jnp.einsum("bij,bj->bi", M, v)  # noqa: E731
+    if len(P) == 1:
+        return (mv(P[0], w[0]),)
+    return (mv(P[0], w[0]), mv(P[1], w[0]) + mv(P[2], w[1]))
+
+
+def _eye_like(M):
+    eye = lambda X: jnp.broadcast_to(jnp.eye(X.shape[-1], dtype=X.dtype), X.shape)  # noqa: E731
+    return (eye(M[0]),) if len(M) == 1 else (eye(M[0]), jnp.zeros_like(M[1]), eye(M[2]))
+
+
+def _norm1(M):
+    """Induced 1-norm (largest column sum) per sample ``(b,)``."""
+    col = lambda X: jnp.max(jnp.sum(jnp.abs(X), axis=1), axis=1)  # noqa: E731
+    if len(M) == 1:
+        return col(M[0])
+    return jnp.maximum(jnp.max(jnp.sum(jnp.abs(M[0]), axis=1) + jnp.sum(jnp.abs(M[1]), axis=1), axis=1), col(M[2]))
+
+
+def expm_first(M):
+    r"""Matrix exponentials of a batch stored batch-first: ``M`` ``(b, N, N)`` → ``(b, N, N)``,
+    or a block lower-triangular batch ``(M11, M21, M22)`` → the blocks of its exponential.
+
+    The forward discretisation of `_multistep_block` (large ``N``): scaling and squaring
+    of the degree-15 Taylor polynomial (Paterson–Stockmeyer, 6 batched GEMMs
+    ``jnp.matmul``), $s_k = \max(0, \lceil\log_2(\|M_k\|_1/0.6)\rceil)$ squarings per
+    sample (a loop to the block's largest $s$, each sample squared only ``s_k`` times).
+    Truncation ≤ 2.4e-17 relative before squaring. Batch-first products are XLA's
+    batched GEMM (26–35 GFLOP/s per CPU second at ``N = 160`` measured under load,
+    against 16–21 for `expm_last`'s batch-last einsum), and the graph does not grow
+    with ``N``. In block-triangular form a product costs ``(r + q)(r² + q²)`` instead of
+    ``(r + q)³`` multiply–adds (about half at ``r = 96``, ``q = 64``), and the zero block
+    stays exactly zero. Not reverse-differentiable (data-dependent loop); agrees with
+    `scipy.linalg.expm` to rounding (tested through the study metrics).
+    """
+    import math
+
+    full = not isinstance(M, tuple)
+    M = (M,) if full else tuple(M)
+    norm = _norm1(M)
+    s = jnp.where(norm > _FIRST_THETA, jnp.ceil(jnp.log2(norm / _FIRST_THETA)), 0.0)
+    s = jnp.clip(jnp.where(jnp.isfinite(s), s, 0.0), 0, 1000).astype(jnp.int32)
+    X = tuple(B * jnp.exp2(-s.astype(B.dtype))[:, None, None] for B in M)
+    powers = [_eye_like(M), X]
+    for _ in range(2, _FIRST_BLOCK + 1):
+        powers.append(_mm(powers[-1], X))
+    coef = [1.0 / math.factorial(k) for k in range(_FIRST_DEGREE + 1)]
+    nblk = _FIRST_DEGREE // _FIRST_BLOCK + 1
+    add = lambda P, Q: tuple(a + b for a, b in zip(P, Q))  # noqa: E731
+
+    def chunk(j):  # Σ_i c[j·blk + i] X^i
+        terms = [tuple(coef[j * _FIRST_BLOCK + i] * B for B in powers[i]) for i in range(_FIRST_BLOCK)
+                 if j * _FIRST_BLOCK + i <= _FIRST_DEGREE]
+        out = terms[0]
+        for t in terms[1:]:
+            out = add(out, t)
+        return out
+
+    E = chunk(nblk - 1)
+    for j in range(nblk - 2, -1, -1):
+        E = add(_mm(E, powers[_FIRST_BLOCK]), chunk(j))
+
+    def square(i, E):
+        E2 = _mm(E, E)
+        return tuple(jnp.where((i < s)[:, None, None], a, b) for a, b in zip(E2, E))
+
+    E = lax.fori_loop(0, jnp.max(s), square, E)
+    return E[0] if full else E
+
+
+def _output_rows(Phi, G, m: int):
+    r"""``(R, Φ^m)`` of a batch-first stack ``Φ`` (``(Φ,)`` or its lower-triangular blocks,
+    see `expm_first`) and output map ``G`` (``(G,)`` or its column blocks): ``R``
+    ``(b, m K, ·)`` holds the rows $G\Phi^j$, ``j = 1 … m`` (block ``j − 1`` of ``K``
+    rows is $G\Phi^j$). By doubling: with the rows up to ``j`` and $\Phi^{2^i}$, the
+    next ones are ``R Φ^{2^i}`` (a ``(jK × N)(N × N)`` product), then $\Phi^{2^{i+1}}$
+    by one squaring; $\Phi^m$ is the product of the squares of ``m``'s binary digits
+    (``m`` static: ``⌊log₂ m⌋`` squarings, plus one product per further digit)."""
+    K = G[0].shape[1]
+    R, sq, i = _row_mm(G, Phi), [Phi], 0  # sq[i] = Φ^(2^i)
+    while R[0].shape[1] < m * K or (1 << (i + 1)) <= m:
+        if R[0].shape[1] < m * K:
+            more = _row_mm(tuple(x[:, : m * K - R[0].shape[1]] for x in R), sq[i])
+            R = tuple(jnp.concatenate([a, b], axis=1) for a, b in zip(R, more))
+        if (1 << (i + 1)) <= m:
+            sq.append(_mm(sq[i], sq[i]))
+        i += 1
+    Pm = None
+    for i, P in enumerate(sq):
+        if m >> i & 1:
+            Pm = P if Pm is None else _mm(Pm, P)
+    return R, Pm
 
 
 def _update_block(problem, acc, O, ks, ts):
@@ -565,59 +680,68 @@ def _update_block(problem, acc, O, ks, ts):
 
 
 def _multistep_block(problem, p, h, ts):
-    r"""The forward time loop of `_block_kernel` for problems without jumps: several grid
-    steps per pass, as matrix–matrix products.
+    r"""The forward time loop of `_block_kernel` for problems without jumps: ``m`` grid
+    steps per pass from precomputed powers, batch first.
 
-    With ``m`` consecutive states $X_p = [w_{1+pm}, \dots, w_{(p+1)m}]$ ``(N, m)`` of a
-    sample, the next ``m`` are $X_{p+1} = \Phi^m X_p$ and their outputs $G X_p$: per
-    pass one ``N × N × m`` and one ``K × N × m`` product per sample (batch first, XLA's
-    batched GEMM), instead of ``m`` batch-last matrix–vector products. The flops per
-    step are the same (``N² + K N``), but a matrix–matrix product reuses each entry of
-    $\Phi^m$ ``m`` times, so the loop is compute-bound instead of memory-bound, and the
-    graph does not grow with ``N`` (no loop unrolled over ``N``; it compiles in about a
-    second for any ``N``). Measured per sample and step (CPU time, loaded 2-core machine,
-    1,001 points, ``m = 16``): ``N = 22``, ``K = 10``, 256 samples: 66 ns against 372 ns
-    for the unrolled batch-last matvec; ``N = 64``, ``K = 64``: 0.82 µs against 2.6 µs.
+    With the state $w_{pm}$ of a sample at the start of pass ``p``, the outputs of the
+    next ``m`` steps are $o_{pm+j} = G\Phi^j w_{pm}$ (``j = 1 … m``), i.e. one product
+    ``R w`` with the stacked rows ``R = [GΦ; GΦ²; …; GΦ^m]`` ``(m K, N)``, and the state
+    moves on by $w_{(p+1)m} = \Phi^m w_{pm}$: per pass ``N² + m K N`` multiply–adds per
+    sample instead of ``m (N² + K N)`` (``K``, the metric outputs, is small: a study's
+    error signals). ``R`` and ``Φ^m`` come from `_output_rows` (doubling: ``⌊log₂ m⌋``
+    squarings and as many ``(jK × N)(N × N)`` products), ``Φ`` from `expm_first`
+    (batched GEMMs). All products are batch-first (XLA's batched GEMM); the graph does
+    not grow with ``N`` (no loop unrolled over ``N``). The previous version stepped
+    ``Φ^m [w_{k+1} … w_{k+m}]`` (``N² m`` per pass): at ``N = 160``, ``K = 2``, blocks
+    of 10, the passes took 13.5 ms per block against 2.7 ms now (CPU, measured under
+    load).
 
-    $\Phi^m$ comes from binary powering of $\Phi$ and $X_0$ from ``m`` single steps:
-    the rounding differs from stepping $\Phi$ ``m`` times by a few ulps of
-    $\|\Phi\|^m$ (tests compare with SciPy at ``1e-8``). The outputs are reduced with
-    the problem's `update_block` (vectorised over the ``m`` steps); with
-    ``problem.keep = k`` the outputs on ``ts[::k]`` are kept (``m`` is a multiple of
-    ``k``, so their positions within a pass are static).
+    Each output is $G\Phi^j(\Phi^m)^p w_0$ instead of ``G Φ(…Φ w_0)``: the rounding
+    differs by a few ulps of $\|\Phi\|^k$ (tests compare with SciPy at ``1e-8``). The
+    outputs are reduced with the problem's `update_block` (vectorised over the ``m``
+    steps); with ``problem.keep = k`` the outputs on ``ts[::k]`` are kept (``m`` is a
+    multiple of ``k``, so their positions within a pass are static).
     """
     T = ts.shape[0]
     stride = int(problem.keep)
     m = MULTISTEP if stride <= 1 else stride * -(-MULTISTEP // stride)
     Aj, w0, G, ok, _ = jax.vmap(problem.joint)(p)  # (b,N,N), (b,N), (b,K,N), (b,)
-    Phi = jnp.moveaxis(expm_last(jnp.moveaxis(h * Aj, 0, -1)), -1, 0)  # (b, N, N)
-    mv = lambda w: jnp.einsum("bij,bj->bi", Phi, w)  # noqa: E731
-    _, cols = lax.scan(lambda w, _: (mv(w), mv(w)), w0, None, length=m)  # (m, b, N): w_1 .. w_m
-    X = jnp.transpose(cols, (1, 2, 0))  # (b, N, m)
-    Pm = _matrix_power(Phi, m)
-
-    def outputs(X):
-        return jnp.einsum("bkn,bnm->bkm", G, X)  # (b, K, m)
-
+    b, K = G.shape[0], G.shape[1]
     o0 = jnp.einsum("bkn,bn->kb", G, w0)
+    order = problem.plant_first(Aj.shape[1]) if hasattr(problem, "plant_first") and Aj.shape[1] >= TRIANGULAR_MIN_N else None
+    if order is None:
+        hA, G, w = (h * Aj,), (G,), (w0,)
+    else:  # [plant; observers]: block lower-triangular, the zero block never multiplied
+        perm, k = order
+        Aj, G, w0 = Aj[:, perm][:, :, perm], G[:, :, perm], w0[:, perm]
+        hA = (h * Aj[:, :k, :k], h * Aj[:, k:, :k], h * Aj[:, k:, k:])
+        G, w = (G[:, :, :k], G[:, :, k:]), (w0[:, :k], w0[:, k:])
+    Phi = expm_first(hA)
+    R, Pm = _output_rows(Phi, G, m)  # rows (b, m K, ·), Φ^m
+
+    def outputs(w):  # the outputs of the m steps after w: (b, K, m)
+        o = sum(jnp.einsum("brn,bn->br", Ri, wi) for Ri, wi in zip(R, w))
+        return jnp.swapaxes(o.reshape(b, m, K), 1, 2)
+
+    w0 = w
     n_pass, rest = divmod(T - 1, m)
     kept = np.flatnonzero((1 + np.arange(m)) % stride == 0) if stride else None
 
     def body(carry, q):
-        X, acc, _ = carry
-        O = outputs(X)
+        w, acc, _ = carry
+        O = outputs(w)
         acc = _update_block(problem, acc, O, 1 + q * m + jnp.arange(m), ts)
-        X = jnp.matmul(Pm, X)
+        w = _mv(Pm, w)
         # the kept outputs turned batch-last here, on the pass's few columns in cache:
         # the stacked (n_pass, len(kept), K, b) is then the bands' layout as it is
-        return (X, acc, O[:, :, -1].T), (jnp.transpose(O[:, :, kept], (2, 1, 0)) if stride else None)
+        return (w, acc, O[:, :, -1].T), (jnp.transpose(O[:, :, kept], (2, 1, 0)) if stride else None)
 
-    (X, acc, o_end), traj = lax.scan(body, (X, problem.init(o0), o0), jnp.arange(n_pass))
+    (w, acc, o_end), traj = lax.scan(body, (w0, problem.init(o0), o0), jnp.arange(n_pass))
     parts = [o0[None]]
     if stride:
         parts.append(traj.reshape((-1,) + o0.shape))  # (n_pass · len(kept), K, b)
     if rest:
-        O = outputs(X)[:, :, :rest]
+        O = outputs(w)[:, :, :rest]
         acc = _update_block(problem, acc, O, 1 + n_pass * m + jnp.arange(rest), ts)
         o_end = O[:, :, -1].T
         if stride and np.any(kept < rest):
@@ -698,6 +822,37 @@ def _chunk_core(problem, p, nreal, h, ts, block, basis, mesh):
     return gather_across_processes(jax.tree.map(unarrange, out), mesh)
 
 
+#: `eval_shape_cached`'s results by structure (cleared when it holds `_SHAPE_CACHE_MAX`).
+_SHAPE_CACHE: dict = {}
+_SHAPE_CACHE_MAX = 256
+
+
+def eval_shape_cached(fn, *args):
+    """``eqx.filter_eval_shape(fn, *args)``, cached by ``fn`` and the structure of `args`
+    (tree structure, shapes and dtypes of the array leaves, the other leaves by value).
+
+    A shape evaluation traces ``fn`` in Python every time: `run_study` asked for three or
+    four of them per call (the study's plant and observers, the joint system), 10-30 ms of
+    its fixed cost at n = 4 (measured under load). What they return depends only on that
+    key, so a second call with new numbers reuses it. ``fn`` must be a stable object (a
+    module-level function); arguments with unhashable non-array leaves are not cached."""
+    leaves, treedef = jax.tree.flatten(args)
+    key = (fn, treedef) + tuple((x.shape, x.dtype) if eqx.is_array(x) else x for x in leaves)
+    try:
+        hit = key in _SHAPE_CACHE
+    except Exception:  # an unhashable or array-valued leaf: no cache
+        return eqx.filter_eval_shape(fn, *args)
+    if not hit:
+        if len(_SHAPE_CACHE) >= _SHAPE_CACHE_MAX:
+            _SHAPE_CACHE.clear()
+        _SHAPE_CACHE[key] = eqx.filter_eval_shape(fn, *args)
+    return _SHAPE_CACHE[key]
+
+
+def _joint_of(problem, p):
+    return problem.joint(p)
+
+
 def spans_processes(mesh) -> bool:
     """Whether `mesh` holds devices of other processes (a global mesh of
     `jax.distributed.initialize`: ``jax.devices()`` of a multi-process run)."""
@@ -742,7 +897,7 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
     Dw = 1 if spans_processes(mesh) else D
     if getattr(problem, "block_kernel", None) is None:  # the batch kernel's own stepping: block by N
         one = jax.tree.map(lambda a: a[0], p)
-        block = block_for(eqx.filter_eval_shape(problem.joint, one)[0].shape[0], int(block))
+        block = block_for(eval_shape_cached(_joint_of, problem, one)[0].shape[0], int(block))
     block = max(1, min(int(block), -(-min(int(chunk_size), Bn) // Dw)))
     unit = block * D
     bc = -(-int(chunk_size) // unit) * unit

@@ -35,6 +35,7 @@ from ..simulation._batch import (
     _block_kernel,
     _DIFF_MAX_SQUARINGS,
     _output_basis,
+    eval_shape_cached,
     Exogenous,
     expm_last,
     joint_matrices,
@@ -169,6 +170,7 @@ class StudyProblem(eqx.Module):
     def joint(self, p):
         # p = (i, j) or (i, j, observers): one copy of the observers per sample (`study_loss`
         # on several devices: fojax.studies._sharding)
+        TRACE_COUNTS["StudyProblem.joint"] += 1  # Python traces (run_study's fixed cost: tests count them)
         i, j = p[0], p[1]
         observers = p[2] if len(p) > 2 else self.observers
         study = self.study
@@ -217,6 +219,19 @@ class StudyProblem(eqx.Module):
         dW = jnp.concatenate([jnp.zeros((exo.jt.shape[0], N - exo.S.shape[0])), exo.jdv], axis=1)
         jumps = (exo.jt, dW) if exo.jt.shape[0] else None
         return Aj, w0, G, ok, jumps
+
+    def plant_first(self, N: int):
+        """Static ``(perm, k)`` for `fojax.simulation._batch._multistep_block`: the joint
+        state ``[z; ξ; v]`` reordered plant first, ``[z; v; ξ]``, whose first ``k`` rows do
+        not involve the observers (`joint_matrices`: the plant's and the exosystem's rows
+        have zero observer columns), so the joint matrix is block lower-triangular;
+        ``None`` without a static ``r``."""
+        nq = sum(o.state_size for o in self.observers)
+        if self.r is None or nq == 0 or nq == N:
+            return None
+        r = self.r
+        perm = np.concatenate([np.arange(r), np.arange(r + nq, N), np.arange(r, r + nq)])
+        return perm, N - nq
 
     # metrics along the grid, as `error_metrics` defines them; one accumulator per computed
     # metric (`computed`), in that order
@@ -292,8 +307,22 @@ SAME_E_BATCH = 256
 
 def _structure(fn, *args):
     """The output structure of ``fn(*args)`` without computing it (``None`` stays ``None``,
-    module types are kept, arrays become shapes)."""
-    return eqx.filter_eval_shape(fn, *args)
+    module types are kept, arrays become shapes); cached by structure
+    (`fojax.simulation._batch.eval_shape_cached`: `fn` is one of the module-level
+    functions below)."""
+    return eval_shape_cached(fn, *args)
+
+
+def _observer_lti(o):
+    return o.linear_matrices()
+
+
+def _first_plant(study):
+    return study.sample(0, 0)[0]
+
+
+def _first_lti(study):
+    return lti_matrices(_unwrap(study.sample(0, 0)[0])[0])
 
 
 def exact_problem(study, observers, settle_tol: float, keep: int, kinds: tuple[str, ...] = METRIC_NAMES):
@@ -386,7 +415,8 @@ def blocked(fn, p, width: int):
     return jax.tree.map(lambda a: a[:b], out)
 
 
-#: Traces of the differentiable exact study loss (tests prove `study_loss` takes it).
+#: Traces of the differentiable exact study loss (tests prove `study_loss` takes it) and of
+#: `StudyProblem.joint` (a repeated `run_study` of the same structure traces nothing).
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
 
@@ -396,12 +426,12 @@ def exact_refusal(study, observers) -> str | None:
     types and shapes of sample 0 (no arrays are computed, so it also works on a traced
     study) and from the grid when it is concrete (`grid_deviation`, the one uniform-grid
     test; a traced grid is assumed uniform, as `fojax.Auto` does)."""
-    if not all(_structure(lambda o: o.linear_matrices(), o) is not None for o in observers):
+    if not all(_structure(_observer_lti, o) is not None for o in observers):
         return "an observer is not LTI"
     if is_concrete(study.ts) and not grid_deviation(study.ts)[0] <= UNIFORM_GRID_RTOL:
         return "the grid is not uniform"
-    base, _, _, fault = _unwrap(_structure(lambda s: s.sample(0, 0)[0], study))
-    if _structure(lambda s: lti_matrices(_unwrap(s.sample(0, 0)[0])[0]), study) is None:
+    base, _, _, fault = _unwrap(_structure(_first_plant, study))
+    if _structure(_first_lti, study) is None:
         return f"the plant ({type(base).__name__}) is not LTI"
     if not exactly_generated(study.u) or (fault is not None and not exactly_generated(fault)):
         return "a signal has no exact exosystem"
