@@ -133,3 +133,22 @@ def test_samples_beyond_the_series_range_are_flagged_not_wrong(case):
     coarse = eqx.tree_at(lambda s: s.ts, study, jnp.linspace(0.0, 20.0, 21))
     mets, ok = eqx.filter_jit(_exact.sample_metrics_traced)(coarse, (observer,), 0.05, metric="iae")
     assert not bool(jnp.any(ok)) and bool(jnp.all(jnp.isnan(mets)))
+
+
+def test_badly_scaled_states_stay_in_the_series_range():
+    # regression: the same plant with states scaled by (1e3, 1e-3, 1) has ‖h A_p‖₁ ≈ 1e5; the
+    # series runs on the balanced A_p, so the loss is finite and equals the plain model's
+    # (z = L x is the same signal): before the balancing every sample was flagged (NaN) and
+    # test_tunable's whitened-twin tuning failed
+    A = np.array([[-1.0, 0.0, 0.0], [1.0, -2.0, 0.0], [0.0, 1.0, -3.0]])
+    B, C, L = np.array([[1.0], [0.0], [0.0]]), np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]])
+    ts, u = jnp.linspace(0.0, 3.0, 31), fojax.Sine(jnp.array([1.0]), 1.0)
+    vals = []
+    for Dx in (np.ones(3), np.array([1e3, 1e-3, 1.0])):
+        D = np.diag(Dx)
+        sysm = fojax.DescriptorSystem(D, A @ D, B, C @ D)
+        d = design_functional_observer(fojax.DescriptorSystem(np.eye(3), A, B, C), L, kind="generalized", q1=1,
+                                       region=Disk(-2.0, 1.0), R=L)
+        study = S.Study(sysm, jnp.asarray(np.array([1.0, -1.0, 0.5]) / Dx), ts, L @ D, u)
+        vals.append(float(eqx.filter_jit(S.study_loss)(study, d.observer)))
+    assert np.isfinite(vals[1]) and abs(vals[1] - vals[0]) <= 1e-9 * vals[0], vals

@@ -411,32 +411,33 @@ def _shared_bwd(saved, grad_obj, perturbed, args, problem, segment=None):
         return vjp(cot)
 
     def back_step(carry, x):
-        mu, acc_bar, tb = carry
-        xi_k, y_k, lg_k, acc_prev, k = x
+        # X̄ (per sample) by elementwise FMAs inside the step; the shared matrices' cotangents
+        # by one contraction over steps and samples per segment (`back`)
+        mu, acc_bar, tb, Poo_b, X_b, Go_b, D_b = carry
+        p_prev, xi_prev, xi_k, y_k, lg_k, acc_prev, k = x
         o_k = _mv(Go, xi_k) + _mv(D, y_k) - lg_k
         acc_bar, o_bar, t_bar = update_vjp(acc_prev, o_k, k, acc_bar)
         # Gᵀō as a dot, not FMAs: see `_split_bwd` (XLA fused the FMAs into Φᵀλ and recomputed them)
         lam = mu + jnp.einsum("ki,kb->ib", Go, o_bar)
-        return (_mv(Poo.T, lam), acc_bar, tb + t_bar), (lam, o_bar)
+        X_b = X_b + lam[:, None] * p_prev[None]
+        return (_mv(Poo.T, lam), acc_bar, tb + t_bar, Poo_b, X_b, Go_b, D_b), (lam, o_bar)
 
     def back(carry, start, ks):
-        mu, acc_bar, Poo_b, X_b, Go_b, D_b, tb = carry
-
         def rec(c, k):
             new = _shared_step(problem, plant, obs, *c, k)
             return new, (c[0], c[1], c[2], new[1], _matvec_last(Y, new[0]), _matvec_last(plant[3], new[0]))
 
         _, (p_prev, xi_prev, acc_prev, xi_k, y_k, lg_k) = lax.scan(rec, start, ks)
-        (mu, acc_bar, tb), (lam, o_bar) = lax.scan(back_step, (mu, acc_bar, tb), (xi_k, y_k, lg_k, acc_prev, ks),
-                                                   reverse=True)
+        carry, (lam, o_bar) = lax.scan(back_step, carry, (p_prev, xi_prev, xi_k, y_k, lg_k, acc_prev, ks),
+                                       reverse=True)
+        mu, acc_bar, tb, Poo_b, X_b, Go_b, D_b = carry
         Poo_b = Poo_b + jnp.einsum("kib,kjb->ij", lam, xi_prev)
-        X_b = X_b + jnp.einsum("kib,kjb->ijb", lam, p_prev)
         Go_b = Go_b + jnp.einsum("kib,kjb->ij", o_bar, xi_k)
         D_b = D_b + jnp.einsum("kib,kjb->ij", o_bar, y_k)
-        return (mu, acc_bar, Poo_b, X_b, Go_b, D_b, tb)
+        return (mu, acc_bar, tb, Poo_b, X_b, Go_b, D_b)
 
     zeros = jnp.zeros_like
-    carry = (mu, acc_bar, zeros(Poo), zeros(X), zeros(Go), zeros(D), zeros(ts))
+    carry = (mu, acc_bar, zeros(ts), zeros(Poo), zeros(X), zeros(Go), zeros(D))
     if tail:
         carry = back(carry, tail_ck, 1 + full * S + jnp.arange(tail))
 
@@ -446,7 +447,7 @@ def _shared_bwd(saved, grad_obj, perturbed, args, problem, segment=None):
 
     if full:
         carry, _ = lax.scan(segment_back, carry, jnp.arange(full), reverse=True)
-    mu, acc_bar, Poo_b, X_b, Go_b, D_b, tb = carry
+    mu, acc_bar, tb, Poo_b, X_b, Go_b, D_b = carry
     o0 = _shared_o0(plant, obs, xi0b)
     _, vjp0 = jax.vjp(lambda o: _float_part(problem.init(o))[0], o0)
     (o0_bar,) = vjp0(acc_bar)
