@@ -289,10 +289,19 @@ def _mv(M, v):
     return acc
 
 
+def _first(obs):
+    """The shared matrices of ``obs`` from their per-sample copies (sample 0; every copy is
+    equal): the inputs are per sample so that their cotangents stay per sample and are
+    summed once over all samples by `fojax.studies._sharding` (bit-identical on any number
+    of devices)."""
+    Poo, X, Go, D, xi0, ts = obs
+    return Poo[..., 0], X, Go[..., 0], D[..., 0], xi0, ts
+
+
 def _shared_step(problem, plant, obs, p, xi, acc, k):
     """Step ``k`` of the shared-observer loop: ``(p_k, ξ_k, acc_k)``."""
     Ppp, _, Y, Lg = plant
-    Poo, X, Go, D, _, ts = obs
+    Poo, X, Go, D, _, ts = _first(obs)
     pn = _matvec_last(Ppp, p)
     xn = _mv(Poo, xi) + _matvec_last(X, p)
     o = _mv(Go, xn) + _mv(D, _matvec_last(Y, pn)) - _matvec_last(Lg, pn)
@@ -301,12 +310,14 @@ def _shared_step(problem, plant, obs, p, xi, acc, k):
 
 def _shared_o0(plant, obs, xi0b):
     Y, Lg, p0 = plant[2], plant[3], plant[1]
-    return _mv(obs[2], xi0b) + _mv(obs[3], _matvec_last(Y, p0)) - _matvec_last(Lg, p0)
+    # the per-sample copies of G_ξ and D (not the first): outside the loop (the trapezoid's end
+    # terms) their cotangents then stay per sample
+    return _matvec_last(obs[2], xi0b) + _matvec_last(obs[3], _matvec_last(Y, p0)) - _matvec_last(Lg, p0)
 
 
 def _shared_forward(problem, plant, obs, segment, checkpoints: bool):
     ts, p0 = obs[5], plant[1]
-    xi0 = jnp.broadcast_to(obs[4][:, None], (obs[4].shape[0], p0.shape[1]))
+    xi0 = obs[4]
     n, S, full, tail = _split_layout(ts.shape[0], segment)
     acc0 = problem.init(_shared_o0(plant, obs, xi0))
 
@@ -352,8 +363,9 @@ def shared_recurrence_reduce(obs, plant, problem, segment=None):
 
     **Arguments:**
 
-    - `obs`: ``(Poo, X, Go, D, xi0, ts)``: ``(q, q)``, ``(q, m, b)``, ``(K, q)``,
-      ``(K, s)``, ``(q,)``, ``(T,)``.
+    - `obs`: ``(Poo, X, Go, D, xi0, ts)``: ``(q, q, b)``, ``(q, m, b)``, ``(K, q, b)``,
+      ``(K, s, b)``, ``(q, b)``, ``(T,)``: the shared matrices as per-sample copies (equal;
+      the first is used), so that their cotangents are returned per sample.
     - `plant`: ``(Ppp, p0, Y, Lg)``: ``(m, m, b)``, ``(m, b)``, ``(s, m, b)``, ``(K, m, b)``;
       differentiating with respect to them raises `fojax.InputError` (as
       `split_recurrence_reduce`).
@@ -387,10 +399,8 @@ def _shared_bwd(saved, grad_obj, perturbed, args, problem, segment=None):
             "initial state or output maps) is being differentiated, e.g. jax.grad with respect to the study's "
             "arrays. Differentiate with respect to the observer, or use cfg=SimConfig(stepper=fojax.Diffrax()) "
             "for derivatives with respect to the study.")
-    Poo, X, Go, D, xi0, ts = obs
+    Poo, X, Go, D, xi0b, ts = _first(obs)
     Y, p0 = plant[2], plant[1]
-    b = p0.shape[1]
-    xi0b = jnp.broadcast_to(xi0[:, None], (xi0.shape[0], b))
     n, S, full, tail = _split_layout(ts.shape[0], segment)
     (ps_ck, xs_ck, accs_ck), tail_ck = saved
     acc_bar, _, xi_bar = grad_obj
@@ -431,13 +441,13 @@ def _shared_bwd(saved, grad_obj, perturbed, args, problem, segment=None):
         carry, (lam, o_bar) = lax.scan(back_step, carry, (p_prev, xi_prev, xi_k, y_k, lg_k, acc_prev, ks),
                                        reverse=True)
         mu, acc_bar, tb, Poo_b, X_b, Go_b, D_b = carry
-        Poo_b = Poo_b + jnp.einsum("kib,kjb->ij", lam, xi_prev)
-        Go_b = Go_b + jnp.einsum("kib,kjb->ij", o_bar, xi_k)
-        D_b = D_b + jnp.einsum("kib,kjb->ij", o_bar, y_k)
+        Poo_b = Poo_b + jnp.einsum("kib,kjb->ijb", lam, xi_prev)
+        Go_b = Go_b + jnp.einsum("kib,kjb->ijb", o_bar, xi_k)
+        D_b = D_b + jnp.einsum("kib,kjb->ijb", o_bar, y_k)
         return (mu, acc_bar, tb, Poo_b, X_b, Go_b, D_b)
 
     zeros = jnp.zeros_like
-    carry = (mu, acc_bar, zeros(ts), zeros(Poo), zeros(X), zeros(Go), zeros(D))
+    carry = (mu, acc_bar, zeros(ts), zeros(obs[0]), zeros(X), zeros(obs[2]), zeros(obs[3]))
     if tail:
         carry = back(carry, tail_ck, 1 + full * S + jnp.arange(tail))
 
@@ -452,6 +462,6 @@ def _shared_bwd(saved, grad_obj, perturbed, args, problem, segment=None):
     _, vjp0 = jax.vjp(lambda o: _float_part(problem.init(o))[0], o0)
     (o0_bar,) = vjp0(acc_bar)
     lam0 = mu + Go.T @ o0_bar
-    Go_b = Go_b + o0_bar @ xi0b.T
-    D_b = D_b + o0_bar @ _matvec_last(Y, p0).T
-    return (Poo_b, X_b, Go_b, D_b, jnp.sum(lam0, axis=1), tb), jax.tree.map(lambda _: None, plant)
+    Go_b = Go_b + o0_bar[:, None] * xi0b[None]
+    D_b = D_b + o0_bar[:, None] * _matvec_last(Y, p0)[None]
+    return (Poo_b, X_b, Go_b, D_b, lam0, tb), jax.tree.map(lambda _: None, plant)

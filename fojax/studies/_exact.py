@@ -586,7 +586,7 @@ def _coupled_block(problem, q, h, ts, sizes, terms: int = COUPLING_TERMS):
     the joint ``e^{\mathcal A h}`` of `_block_kernel` up to rounding (tested). `sizes`:
     ``(p, m, K)`` (measured outputs, known inputs, error rows per observer)."""
     sp = problem.study if isinstance(problem, LossProblem) else problem
-    Phi_oo, Psi, D, Go, xi0 = jax.tree.map(lambda a: a[0], q[2])
+    Phi_oo, Psi, D, Go, xi0 = (jnp.moveaxis(a, 0, -1) for a in q[2])  # per-sample copies, batch last
     n = sp.E0.shape[0]
     sg = lambda t: jax.tree.map(lambda x: lax.stop_gradient(x) if eqx.is_array(x) else x, t)  # noqa: E731
     py, mu, K1 = sizes
@@ -613,14 +613,13 @@ def _coupled_block(problem, q, h, ts, sizes, terms: int = COUPLING_TERMS):
     for _ in range(terms - 1):
         Ms.append(jnp.einsum("bsm,bmk->bsk", Ms[-1], hAb))
     M = jnp.moveaxis(jnp.concatenate(Ms, axis=1) / d[:, None, :], 0, -1)  # (terms·s, m, b)
-    X = jnp.einsum("qc,cmb->qmb", Psi, M)  # (q, m, b)
+    X = jnp.einsum("qcb,cmb->qmb", Psi, M)  # (q, m, b)
     Yb, Lgb = jnp.moveaxis(Y, 0, -1), jnp.moveaxis(Lg, 0, -1)  # (s, m, b), (K1, m, b)
     nobs = D.shape[0] // K1
     Lgb = jnp.concatenate([Lgb] * nobs, axis=0) if nobs > 1 else Lgb  # (K, m, b)
     plant = (Ppp, p0.T, Yb, Lgb)
     acc, p_end, xi_end = shared_recurrence_reduce((Phi_oo, X, Go, D, xi0, ts), plant, problem)
-    b = p0.shape[0]
-    o0 = _shared_o0(plant, (Phi_oo, X, Go, D, xi0, ts), jnp.broadcast_to(xi0[:, None], xi0.shape + (b,)))
+    o0 = _shared_o0(plant, (Phi_oo, X, Go, D, xi0, ts), xi0)
     o_end = _shared_o0((None, p_end, Yb, Lgb), (None, None, Go, D), xi_end)
     return problem.final(acc, o0, o_end, ts, h, ok)
 
