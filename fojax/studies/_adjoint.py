@@ -274,3 +274,194 @@ def _split_bwd(saved, grad_obj, perturbed, args, problem, kon, segment=None):
     Go_b = Go_b + o0_bar[:, None, :] * xi0[None, :, :]
     Gp_b = Gp_b + o0_bar[:, None, :] * p0[None, :, :]
     return (Poo_b, Pop_b, Go_b, Gp_b, lam0, jb, tb), jax.tree.map(lambda _: None, plant)
+
+
+# --- the observers shared by every sample (`fojax.studies._exact._coupled_block`) --------
+
+
+def _mv(M, v):
+    """``M v`` for one matrix ``M`` ``(r, c)`` shared by the samples of ``v`` ``(c, b)``, as
+    ``c`` FMAs over the batch axis (fused into the step like `_matvec_last`; a matrix
+    product per step broke the fusion: the value and gradient ran 2x slower, measured)."""
+    acc = M[:, 0:1] * v[0][None, :]
+    for j in range(1, v.shape[0]):
+        acc = acc + M[:, j : j + 1] * v[j][None, :]
+    return acc
+
+
+def _first(obs):
+    """The shared matrices of ``obs`` from their per-sample copies (sample 0; every copy is
+    equal): the inputs are per sample so that their cotangents stay per sample and are
+    summed once over all samples by `fojax.studies._sharding` (bit-identical on any number
+    of devices)."""
+    Poo, X, Go, D, xi0, ts = obs
+    return Poo[..., 0], X, Go[..., 0], D[..., 0], xi0, ts
+
+
+def _shared_step(problem, plant, obs, p, xi, acc, k):
+    """Step ``k`` of the shared-observer loop: ``(p_k, ξ_k, acc_k)``."""
+    Ppp, _, Y, Lg = plant
+    Poo, X, Go, D, _, ts = _first(obs)
+    pn = _matvec_last(Ppp, p)
+    xn = _mv(Poo, xi) + _matvec_last(X, p)
+    o = _mv(Go, xn) + _mv(D, _matvec_last(Y, pn)) - _matvec_last(Lg, pn)
+    return pn, xn, problem.update(acc, o, k, ts)
+
+
+def _shared_o0(plant, obs, xi0b):
+    Y, Lg, p0 = plant[2], plant[3], plant[1]
+    # the per-sample copies of G_ξ and D (not the first): outside the loop (the trapezoid's end
+    # terms) their cotangents then stay per sample
+    return _matvec_last(obs[2], xi0b) + _matvec_last(obs[3], _matvec_last(Y, p0)) - _matvec_last(Lg, p0)
+
+
+def _shared_forward(problem, plant, obs, segment, checkpoints: bool):
+    ts, p0 = obs[5], plant[1]
+    xi0 = obs[4]
+    n, S, full, tail = _split_layout(ts.shape[0], segment)
+    acc0 = problem.init(_shared_o0(plant, obs, xi0))
+
+    def run(carry, ks):
+        out, _ = lax.scan(lambda c, k: (_shared_step(problem, plant, obs, *c, k), None), carry, ks)
+        return out
+
+    def outer(carry, s):
+        return run(carry, 1 + s * S + jnp.arange(S)), (carry if checkpoints else None)
+
+    carry, saved = lax.scan(outer, (p0, xi0, acc0), jnp.arange(full))
+    saved_tail = carry
+    if tail:
+        carry = run(carry, 1 + full * S + jnp.arange(tail))
+    p_end, xi_end, acc = carry
+    return (acc, p_end, xi_end), ((saved, saved_tail) if checkpoints else None)
+
+
+def shared_recurrence_reduce(obs, plant, problem, segment=None):
+    r"""`split_recurrence_reduce` for observers that are the same for every sample: the
+    loop of the module docstring with
+
+    $$p_k = \Phi_{pp}p_{k-1},\qquad \xi_k = \Phi_{\xi\xi}\xi_{k-1} + X p_{k-1},\qquad
+    o_k = G_\xi\xi_k + D\,Y p_k - L_g p_k ,$$
+
+    where $\Phi_{pp}$, $Y$, $L_g$, $p_0$ (per sample) do not depend on the differentiated
+    arguments and $\Phi_{\xi\xi}$, $G_\xi$, $D$, $\xi_0$ are shared by the samples
+    (`fojax.studies._exact.coupling_factors`; $X$, per sample, is the only per-sample
+    matrix the observers reach). It is the split loop with $G_p = DY - L_g$; the adjoint is
+    the same ($\lambda_n = \bar\xi_n + G_\xi^\top\bar o_n$,
+    $\lambda_k = \Phi_{\xi\xi}^\top\lambda_{k+1} + G_\xi^\top\bar o_k$), and the shared
+    matrices' cotangents are sums over samples and steps, written as matrix products:
+
+    $$\bar\Phi_{\xi\xi} = \sum_{b,k\ge1}\lambda_k\xi_{k-1}^\top,\quad
+    \bar X_b = \sum_{k\ge1}\lambda_k p_{k-1}^\top,\quad
+    \bar G_\xi = \sum_{b,k\ge0}\bar o_k\xi_k^\top,\quad
+    \bar D = \sum_{b,k\ge0}\bar o_k (Y p_k)^\top,\quad \bar\xi_0 = \sum_b\lambda_0 .$$
+
+    The observer's products $\Phi_{\xi\xi}\xi$, $G_\xi\xi$, $\Phi_{\xi\xi}^\top\lambda$ act
+    on all samples at once (one matrix product each) instead of one small matrix per
+    sample. No jumps (`kon`): the caller uses `split_recurrence_reduce` for loops with
+    jumps between grid points.
+
+    **Arguments:**
+
+    - `obs`: ``(Poo, X, Go, D, xi0, ts)``: ``(q, q, b)``, ``(q, m, b)``, ``(K, q, b)``,
+      ``(K, s, b)``, ``(q, b)``, ``(T,)``: the shared matrices as per-sample copies (equal;
+      the first is used), so that their cotangents are returned per sample.
+    - `plant`: ``(Ppp, p0, Y, Lg)``: ``(m, m, b)``, ``(m, b)``, ``(s, m, b)``, ``(K, m, b)``;
+      differentiating with respect to them raises `fojax.InputError` (as
+      `split_recurrence_reduce`).
+    - `problem`, `segment`: as `split_recurrence_reduce`.
+
+    **Returns:** ``(acc, p_end, xi_end)``.
+    """
+    problem = jax.tree.map(lambda x: lax.stop_gradient(x) if eqx.is_array(x) else x, problem)
+    return _shared_reduce((obs, plant), problem, segment)
+
+
+@eqx.filter_custom_vjp
+def _shared_reduce(args, problem, segment=None):
+    obs, plant = args
+    out, _ = _shared_forward(problem, plant, obs, segment, checkpoints=False)
+    return out
+
+
+@_shared_reduce.def_fwd
+def _shared_fwd(perturbed, args, problem, segment=None):
+    obs, plant = args
+    return _shared_forward(problem, plant, obs, segment, checkpoints=True)
+
+
+@_shared_reduce.def_bwd
+def _shared_bwd(saved, grad_obj, perturbed, args, problem, segment=None):
+    obs, plant = args
+    if any(jax.tree.leaves(perturbed[1])):
+        raise InputError(
+            "study_loss's reverse mode differentiates the observers only: the plant's trajectory (Φ_pp, its "
+            "initial state or output maps) is being differentiated, e.g. jax.grad with respect to the study's "
+            "arrays. Differentiate with respect to the observer, or use cfg=SimConfig(stepper=fojax.Diffrax()) "
+            "for derivatives with respect to the study.")
+    Poo, X, Go, D, xi0b, ts = _first(obs)
+    Y, p0 = plant[2], plant[1]
+    n, S, full, tail = _split_layout(ts.shape[0], segment)
+    (ps_ck, xs_ck, accs_ck), tail_ck = saved
+    acc_bar, _, xi_bar = grad_obj
+    acc_f0, _ = _float_part(problem.init(_shared_o0(plant, obs, xi0b)))
+    given = (acc_f0 if acc_bar is None else _float_part(acc_bar)[0])
+    acc_bar = jax.tree.map(
+        lambda z, g: None if z is None else (jnp.zeros_like(z) if g is None or acc_bar is None else g),
+        acc_f0, given, is_leaf=lambda x: x is None)
+    mu = jnp.zeros_like(xi0b) if xi_bar is None else xi_bar
+
+    def update_vjp(acc_prev, o, k, cot):
+        accf, acci = _float_part(acc_prev)
+
+        def f(accf, o, ts):
+            return _float_part(problem.update(eqx.combine(accf, acci), o, k, ts))[0]
+
+        _, vjp = jax.vjp(f, accf, o, ts)
+        return vjp(cot)
+
+    def back_step(carry, x):
+        # X̄ (per sample) by elementwise FMAs inside the step; the shared matrices' cotangents
+        # by one contraction over steps and samples per segment (`back`)
+        mu, acc_bar, tb, Poo_b, X_b, Go_b, D_b = carry
+        p_prev, xi_prev, xi_k, y_k, lg_k, acc_prev, k = x
+        o_k = _mv(Go, xi_k) + _mv(D, y_k) - lg_k
+        acc_bar, o_bar, t_bar = update_vjp(acc_prev, o_k, k, acc_bar)
+        # Gᵀō as a dot, not FMAs: see `_split_bwd` (XLA fused the FMAs into Φᵀλ and recomputed them)
+        lam = mu + jnp.einsum("ki,kb->ib", Go, o_bar)
+        X_b = X_b + lam[:, None] * p_prev[None]
+        return (_mv(Poo.T, lam), acc_bar, tb + t_bar, Poo_b, X_b, Go_b, D_b), (lam, o_bar)
+
+    def back(carry, start, ks):
+        def rec(c, k):
+            new = _shared_step(problem, plant, obs, *c, k)
+            return new, (c[0], c[1], c[2], new[1], _matvec_last(Y, new[0]), _matvec_last(plant[3], new[0]))
+
+        _, (p_prev, xi_prev, acc_prev, xi_k, y_k, lg_k) = lax.scan(rec, start, ks)
+        carry, (lam, o_bar) = lax.scan(back_step, carry, (p_prev, xi_prev, xi_k, y_k, lg_k, acc_prev, ks),
+                                       reverse=True)
+        mu, acc_bar, tb, Poo_b, X_b, Go_b, D_b = carry
+        Poo_b = Poo_b + jnp.einsum("kib,kjb->ijb", lam, xi_prev)
+        Go_b = Go_b + jnp.einsum("kib,kjb->ijb", o_bar, xi_k)
+        D_b = D_b + jnp.einsum("kib,kjb->ijb", o_bar, y_k)
+        return (mu, acc_bar, tb, Poo_b, X_b, Go_b, D_b)
+
+    zeros = jnp.zeros_like
+    carry = (mu, acc_bar, zeros(ts), zeros(obs[0]), zeros(X), zeros(obs[2]), zeros(obs[3]))
+    if tail:
+        carry = back(carry, tail_ck, 1 + full * S + jnp.arange(tail))
+
+    def segment_back(carry, s):
+        start = jax.tree.map(lambda a: a[s], (ps_ck, xs_ck, accs_ck))
+        return back(carry, start, 1 + s * S + jnp.arange(S)), None
+
+    if full:
+        carry, _ = lax.scan(segment_back, carry, jnp.arange(full), reverse=True)
+    mu, acc_bar, tb, Poo_b, X_b, Go_b, D_b = carry
+    o0 = _shared_o0(plant, obs, xi0b)
+    _, vjp0 = jax.vjp(lambda o: _float_part(problem.init(o))[0], o0)
+    (o0_bar,) = vjp0(acc_bar)
+    lam0 = mu + Go.T @ o0_bar
+    Go_b = Go_b + o0_bar[:, None] * xi0b[None]
+    D_b = D_b + o0_bar[:, None] * _matvec_last(Y, p0)[None]
+    return (Poo_b, X_b, Go_b, D_b, lam0, tb), jax.tree.map(lambda _: None, plant)
