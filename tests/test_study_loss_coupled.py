@@ -159,16 +159,3 @@ def test_badly_scaled_states_stay_in_the_series_range():
         study = S.Study(sysm, jnp.asarray(np.array([1.0, -1.0, 0.5]) / Dx), ts, L @ D, u)
         vals.append(float(eqx.filter_jit(S.study_loss)(study, d.observer)))
     assert np.isfinite(vals[1]) and abs(vals[1] - vals[0]) <= 1e-9 * vals[0], vals
-
-
-def test_host_decision_of_the_series_path(case):
-    # `resolve_engine` (what `fojax.tune` calls once) decides on the host whether every sample
-    # fits the series (then only that path is compiled); the loss is the same number either way
-    study, observer, dyn, st = case
-    coarse = eqx.tree_at(lambda s: s.ts, study, jnp.linspace(0.0, 20.0, 21))
-    cfg_fine, cfg_coarse = S.resolve_engine(study, observer), S.resolve_engine(coarse, observer)
-    assert cfg_fine.coupling_series is True and cfg_coarse.coupling_series is False
-    for st_, cfg in ((study, cfg_fine), (coarse, cfg_coarse)):
-        f = eqx.filter_jit(lambda p, s, c=cfg: S.study_loss(s, eqx.combine(p, st), loss="iae", cfg=c))
-        v, v0 = float(f(dyn, st_)), float(_loss(st_, st, "iae")(dyn, st_))
-        assert abs(v - v0) <= 1e-13 * abs(v0), (v, v0)

@@ -687,39 +687,7 @@ def _coupled_block(problem, q, h, ts, sizes, terms: int = COUPLING_TERMS, plant=
     return problem.final(acc, o0, o_end, ts, h, ok)
 
 
-def _loop_jumps(problem):
-    return _structure(lambda pr: pr.joint((jnp.asarray(0), jnp.asarray(0)))[4], problem)
-
-
-def _study_problem(study, observers, settle_tol=0.05):
-    E0 = _unwrap(study.sample(0, 0)[0])[0].E
-    return StudyProblem(study, tuple(observers), svd_split(E0), E0, jnp.asarray(settle_tol, dtype=jnp.float64), None)
-
-
-@eqx.filter_jit
-def _series_fits_all(study, observers, h):
-    problem = _study_problem(study, observers)
-    lm = observers[0].linear_matrices()
-    sizes = (lm.Dy.shape[1], lm.Du.shape[1], lm.Dy.shape[0])
-    k = jnp.arange(study.num_samples)
-    _, fits = _coupled_plant(problem, (k // study.num_scenarios, k % study.num_scenarios), h, sizes)
-    return fits
-
-
-def coupling_series_fits(study, observers) -> bool:
-    """Host: whether `sample_metrics_traced` can run every sample of the concrete `study`
-    on the observer-free coupling series (no jumps between grid points and every sample's
-    balanced ``‖h A_p‖₁ ≤ COUPLING_MAX_NORM``). It depends on the plant samples only, not
-    on the observers' numbers (`fojax.studies.resolve_engine` decides it once per tuning run)."""
-    observers = tuple(observers)
-    if _loop_jumps(_study_problem(study, observers)) is not None:
-        return False
-    ts = np.asarray(study.ts)
-    return bool(_series_fits_all(study, observers, (ts[-1] - ts[0]) / (ts.shape[0] - 1)))
-
-
-def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str | None = None,
-                          series: bool | None = None):
+def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str | None = None):
     """Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of every sample, exactly and
     reverse-differentiably with respect to the observers, in blocks of `DIFF_BLOCK` samples,
     in the masked full-size slow coordinates (nothing needs ``rank E`` on the host). Loops
@@ -733,9 +701,7 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
     is accumulated (`LossProblem`) and the result is ``(1, K, B)``. With a `mesh`
     (`fojax.studies._sharding.sample_mesh`) the samples are cut over its devices, possibly
     of several processes; the values and their gradient are bit-identical to one device
-    (`fojax.studies._sharding`). `series`: ``True``/``False`` when the host has decided
-    whether every sample fits the series (`coupling_series_fits`; then only that path is
-    compiled), ``None``: both, chosen per block. Traceable."""
+    (`fojax.studies._sharding`). Traceable."""
     TRACE_COUNTS["study_loss_exact"] += 1
     E0 = _unwrap(study.sample(0, 0)[0])[0].E
     split = svd_split(E0)
@@ -759,24 +725,22 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
     # with a sample beyond the series' range (balanced ‖h A_p‖₁ > COUPLING_MAX_NORM: a
     # coarse grid on a fast plant) takes the joint exponential instead (`lax.cond`: one
     # branch runs), so no sample is lost
-    if _loop_jumps(problem) is None and series is not False:
+    jumps = _structure(lambda pr: pr.joint((jnp.asarray(0), jnp.asarray(0)))[4], problem)
+    if jumps is None:
         lm = observers[0].linear_matrices()
         sizes = (lm.Dy.shape[1], lm.Du.shape[1], lm.Dy.shape[0])
-        series_known = series is True
 
         def coupled(shared, q):
             problem, ts, h = shared
             iu, jf, (factors, obs) = q
             plant, fits = _coupled_plant(problem, (iu, jf), h, sizes)
 
-            def series_path(_):
+            def series(_):
                 mets, ok = _coupled_block(problem, (iu, jf, factors), h, ts, sizes, plant=plant)
                 mets = mets[None] if mets.ndim == 2 else mets
                 return jnp.moveaxis(mets, -1, 0), ok
 
-            if series_known:  # decided on the host for these samples (`coupling_series_fits`)
-                return series_path(None)
-            return lax.cond(fits, series_path, lambda _: block(shared, (iu, jf, obs)), None)
+            return lax.cond(fits, series, lambda _: block(shared, (iu, jf, obs)), None)
 
         mets, ok = per_sample(lambda sh, p: blocked(lambda q: coupled(sh, q), p, DIFF_BLOCK), (problem, ts, h),
                               (coupling_factors(observers, h), tuple(observers)), k // study.num_scenarios,

@@ -59,13 +59,7 @@ from .._errors import InputError, ShapeError
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
-from ..simulation._batch import (
-    DEFAULT_BLOCK,
-    DEFAULT_CHUNK,
-    gather_across_processes,
-    is_concrete,
-    run_batched,
-)
+from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, gather_across_processes, run_batched
 from ..simulation._save import (
     error_metrics,
     METRIC_NAMES,
@@ -74,7 +68,7 @@ from ..simulation._save import (
     UNSET,
 )
 from ..simulation._steppers import AbstractStepper, Exponential, resolve_stepper
-from ._exact import coupling_series_fits, exact_problem, sample_metrics_traced, traced_qualifies
+from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
 from ._exponential import exponential_metrics_traced, exponential_problem, exponential_schedule
 from ._families import Family
 from ._sharding import (
@@ -267,10 +261,6 @@ class SimConfig:
     # decided on the host for one concrete study by `resolve_engine` (as `fojax.tune` does), so
     # that the study may then be traced; None: decided on each call (needs a concrete study)
     exponential_schedule: tuple | None = None
-    # `study_loss` on the exact engine: whether every sample of the study is inside the range of
-    # the observer-free coupling series (`fojax.studies._exact.coupling_series_fits`), decided
-    # on the host by `resolve_engine`; None: both paths compiled, chosen per block at run time
-    coupling_series: bool | None = None
 
     def __post_init__(self):
         st = self.stepper
@@ -616,7 +606,7 @@ def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, stride: int,
         "time": np.asarray(study.ts)[::stride],
     }
     merged = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)
-              if f.name not in ("solver", "devices", "stepper", "exponential_schedule", "coupling_series")}
+              if f.name not in ("solver", "devices", "stepper", "exponential_schedule")}
     merged["band_stride"] = int(stride)
     merged.update(attrs)
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=merged)
@@ -671,18 +661,11 @@ def resolve_engine(study: Study, observers, cfg: SimConfig = SimConfig()) -> Sim
     otherwise `cfg` unchanged (the exact engine decides on traced studies by itself;
     anything else runs `fojax.simulate` under `jax.vmap`). The schedule belongs to this
     study: another study needs its own call.
-
-    On the exact engine, whether every sample is inside the range of the observer-free
-    coupling series is decided here too (``coupling_series``; it depends on the plant
-    samples only, so it holds for every observer of a tuning run): the traced loss then
-    compiles only the path it takes.
     """
     observers = tuple(observers) if isinstance(observers, (tuple, list)) else (observers,)
     stepper = cfg.stepper
     if "exact-batch" in stepper.engines and traced_qualifies(study, observers):
-        if not is_concrete(study):
-            return cfg
-        return dataclasses.replace(cfg, coupling_series=coupling_series_fits(study, observers))
+        return cfg
     if "exponential-batch" not in stepper.engines or sample_mesh(cfg.devices) is not None:
         return cfg
     options = stepper if isinstance(stepper, Exponential) else Exponential()
@@ -734,8 +717,7 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     stepper = cfg.stepper  # its engines, in order (fojax.simulation._steppers)
     if "exact-batch" in stepper.engines and traced_qualifies(study, (observer,)):
         # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
-        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh, metric=loss,
-                                        series=cfg.coupling_series)
+        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh, metric=loss)
         per = w @ mets[0]  # (B,)
         return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
     if "exponential-batch" in stepper.engines and mesh is None:
