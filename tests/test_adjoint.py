@@ -25,6 +25,8 @@ class _Metrics(eqx.Module):
     """`run_study`'s accumulators (the ones `study_loss` differentiates)."""
 
     settle_tol: jax.Array
+    kinds: tuple = eqx.field(static=True, default=_exact.METRIC_NAMES)  # every metric accumulated
+    computed = _exact.StudyProblem.computed
     init = _exact.StudyProblem.init
     update = _exact.StudyProblem.update
 
