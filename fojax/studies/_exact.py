@@ -529,8 +529,7 @@ class _Probe(eqx.Module):
 
 #: Terms of the plant-side series of the coupling block (`_coupled_block`) and the largest
 #: ``‖h A_p‖₁`` (per sample) it accepts: the omitted terms are below
-#: ``1.5^{21}/22! ≈ 4.5e-18`` of the leading one (a block with a sample above it takes the
-#: joint exponential instead, `sample_metrics_traced`).
+#: ``1.5^{21}/22! ≈ 4.5e-18`` of the leading one (samples above it are flagged, NaN).
 COUPLING_TERMS = 21
 COUPLING_MAX_NORM = 1.5
 
@@ -585,8 +584,7 @@ def coupling_factors(observers, h, terms: int = COUPLING_TERMS):
     \cdots & \tilde\Psi_{terms-1}\\ 0 & \ast\end{bmatrix}$ (on the unit time interval, the
     chain block started at $I$ in position $i$ reaches the first block as $\sigma^i/i!$,
     $\sigma = s/h$). The series is truncated after ``terms`` terms; with
-    $\|hA_p\|_1 \le$ `COUPLING_MAX_NORM` (checked per sample; a block with a sample beyond it takes the joint
-    exponential, `sample_metrics_traced`) the rest is
+    $\|hA_p\|_1 \le$ `COUPLING_MAX_NORM` (checked per sample, flagged otherwise) the rest is
     below $1.5^{21}/22! \approx 4.5\cdot10^{-18}$ of the leading term (each omitted term is
     at most $\|hA_p\|_1^i/(i+1)!$ times $h\|e^{N_\theta\cdot}B_\theta Y\|$).
     term. ``Ψ`` is ``[Ψ̃_0 … Ψ̃_{terms-1}]`` ``(q, terms·s)``; ``D`` the observers'
@@ -625,16 +623,24 @@ def _balance_scaling(A, sweeps: int = 12):
     return d
 
 
-def _coupled_plant(problem, q, h, sizes):
-    """The per-sample plant part of `_coupled_block` (free of the observers' parameters):
-    ``(A_p, p_0, Y, -L_g, ok, d)`` with ``d`` the balancing of ``h A_p`` (`_balance_scaling`),
-    and whether every sample of the block is inside the series' range
-    (balanced ``‖h A_p‖₁ ≤ COUPLING_MAX_NORM``)."""
+def _coupled_block(problem, q, h, ts, sizes, terms: int = COUPLING_TERMS):
+    r"""One block of `sample_metrics_traced` without jumps: ``(mets, ok)`` of ``final``.
+
+    Everything per sample is free of the observers' parameters: the plant part of the
+    joint (``A_p``, ``p_0``, the signal map ``Y``, the error's plant part ``-L_g``, from the
+    joint of the `_Probe` observer), ``e^{hA_p}`` and ``Y(hA_p)^i``; the observers enter
+    through the shared `coupling_factors` (``q[2]``, one copy per sample). Per sample only
+    ``X = Ψ [Y(hA_p)^i]_i`` and ``G_p = D Y − L_g`` (one row block per observer) involve them,
+    then `split_recurrence_reduce` (adjoint at the observers' size). The same numbers as
+    the joint ``e^{\mathcal A h}`` of `_block_kernel` up to rounding (tested). `sizes`:
+    ``(p, m, K)`` (measured outputs, known inputs, error rows per observer)."""
     sp = problem.study if isinstance(problem, LossProblem) else problem
+    Phi_oo, Psi, D, Go, xi0 = (jnp.moveaxis(a, 0, -1) for a in q[2])  # per-sample copies, batch last
     n = sp.E0.shape[0]
     sg = lambda t: jax.tree.map(lambda x: lax.stop_gradient(x) if eqx.is_array(x) else x, t)  # noqa: E731
     py, mu, K1 = sizes
-    free = eqx.tree_at(lambda pr: pr.observers, sg(sp), (_Probe(py, mu, K1),))
+    probe = _Probe(py, mu, K1)
+    free = eqx.tree_at(lambda pr: pr.observers, sg(sp), (probe,))
 
     def plant_of(i, j):
         Aj, w0, G, ok, _ = free.joint((i, j))
@@ -646,30 +652,10 @@ def _coupled_plant(problem, q, h, sizes):
 
     Ap, p0, Y, Lg, ok = jax.vmap(plant_of)(q[0], q[1])  # (b,m,m), (b,m), (b,s,m), (b,K1,m), (b,)
     hAp = h * Ap
+    Ppp = expm_last(jnp.moveaxis(hAp, 0, -1))  # (m, m, b)
     # the series in the balanced A_p (a diagonal similarity by powers of 2, exact): badly
     # scaled states (e.g. 1e-3 and 1e3) do not inflate ‖h A_p‖₁ beyond the series' range
     d = jax.vmap(_balance_scaling)(hAp)  # (b, m)
-    hAb = hAp / d[:, :, None] * d[:, None, :]
-    fits = jnp.max(jnp.sum(jnp.abs(hAb), axis=1), axis=1) <= COUPLING_MAX_NORM
-    return (Ap, p0, Y, Lg, ok, d), jnp.all(fits | ~ok)
-
-
-def _coupled_block(problem, q, h, ts, sizes, terms: int = COUPLING_TERMS, plant=None):
-    r"""One block of `sample_metrics_traced` without jumps: ``(mets, ok)`` of ``final``.
-
-    Everything per sample is free of the observers' parameters: the plant part of the
-    joint (``A_p``, ``p_0``, the signal map ``Y``, the error's plant part ``-L_g``, from the
-    joint of the `_Probe` observer), ``e^{hA_p}`` and ``Y(hA_p)^i``; the observers enter
-    through the shared `coupling_factors` (``q[2]``, one copy per sample). Per sample only
-    ``X = Ψ [Y(hA_p)^i]_i`` and ``G_p = D Y − L_g`` (one row block per observer) involve them,
-    then `split_recurrence_reduce` (adjoint at the observers' size). The same numbers as
-    the joint ``e^{\mathcal A h}`` of `_block_kernel` up to rounding (tested). `sizes`:
-    ``(p, m, K)`` (measured outputs, known inputs, error rows per observer)."""
-    Phi_oo, Psi, D, Go, xi0 = (jnp.moveaxis(a, 0, -1) for a in q[2])  # per-sample copies, batch last
-    K1 = sizes[2]
-    (Ap, p0, Y, Lg, ok, d), _ = _coupled_plant(problem, q, h, sizes) if plant is None else (plant, None)
-    hAp = h * Ap
-    Ppp = expm_last(jnp.moveaxis(hAp, 0, -1))  # (m, m, b)
     hAb = hAp / d[:, :, None] * d[:, None, :]
     ok = ok & (jnp.max(jnp.sum(jnp.abs(hAb), axis=1), axis=1) <= COUPLING_MAX_NORM)
     Ms = [Y * d[:, None, :]]
@@ -693,9 +679,8 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
     in the masked full-size slow coordinates (nothing needs ``rank E`` on the host). Loops
     without jumps between grid points: the observers' part of the step once per call
     (`coupling_factors`), per sample only what they do not reach (`_coupled_block`,
-    `fojax.studies._adjoint.shared_recurrence_reduce`; a block with a sample whose balanced
-    ``‖h A_p‖₁`` exceeds `COUPLING_MAX_NORM` takes the joint path, `lax.cond`). Loops with
-    jumps, and those blocks: the joint exponential
+    `fojax.studies._adjoint.shared_recurrence_reduce`; samples with
+    ``‖h A_p‖₁ > COUPLING_MAX_NORM`` are flagged). Loops with jumps: the joint exponential
     per sample (`expm_last` with a fixed-length squaring scan) and the split loop
     (`_split_loop`). With `metric` (``"iae"`` or ``"ise"``) only that metric
     is accumulated (`LossProblem`) and the result is ``(1, K, B)``. With a `mesh`
@@ -712,19 +697,8 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
     ts = study.ts
     h = (ts[-1] - ts[0]) / (ts.shape[0] - 1)
 
-    def block(shared, q):
-        problem, ts, h = shared
-        mets, ok = _block_kernel(problem, q, h, ts, None, differentiable=True,
-                                 time_loop=lambda pr, Phi, w0, G, jv, kon, ts: _split_loop(
-                                     pr, q, h, Phi, w0, G, jv, kon, ts))
-        mets = mets[None] if mets.ndim == 2 else mets  # LossProblem: (K, b) -> (1, K, b)
-        return jnp.moveaxis(mets, -1, 0), ok  # samples first
-
     # without jumps between grid points: the observers' part of the step once per call
-    # (`coupling_factors`), per sample only what is free of them (`_coupled_block`); a block
-    # with a sample beyond the series' range (balanced ‖h A_p‖₁ > COUPLING_MAX_NORM: a
-    # coarse grid on a fast plant) takes the joint exponential instead (`lax.cond`: one
-    # branch runs), so no sample is lost
+    # (`coupling_factors`), per sample only what is free of them (`_coupled_block`)
     jumps = _structure(lambda pr: pr.joint((jnp.asarray(0), jnp.asarray(0)))[4], problem)
     if jumps is None:
         lm = observers[0].linear_matrices()
@@ -732,20 +706,22 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
 
         def coupled(shared, q):
             problem, ts, h = shared
-            iu, jf, (factors, obs) = q
-            plant, fits = _coupled_plant(problem, (iu, jf), h, sizes)
-
-            def series(_):
-                mets, ok = _coupled_block(problem, (iu, jf, factors), h, ts, sizes, plant=plant)
-                mets = mets[None] if mets.ndim == 2 else mets
-                return jnp.moveaxis(mets, -1, 0), ok
-
-            return lax.cond(fits, series, lambda _: block(shared, (iu, jf, obs)), None)
+            mets, ok = _coupled_block(problem, q, h, ts, sizes)
+            mets = mets[None] if mets.ndim == 2 else mets
+            return jnp.moveaxis(mets, -1, 0), ok
 
         mets, ok = per_sample(lambda sh, p: blocked(lambda q: coupled(sh, q), p, DIFF_BLOCK), (problem, ts, h),
-                              (coupling_factors(observers, h), tuple(observers)), k // study.num_scenarios,
-                              k % study.num_scenarios, mesh)
+                              coupling_factors(observers, h), k // study.num_scenarios, k % study.num_scenarios,
+                              mesh)
         return jnp.moveaxis(mets, 0, -1), ok
+
+    def block(shared, q):
+        problem, ts, h = shared
+        mets, ok = _block_kernel(problem, q, h, ts, None, differentiable=True,
+                                 time_loop=lambda pr, Phi, w0, G, jv, kon, ts: _split_loop(
+                                     pr, q, h, Phi, w0, G, jv, kon, ts))
+        mets = mets[None] if mets.ndim == 2 else mets  # LossProblem: (K, b) -> (1, K, b)
+        return jnp.moveaxis(mets, -1, 0), ok  # samples first
 
     def local(shared, p):
         return blocked(lambda q: block(shared, q), p, DIFF_BLOCK)
