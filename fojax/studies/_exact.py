@@ -49,7 +49,7 @@ from ..simulation._reduction import (
 )
 from ..simulation._save import METRIC_NAMES
 from ..simulation._steppers import grid_deviation, UNIFORM_GRID_RTOL
-from ._adjoint import _shared_o0, shared_recurrence_reduce, split_recurrence_reduce
+from ._adjoint import split_recurrence_reduce
 from ._sharding import per_sample
 from ._wrappers import FaultProfile, FaultyPlant
 
@@ -498,191 +498,12 @@ def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts):
     return acc, w_end
 
 
-class _Probe(eqx.Module):
-    r"""A stand-in observer whose joint rows with the plant are the plant's signals.
-
-    ``ξ̇ = [I_p; 0] y + [0; I_m] u``, ``ẑ = 0`` (state size ``p + m``, output size ``K``):
-    in `StudyProblem.joint` its ``ξ`` rows of ``\mathcal A`` are ``Y = [Y_y; Y_u]`` (the
-    measured output and the known input as linear maps of the plant part ``[x_slow; v]``)
-    and its error rows are ``-L_g`` (``-z`` on the plant part), with no observer
-    parameter involved (`_coupled_block`)."""
-
-    p: int = eqx.field(static=True)
-    m: int = eqx.field(static=True)
-    k: int = eqx.field(static=True)
-
-    @property
-    def state_size(self) -> int:
-        return self.p + self.m
-
-    def initial_state(self):
-        return jnp.zeros((self.p + self.m,))
-
-    def linear_matrices(self):
-        from ..observer import LinearObserverMatrices
-
-        s, f = self.p + self.m, jnp.float64
-        return LinearObserverMatrices(A=jnp.zeros((s, s), f), Bu=jnp.eye(s, self.m, -self.p, dtype=f),
-                                      By=jnp.eye(s, self.p, dtype=f), C=jnp.zeros((self.k, s), f),
-                                      Du=jnp.zeros((self.k, self.m), f), Dy=jnp.zeros((self.k, self.p), f))
-
-
-#: Terms of the plant-side series of the coupling block (`_coupled_block`) and the largest
-#: ``‖h A_p‖₁`` (per sample) it accepts: the omitted terms are below
-#: ``1.5^{21}/22! ≈ 4.5e-18`` of the leading one (samples above it are flagged, NaN).
-COUPLING_TERMS = 21
-COUPLING_MAX_NORM = 1.5
-
-
-def _expm_dense(M):
-    r"""``e^M`` of one matrix, reverse-differentiable, with plain matrix products: the
-    scaling and squaring of `fojax.simulation._batch.expm_last` (degree-18 Taylor in the
-    Paterson–Stockmeyer form at $\|2^{-s}M\|_1 \le 1$, then $s \le$ ``_DIFF_MAX_SQUARINGS``
-    squarings in a scan that skips the unused ones; NaN beyond). (`jax.scipy.linalg.expm`
-    gives the same numbers, but its reverse mode took 5.7 s to compile for one 115 x 115
-    matrix, measured under load; this one well under a second.)"""
-    import math
-
-    norm = jnp.max(jnp.sum(jnp.abs(M), axis=0))
-    s = jnp.where(norm > 1.0, jnp.ceil(jnp.log2(norm)), 0.0)
-    s = jnp.clip(jnp.where(jnp.isfinite(s), s, 0.0), 0, 1000).astype(jnp.int32)
-    X = M * jnp.exp2(-s.astype(M.dtype))
-    eye = jnp.eye(M.shape[0], dtype=M.dtype)
-    powers = [eye, X, X @ X]
-    powers.append(powers[2] @ X)
-    powers.append(powers[2] @ powers[2])
-    c = [1.0 / math.factorial(k) for k in range(19)]
-    chunk = lambda j: sum(c[4 * j + i] * powers[i] for i in range(4) if 4 * j + i <= 18)  # noqa: E731
-    E = chunk(4)
-    for j in range(3, -1, -1):
-        E = E @ powers[4] + chunk(j)
-    E, _ = lax.scan(lambda E, i: (lax.cond(i < s, lambda E: E @ E, lambda E: E, E), None), E,
-                    jnp.arange(_DIFF_MAX_SQUARINGS))
-    return jnp.where(s > _DIFF_MAX_SQUARINGS, jnp.nan, E)
-
-
-def coupling_factors(observers, h, terms: int = COUPLING_TERMS):
-    r"""The observers' part of one exact step of the joint loop (traceable, differentiable,
-    computed once per call, not per sample): ``(Φ_ξξ, Ψ, D, G_ξ, ξ_0)``.
-
-    The joint loop is block lower triangular,
-    $\mathcal A = \begin{bmatrix}A_p & 0\\ B_\theta Y & N_\theta\end{bmatrix}$ ($A_p$, $Y$ per
-    sample and free of the observers' parameters $\theta$; $N_\theta$ = blockdiag of the
-    observers' ``A``, $B_\theta$ = their ``[By, Bu]`` stacked), so
-    $e^{\mathcal A h} = \begin{bmatrix}e^{A_p h} & 0\\ X & e^{N_\theta h}\end{bmatrix}$ with
-    the coupling
-
-    $$X = \int_0^h e^{N_\theta(h-s)}B_\theta Y e^{A_p s}\,ds
-        = \sum_{i\ge0}\tilde\Psi_i\,Y(hA_p)^i,\qquad
-      \tilde\Psi_i = \int_0^h e^{N_\theta(h-s)}B_\theta\,\frac{(s/h)^i}{i!}\,ds$$
-
-    (expand $e^{A_p s} = \sum_i (hA_p)^i (s/h)^i/i!$). All $\tilde\Psi_i$ and
-    $e^{N_\theta h}$ come from one matrix exponential (`_expm_dense`) of the Van Loan matrix
-    with a chain of ``terms`` identity blocks,
-    $\mathcal V = \begin{bmatrix}hN_\theta & hB_\theta & & \\ & 0 & I & \\ & & \ddots & I\\
-    & & & 0\end{bmatrix}$, $e^{\mathcal V} = \begin{bmatrix}e^{hN_\theta} & \tilde\Psi_0 &
-    \cdots & \tilde\Psi_{terms-1}\\ 0 & \ast\end{bmatrix}$ (on the unit time interval, the
-    chain block started at $I$ in position $i$ reaches the first block as $\sigma^i/i!$,
-    $\sigma = s/h$). The series is truncated after ``terms`` terms; with
-    $\|hA_p\|_1 \le$ `COUPLING_MAX_NORM` (checked per sample, flagged otherwise) the rest is
-    below $1.5^{21}/22! \approx 4.5\cdot10^{-18}$ of the leading term (each omitted term is
-    at most $\|hA_p\|_1^i/(i+1)!$ times $h\|e^{N_\theta\cdot}B_\theta Y\|$).
-    term. ``Ψ`` is ``[Ψ̃_0 … Ψ̃_{terms-1}]`` ``(q, terms·s)``; ``D`` the observers'
-    ``[Dy, Du]`` (``(K, s)``; ``ẑ = C ξ + D [y; u]``)."""
-    lms = [o.linear_matrices() for o in observers]
-    q = sum(lm.A.shape[0] for lm in lms)
-    N = _blkdiag(*[lm.A for lm in lms])
-    Bt = jnp.concatenate([jnp.concatenate([lm.By, lm.Bu], axis=1) for lm in lms], axis=0)
-    s = Bt.shape[1]
-    size = q + terms * s
-    V = jnp.zeros((size, size), N.dtype)
-    V = V.at[:q, :q].set(h * N).at[:q, q : q + s].set(h * Bt)
-    if terms > 1:
-        V = V.at[q : q + (terms - 1) * s, q + s :].set(jnp.eye((terms - 1) * s, dtype=N.dtype))
-    EV = _expm_dense(V)
-    D = jnp.concatenate([jnp.concatenate([lm.Dy, lm.Du], axis=1) for lm in lms], axis=0)
-    Go = _blkdiag(*[lm.C for lm in lms])
-    xi0 = jnp.concatenate([o.initial_state() for o in observers])
-    return EV[:q, :q], EV[:q, q:], D, Go, xi0
-
-
-def _balance_scaling(A, sweeps: int = 12):
-    r"""Powers of two ``d`` such that ``D^{-1} A D`` (``D = diag(d)``) has comparable
-    off-diagonal row and column 1-norms (Osborne's balancing, all rows at once per sweep;
-    rows or columns without off-diagonal entries keep 1). Traceable."""
-    off = jnp.abs(A) * (1.0 - jnp.eye(A.shape[0], dtype=A.dtype))
-
-    def sweep(d, _):
-        B = off / d[:, None] * d[None, :]
-        r, c = jnp.sum(B, axis=1), jnp.sum(B, axis=0)
-        good = (r > 0) & (c > 0)
-        f = jnp.exp2(jnp.round(0.5 * jnp.log2(jnp.where(good, r, 1.0) / jnp.where(good, c, 1.0))))
-        return d * jnp.where(good, f, 1.0), None
-
-    d, _ = lax.scan(sweep, jnp.ones(A.shape[0], A.dtype), None, length=sweeps)
-    return d
-
-
-def _coupled_block(problem, q, h, ts, sizes, terms: int = COUPLING_TERMS):
-    r"""One block of `sample_metrics_traced` without jumps: ``(mets, ok)`` of ``final``.
-
-    Everything per sample is free of the observers' parameters: the plant part of the
-    joint (``A_p``, ``p_0``, the signal map ``Y``, the error's plant part ``-L_g``, from the
-    joint of the `_Probe` observer), ``e^{hA_p}`` and ``Y(hA_p)^i``; the observers enter
-    through the shared `coupling_factors` (``q[2]``, one copy per sample). Per sample only
-    ``X = Ψ [Y(hA_p)^i]_i`` and ``G_p = D Y − L_g`` (one row block per observer) involve them,
-    then `split_recurrence_reduce` (adjoint at the observers' size). The same numbers as
-    the joint ``e^{\mathcal A h}`` of `_block_kernel` up to rounding (tested). `sizes`:
-    ``(p, m, K)`` (measured outputs, known inputs, error rows per observer)."""
-    sp = problem.study if isinstance(problem, LossProblem) else problem
-    Phi_oo, Psi, D, Go, xi0 = (jnp.moveaxis(a, 0, -1) for a in q[2])  # per-sample copies, batch last
-    n = sp.E0.shape[0]
-    sg = lambda t: jax.tree.map(lambda x: lax.stop_gradient(x) if eqx.is_array(x) else x, t)  # noqa: E731
-    py, mu, K1 = sizes
-    probe = _Probe(py, mu, K1)
-    free = eqx.tree_at(lambda pr: pr.observers, sg(sp), (probe,))
-
-    def plant_of(i, j):
-        Aj, w0, G, ok, _ = free.joint((i, j))
-        s = py + mu
-        keep = lambda X, axis: jnp.concatenate([lax.slice_in_dim(X, 0, n, axis=axis),  # noqa: E731
-                                                lax.slice_in_dim(X, n + s, X.shape[axis], axis=axis)], axis=axis)
-        return (keep(keep(Aj, 0), 1), keep(w0, 0), keep(lax.slice_in_dim(Aj, n, n + s, axis=0), 1),
-                -keep(G, 1), ok)
-
-    Ap, p0, Y, Lg, ok = jax.vmap(plant_of)(q[0], q[1])  # (b,m,m), (b,m), (b,s,m), (b,K1,m), (b,)
-    hAp = h * Ap
-    Ppp = expm_last(jnp.moveaxis(hAp, 0, -1))  # (m, m, b)
-    # the series in the balanced A_p (a diagonal similarity by powers of 2, exact): badly
-    # scaled states (e.g. 1e-3 and 1e3) do not inflate ‖h A_p‖₁ beyond the series' range
-    d = jax.vmap(_balance_scaling)(hAp)  # (b, m)
-    hAb = hAp / d[:, :, None] * d[:, None, :]
-    ok = ok & (jnp.max(jnp.sum(jnp.abs(hAb), axis=1), axis=1) <= COUPLING_MAX_NORM)
-    Ms = [Y * d[:, None, :]]
-    for _ in range(terms - 1):
-        Ms.append(jnp.einsum("bsm,bmk->bsk", Ms[-1], hAb))
-    M = jnp.moveaxis(jnp.concatenate(Ms, axis=1) / d[:, None, :], 0, -1)  # (terms·s, m, b)
-    X = jnp.einsum("qcb,cmb->qmb", Psi, M)  # (q, m, b)
-    Yb, Lgb = jnp.moveaxis(Y, 0, -1), jnp.moveaxis(Lg, 0, -1)  # (s, m, b), (K1, m, b)
-    nobs = D.shape[0] // K1
-    Lgb = jnp.concatenate([Lgb] * nobs, axis=0) if nobs > 1 else Lgb  # (K, m, b)
-    plant = (Ppp, p0.T, Yb, Lgb)
-    acc, p_end, xi_end = shared_recurrence_reduce((Phi_oo, X, Go, D, xi0, ts), plant, problem)
-    o0 = _shared_o0(plant, (Phi_oo, X, Go, D, xi0, ts), xi0)
-    o_end = _shared_o0((None, p_end, Yb, Lgb), (None, None, Go, D), xi_end)
-    return problem.final(acc, o0, o_end, ts, h, ok)
-
-
 def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str | None = None):
     """Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of every sample, exactly and
-    reverse-differentiably with respect to the observers, in blocks of `DIFF_BLOCK` samples,
-    in the masked full-size slow coordinates (nothing needs ``rank E`` on the host). Loops
-    without jumps between grid points: the observers' part of the step once per call
-    (`coupling_factors`), per sample only what they do not reach (`_coupled_block`,
-    `fojax.studies._adjoint.shared_recurrence_reduce`; samples with
-    ``‖h A_p‖₁ > COUPLING_MAX_NORM`` are flagged). Loops with jumps: the joint exponential
-    per sample (`expm_last` with a fixed-length squaring scan) and the split loop
-    (`_split_loop`). With `metric` (``"iae"`` or ``"ise"``) only that metric
+    reverse-differentiably with respect to the observers (the time loop split into the
+    plant and the observers, `_split_loop`; blocks of `DIFF_BLOCK` samples, `expm_last` with a
+    fixed-length squaring scan, the masked full-size slow coordinates so that nothing
+    needs ``rank E`` on the host). With `metric` (``"iae"`` or ``"ise"``) only that metric
     is accumulated (`LossProblem`) and the result is ``(1, K, B)``. With a `mesh`
     (`fojax.studies._sharding.sample_mesh`) the samples are cut over its devices, possibly
     of several processes; the values and their gradient are bit-identical to one device
@@ -696,24 +517,6 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
     k = jnp.arange(study.num_samples)
     ts = study.ts
     h = (ts[-1] - ts[0]) / (ts.shape[0] - 1)
-
-    # without jumps between grid points: the observers' part of the step once per call
-    # (`coupling_factors`), per sample only what is free of them (`_coupled_block`)
-    jumps = _structure(lambda pr: pr.joint((jnp.asarray(0), jnp.asarray(0)))[4], problem)
-    if jumps is None:
-        lm = observers[0].linear_matrices()
-        sizes = (lm.Dy.shape[1], lm.Du.shape[1], lm.Dy.shape[0])
-
-        def coupled(shared, q):
-            problem, ts, h = shared
-            mets, ok = _coupled_block(problem, q, h, ts, sizes)
-            mets = mets[None] if mets.ndim == 2 else mets
-            return jnp.moveaxis(mets, -1, 0), ok
-
-        mets, ok = per_sample(lambda sh, p: blocked(lambda q: coupled(sh, q), p, DIFF_BLOCK), (problem, ts, h),
-                              coupling_factors(observers, h), k // study.num_scenarios, k % study.num_scenarios,
-                              mesh)
-        return jnp.moveaxis(mets, 0, -1), ok
 
     def block(shared, q):
         problem, ts, h = shared
