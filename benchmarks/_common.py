@@ -15,7 +15,8 @@ this checkout even when a non-editable copy is installed in site-packages
 nothing.
 
 Contents: the machine/versions/date record (`machine_info`), the peak resident set size
-(`peak_rss_mib`), a repetition timer (`time_repeated`), the harness that times the peers of
+(`peak_rss_mib`), a repetition timer (`time_repeated`), one call's wall and CPU time
+(`clock`) and a public `fojax.tune` step (`time_tune_steps`), the harness that times the peers of
 the two studies (`time_peer`, `print_timing`, `add_speedups`, `speedup_table`), result files
 (`result_payload`: the fields every JSON starts with; `write_results`:
 ``<name>_<stamp>.{md,json}`` and ``<name>_latest.{md,json}``) and `run_worker`, which runs
@@ -223,6 +224,38 @@ def time_repeated(call, repeats: int, budget: float, after_first=None, first_cou
         times.append(time.perf_counter() - t0)
         spent += times[-1]
     return out, first, times
+
+
+def clock(f):
+    """``(output, wall s, process CPU s)`` of one call ``f()``, waiting for JAX's
+    asynchronous results when JAX is loaded (this module does not import it)."""
+    w, c = time.perf_counter(), time.process_time()
+    out = f()
+    jax = sys.modules.get("jax")
+    if jax is not None:
+        jax.block_until_ready(out)
+    return out, time.perf_counter() - w, time.process_time() - c
+
+
+def time_tune_steps(run, k: int) -> tuple[dict, object, object]:
+    """One public `fojax.tune` step, timed from whole calls: ``run(steps)`` runs
+    ``fojax.tune(..., steps=steps)``. A cold 1-step call (compilation included), a warm
+    1-step call, a warm ``1 + k``-step call; the step is the difference over ``k``, and the
+    tuning step's trace count tells whether a warm call compiled again. Returns ``(row,
+    cold result, last result)``."""
+    import fojax.tuning._tune as tune_module
+
+    r0, t_cold, c_cold = clock(lambda: run(1))
+    before = tune_module.TRACE_COUNTS["tune_step"]
+    _, t1, c1 = clock(lambda: run(1))
+    res, tk, ck = clock(lambda: run(1 + k))
+    row = dict(
+        tune_step_s=(tk - t1) / k, tune_step_cpu_s=(ck - c1) / k, tune_first_call_s=t_cold,
+        tune_first_call_cpu_s=c_cold, tune_compile_estimate_s=t_cold - t1, tune_warm_call_steps1_s=t1,
+        tune_warm_call_steps1_cpu_s=c1, tune_retraced_on_warm_calls=tune_module.TRACE_COUNTS["tune_step"] - before,
+        train_loss=[float(x) for x in res.history["train_loss"]], accepted=[bool(a) for a in res.history["accepted"]],
+    )
+    return row, r0, res
 
 
 # ------------------------------------------------- the peers' harness of the two studies

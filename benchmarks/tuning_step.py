@@ -35,7 +35,6 @@ import argparse
 import json
 import statistics
 import sys
-import time
 from pathlib import Path
 
 
@@ -60,11 +59,7 @@ import fojax  # noqa: E402
 from fojax.design import design_functional_observer, Disk  # noqa: E402
 
 
-def clock(f):
-    w, c = time.perf_counter(), time.process_time()
-    out = f()
-    jax.block_until_ready(out)
-    return out, time.perf_counter() - w, time.process_time() - c
+clock = _common.clock
 
 
 def main():
@@ -128,19 +123,10 @@ def main():
     print("host_check", host_check_s, host_check_cpu_s, flush=True)
 
     # the public tuning step
-    k = args.extra_steps
-    opts = dict(method="exact", quiet=True)
-    _, t_cold, c_cold = clock(lambda: fojax.tune(design, study, steps=1, **opts).history["train_loss"][-1])
-    before = fojax.tuning._tune.TRACE_COUNTS["tune_step"]
-    _, t1, c1 = clock(lambda: fojax.tune(design, study, steps=1, **opts).history["train_loss"][-1])
-    res, tk, ck = clock(lambda: fojax.tune(design, study, steps=1 + k, **opts))
-    retraced = fojax.tuning._tune.TRACE_COUNTS["tune_step"] - before
-    step_w, step_c = (tk - t1) / k, (ck - c1) / k
+    steps, _, _ = _common.time_tune_steps(
+        lambda s: fojax.tune(design, study, steps=s, method="exact", quiet=True), args.extra_steps)
     row = dict(
-        B=args.B, grid_steps=int(study.ts.shape[0]) - 1,
-        tune_step_s=step_w, tune_step_cpu_s=step_c, tune_first_call_s=t_cold, tune_first_call_cpu_s=c_cold,
-        tune_compile_estimate_s=t_cold - t1, tune_warm_call_steps1_s=t1, tune_retraced_on_warm_calls=retraced,
-        train_loss=[float(x) for x in res.history["train_loss"]], accepted=[bool(a) for a in res.history["accepted"]],
+        B=args.B, grid_steps=int(study.ts.shape[0]) - 1, **steps,
         host_check_s=host_check_s, host_check_cpu_s=host_check_cpu_s,
         observer_parameters=n_params, study_loss=grad_rows,
     )

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 
@@ -51,25 +50,10 @@ import fojax  # noqa: E402
 from fojax.design import design_functional_observer, Disk  # noqa: E402
 
 
-def clock(f):
-    w, c = time.perf_counter(), time.process_time()
-    out = f()
-    jax.block_until_ready(out)
-    return out, time.perf_counter() - w, time.process_time() - c
-
-
 def measure(design, study, k, **opts):
-    run = lambda s: fojax.tune(design, study, steps=s, barrier=0.0, quiet=True, **opts)  # noqa: E731
-    r0, t_cold, c_cold = clock(lambda: run(1))
-    before = fojax.tuning._tune.TRACE_COUNTS["tune_step"]
-    _, t1, c1 = clock(lambda: run(1))
-    res, tk, ck = clock(lambda: run(1 + k))
-    return dict(
-        tune_step_s=(tk - t1) / k, tune_step_cpu_s=(ck - c1) / k,
-        tune_first_call_s=t_cold, tune_first_call_cpu_s=c_cold, tune_warm_call_steps1_s=t1,
-        tune_warm_call_steps1_cpu_s=c1, tune_retraced_on_warm_calls=fojax.tuning._tune.TRACE_COUNTS["tune_step"] - before,
-        train_loss=[float(x) for x in res.history["train_loss"]], accepted=[bool(a) for a in res.history["accepted"]],
-    ), float(r0.history["train_loss"][0])
+    row, r0, _ = _common.time_tune_steps(
+        lambda s: fojax.tune(design, study, steps=s, barrier=0.0, quiet=True, **opts), k)
+    return row, float(r0.history["train_loss"][0])
 
 
 def main():
