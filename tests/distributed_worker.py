@@ -26,6 +26,7 @@ jax.config.update("jax_cpu_collectives_implementation", "gloo")
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from helpers import uncertain_plant_3_3_7  # noqa: E402
 
 import fojax  # noqa: E402
 from fojax import studies as S, tuning  # noqa: E402
@@ -39,9 +40,7 @@ def studies():
     """Evaluation (7 samples: padded on 2, 3 or 4 devices) and training (2 x 3) studies
     of the §3.3.7 plant with a constant δ, faults and a sine input."""
     ex = fojax.models.example_3_3_7()
-    dA = np.zeros((1, 9, 9))
-    dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    plant = uncertain_plant_3_3_7(ex)
     x0 = jnp.zeros(9).at[:4].set(jnp.array([1.0, -0.5, 0.5, 0.2]))
     u = fojax.Sine(jnp.array([1.0, 0.5]), jnp.array([1.0, 2.0]))
     ts = jnp.linspace(0.0, 1.0, 21)
@@ -59,9 +58,7 @@ def studies():
 def time_varying_study():
     """5 samples of a sinusoidal δ(t) (the exponential engine of `run_study`)."""
     ex = fojax.models.example_3_3_7()
-    dA = np.zeros((1, 9, 9))
-    dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    plant = uncertain_plant_3_3_7(ex)
     x0 = jnp.zeros(9).at[:4].set(jnp.array([1.0, -0.5, 0.5, 0.2]))
     return S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, fojax.Sine(jnp.array([1.0, 0.5]), 1.0),
                    uncertainty=(S.sinusoidal_delta(jax.random.PRNGKey(5), 5, 1, amplitude=(0.0, 0.5)),),

@@ -213,6 +213,21 @@ def json_differences(x, y, path=""):
     return [] if x == y else [(path, x, y)]
 
 
+def uncertain_plant_3_3_7(ex, delta=None):
+    """The fault-augmented §3.3.7 plant (9 states, ``ex.augmented``) with the uncertainty
+    ``δ ΔA`` on its 6 physical states (``ex.dA`` padded with zeros for the 3 fault states)
+    and the δ profile `delta` (default: a constant 0 that the studies' samplers replace).
+    Imports fojax/JAX lazily."""
+    import jax.numpy as jnp
+
+    import fojax
+
+    dA = np.zeros((1, 9, 9))
+    dA[0, :6, :6] = ex.dA
+    delta = fojax.Constant(jnp.zeros(1)) if delta is None else delta
+    return fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=delta)
+
+
 def small_step_input_study(seed: int, n_delta: int, n_faults: int):
     """``(study, design)``: the short §3.3.7 study of the study-loss tests (fault-augmented
     plant, constant δ in [-0.3, 0.3] × constant faults, 21 points on [0, 1], a step input
@@ -228,9 +243,7 @@ def small_step_input_study(seed: int, n_delta: int, n_faults: int):
 
     ex = fojax.models.example_3_3_7()
     d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
-    dA = np.zeros((1, 9, 9))
-    dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    plant = uncertain_plant_3_3_7(ex)
     x0 = jnp.zeros(9).at[:6].set(0.5)
     k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
     study = S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, fojax.Step(jnp.array([0.4, -0.3]), 0.33),

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import uncertain_plant_3_3_7
 
 import fojax
 from fojax import studies as S
@@ -23,9 +24,7 @@ OPTS = dict(method="diffrax", solver=diffrax.Tsit5(), rtol=1e-6, atol=1e-8)
 def bench():
     ex = fojax.models.example_3_3_7()
     d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
-    dA = np.zeros((1, 9, 9))
-    dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Sine(jnp.zeros(1), jnp.ones(1)))
+    plant = uncertain_plant_3_3_7(ex, delta=fojax.Sine(jnp.zeros(1), jnp.ones(1)))
     x0 = jnp.zeros(9).at[:4].set(jnp.array([1.0, -0.5, 0.5, 0.2]))
     u = fojax.Sine(jnp.array([1.0, 0.5]), jnp.array([1.0, 2.0]))
     return ex, d, plant, x0, u

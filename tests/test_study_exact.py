@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 from closed_loop_413 import ACL, B0, C0, DA, E as E413, LTIObserver, X0 as X413
+from helpers import uncertain_plant_3_3_7
 
 import fojax
 from fojax import studies as S
@@ -34,9 +35,7 @@ def ex337():
     ex = fojax.models.example_3_3_7()
     po = design_functional_observer(ex.augmented, ex.L_aug, kind="proportional", region=Disk(-3.0, 2.0))
     fg = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-3.0, 2.0))
-    dA = np.zeros((1, 9, 9))
-    dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    plant = uncertain_plant_3_3_7(ex)
     x0 = jnp.zeros(9).at[:6].set(0.5)
     return ex, (po.observer, fg.observer), plant, x0
 

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import uncertain_plant_3_3_7
 
 import fojax
 from fojax import studies as S, tuning
@@ -24,9 +25,7 @@ from fojax.tuning import _tune
 @pytest.fixture(scope="module")
 def setup():
     ex = fojax.models.example_3_3_7()
-    dA = np.zeros((1, 9, 9))
-    dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    plant = uncertain_plant_3_3_7(ex)
     x0 = jnp.zeros(9).at[:6].set(0.5)
 
     def study(seed, bounds):

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import uncertain_plant_3_3_7
 
 import fojax
 from fojax import studies as S, tuning
@@ -25,10 +26,7 @@ from fojax.tuning import _tune
 def setup():
     ex = fojax.models.example_3_3_7()
     d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-3.0, 2.0))
-    dA = np.zeros((1, 9, 9))
-    dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA,
-                                            delta=fojax.Sine(jnp.zeros(1), jnp.ones(1), jnp.zeros(1)))
+    plant = uncertain_plant_3_3_7(ex, delta=fojax.Sine(jnp.zeros(1), jnp.ones(1), jnp.zeros(1)))
     x0 = jnp.concatenate([jnp.full((6,), 0.5), jnp.zeros(3)])
 
     def study(seed):

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from helpers import uncertain_plant_3_3_7
 
 import fojax
 from fojax import studies as S, tuning
@@ -20,9 +21,7 @@ def setup():
     ex = fojax.models.example_3_3_7()
     region = Disk(-2.0, 1.0)
     d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=region)
-    dA = np.zeros((1, 9, 9))
-    dA[0, :6, :6] = ex.dA
-    plant = fojax.UncertainDescriptorSystem(ex.augmented, dA=dA, delta=fojax.Constant(jnp.zeros(1)))
+    plant = uncertain_plant_3_3_7(ex)
     x0 = jnp.zeros(9).at[:4].set(jnp.array([1.0, -0.5, 0.5, 0.2]))
     u = fojax.Sine(jnp.array([1.0, 0.5]), jnp.array([1.0, 2.0]))
     ts = jnp.linspace(0.0, 4.0, 81)
