@@ -366,8 +366,9 @@ def test_pole_plot_of_a_region_class_fojax_does_not_know():
     from fojax.design._regions import AbstractRegion
 
     class Ellipse(AbstractRegion):
-        def characteristic(self):
-            raise NotImplementedError
+        def characteristic(self):  # not an LMI region: the plot must not need it
+            raise AssertionError("the pole plot asked for the region's LMI characteristic; it must draw "
+                                 "a region from its margin alone")
 
         def margin(self, eigs):
             s = np.asarray(eigs)
