@@ -652,17 +652,27 @@ def _expm_taylor(Z, max_squarings: int = 24):
     return jnp.where((s > max_squarings)[..., None, None], jnp.nan, R)
 
 
+def _phi_augmented(M, xp):
+    r"""The augmented matrix $\begin{bmatrix}M & I & & \\ & 0 & I & \\ & & 0 & I\\ & & & 0\end{bmatrix}$
+    ``(..., 4N, 4N)`` of a stack ``M`` ``(..., N, N)``, in `xp` (NumPy on the host,
+    `jax.numpy` traced): the first block row of its exponential is
+    ``[φ0(M), φ1(M), φ2(M), φ3(M)]`` (`_phi_blocks`)."""
+    N = M.shape[-1]
+    O = xp.zeros(M.shape, dtype=M.dtype)
+    eye = xp.broadcast_to(xp.eye(N, dtype=M.dtype), M.shape)
+    return xp.block([[M, eye, O, O], [O, O, eye, O], [O, O, O, eye], [O, O, O, O]])
+
+
+def _phi_blocks(F, N: int, xp):
+    """``[φ0, φ1, φ2, φ3]`` ``(..., 4, N, N)``: the first block row of the exponential ``F``
+    of `_phi_augmented`."""
+    return xp.stack([F[..., :N, j * N : (j + 1) * N] for j in range(4)], axis=-3)
+
+
 def _phi(M):
     """``[φ0(M), φ1(M), φ2(M), φ3(M)]`` ``(..., 4, N, N)`` of a stack ``M`` ``(..., N, N)``
-    from one exponential of the augmented matrix each."""
-    N = M.shape[-1]
-    Z = jnp.zeros(M.shape[:-2] + (4 * N, 4 * N), dtype=M.dtype)
-    Z = Z.at[..., :N, :N].set(M)
-    eye = jnp.eye(N, dtype=M.dtype)
-    for j in range(3):
-        Z = Z.at[..., j * N : (j + 1) * N, (j + 1) * N : (j + 2) * N].set(eye)
-    F = _expm_taylor(Z)
-    return jnp.stack([F[..., :N, j * N : (j + 1) * N] for j in range(4)], axis=-3)
+    from one exponential of the augmented matrix each (traceable)."""
+    return _phi_blocks(_expm_taylor(_phi_augmented(M, jnp)), M.shape[-1], jnp)
 
 
 def phi_functions(A0, h):
@@ -684,19 +694,13 @@ def phi_functions(A0, h):
 
 
 def _phi_functions_host(A0: np.ndarray, h: float):
-    """`phi_functions` of concrete data, in NumPy/SciPy (host)."""
+    """`phi_functions` of concrete data, in NumPy/SciPy (host): the same augmented matrices
+    as `_phi`, exponentiated by `scipy.linalg.expm`."""
     import scipy.linalg
 
     N = A0.shape[0]
-    out = []
-    for scale in (h, 0.5 * h):
-        Z = np.zeros((4 * N, 4 * N))
-        Z[:N, :N] = scale * A0
-        for j in range(3):
-            Z[j * N : (j + 1) * N, (j + 1) * N : (j + 2) * N] = np.eye(N)
-        F = scipy.linalg.expm(Z)
-        out.append(jnp.asarray(np.stack([F[:N, j * N : (j + 1) * N] for j in range(4)])))
-    return out[0], out[1]
+    return tuple(jnp.asarray(_phi_blocks(scipy.linalg.expm(_phi_augmented(scale * A0, np)), N, np))
+                 for scale in (h, 0.5 * h))
 
 
 def _etd_matrices(phis, h, rows, Pi):
