@@ -177,17 +177,28 @@ def scaling(d: dict, name: str) -> tuple[list[str], list[str]]:
         "|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     honest, slower = [], []
+    unseparated = []
     for r in dims:
         f, p = r.get("fojax", {}) or {}, r.get("peer", {}) or {}
         sp = r.get("peer_over_fojax")
         if isinstance(sp, int | float) and sp < 1:
             slower.append(f"n = {r.get('n')} ({fmt(sp, '.2g')}×)")
+        compile_s = f.get("compile_s")
+        if isinstance(compile_s, int | float) and compile_s <= 0:
+            # first call - median <= 0: the run's own variation hides the compile time
+            compile_s = "n/a¹"
+            unseparated.append(f"n = {r.get('n')} (first call {fmt(f.get('first_s'), '.3g')} s, "
+                               f"median {fmt(f.get('median_s'), '.3g')} s)")
+        else:
+            compile_s = fmt(compile_s, ".2f")
         out.append(
-            f"| {r.get('n')} | {fmt(f.get('compile_s'), '.2f')} | {fmt(f.get('median_s'), '.3g')} | "
+            f"| {r.get('n')} | {compile_s} | {fmt(f.get('median_s'), '.3g')} | "
             f"{fmt(f.get('samples_per_s'), '.3g')} | {fmt(p.get('median_s'), '.3g')} | {fmt(sp)} | "
             f"{fmt(r.get('rel_diff', r.get('check_rel_diff')), '.1e')} | {fmt(f.get('peak_rss_mib'), '.0f')} / "
             f"{fmt(p.get('peak_rss_mib'), '.0f')} | {r.get('status')} |"
         )
+    if unseparated:
+        out += ["", "¹ compile time not separable (first call − median ≤ 0): " + ", ".join(unseparated) + "."]
     mem = d.get("memory")
     if isinstance(mem, list) and mem:
         n = (d.get("settings") or {}).get("memory_n", "?")
@@ -196,13 +207,14 @@ def scaling(d: dict, name: str) -> tuple[list[str], list[str]]:
             f"Memory vs B (n = {n}; RSS in MiB; *before* = after imports and inputs, *reps* = high-water mark "
             "during the compiled repetitions):",
             "",
-            "| B | fojax median (s) | fojax RSS before → reps | (d) median (s) | (d) RSS before → reps |",
-            "|---:|---:|---:|---:|---:|",
+            "| B | settings | fojax median (s) | fojax RSS before → reps | (d) median (s) | (d) RSS before → reps |",
+            "|---:|---|---:|---:|---:|---:|",
         ]
         for r in mem:
             f, p = r.get("fojax", {}) or {}, r.get("peer", {}) or {}
             out.append(
-                f"| {r.get('B')} | {fmt(f.get('median_s'), '.3g')} | {fmt(f.get('rss_before_first_call_mib'), '.0f')} → "
+                f"| {r.get('B')} | {r.get('mode', '')} | {fmt(f.get('median_s'), '.3g')} | "
+                f"{fmt(f.get('rss_before_first_call_mib'), '.0f')} → "
                 f"{fmt(f.get('peak_rss_repeats_mib'), '.0f')} | {fmt(p.get('median_s'), '.3g')} | "
                 f"{fmt(p.get('rss_before_first_call_mib'), '.0f')} → {fmt(p.get('peak_rss_repeats_mib'), '.0f')} |"
             )
