@@ -648,7 +648,7 @@ def test_design_designs_every_observer_and_reports_each_failure(partly_failing):
     report = (folder / "report.md").read_text()
     assert "1 of 3 observer(s) designed and verified" in report
     assert "2 could not be designed: bad, also_bad (see 'Failed designs')" in report
-    assert f"| bad | generalized | - | - | disk centred at -2 with radius 1 | nan | nan | FAILED ({kind}) |" in report
+    assert f"| bad | generalized | - | - | disk centred at -2 with radius 1 | - | nan | nan | FAILED ({kind}) |" in report
     assert f"## Failed designs\n\n- **bad**: `{kind}`: " in report and "- **also_bad**: `" in report
     assert "![Error poles of 'good'](poles-good.png)" in report
     # files have the permissions the umask gives (not 0600)
@@ -737,3 +737,21 @@ def test_design_help_documents_exit_codes_and_overwrite(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert "fojax-manifest.json) are removed first, except any you changed since" in text
     assert "the others are still designed and saved, and the exit code is 1" in text
+
+
+def test_design_method_from_the_file_chooses_the_route(tmp_path):
+    # oracle: the design called directly with method="riccati" records that route; the CLI
+    # must report the same route for the file's `method = "riccati"` (and LMI without it)
+    code, out, err = _design_main("design", _tiny(tmp_path, [{"name": "ric", "method": "riccati"},
+                                                            {"name": "lmi"}]),
+                                  "--out", tmp_path, "--name", "run")
+    assert code == 0, err
+    assert "'ric' (generalized, error poles in" in out and "design by the Riccati route" in out
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert "| ric | generalized | 1 | 1 | disk centred at -2 with radius 1 | Riccati |" in report
+    assert "| lmi | generalized | 1 | 1 | disk centred at -2 with radius 1 | LMI |" in report
+    routes = {e["name"]: e["route"] for e in json.loads((tmp_path / "run" / "designs.json").read_text())["designs"]}
+    assert routes == {"ric": "Riccati", "lmi": "LMI"}
+    ric = load_design(tmp_path / "run" / "ric.npz")
+    plain = load_design(tmp_path / "run" / "lmi.npz")
+    assert ric.solver["lmi"]["method"] == "riccati" and plain.solver["lmi"]["method"] == "lmi"

@@ -341,3 +341,44 @@ def test_observer_names_must_give_distinct_files(tmp_path, names, what):
     d["observer"] = [{"name": n} for n in names]
     with pytest.raises(fojax.ConfigError, match=what):
         load_config(write(tmp_path, d))
+
+
+# ``method`` of the generalized / PI / proportional kinds: the oracle is what
+# `fojax.design.design_functional_observer` accepts (its `_riccati.riccati_applies` rule),
+# checked at load time with the key named, so a file is refused before any design runs.
+METHOD_ERRORS = [
+    ({"kind": "PI", "method": "riccati"}, r"a PI observer's S = 0 constrains the gain"),
+    ({"kind": "generalized", "method": "riccati", "region": {"disk": {"center": -2.0, "radius": 1.0}, "decay": 1.5}},
+     r"needs one disk, half-plane or sector; region is"),
+    ({"kind": "generalized", "method": "riccati", "objective": "centre"}, r"objective = 'centre' searches the region LMI"),
+    ({"kind": "generalized", "method": "ricatti"}, r"Did you mean 'riccati'"),
+    ({"kind": "unknown-input", "method": "lmi", "D": [[0.0], [0.0], [1.0], [0.0]]},
+     r"is not a key of kind = 'unknown-input' observers"),
+]
+
+
+@pytest.mark.parametrize("observer,what", METHOD_ERRORS, ids=[m[1][:30] for m in METHOD_ERRORS])
+def test_design_method_key_is_checked_at_load(tmp_path, observer, what):
+    d = {**base(), "observer": [observer]}
+    with pytest.raises(fojax.ConfigError, match=what) as info:
+        load_config(write(tmp_path, d))
+    assert info.value.key == "observer[0].method"
+
+
+def test_design_method_key_reaches_the_design(tmp_path):
+    obs = [{"name": "ric", "kind": "generalized", "method": "riccati"},
+           {"name": "auto", "kind": "proportional", "method": "auto", "region": {"decay": 1.0}},
+           {"name": "pi", "kind": "PI", "method": "lmi"},
+           {"name": "plain", "kind": "generalized"}]
+    cfg = load_config(write(tmp_path, {**base(), "observer": obs}, "ok.toml"))
+    kw = {o.name: o.design_kwargs() for o in cfg.observers}
+    assert kw == {"ric": {"method": "riccati"}, "auto": {"method": "auto"}, "pi": {"method": "lmi"}, "plain": {}}
+    ric = cfg.observers[0]
+    d = fojax.design.design_functional_observer(cfg.design_system(), cfg.design_L(), kind=ric.kind,
+                                                region=ric.region, **ric.design_kwargs())
+    assert d.report.passed and d.solver["lmi"]["method"] == "riccati"
+    # a Takagi-Sugeno model's observers need the common-certificate LMI
+    ts = load_config(example_path("robot_arm_ts")).raw
+    bad = {**ts, "observer": [{**ts["observer"][0], "method": "auto"}]}
+    with pytest.raises(fojax.ConfigError, match=r"one certificate common to all rules"):
+        parse_config(bad, "ts.toml")

@@ -222,7 +222,7 @@ def design(
         }, overwrite=overwrite)
         files["verification summary"] = folder / "designs.json"
         files["the config file used"] = folder / "config.toml"
-        headers = ["observer", "kind", "q0", "q1", "region", "max Re(eig)", "relative residual", "verified"]
+        headers = ["observer", "kind", "q0", "q1", "region", "route", "max Re(eig)", "relative residual", "verified"]
         sections = {"Failed designs": "\n\n".join(
             f"- **{nm}**: `{err_type}`: {msg}" for nm, (err_type, msg) in failed.items())} if failed else {}
         return write_report(
@@ -241,14 +241,14 @@ def design(
             try:
                 with out.step(
                     f"designing observer '{spec.name}' ({spec.kind}, error poles in "
-                    f"{_region_words(spec)}): structure checks, LMI solve, float64 verification"
+                    f"{_region_words(spec)}): structure checks, design {spec.route_words()}, float64 verification"
                 ):
                     d = _design_observer(design_fn, sys_, L, spec)
             except FojaxError as err:  # this observer failed; design the others
                 kind = type(err).__name__
                 print(f"fojax: observer '{spec.name}': {kind}: {_one_line(err)}", file=sys.stderr, flush=True)
                 failed[spec.name] = (kind, " ".join(str(err).split()))
-                rows.append([spec.name, spec.kind, "-", "-", _region_words(spec), float("nan"),
+                rows.append([spec.name, spec.kind, "-", "-", _region_words(spec), "-", float("nan"),
                              float("nan"), f"FAILED ({kind})"])
                 summary.append({"name": spec.name, "kind": spec.kind, "status": "failed",
                                 "region": _region_words(spec), "error": kind, "message": str(err)})
@@ -273,7 +273,7 @@ def design(
             )
             eig = np.asarray(view.eigenvalues)
             rows.append(
-                [spec.name, spec.kind, view.q0, view.q1, view.region_words,
+                [spec.name, spec.kind, view.q0, view.q1, view.region_words, _route(d),
                  float(np.max(eig.real)) if eig.size else float("nan"),
                  view.relative_residual, view.passed]
             )
@@ -281,7 +281,7 @@ def design(
             files[f"design of '{spec.name}' (fojax.results.load_design)"] = path
             summary.append({"name": spec.name, "file": path.name,
                             "status": "verified" if view.passed else "not verified",
-                            **view.report, "kind": spec.kind, "q0": view.q0, "q1": view.q1,
+                            **view.report, "kind": spec.kind, "route": _route(d), "q0": view.q0, "q1": view.q1,
                             **{k: _certificate_dict(getattr(d, k)) for k in ("hinf", "h2")
                                if getattr(d, k, None) is not None},
                             **({"live_parameters": {"live": live.live, "free": live.total,
@@ -298,10 +298,10 @@ def design(
     report = finish()
     width = max([len("observer")] + [len(r[0]) for r in rows])
     out.say("")
-    out.say(f"{'observer':<{width}}  kind          q0  q1  max Re(eig)  verified")
+    out.say(f"{'observer':<{width}}  kind          q0  q1  route     max Re(eig)  verified")
     for r in rows:
-        verified = r[7] if isinstance(r[7], str) else ("yes" if r[7] else "NO")
-        out.say(f"{r[0]:<{width}}  {r[1]:<12}  {r[2]:>2}  {r[3]:>2}  {r[5]:>11.4g}  {verified}")
+        verified = r[8] if isinstance(r[8], str) else ("yes" if r[8] else "NO")
+        out.say(f"{r[0]:<{width}}  {r[1]:<12}  {r[2]:>2}  {r[3]:>2}  {r[5]:<8}  {r[6]:>11.4g}  {verified}")
     for name, row in zip(*_hinf_rows(summary)):
         out.say(f"{name}: H∞ bound gamma = {row[1]:.6g} >= ||T||inf = {row[2]:.6g} (SLICOT AB13DD, peak at "
                 f"{row[3]:.4g} rad/s, tightness {row[4]:.4f}; region-only design {row[5]:.6g})")
@@ -421,6 +421,20 @@ class _DesignView:
                        title_note=f"\nboth observers, in {d1.region.describe()} and {d2.region.describe()}; h = {d.h:g}")
         return cls(d.report.eigenvalues, d.region, d.region.describe(), d.observer.q0, d.observer.q1,
                    float(d.report.relative_residual), bool(d.report.passed), d.report.to_dict())
+
+
+def _route(d) -> str:
+    """``"Riccati"`` or ``"LMI"``: how the gain of design `d` was computed (its
+    ``solver["lmi"]["method"]``); for a finite-time pair, its two routes."""
+    designs = getattr(d, "designs", None) or (d,)
+    names = []
+    for di in designs:
+        lmi = (getattr(di, "solver", None) or {}).get("lmi")
+        if lmi is None:  # no solver record of the gain: the finite-time observers' pole placement
+            names.append("pole placement")
+        else:
+            names.append("Riccati" if lmi.get("method") == "riccati" else "LMI")
+    return " / ".join(dict.fromkeys(names))
 
 
 def _default_region():
@@ -663,7 +677,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
             out.say(f"loaded '{o.name}' ({o.kind}, {o.region.describe()}) saved by the first run")
             files[f"design of '{o.name}'"] = saved
         else:
-            with out.step(f"designing '{o.name}' ({o.kind}, {o.region.describe()}) by LMI"):
+            with out.step(f"designing '{o.name}' ({o.kind}, {o.region.describe()}) {o.route_words()}"):
                 d = design_fn(cfg.design_system(), cfg.design_L(), kind=o.kind,
                               region=o.region, R=o.R, q0=o.q0, q1=o.q1, **o.design_kwargs())
             files[f"design of '{o.name}'"] = save_design(d, saved, overwrite=ow,

@@ -51,7 +51,12 @@ examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
     D = [[...]]                          # unknown-input: (n, l) directions, E x' = ... + D d
     delay = 0.5                          # finite-time: h; and two separated disks
     regions = [{ center = -5.0, radius = 0.5 }, { center = -2.0, radius = 0.5 }]
-    method = "auto"                      # finite-time: "auto", "lmi" or "place"
+    method = "auto"                      # finite-time: "auto", "lmi" or "place";
+                                         # generalized / PI / proportional (LTI models): "lmi"
+                                         # (default: the region LMI), "riccati" (a Riccati +
+                                         # Stein route, no SDP, for one disk, half-plane or
+                                         # sector; generalized and proportional; large models)
+                                         # or "auto" (Riccati where it applies, else LMI)
     region = { disk = { center = -2.0, radius = 1.0 }, decay = 0.5, damping = 0.7 }
         # any non-empty subset; several parts are intersected. Default: disk(-2, 1).
     q0 = 2                               # optional observer order, or
@@ -100,6 +105,8 @@ KINDS = ("generalized", "PI", "proportional", "unknown-input", "finite-time")
 #: `fojax.design.design_finite_time_observer`), for LTI models without [faults].
 SPECIAL_KINDS = ("unknown-input", "finite-time")
 FINITE_TIME_METHODS = ("auto", "lmi", "place")
+#: ``method`` of the generalized / PI / proportional kinds: `fojax.design.design_functional_observer`'s.
+DESIGN_METHODS = ("lmi", "riccati", "auto")
 PROFILE_KINDS = ("constant", "uniform", "sine")
 PREMISES = ("sinc", "output")
 
@@ -149,14 +156,23 @@ class ObserverSpec:
     D: np.ndarray | None = None  # kind = "unknown-input": (n, l) unknown-input directions
     delay: float | None = None  # kind = "finite-time": the delay h
     regions: tuple | None = None  # kind = "finite-time": two disks
-    method: str | None = None  # kind = "finite-time": "auto", "lmi" or "place"
+    # kind = "finite-time": "auto", "lmi" or "place"; generalized / PI / proportional:
+    # "lmi", "riccati" or "auto" (None: the design routine's default, "lmi")
+    method: str | None = None
 
     def design_kwargs(self) -> dict:
-        """The ``objective`` keywords of `fojax.design.design_functional_observer`
-        (empty for the default region objective)."""
-        if self.objective == "region":
-            return {}
-        return {"objective": self.objective, "Bw": self.Bw, "Dv": self.Dv}
+        """The ``objective`` and ``method`` keywords of
+        `fojax.design.design_functional_observer` (empty for the defaults)."""
+        kw = {} if self.objective == "region" else {"objective": self.objective, "Bw": self.Bw, "Dv": self.Dv}
+        if self.method is not None and self.kind not in SPECIAL_KINDS:
+            kw["method"] = self.method
+        return kw
+
+    def route_words(self) -> str:
+        """How the observer is designed, for progress messages."""
+        if self.kind == "finite-time" or self.method in (None, "lmi"):
+            return "by LMI"
+        return "by the Riccati route" if self.method == "riccati" else "by the Riccati route where it applies, else LMI"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -679,7 +695,7 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
                 raise v.err(_join(key, "q1"), f"is {q1}; a proportional observer has q1 = 0.")
         objective, Bw, Dv = _objective(v, key, o, n, n_design, p, ts is not None)
         oname = v.file_name(_join(key, "name"), o["name"], f"observer_{i + 1}") if "name" in o else f"{kind}-{i + 1}"
-        special = _special_observer(v, key, o, kind, n, ts_raw is not None, Fa is not None or Fs is not None)
+        special = _special_observer(v, key, o, kind, n, ts_raw is not None, Fa is not None or Fs is not None, region)
         if objective != "region" and kind in ("unknown-input", "finite-time"):
             raise v.err(_join(key, "objective"), f"is {objective!r}; objective = {objective!r} is for the generalized, PI "
                         f"and proportional kinds, not {kind!r}: remove the key.")
@@ -725,16 +741,20 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
     )
 
 
-def _special_observer(v: _V, key: str, o: dict, kind: str, n: int, ts: bool, faults: bool) -> dict:
+def _special_observer(v: _V, key: str, o: dict, kind: str, n: int, ts: bool, faults: bool, region) -> dict:
     """The keys of ``kind = "unknown-input"`` (``D``) and ``kind = "finite-time"``
-    (``delay``, ``regions``, ``method``); refused for the other kinds."""
-    own = {"unknown-input": ("D",), "finite-time": ("delay", "regions", "method")}
-    for k in ("D", "delay", "regions", "method"):
+    (``delay``, ``regions``, ``method``), refused for the other kinds; and the ``method``
+    of the generalized / PI / proportional kinds (`_design_method`)."""
+    own = {"unknown-input": ("D",), "finite-time": ("delay", "regions")}
+    for k in ("D", "delay", "regions"):
         if k in o and k not in own.get(kind, ()):
             owner = next(kk for kk, keys in own.items() if k in keys)
             raise v.err(_join(key, k), f"is a key of kind = '{owner}' observers; this observer has kind = '{kind}'.")
     if kind not in SPECIAL_KINDS:
-        return {}
+        return _design_method(v, key, o, kind, ts, region)
+    if kind == "unknown-input" and "method" in o:
+        raise v.err(_join(key, "method"), "is not a key of kind = 'unknown-input' observers (their design "
+                    "has one route, the LMI); remove it.")
     if ts or faults:
         raise v.err(_join(key, "kind"), f"'{kind}' observers are designed for LTI models without "
                     f"[{'takagi_sugeno' if ts else 'faults'}]; use 'generalized', 'PI' or 'proportional'.")
@@ -778,6 +798,35 @@ def _special_observer(v: _V, key: str, o: dict, kind: str, n: int, ts: bool, fau
         regions = tuple(disks)
     method = v.string(_join(key, "method"), o["method"], FINITE_TIME_METHODS) if "method" in o else "auto"
     return {"delay": h, "regions": regions, "method": method}
+
+
+def _design_method(v: _V, key: str, o: dict, kind: str, ts: bool, region) -> dict:
+    """``method`` of a generalized / PI / proportional observer (`DESIGN_METHODS`), checked
+    against what the Riccati route can do (`fojax.design._riccati.riccati_applies`): one
+    LTI model (not a Takagi–Sugeno family, which needs a common certificate), kind
+    generalized or proportional (PI fixes S = 0), one disk, half-plane or sector, and not
+    ``objective = "centre"`` (a search over the region LMI)."""
+    if "method" not in o:
+        return {}
+    mk = _join(key, "method")
+    method = v.string(mk, o["method"], DESIGN_METHODS)
+    if method == "lmi":
+        return {"method": method}
+    if ts:
+        raise v.err(mk, f"is {method!r}; Takagi-Sugeno observers need one certificate common to all rules, "
+                    "which only the LMI route gives: use method = 'lmi' or remove the key.")
+    if method == "riccati":
+        if kind == "PI":
+            raise v.err(mk, "is 'riccati'; the Riccati route gives generalized and proportional observers (a PI "
+                        "observer's S = 0 constrains the gain): use method = 'lmi' or 'auto', or kind = 'generalized'.")
+        if o.get("objective") == "centre":
+            raise v.err(mk, "is 'riccati'; objective = 'centre' searches the region LMI: use method = 'lmi' or 'auto'.")
+        from ..design import Disk, HalfPlane, Sector
+
+        if not isinstance(region, Disk | HalfPlane | Sector):
+            raise v.err(mk, f"is 'riccati', which needs one disk, half-plane or sector; region is "
+                        f"{region.describe()}: use method = 'lmi' or 'auto', or give one region part.")
+    return {"method": method}
 
 
 def _ts_faults(v: _V, f: dict, ramp: bool, estimate_faults: bool) -> None:
