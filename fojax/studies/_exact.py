@@ -200,14 +200,15 @@ class StudyProblem(eqx.Module):
             base.E, A, jnp.concatenate([B, Fa], axis=1), C, observers, x0, self.split, self.r, exo
         )
         ok = ok & jnp.all(base.E == self.E0)
-        # errors ẑ_i − z as a linear map of [x; ξ_1; ...; v]
+        # errors ẑ_i − z as a linear map of [x; ξ_1; ...; v] (z itself without observers)
         sizes = [o.state_size for o in observers]
         L = study.L
         Hz = jnp.zeros((L.shape[0], nu_ + nf_))
         if study.fault_targets:
             L = jnp.concatenate([L, jnp.zeros((Hf.shape[0], n))], axis=0)
             Hz = jnp.concatenate([Hz, jnp.concatenate([jnp.zeros((Hf.shape[0], nu_)), Hf], axis=1)], axis=0)
-        rows = []
+        # a signal study (no observers): the rows of z = L x + H_z v itself
+        rows = [] if observers else [jnp.concatenate([L, Hz], axis=1)]
         for k, o in enumerate(observers):
             lm = o.linear_matrices()
             blocks = [lm.Dy @ C - L]
