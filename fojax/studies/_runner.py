@@ -36,6 +36,12 @@ time-wise quantiles of $e$ over all samples (confidence bands): every engine kee
 errors only on the band grid ``ts[::k]`` (`band_stride`, at most `run_study`'s
 `band_points` points), and the host computes exactly ``np.quantile`` of them
 (`band_quantiles`).
+
+**Signal studies.** Without observers (``run_study(study)``) the same metrics and bands
+are those of $z = Lx$ itself (e.g. the state and the regulation error of a closed loop
+under uncertainty): every engine builds its output rows from the empty observer tuple
+(``[L, H_z]`` instead of the observers' ``ẑ − z`` rows), so the chunks, padding, devices
+and compiled kernels are the ones above.
 """
 
 from __future__ import annotations
@@ -150,7 +156,9 @@ class Study(eqx.Module):
       `NoisyPlant` for fault or noise families).
     - `x0`: ``(n,)`` template initial state.
     - `ts`: ``(T,)`` output grid.
-    - `L`: ``(q, n)`` functional: the true signal is $z = Lx$; with
+    - `L`: ``(q, n)`` functional: the true signal is $z = Lx$ (what the observers
+      estimate; without observers, ``run_study(study)``, the signal whose metrics are
+      reported, e.g. `fojax.control.LoopMaps.signal_rows` of a closed loop); with
       `fault_targets=True` and a `FaultyPlant` template the fault $\phi(t)$ is appended
       (for observers that also estimate the faults).
     - `u`: input signal (shared by all samples), constant vector, or ``None``.
