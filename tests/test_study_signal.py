@@ -221,3 +221,25 @@ def test_signal_study_vmap_engine_matches_scipy(exact_run):
     want = [metrics_np(np.asarray(TS), z) for z in scipy_signals(st, U0)]
     for name in ("iae", "peak"):
         np.testing.assert_allclose(got.metrics[name][0, :, 0], [w[name] for w in want], rtol=1e-8, err_msg=name)
+
+
+def test_iae_only_accumulates_one_sum_and_still_flags_a_blown_up_sample():
+    # kinds=("iae",): no peak accumulator (StudyProblem.computed); the success test is the
+    # IAE's finiteness. Oracle: the default Metrics() run (every metric, the peak included)
+    # on a scalar plant x' = δ x whose second sample overflows (e^{800 t}, t up to 2 s).
+    plant = fojax.UncertainDescriptorSystem(fojax.DescriptorSystem([[1.0]], [[-1.0]], [[0.0]], [[1.0]]),
+                                            dA=np.ones((1, 1, 1)))
+    fam = S.Family(jax.vmap(fojax.Constant)(jnp.array([[0.0], [801.0]])), ("plant", "delta"))
+    st = S.Study(plant, jnp.ones(1), TS, np.eye(1), uncertainty=(fam,))
+    (problem, _, _), _ = S._exact.exact_problem(st, (), 0.05, 0, kinds=("iae",))
+    assert problem.computed == ("iae",)
+    one = S.run_study(st, devices=ONE, save=fojax.Metrics(kinds="iae", bands=None), quiet=True)
+    full = S.run_study(st, devices=ONE, save=fojax.Metrics(bands=None), quiet=True)
+    np.testing.assert_array_equal(one.metrics["success"], [[True], [False]])
+    np.testing.assert_array_equal(one.metrics["success"], full.metrics["success"])
+    np.testing.assert_array_equal(one.metrics["iae"], full.metrics["iae"])  # the same sums; NaN where failed
+    # the trapezoid rule of e^{-t} on the grid, in closed form (a geometric sum)
+    h, N = float(TS[1] - TS[0]), TS.shape[0] - 1
+    r = np.exp(-h)
+    want = h * ((1 - r ** (N + 1)) / (1 - r) - 0.5 * (1.0 + r**N))
+    np.testing.assert_allclose(one.metrics["iae"][0, 0, 0, 0], want, rtol=1e-12)

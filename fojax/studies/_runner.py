@@ -560,7 +560,8 @@ def _apply_save(res: StudyResult, save: Metrics) -> StudyResult:
     if save.kinds == METRIC_NAMES and save.reduce == "none":
         return res
     for name in METRIC_NAMES:
-        if name not in save.kinds:  # computed all the same by the vmap engine ("peak" by the batch kernels)
+        if name not in save.kinds:  # computed all the same by the vmap engine (the batch kernels: "peak"
+            # with the settling time alone, `StudyProblem.computed`)
             res.metrics.pop(name, None)
             res.axes.pop(name, None)
         elif save.reduce == "sum":
