@@ -3,7 +3,7 @@
 Oracles: (1) an independent NumPy/SciPy computation per sample: the index-1 reduction of
 the descriptor plant written by hand (E = diag(1, 1, 0)), ``scipy.linalg.expm`` of the
 reduced system augmented with the constant input, a plain recurrence, the trapezoidal
-rule, and ``np.quantile`` over the samples; for a time-varying δ(t),
+rule, and ``np.quantile`` over the samples; with a step fault or a time-varying δ(t),
 ``scipy.integrate.solve_ivp`` (DOP853, rtol 1e-12) on the same reduced ODE; (2) `fojax.simulate`
 trajectories with `fojax.studies.error_metrics` (what a user computes by hand); (3) for
 the §4.1.3 observer-based controller loop built with the public API
@@ -152,24 +152,53 @@ def test_signal_study_new_numbers_do_not_recompile(exact_run):
     np.testing.assert_allclose(summed.metrics["iae"], res2.metrics["iae"].sum(-1), rtol=1e-13)
 
 
-def test_signal_study_exponential_engine_matches_solve_ivp():
-    # time-varying δ(t) = a sin(ω t + φ): the exponential engine; zero input
-    st = study(2, u=None, delta=lambda k: S.sinusoidal_delta(k, NU, 1, amplitude=(0.1, 0.3)))
+def faulty_signals(x0, delta_of_t, ts, amp=0.7, onset=0.5):
+    """``(T, 3)`` z = [x1; x2 - x3; f(t)] of the faulty plant (fault = B-direction step `amp`
+    from `onset`, on the grid) by solve_ivp (DOP853, rtol 1e-12) on each side of the onset."""
+
+    def f(t, xd, fv):
+        A_red, B_red, _, _ = reduced(A + delta_of_t(t) * DA[0])
+        return A_red @ xd + B_red[:, 0] * fv
+
+    opts = dict(method="DOP853", rtol=1e-12, atol=1e-14)
+    on = ts >= onset
+    s1 = scipy.integrate.solve_ivp(f, (ts[0], onset), x0, t_eval=ts[~on], args=(0.0,), **opts)
+    xe = scipy.integrate.solve_ivp(f, (ts[0], onset), x0, args=(0.0,), **opts).y[:, -1]
+    s2 = scipy.integrate.solve_ivp(f, (onset, ts[-1]), xe, t_eval=ts[on], args=(amp,), **opts)
+    xd = np.concatenate([s1.y.T, s2.y.T])
+    fv = np.where(on, amp, 0.0)
+    _, _, T, Tu = reduced(A)  # the algebraic row is not perturbed: x = T x_d + Tu f for every δ
+    x = xd @ T.T + fv[:, None] * Tu[:, 0][None]
+    return np.concatenate([x @ L.T, fv[:, None]], axis=1)
+
+
+@pytest.mark.parametrize("engine", ["exact-batch", "exponential-batch"])
+def test_signal_study_with_fault_targets_matches_solve_ivp(engine):
+    # a step fault entering like the input (also the algebraic row) from t = 0.5 (on the grid),
+    # fault_targets: z = [x1; x2 - x3; f(t)]; constant δ (exact engine) or δ(t) = a sin(ω t + φ)
+    # (exponential engine)
+    k1, k2 = jax.random.split(jax.random.PRNGKey(2))
+    base = fojax.UncertainDescriptorSystem(fojax.DescriptorSystem(E, A, B, np.eye(3)), dA=DA)
+    plant = S.FaultyPlant(base, Fa=B, fault=S.FaultProfile(jnp.array([0.7]), 0.5))
+    path = ("plant", "base", "delta")
+    delta = (S.constant_delta(k1, NU, 1, (-0.3, 0.3), path=path) if engine == "exact-batch"
+             else S.sinusoidal_delta(k1, NU, 1, amplitude=(0.1, 0.3), path=path))
+    st = S.Study(plant, jnp.array([1.0, -1.0, 0.0]), TS, L, fault_targets=True,
+                 uncertainty=(delta, S.initial_conditions(k2, NU, [1.0, -1.0, 0.0], 0.2)))
     res = S.run_study(st, devices=ONE, save=fojax.Metrics(bands=None), quiet=True)
-    assert res.attrs["engine"] == "exponential-batch" and res.metrics["success"].all()
+    assert res.attrs["engine"] == engine and res.metrics["success"].all()
+    assert res.coords["signal"] == ("z1", "z2", "f1")
     ts = np.asarray(TS)
     for i in (0, NU - 1):
-        plant, x0 = st.sample(i, 0)
-        sig = plant.delta
-        a, w, ph = (float(np.asarray(v)[0]) for v in (sig.amplitude, sig.omega, sig.phase))
-
-        def f(t, xd, a=a, w=w, ph=ph):
-            return reduced(A + a * np.sin(w * t + ph) * DA[0])[0] @ xd
-
-        sol = scipy.integrate.solve_ivp(f, (ts[0], ts[-1]), np.asarray(x0)[:2], method="DOP853", t_eval=ts,
-                                        rtol=1e-12, atol=1e-14)
-        T = reduced(A)[2]  # the algebraic row is not perturbed: x = T x_d for every δ
-        want = metrics_np(ts, sol.y.T @ T.T @ L.T)
+        p, x0 = st.sample(i, 0)
+        sig = p.base.delta
+        if engine == "exact-batch":
+            d = float(np.asarray(sig.value)[0])
+            delta_of_t = lambda t, d=d: d  # noqa: E731
+        else:
+            a, w, ph = (float(np.asarray(v)[0]) for v in (sig.amplitude, sig.omega, sig.phase))
+            delta_of_t = lambda t, a=a, w=w, ph=ph: a * np.sin(w * t + ph)  # noqa: E731
+        want = metrics_np(ts, faulty_signals(np.asarray(x0)[:2], delta_of_t, ts))
         for name in ("iae", "ise", "itae", "peak"):
             np.testing.assert_allclose(res.metrics[name][0, i, 0], want[name], rtol=1e-7, err_msg=name)
 
