@@ -8,6 +8,9 @@ them agree on the per-sample metrics, then times them and writes a table
     python benchmarks/reference_workload.py                      # the full study
     python benchmarks/reference_workload.py --sizes 1 10 100 1000 --repeats 3
     python benchmarks/reference_workload.py --peers expm rk4 --loop-max-b 100
+    # issue 13: fojax.run_study on the workload's Study vs the raw kernel and peer (d), one device
+    python benchmarks/reference_workload.py --fojax-mode eager run-study --peers expm \
+        --sizes 1000 10000 --host-devices 1
 
 Timing rules: imports and workload construction are outside the timed region; the
 first call of every method is timed and reported separately (for fojax the JAX caches
@@ -64,7 +67,11 @@ SIZES = (1, 10, 100, 1_000, 10_000, 100_000)
 #: solve_ivp's rtol = 1e-6 bounds its accuracy (measured ~1e-7); RK4 with dt = 1e-3 has a
 #: local error ~ (39.78e-3)^5 / 120 on the fastest mode (measured ~1e-10 on the metrics);
 #: python-control and fojax are exact discretisations like (d), up to rounding.
-TOLERANCES = {"solve_ivp": 1e-4, "control": 1e-10, "rk4": 1e-8, "expm": 1e-12, "fojax": 1e-8}
+TOLERANCES = {"solve_ivp": 1e-4, "control": 1e-10, "rk4": 1e-8, "expm": 1e-12, "fojax": 1e-8,
+              "fojax_run_study": 1e-8}
+#: Issue 13's targets for `fojax.run_study` on this workload at one device.
+TARGET_VS_KERNEL = 1.2  # t_run_study / t_kernel at most
+TARGET_VS_EXPM = 4.0  # t_expm_peer / t_run_study at least
 #: The library versions recorded (and printed) for this study.
 VERSION_MODULES = ("numpy", "scipy", "control", "jax", "jaxlib", "equinox", "diffrax", "fojax")
 
@@ -121,6 +128,11 @@ class FojaxRunner:
     - ``mode="auto"``: ``"eager"``.
     - ``mode="vmap-simulate"``: the previous entry, ``jax.vmap(fojax.simulate)`` with the
       metrics computed from the stored trajectories (kept for comparison).
+    - ``mode="run-study"``: what users run, `fojax.run_study` on the workload as a
+      `fojax.Study` (`_workload_study`: the loop built by `fojax.control.closed_loop`, no
+      observers, ``save=fojax.Metrics(kinds="iae", bands=None)``, chunks of `chunk`), the
+      two metrics summed from its per-signal IAEs (inside the timed call). Its input is
+      the `Study` of the batch (built outside the timed region, like the other modes' arrays).
     """
 
     def __init__(self, chunk: int = 4096, mode: str = "auto"):
@@ -139,6 +151,7 @@ class FojaxRunner:
         self.chunk = int(chunk)
         self.requested_mode = mode
         self.mode = "eager" if mode == "auto" else mode
+        self.method = "fojax_run_study" if self.mode == "run-study" else "fojax"
         self.fallback_reason = ""
         self.E_cl = jnp.asarray(wlmod.E_CL)
         self.ts = jnp.asarray(wlmod.TS)
@@ -173,7 +186,23 @@ class FojaxRunner:
         return self.dt * (jnp.sum(f, axis=-2) - 0.5 * (f[..., 0, :] + f[..., -1, :]))
 
     # -- public ------------------------------------------------------------------
-    def prepare(self, A_plant, x0) -> float | None:
+    def inputs(self, wl: wlmod.Workload) -> tuple:
+        """The call's arguments for the batch `wl` (built outside the timed region)."""
+        if self.mode == "run-study":
+            import _workload_study
+
+            return (_workload_study.of_workload(wl),)
+        return fojax_inputs(wl)
+
+    def _run_study(self, study):
+        import _workload_study
+
+        res = self.fojax.run_study(study, save=self.fojax.Metrics(kinds="iae", bands=None), chunk_size=self.chunk,
+                                   quiet=True)
+        self.engine = res.attrs["engine"]
+        return _workload_study.two_metrics(res)
+
+    def prepare(self, A_plant, x0=None) -> float | None:
         """Compile for this batch shape; returns the compile time (``None`` unless jit mode)."""
         if self.mode == "jit":
             t0 = time.perf_counter()
@@ -181,7 +210,9 @@ class FojaxRunner:
             return time.perf_counter() - t0
         return None
 
-    def __call__(self, A_plant, x0):
+    def __call__(self, A_plant, x0=None):
+        if self.mode == "run-study":
+            return self._run_study(A_plant)
         if self.mode == "jit":
             if A_plant.shape not in self._compiled:
                 self.prepare(A_plant, x0)
@@ -204,6 +235,8 @@ class FojaxRunner:
 
     @property
     def label(self) -> str:
+        if self.mode == "run-study":
+            return "fojax.run_study (no observers)"
         if self.mode == "vmap-simulate":
             return "fojax.simulate (vmap)"
         return f"fojax.simulate_lti_batch ({self.mode})"
@@ -292,7 +325,7 @@ class Watchdog:
 
 
 # ================================================================================ study
-def agreement(check_b: int, which: list[str], fojax_fn, seed: int, watchdog) -> dict:
+def agreement(check_b: int, which: list[str], fojax_fns, seed: int, watchdog) -> dict:
     wl = wlmod.make_workload(check_b, seed)
     ref = peers.expm_reference(wl)
     res = {}
@@ -300,9 +333,9 @@ def agreement(check_b: int, which: list[str], fojax_fn, seed: int, watchdog) -> 
         label, variants = peers.PEERS[name]
         for vname, fn in variants.items():
             res[f"{name}:{vname}"] = _common.rel_diff(fn(wl), ref)
-    if fojax_fn is not None:
-        with watchdog.watch(f"fojax agreement check (B = {check_b})"):
-            res["fojax"] = _common.rel_diff(np.asarray(fojax_fn(*fojax_inputs(wl))), ref)
+    for fojax_fn in fojax_fns:
+        with watchdog.watch(f"fojax agreement check (B = {check_b}, {fojax_fn.label})"):
+            res[fojax_fn.method] = _common.rel_diff(np.asarray(fojax_fn(*fojax_fn.inputs(wl))), ref)
     return res
 
 
@@ -337,11 +370,20 @@ def main(argv=None) -> int:
     )
     ap.add_argument(
         "--fojax-mode",
-        choices=("auto", "eager", "jit", "vmap-simulate"),
-        default="auto",
+        choices=("auto", "eager", "jit", "vmap-simulate", "run-study"),
+        nargs="+",
+        default=["auto"],
         help="simulate_lti_batch called directly (eager = auto), inside an outer AOT jax.jit (jit), "
-        "or the old jax.vmap(fojax.simulate) entry (vmap-simulate)",
+        "or the old jax.vmap(fojax.simulate) entry (vmap-simulate); run-study: fojax.run_study on the "
+        "workload's Study (public API). Several: one kernel mode and run-study, timed on the same samples "
+        "(issue 13's ratios are then recorded)",
     )
+    ap.add_argument("--cpu-repeats", type=int, default=5,
+                    help="with run-study and peer (d): rounds of the interleaved process-CPU-time comparison "
+                    "(issue13_targets[*].cpu_time; 0: off)")
+    ap.add_argument("--name", default=None,
+                    help="results file name (default reference_workload, or reference_workload_run_study "
+                    "with --fojax-mode ... run-study)")
     ap.add_argument(
         "--hang-timeout",
         type=float,
@@ -370,24 +412,29 @@ def main(argv=None) -> int:
     print(f"max Re(finite pole) over delta in [-0.3, 0.3]: {worst:.3f} (every sample is stable)")
 
     # ---------------------------------------------------------------- fojax setup
-    fojax_fn = None
+    fojax_fns: list[FojaxRunner] = []
     fojax_msg = ""
     if not args.no_fojax:
         try:
-            fojax_fn = FojaxRunner(args.chunk, args.fojax_mode)
+            fojax_fns = [FojaxRunner(args.chunk, mode) for mode in dict.fromkeys(args.fojax_mode)]
         except FojaxUnavailable as e:
             fojax_msg = str(e)
             print(f"!! fojax entry skipped: {fojax_msg}")
+        if len({f.method for f in fojax_fns}) != len(fojax_fns):
+            ap.error("--fojax-mode: at most one kernel mode (auto/eager/jit/vmap-simulate) and run-study")
+    if args.name is None:
+        args.name = "reference_workload" + ("_run_study" if any(f.mode == "run-study" for f in fojax_fns) else "")
 
     rows: list[dict] = []
     failed: list[str] = []
     agree: dict = {}
-    state = dict(info=info, agree=agree, rows=rows, args=args, fojax_fn=fojax_fn, fojax_msg=fojax_msg, failed=failed)
+    state = dict(info=info, agree=agree, rows=rows, args=args, fojax_fns=fojax_fns, fojax_msg=fojax_msg, failed=failed,
+                 cpu={})
     watchdog = Watchdog(args.hang_timeout, args.idle_timeout, lambda reason: write_results(state, reason))
 
     # ---------------------------------------------------------------- agreement first
     print(f"\n## agreement on {args.check_b} samples (max relative difference to exact peer (d))")
-    agree.update(agreement(args.check_b, args.peers, fojax_fn, args.seed, watchdog))
+    agree.update(agreement(args.check_b, args.peers, fojax_fns, args.seed, watchdog))
     for key, val in agree.items():
         tol = TOLERANCES[key.split(":")[0]]
         ok = val <= tol
@@ -419,8 +466,8 @@ def main(argv=None) -> int:
                 if name == "expm":
                     ref_B = out
             rows.append(row)
-        if fojax_fn is not None:
-            xin = fojax_inputs(wl)
+        for fojax_fn in fojax_fns:
+            xin = fojax_fn.inputs(wl)
             jax.clear_caches()  # a cold start at every B: the first call compiles
             with watchdog.watch(f"fojax at B = {B}"):
                 compile_s = fojax_fn.prepare(*xin)  # AOT compile (jit mode), None otherwise
@@ -435,8 +482,10 @@ def main(argv=None) -> int:
             _common.print_timing(fojax_fn.label, f"compile {compile_s:6.2f} s", first, times, 45)
             rows.append(
                 dict(
-                    method="fojax",
+                    method=fojax_fn.method,
                     label=fojax_fn.label,
+                    load_average_after=_common.load_average(),
+                    engine=getattr(fojax_fn, "engine", None),
                     variant=f"chunk={args.chunk}",
                     B=B,
                     compile_s=compile_s,
@@ -458,28 +507,61 @@ def main(argv=None) -> int:
                     if r["rel_diff_vs_expm"] > tol:
                         print(f"!! {r['method']} disagrees with (d) at B = {B}: {r['rel_diff_vs_expm']:.2e}")
                         failed.append(f"{r['method']}@{B}")
+        if args.cpu_repeats and "expm" in args.peers and any(f.mode == "run-study" for f in fojax_fns):
+            state["cpu"][B] = cpu_times(wl, fojax_fns, best_variant.get("expm", "batch-last"), args.cpu_repeats)
+            print("  process CPU time, min of interleaved repeats: "
+                  + ", ".join(f"{k} {v:.4g} s" for k, v in state["cpu"][B].items() if k.endswith("_s")))
         write_results(state, status=f"partial (done up to B = {B} of {sizes})")
 
     write_results(state, status="complete", echo=True)
     return 1 if failed else 0
 
 
+def cpu_times(wl, fojax_fns, expm_variant: str, repeats: int) -> dict:
+    """Process CPU time (``time.process_time``) of fojax's calls and peer (d) on the batch
+    `wl`, the minimum over `repeats` rounds that call each in turn (interleaved, after the
+    wall-clock timing, so every call is warm): a load-robust comparison on a shared machine,
+    where a descheduled process's wall time grows and its CPU time does not. fojax runs on
+    one device here and uses one core (checked: CPU ≤ wall); the peer is single-threaded."""
+    calls = {f"{f.method}_s": (lambda f=f, xin=f.inputs(wl): jax.block_until_ready(f(*xin))) for f in fojax_fns}
+    calls["expm_s"] = lambda: peers.PEERS["expm"][1][expm_variant](wl)
+    best = {k: float("inf") for k in calls}
+    for _ in range(repeats):
+        for k, call in calls.items():
+            c0 = time.process_time()
+            call()
+            best[k] = min(best[k], time.process_time() - c0)
+    out = dict(best, repeats=repeats, expm_variant=expm_variant, load_average_after=_common.load_average())
+    rs = best.get("fojax_run_study_s")
+    if rs is not None:
+        if "fojax_s" in best:
+            out["run_study_over_kernel"] = rs / best["fojax_s"]
+        out["speedup_vs_expm_peer"] = best["expm_s"] / rs
+    return out
+
+
 def write_results(state: dict, status: str, echo: bool = False) -> None:
     """Markdown + JSON into ``args.out`` (called after every B, on abort and at the end)."""
     info, agree, rows, args = state["info"], state["agree"], state["rows"], state["args"]
-    fojax_fn, fojax_msg, failed = state["fojax_fn"], state["fojax_msg"], state["failed"]
+    fojax_fns, fojax_msg, failed = state["fojax_fns"], state["fojax_msg"], state["failed"]
     rows = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
     for r in rows:
         r["samples_per_s"] = r["B"] / r["median_s"]
-    _common.add_speedups(rows)
+    _common.add_speedups(rows, {"fojax": "", "fojax_run_study": "_run_study"})
     fojax_note = ""
-    if fojax_fn is not None:
-        fojax_note = (f"fojax mode: {fojax_fn.mode} (requested {fojax_fn.requested_mode}), chunk {args.chunk}, "
-                      f"{jax.device_count()} JAX host device(s) (jax.shard_map over the samples)")
+    for fojax_fn in fojax_fns:
+        fojax_note += (f"{'; ' if fojax_note else ''}fojax mode: {fojax_fn.mode} (requested "
+                       f"{fojax_fn.requested_mode}), chunk {args.chunk}")
         if fojax_fn.fallback_reason:
-            fojax_note += f"; {fojax_fn.fallback_reason}"
+            fojax_note += f" ({fojax_fn.fallback_reason})"
+    if fojax_fns:
+        fojax_note += f"; {jax.device_count()} JAX host device(s) (jax.shard_map over the samples)"
+    targets = issue13_targets(rows)
+    for t in targets:
+        if t["B"] in state.get("cpu", {}):
+            t["cpu_time"] = state["cpu"][t["B"]]
     payload = _common.result_payload(
-        "reference_workload",
+        args.name,
         status,
         info,
         args,
@@ -487,14 +569,42 @@ def write_results(state: dict, status: str, echo: bool = False) -> None:
         agreement_check=dict(B=args.check_b, max_rel_diff_vs_expm=agree),
         fojax_unavailable=fojax_msg or None,
         fojax_note=fojax_note or None,
+        issue13_targets=targets or None,
         rows=rows,
         disagreements=failed,
     )
-    md = render_markdown(payload["machine"], agree, rows, fojax_msg, fojax_note, args, status)
-    _common.write_results(args.out, "reference_workload", payload, md, echo=echo)
+    md = render_markdown(payload["machine"], agree, rows, fojax_msg, fojax_note, args, status, targets)
+    _common.write_results(args.out, args.name, payload, md, echo=echo)
 
 
-def render_markdown(info, agree, rows, fojax_msg, fojax_note, args, status) -> str:
+def issue13_targets(rows) -> list[dict]:
+    """Per B with `fojax.run_study`, the raw kernel and peer (d) measured: issue 13's two ratios
+    (``t_run_study / t_kernel`` ≤ `TARGET_VS_KERNEL`, ``t_expm / t_run_study`` ≥ `TARGET_VS_EXPM`),
+    from the medians, and the load averages after the two fojax measurements."""
+    out = []
+    for B in sorted({r["B"] for r in rows}):
+        pick = {m: next((r for r in rows if r["method"] == m and r["B"] == B), None)
+                for m in ("fojax_run_study", "fojax", "expm")}
+        rs, kern, expm = pick["fojax_run_study"], pick["fojax"], pick["expm"]
+        if rs is None:
+            continue
+        row = dict(B=B, run_study_s=rs["median_s"], load_average_after_run_study=rs.get("load_average_after"))
+        if kern is not None:
+            ratio = rs["median_s"] / kern["median_s"]
+            row.update(kernel_s=kern["median_s"], run_study_over_kernel=ratio,
+                       target_run_study_over_kernel_max=TARGET_VS_KERNEL, kernel_target_met=ratio <= TARGET_VS_KERNEL,
+                       load_average_after_kernel=kern.get("load_average_after"))
+        if expm is not None and not expm["extrapolated"]:
+            speed = expm["median_s"] / rs["median_s"]
+            row.update(expm_peer_s=expm["median_s"], speedup_vs_expm_peer=speed,
+                       target_speedup_vs_expm_peer_min=TARGET_VS_EXPM, expm_target_met=speed >= TARGET_VS_EXPM)
+            if kern is not None:
+                row["kernel_speedup_vs_expm_peer"] = expm["median_s"] / kern["median_s"]
+        out.append(row)
+    return out
+
+
+def render_markdown(info, agree, rows, fojax_msg, fojax_note, args, status, targets=()) -> str:
     fmt = _common.fmt
     lines = [
         "# Reference workload (issue 7): thesis §4.1.3 observer-based control loop",
@@ -536,8 +646,33 @@ def render_markdown(info, agree, rows, fojax_msg, fojax_note, args, status) -> s
             f"{fmt(r.get('fojax_speedup'), '.3g')} |"
         )
     peer_names = [p for p in peers.PEERS if any(r["method"] == p for r in rows)]
-    if any(r["method"] == "fojax" for r in rows):
-        lines += _common.speedup_table(rows, [(p, "", peers.PEERS[p][0]) for p in peer_names])
+    cols = [(p, sfx, f"{peers.PEERS[p][0]}{tag}") for sfx, tag, m in
+            (("", "", "fojax"), ("_run_study", " [run_study]", "fojax_run_study"))
+            if any(r["method"] == m for r in rows) for p in peer_names]
+    if cols:
+        lines += _common.speedup_table(rows, cols)
+    if targets:
+        lines += ["", f"## Issue 13: `fojax.run_study` on this workload (targets: ≤ {TARGET_VS_KERNEL}× the raw "
+                  f"kernel's time, ≥ {TARGET_VS_EXPM}× peer (d))", "",
+                  "| B | run_study (s) | kernel (s) | run_study / kernel | peer (d) (s) | speed-up vs (d) | "
+                  "kernel speed-up vs (d) | load avg after |", "|---:|---:|---:|---:|---:|---:|---:|---|"]
+        for t in targets:
+            load = t.get("load_average_after_run_study")
+            lines.append(
+                f"| {t['B']} | {t['run_study_s']:.4g} | {fmt(t.get('kernel_s'), '.4g')} | "
+                f"{fmt(t.get('run_study_over_kernel'), '.3g')} | {fmt(t.get('expm_peer_s'), '.4g')} | "
+                f"{fmt(t.get('speedup_vs_expm_peer'), '.3g')} | {fmt(t.get('kernel_speedup_vs_expm_peer'), '.3g')} | "
+                f"{'' if load is None else ', '.join(f'{x:.2f}' for x in load)} |")
+        cpu = [t for t in targets if "cpu_time" in t]
+        if cpu:
+            lines += ["", "Process CPU time (min of interleaved repeats; robust to a busy machine's descheduling):", "",
+                      "| B | run_study (s) | kernel (s) | peer (d) (s) | run_study / kernel | speed-up vs (d) |",
+                      "|---:|---:|---:|---:|---:|---:|"]
+            for t in cpu:
+                c = t["cpu_time"]
+                lines.append(f"| {t['B']} | {c['fojax_run_study_s']:.4g} | {fmt(c.get('fojax_s'), '.4g')} | "
+                             f"{c['expm_s']:.4g} | {fmt(c.get('run_study_over_kernel'), '.3g')} | "
+                             f"{c['speedup_vs_expm_peer']:.3g} |")
     return "\n".join(lines) + "\n"
 
 

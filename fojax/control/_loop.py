@@ -73,6 +73,33 @@ class LoopMaps:
     n: int
     s: int
 
+    def signal_rows(self, L):
+        r"""``(n + q, n + s)`` rows of $[x;\ \hat z - Lx]$ on the loop state $X = [x; \xi]$:
+        $[I_n\ 0]$ stacked on $Z_X - [L\ 0]$.
+
+        The functional of a `fojax.Study` of the loop (zero reference: with $r \ne 0$ the
+        estimate also has the feed-through $Z_r r$, which a study's $z = LX$ cannot hold),
+        so that ``fojax.run_study(study)`` reports per sample the metrics of the state and
+        of the estimation error of the control law; e.g. the IAE of $\lVert x\rVert_1$ is
+        the sum of the first ``n`` signals' IAEs.
+
+        !!! example
+
+            ```python
+            loop = fojax.control.closed_loop(sys, observer)
+            maps = fojax.control.loop_maps(sys, observer)
+            study = fojax.Study(loop, x0, ts, maps.signal_rows(L), uncertainty=...)
+            result = fojax.run_study(study)  # observers=None: the metrics of [x; ẑ − Lx]
+            ```
+        """
+        xp = _namespace(self.Z_X, L)
+        L = xp.asarray(L)
+        q = self.Z_X.shape[0]
+        if L.shape != (q, self.n):
+            raise ShapeError("L", (q, self.n), tuple(L.shape), "L is the control law ẑ estimates (u = Lx).")
+        state = xp.eye(self.n, self.n + self.s)
+        return xp.concatenate([state, xp.asarray(self.Z_X) - L @ state], axis=0)
+
 
 @eqx.filter_jit
 def _jit_linear_matrices(observer):

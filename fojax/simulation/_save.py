@@ -82,7 +82,8 @@ class Metrics(AbstractSave):
     - `kinds`: metric names from ``"iae", "ise", "itae", "peak", "settling_time"``
       (default all five); `fojax.StudyResult.metrics` holds these (and ``"success"``).
       The exact and exponential batch engines accumulate only these in the time loop
-      (plus the peak, whose finiteness is the success test); the ``"vmap-simulate"``
+      (plus the peak when no integral is named: the finiteness of the accumulated
+      metrics is the success test); the ``"vmap-simulate"``
       engine computes all five from each trajectory and keeps these.
     - `settle_tol`: tolerance of the settling time (default 0.05).
     - `reduce`: ``"none"`` (one value per estimated signal, default) or ``"sum"`` (summed

@@ -157,15 +157,25 @@ class StudyProblem(eqx.Module):
     # 0: metrics only; k >= 1: also the error trajectories on every k-th grid point
     # (``ts[::k]``, the quantile bands' grid of `fojax.studies._runner.band_stride`)
     keep: int = eqx.field(static=True, default=0)
-    # the metrics asked for (`fojax.Metrics.kinds`); only these (and "peak") are accumulated
+    # the metrics asked for (`fojax.Metrics.kinds`); only these (and "peak" when no integral
+    # is asked for) are accumulated
     kinds: tuple[str, ...] = eqx.field(static=True, default=METRIC_NAMES)
 
     @property
     def computed(self) -> tuple[str, ...]:
         """The metrics accumulated along the grid, in `METRIC_NAMES` order: the requested
-        `kinds` and always ``"peak"`` (one maximum per step; its finiteness is the
-        sample's success test even when only the settling time is asked for)."""
-        return tuple(k for k in METRIC_NAMES if k in self.kinds or k == "peak")
+        `kinds`, and ``"peak"`` (one maximum per step) when none of the integrals
+        ``"iae"``, ``"ise"``, ``"itae"`` is asked for. The finiteness of the computed
+        metrics other than the settling time is the sample's success test (`final`); an
+        integral is non-finite exactly when some error value is (``|±inf|``, ``nan`` and
+        ``inf − inf`` in the trapezoid's end correction propagate; an overflow of the sum
+        itself made the peak's run fail as well, since every computed metric is tested),
+        so the peak is needed only when the settling time alone is asked for. Dropping
+        it saves one maximum per output and step: ``kinds=("iae",)`` on the §4.1.3
+        workload at B = 10,000 (6 outputs), 0.155 s CPU instead of 0.206 s (measured
+        under load)."""
+        integral = any(k in self.kinds for k in ("iae", "ise", "itae"))
+        return tuple(k for k in METRIC_NAMES if k in self.kinds or (k == "peak" and not integral))
 
     def joint(self, p):
         # p = (i, j) or (i, j, observers): one copy of the observers per sample (`study_loss`
@@ -200,14 +210,15 @@ class StudyProblem(eqx.Module):
             base.E, A, jnp.concatenate([B, Fa], axis=1), C, observers, x0, self.split, self.r, exo
         )
         ok = ok & jnp.all(base.E == self.E0)
-        # errors ẑ_i − z as a linear map of [x; ξ_1; ...; v]
+        # errors ẑ_i − z as a linear map of [x; ξ_1; ...; v] (z itself without observers)
         sizes = [o.state_size for o in observers]
         L = study.L
         Hz = jnp.zeros((L.shape[0], nu_ + nf_))
         if study.fault_targets:
             L = jnp.concatenate([L, jnp.zeros((Hf.shape[0], n))], axis=0)
             Hz = jnp.concatenate([Hz, jnp.concatenate([jnp.zeros((Hf.shape[0], nu_)), Hf], axis=1)], axis=0)
-        rows = []
+        # a signal study (no observers): the rows of z = L x + H_z v itself
+        rows = [] if observers else [jnp.concatenate([L, Hz], axis=1)]
         for k, o in enumerate(observers):
             lm = o.linear_matrices()
             blocks = [lm.Dy @ C - L]

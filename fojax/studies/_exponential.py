@@ -145,6 +145,8 @@ class StudyErrors(eqx.Module):
         z = self.L @ x
         if self.fault_targets:
             z = jnp.concatenate([z, plant.fault(t)])
+        if not observers:  # a signal study: z itself
+            return z
         parts, off = [], 0
         for o in observers:
             parts.append(o.output(t, xi[off : off + o.state_size], u_t, y) - z)
@@ -186,6 +188,11 @@ class StudySetup(eqx.Module):
             Gs.append(Gk)
             Hs.append(jnp.broadcast_to(Hk, (P,) + Hk.shape[1:]))
             off += s
+        if not observers:  # a signal study: z = L x (+ the fault) itself
+            Hz = jnp.broadcast_to(L @ XV, (P,) + L.shape[:1] + XV.shape[2:])
+            if study.fault_targets:
+                Hz = Hz.at[:, study.L.shape[0] :, m].add(zf)
+            Gs, Hs = [L @ X], [Hz]
         data = setup_data(Aj, Bj, jnp.concatenate(Gs, axis=1), jnp.concatenate(Hs, axis=1), w0, mask)
         return data, (_plant_signals(plant), study.u)
 

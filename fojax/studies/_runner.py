@@ -36,6 +36,12 @@ time-wise quantiles of $e$ over all samples (confidence bands): every engine kee
 errors only on the band grid ``ts[::k]`` (`band_stride`, at most `run_study`'s
 `band_points` points), and the host computes exactly ``np.quantile`` of them
 (`band_quantiles`).
+
+**Signal studies.** Without observers (``run_study(study)``) the same metrics and bands
+are those of $z = Lx$ itself (e.g. the state and the regulation error of a closed loop
+under uncertainty): every engine builds its output rows from the empty observer tuple
+(``[L, H_z]`` instead of the observers' ``ẑ − z`` rows), so the chunks, padding, devices
+and compiled kernels are the ones above.
 """
 
 from __future__ import annotations
@@ -150,7 +156,9 @@ class Study(eqx.Module):
       `NoisyPlant` for fault or noise families).
     - `x0`: ``(n,)`` template initial state.
     - `ts`: ``(T,)`` output grid.
-    - `L`: ``(q, n)`` functional: the true signal is $z = Lx$; with
+    - `L`: ``(q, n)`` functional: the true signal is $z = Lx$ (what the observers
+      estimate; without observers, ``run_study(study)``, the signal whose metrics are
+      reported, e.g. `fojax.control.LoopMaps.signal_rows` of a closed loop); with
       `fault_targets=True` and a `FaultyPlant` template the fault $\phi(t)$ is appended
       (for observers that also estimate the faults).
     - `u`: input signal (shared by all samples), constant vector, or ``None``.
@@ -279,10 +287,13 @@ class SimConfig:
 
 
 def sample_errors(study: Study, observers, i, j, cfg: SimConfig):
-    """Errors ``ẑ_k − z`` ``(T, q)`` of every observer for sample ``(i, j)``, and success."""
+    """Errors ``ẑ_k − z`` ``(T, q)`` of every observer for sample ``(i, j)``, and success;
+    without observers (a signal study), the one-element tuple ``(z,)``."""
     plant, x0 = study.sample(i, j)
     sol = simulate(plant, x0, study.ts, study.u, observers=tuple(observers), stepper=cfg.stepper, throw=False)
     z = study.target(plant, study.ts, sol.xs)
+    if not observers:  # a signal study (`run_study(study)`): the metrics of z itself
+        return (z,), sol.stats["success"]
     return tuple(zh - z for zh in sol.estimates), sol.stats["success"]
 
 
@@ -398,7 +409,7 @@ def _atomic_write(path: str, write) -> None:
 
 def run_study(
     study: Study,
-    observers: AbstractObserver | Sequence[AbstractObserver],
+    observers: AbstractObserver | Sequence[AbstractObserver] | None = None,
     *,
     observer_names: Sequence[str] | None = None,
     chunk_size: int | None = None,
@@ -421,8 +432,14 @@ def run_study(
 
     - `study`: a `Study`.
     - `observers`: one observer or a sequence; each must estimate ``study.num_signals``
-      signals.
-    - `observer_names`: labels (default ``"observer0", ...``).
+      signals, and the metrics are those of its error $\hat z - z$. ``None`` (default): a
+      *signal study*, the metrics of $z = Lx$ itself (with ``fault_targets``, and the
+      fault), e.g. the regulation error or the state of a closed loop under uncertainty
+      (`fojax.control.closed_loop`, `fojax.control.LoopMaps.signal_rows`); the result
+      has one entry on the ``observer`` axis, labelled ``"z"`` (or ``observer_names``),
+      and the signals are named by ``study.signal_names``. Same engines, chunks and
+      devices as with observers; the bands are the quantiles of $z$.
+    - `observer_names`: labels (default ``"observer0", ...``; ``("z",)`` for a signal study).
     - `chunk_size`: samples per compiled call; rounded up to a multiple of the number of
       devices. The last chunk is padded, so one compilation serves every chunk. Default:
       on the exact and exponential engines 4,096 samples (2,048 with quantile bands), so
@@ -482,20 +499,24 @@ def run_study(
 
     **Returns:** a `StudyResult`.
     """
+    signal_study = observers is None  # the metrics of z = L x itself (no observer)
     if isinstance(observers, AbstractObserver):
         observers = (observers,)
-    observers = tuple(observers)
-    if not observers:
-        raise InputError("run_study needs at least one observer.")
+    observers = () if signal_study else tuple(observers)
+    if not observers and not signal_study:
+        raise InputError("run_study got an empty sequence of observers; pass observers=None (the default) for the "
+                         "metrics of the study's signal z = L x itself.")
     for k, o in enumerate(observers):
         if o.output_size != study.num_signals:
             raise ShapeError(
                 f"observers[{k}].output_size", study.num_signals, o.output_size,
                 "Each observer must estimate the study's signals (L, plus faults with fault_targets).",
             )
-    names = tuple(observer_names) if observer_names is not None else tuple(f"observer{k}" for k in range(len(observers)))
-    if len(names) != len(observers):
-        raise ShapeError("observer_names", len(observers), len(names))
+    default_names = ("z",) if signal_study else tuple(f"observer{k}" for k in range(len(observers)))
+    names = tuple(observer_names) if observer_names is not None else default_names
+    if len(names) != len(default_names):
+        raise ShapeError("observer_names", len(default_names), len(names),
+                         "A signal study (observers=None) has one name." if signal_study else "")
     stepper = resolve_stepper(stepper, method, solver, rtol, atol, max_steps, who="run_study")
     save = resolve_save(save, quantiles, band_points, settle_tol, who="run_study")
     settle_tol = save.settle_tol
@@ -539,7 +560,8 @@ def _apply_save(res: StudyResult, save: Metrics) -> StudyResult:
     if save.kinds == METRIC_NAMES and save.reduce == "none":
         return res
     for name in METRIC_NAMES:
-        if name not in save.kinds:  # computed all the same by the vmap engine ("peak" by the batch kernels)
+        if name not in save.kinds:  # computed all the same by the vmap engine (the batch kernels: "peak"
+            # with the settling time alone, `StudyProblem.computed`)
             res.metrics.pop(name, None)
             res.axes.pop(name, None)
         elif save.reduce == "sum":
@@ -578,14 +600,14 @@ def _run_vmap(study, observers, names, quantiles, cfg: SimConfig, chunk_size, de
     Nu, Nf, q = study.num_uncertainty, study.num_scenarios, study.num_signals
     metrics = {}
     for name in METRICS:
-        per_obs = [np.concatenate([m[o][name] for m in mets])[:B].reshape(Nu, Nf, q) for o in range(len(observers))]
+        per_obs = [np.concatenate([m[o][name] for m in mets])[:B].reshape(Nu, Nf, q) for o in range(len(names))]
         metrics[name] = np.stack(per_obs)
     metrics["success"] = np.concatenate(oks)[:B].reshape(Nu, Nf)
     axes = {name: ("observer", "uncertainty", "fault", "signal") for name in METRICS}
     axes["success"] = ("uncertainty", "fault")
     if keep:
         qs = []
-        for o in range(len(observers)):
+        for o in range(len(names)):
             E = np.concatenate([e[o] for e in errs])[:B]  # (B, T_c, q)
             qs.append(band_quantiles(np.moveaxis(E, 0, -1), quantiles))
         metrics["quantiles"] = np.stack(qs)
