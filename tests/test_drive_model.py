@@ -9,8 +9,13 @@ Oracles:
 - the closed-form steady state for a constant voltage (all speeds equal after the gear,
   $\\tau_2 = b_2\\omega_2$): equals $L(-A)^{-1}B\\,u$ of the descriptor model;
 - index 1 by closed form: the algebraic block is diag(-R, -1, -1), so rank E = 5 finite poles
-  and `fojax.analysis.nilpotency_index` = 1.
+  and `fojax.analysis.nilpotency_index` = 1;
+- exact ranks in rational arithmetic (sympy) for the observer structure's rank conditions on
+  the badly scaled twin.
 """
+
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +25,9 @@ from helpers import assert_eigenvalues_match
 import fojax
 import fojax.models as fm
 from fojax.models._drive import DRIVE_PARAMS
+
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _finite_poles(A, E):
@@ -97,3 +105,32 @@ def test_bad_parameters_are_named():
         fm.flexible_drive(k_2=0.0)
     with pytest.raises(TypeError, match="unknown parameters \\['J3'\\]"):
         fm.flexible_drive(J3=1.0)
+
+
+def test_structure_rank_decisions_are_unit_free():
+    """Regression (issue 14): on the drive rescaled by 1e-3…1e3 (`benchmarks/tuning_circuit.py`'s
+    twin) the rank conditions of the observer structure were decided on the raw data: rank Γ =
+    rank [E; E⊥A; C] came out 7 and the default R failed "rank [R; Γ] = rank Γ". Oracle: exact
+    ranks of the twin's own float matrices in rational arithmetic (sympy)."""
+    import sympy
+
+    from fojax.design import check_structure, observer_structure
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from lc_filter import rescaled
+    from tuning_circuit import DRIVE_TWIN_ROWS, DRIVE_TWIN_STATES
+
+    ex = fm.flexible_drive()
+    m = rescaled({k: np.asarray(getattr(ex, k)) for k in ("E", "A", "B", "C", "L", "dA")},
+                 DRIVE_TWIN_ROWS, DRIVE_TWIN_STATES)
+    # R: z = tau_2 and the two twists, written in the twin's states (rows in the row space of Γ)
+    R = np.zeros((3, 8))
+    R[0, 7], R[1, 1], R[2, 3] = 1.0, 1.0, 1.0
+    R = R @ m["Dc"]
+    def exact_rank(M):  # of the float values themselves (Rational(float) is exact)
+        return sympy.Matrix([[sympy.Rational(float(v)) for v in row] for row in M]).rank()
+
+    gamma = np.vstack([m["E"], m["A"][5:], m["C"]])  # E⊥ = the algebraic rows (rows 6-8 of E are zero)
+    assert exact_rank(gamma) == 8 and exact_rank(np.vstack([R, gamma])) == 8
+    s = observer_structure(m["E"], m["A"], m["B"], m["C"], m["L"], R, q1=3)
+    check_structure(s)  # raised RankConditionError (rank [R; E; Ψ] = 8 but rank [E; Ψ] = 7) before

@@ -54,6 +54,8 @@ from ._conditions import (
     check_regular,
     check_structure,
     default_R,
+    UNIT_FREE_CHECK_MAX as UNIT_FREE_CHECK_MAX,
+    unit_free_structure,
     unobservable_modes,
 )
 from ._parameterization import (
@@ -677,12 +679,6 @@ def balanced_design(s, region, *, kind, margin, solver, method="lmi", centre=Fal
     )  # fmt: skip
 
 
-#: Largest ``l + n`` for which designs made on the data as given are also checked in the
-#: unit-free frame (`unit_free_check`; `fojax.analysis.unit_scaling` costs a least-squares
-#: solve of size ``l + n``: ~0.8 s at n = 100 on a loaded 2-core CPU, ~19 s at n = 500).
-UNIT_FREE_CHECK_MAX = 200
-
-
 def unit_free_check(s, params) -> tuple | None:
     r"""``("unit-free relative residual", value, failure or None)``: conditions a.–d. of the
     observer of `params` on `s`, re-checked in the unit-free frame of
@@ -698,14 +694,10 @@ def unit_free_check(s, params) -> tuple | None:
     `balanced_design`) its residual is 2.5e-3 relative. A.–d. are statements about the
     observer, not the units, so a correct observer passes in both frames.
     """
-    from ..analysis._balance import unit_scaling
-
-    E, A, B, C, L = (np.asarray(x, dtype=float) for x in (s.E, s.A, s.B, s.C, s.L))
-    if A.ndim != 2 or E.shape[0] + E.shape[1] > UNIT_FREE_CHECK_MAX or getattr(s, "num_rules", 1) > 1:
+    uf = unit_free_structure(s)
+    if uf is None:
         return None
-    dl, dr = unit_scaling(E, A, B, C)
-    sb = observer_structure(dl[:, None] * E * dr, dl[:, None] * A * dr, dl[:, None] * B, C * dr, L * dr,
-                            np.asarray(s.R) * dr, q1=s.q1, psi=s.psi, Eperp=np.asarray(s.Eperp) / dl[None, :])
+    sb, dl, _ = uf
     mats = observer_matrices(s, **{k: np.asarray(v) for k, v in params.items()}, xp=np)
     mb = mats._replace(T=np.asarray(mats.T) / dl[None, :])
     res = design_residuals(sb, mb, xp=np)
