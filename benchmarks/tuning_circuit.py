@@ -67,6 +67,24 @@ load).** Not the step budget, the barrier, the coordinates or the order; the reg
   start (its gradient 3e-6 against 7e-2 for the loss; a separate check, not in the JSON).
 - *Order.* ``q0 = 5`` fitted in-sample: −23.5 %, like ``q0 = 3`` (−23.7 %, same disk).
 
+**The flexible drive (``--model flexible_drive``; ``tuning_flexible_drive_latest.json``, one
+run each, under load).** The first run, with the settings above fixed before it: (a) missed,
+−13.4 % held-out IAE against the centred LMI design (6 of 113 parameters live, every iterate
+verified, none rejected; the centred design is itself −53 % against the min-gain LMI design);
+(b) met, −13.4 % / −12.3 % against Powell / Nelder–Mead at equal wall-clock (41.6 s: 188 / 143
+evaluations on 113 parameters; Powell found no improving point); (c) met, twin +1.4 %
+(``live``) / −0.6 % (``whiten``). Then, separately: 500 steps (``--long-steps``, ``"a_long"``)
+give −14.2 % (−13.4 % at step 100, −14.2 % from step 400: converged), and ``--diagnose``
+(``"diagnosis"``) shows the same limit as on the filter: fitting the 128 held-out samples
+themselves reaches −19.2 % in ``Disk(-3, 2)`` (barrier 1e-3), −21.0 % in ``Disk(-6, 5.9)``,
+−26.6 % only in ``Disk(-30, 29.9)`` (a pole at −27.4) and −25.2 % at ``q0 = 5`` in
+``Disk(-6, 5.9)``; L-BFGS on the 32 training samples gives −18.9 % held-out, and on 16 × 8
+samples also −18.9 % (no over-fitting); ``tune`` in ``Disk(-6, 5.9)``: −15.6 %; with
+``barrier=0``: −14.3 %. Three of the six error eigenvalues stay at −3.0 in every run (they do
+not reach ẑ). So on the drive too the region (and the order) limit what the local searches
+reached (local optima, not proved bounds), and Adam's plateau (−14.2 %) is 5 points short of the
+in-sample fit in ``Disk(-3, 2)``.
+
 Every number goes to ``benchmarks/results/tuning_circuit_latest.json`` with the load
 average (the reference machine is a shared 2-core box: wall times are measured under load).
 
