@@ -14,6 +14,9 @@
   poles equal (by matching) to those of the hand-reduced ODE (the divider gives
   $v_3 = v_2/2$, $i_L = v_2/(2R_a)$), and its badly scaled twin has the same finite poles,
   outputs and functional for the same physical state.
+- `benchmarks/tuning_circuit.py --model flexible_drive`: the drive's badly scaled twin has the
+  drive's finite poles (oracle: the plain model's QZ), the same y and z for the same physical
+  state, and the studies draw the same physical initial states.
 - `benchmarks/hinf_vs_region.py`, case ``lc`` (issue 18): the plant is lc_filter's, the
   initial state satisfies the algebraic rows (oracle: the same hand reduction), the H∞
   channel reproduces ΔA for |δ| ≤ 1, and the study draws δ in [-1, 1] and noise on both outputs.
