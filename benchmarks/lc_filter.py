@@ -63,7 +63,14 @@ def lc_filter(scaled: bool = False) -> dict:
     L = np.array([[0, 0, 1.0, 0, 0, 0]])
     dA = np.zeros((6, 6))
     dA[4, 5] = -0.5 * p["Ra"]
-    Dr = TWIN_ROWS if scaled else np.ones(6)
-    Dc = TWIN_STATES if scaled else np.ones(6)
-    R, S = np.diag(Dr), np.diag(Dc)
-    return dict(E=R @ E @ S, A=R @ A @ S, B=R @ B, C=C @ S, L=L @ S, dA=R @ dA @ S, Dc=S)
+    m = dict(E=E, A=A, B=B, C=C, L=L, dA=dA)
+    return rescaled(m, TWIN_ROWS, TWIN_STATES) if scaled else rescaled(m, np.ones(6), np.ones(6))
+
+
+def rescaled(m: dict, rows, states) -> dict:
+    """The same model in other units: ``x = Dc x'`` and row ``i`` multiplied by ``rows[i]``
+    (``E' = Dr E Dc``, ``A' = Dr A Dc``, ``B' = Dr B``, ``C' = C Dc``, ``L' = L Dc``,
+    ``dA' = Dr dA Dc``); the result also holds ``Dc``."""
+    R, S = np.diag(np.asarray(rows, float)), np.diag(np.asarray(states, float))
+    return dict(E=R @ m["E"] @ S, A=R @ m["A"] @ S, B=R @ m["B"], C=m["C"] @ S, L=m["L"] @ S, dA=R @ m["dA"] @ S,
+                Dc=S)

@@ -14,6 +14,9 @@
   poles equal (by matching) to those of the hand-reduced ODE (the divider gives
   $v_3 = v_2/2$, $i_L = v_2/(2R_a)$), and its badly scaled twin has the same finite poles,
   outputs and functional for the same physical state.
+- `benchmarks/tuning_circuit.py --model flexible_drive`: the drive's badly scaled twin has the
+  drive's finite poles (oracle: the plain model's QZ), the same y and z for the same physical
+  state, and the studies draw the same physical initial states.
 - `benchmarks/hinf_vs_region.py`, case ``lc`` (issue 18): the plant is lc_filter's, the
   initial state satisfies the algebraic rows (oracle: the same hand reduction), the H∞
   channel reproduces ΔA for |δ| ≤ 1, and the study draws δ in [-1, 1] and noise on both outputs.
@@ -309,3 +312,25 @@ def test_hinf_vs_region_lc_case_is_the_lc_filter_with_consistent_x0():
     assert st.signal_names == ("i2",)
     np.testing.assert_array_equal(np.asarray(st.x0), np.asarray(x0))
     assert not np.any(np.asarray(hinf_vs_region.study(None, "lc_noise", 2, 1, 0.5, 0.05, seed=3).x0))  # at rest
+
+
+def test_tuning_benchmark_flexible_drive_twin_is_the_same_drive():
+    """`tuning_circuit.py --model flexible_drive`: the twin (rows and states rescaled by
+    1e-3 .. 1e3) has the drive's finite poles (oracle: the plain model's QZ), the same y and z
+    for the same physical state, and the studies draw the same physical initial states
+    (x0' = Dc^-1 x0) on the five differential states only."""
+    import tuning_circuit as tc
+
+    plain, twin = tc.flexible_drive(), tc.flexible_drive(scaled=True)
+    assert np.ptp(np.log10(tc.DRIVE_TWIN_ROWS)) == 6 and np.ptp(np.log10(tc.DRIVE_TWIN_STATES)) == 6
+    assert_eigenvalues_match(_finite_poles(twin["A"], twin["E"]), _finite_poles(plain["A"], plain["E"]), rtol=1e-6)
+    S = twin["Dc"]
+    x = np.arange(1.0, 9.0)
+    for k in ("C", "L"):
+        np.testing.assert_allclose(twin[k] @ np.linalg.solve(S, x), plain[k] @ x, rtol=1e-14)
+    _, _, st_plain = tc.build(False, 2, 3, seed=0, model="flexible_drive")
+    _, _, st_twin = tc.build(True, 2, 3, seed=0, model="flexible_drive")
+    x0p, x0t = (np.asarray(st.scenarios[0].values) for st in (st_plain, st_twin))
+    assert x0p.shape == (3, 8) and st_plain.signal_names == ("tau2",)
+    np.testing.assert_allclose(x0t * np.diag(S), x0p, rtol=1e-12)
+    assert not np.any(x0p[:, 5:]) and np.all(np.abs(x0p[:, :5]) <= 1.0) and np.ptp(x0p[:, :5]) > 0.5

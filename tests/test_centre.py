@@ -86,3 +86,18 @@ def test_model_file_key():
     bad = {**data, "observer": [{**data["observer"][0], "Bw": [[1.0]] * 4}]}
     with pytest.raises(fojax.ConfigError, match="Bw"):
         parse_config(bad, "c.toml")
+
+
+@pytest.mark.parametrize("balance", [True, False])
+def test_centre_steps_count_only_where_the_eigenvalues_are_inside(balance):
+    """Regression (issue 14): on `fojax.models.flexible_drive` at q0 = 2 the solver returned
+    'optimal' at the fraction 0.99 with an error eigenvalue outside the tightened disk. With
+    balance=True the design then failed verification (eigenvalue +0.80, DesignVerificationError);
+    with balance=False it passed but its eigenvalue at -2.51 had margin 0.49 while the report
+    claimed a certified margin of 1.98. Now such a step counts as infeasible: the design verifies
+    and the margin it claims holds (NumPy eigenvalues, closed-form disk margin)."""
+    ex = fojax.models.flexible_drive()
+    region = Disk(-3.0, 2.0)
+    d = design_functional_observer(ex.system, ex.L, q0=2, region=region, objective="centre", balance=balance)
+    assert d.report.passed
+    assert _disk_margin(d, region) >= d.solver["centre"]["certified_margin"] - 1e-9

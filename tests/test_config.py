@@ -197,6 +197,9 @@ MALFORMED = [
     (("observer", 0, "kind"), "generalised", "observer[0].kind", r"Did you mean 'generalized'"),
     (("observer", 0, "R"), [[1.0, 0.0]], "observer[0].R", r"expected \(q0, 4\)"),
     (("observer", 0, "q0"), 1.5, "observer[0].q0", r"expected an integer"),
+    (("observer", 0, "balance"), "yes", "observer[0].balance", r"expected true or false, got 'yes' \(string\)"),
+    (("observer", 0, "balance"), 1, "observer[0].balance", r"expected true or false, got 1 \(int\)"),
+    (("observer", 0, "balanced"), True, "observer[0].balanced", r"Did you mean 'balance'"),
     (("study", "samples"), 0, "study.samples", r"expected a positive number, got 0"),
     (("study", "dt"), 2.0, "study.dt", r"smaller than study\.horizon"),
     (("study", "sample"), 3, "study.sample", r"Did you mean 'samples'"),
@@ -225,6 +228,49 @@ def test_malformed_config_names_file_and_key(tmp_path, path, value, key, what):
     err = info.value
     assert err.key == key and err.file == str(p)
     assert str(err).startswith(f"{p}: [{key}] ")
+
+
+def test_balance_key_reaches_the_design(tmp_path):
+    """``[[observer]] balance``: absent -> the library default (no keyword); true/false -> passed to
+    design_functional_observer, whose design is then the unit-free one (``solver["balance"]``
+    holds the factors) or the one on the data as given."""
+    cfg = load_config(write(tmp_path, base(), "default.toml"))
+    assert cfg.observers[0].balance is None and "balance" not in cfg.observers[0].design_kwargs()
+    for value in (True, False):
+        d = base()
+        d["observer"][0]["balance"] = value
+        d["observer"][0]["objective"] = "centre"
+        spec = load_config(write(tmp_path, d, f"{value}.toml")).observers[0]
+        assert spec.balance is value
+        assert spec.design_kwargs() == {"objective": "centre", "Bw": None, "Dv": None, "balance": value}
+    d = base()
+    d["observer"][0]["balance"] = True
+    cfg = load_config(write(tmp_path, d, "true.toml"))
+    o = cfg.observers[0]
+    assert o.design_kwargs() == {"balance": True}
+    design = fojax.design.design_functional_observer(cfg.design_system(), cfg.design_L(), kind=o.kind,
+                                                     region=o.region, **o.design_kwargs())
+    assert design.report.passed and "balance" in design.solver
+
+
+@pytest.mark.parametrize("extra,what", [
+    ({"objective": "hinf", "Bw": [[1.0]] * 4}, r'is not used with objective = "hinf"'),
+    ({"kind": "unknown-input", "D": [[1.0], [0.0], [0.0], [0.0]]}, r"not 'unknown-input': remove the key"),
+])
+def test_balance_key_refused_where_the_design_has_none(tmp_path, extra, what):
+    d = base()
+    d["observer"][0].update(balance=True, **extra)
+    p = write(tmp_path, d)
+    with pytest.raises(fojax.ConfigError, match=what) as info:
+        load_config(p)
+    assert info.value.key == "observer[0].balance"
+
+
+def test_balance_key_refused_for_takagi_sugeno():
+    d = load_config(example_path("robot_arm_ts")).raw
+    bad = {**d, "observer": [{**d.get("observer", [{}])[0], "balance": True}]}
+    with pytest.raises(fojax.ConfigError, match=r"\[observer\[0\]\.balance\] is for linear models"):
+        parse_config(bad, "ts.toml")
 
 
 def test_takagi_sugeno_errors(tmp_path):

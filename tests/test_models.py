@@ -218,6 +218,7 @@ def gains(ex, names="NJFHSGMPQ", suffix=""):
 
 
 ALL = [
+    fm.flexible_drive,
     fm.electrical_motor,
     fm.robot_arm,
     fm.robot_arm_ts,

@@ -214,3 +214,27 @@ def test_config_key_and_the_study_command_helpers(scalar_runs):
         text = SCALAR_TOML.replace("hinf = 2, h2 = 0.5", bad.replace("hinf =", "hinff =") if "2" in bad else bad)
         with pytest.raises(ConfigError, match=match):
             parse_config(tomllib.loads(text))
+
+
+def test_h2_term_of_a_balanced_design_takes_the_channel_in_the_models_units():
+    """Regression (issue 14): a ``balance=True`` design holds the unit-free structure, and a
+    user's ``Bw`` (rows = the model's equations) was used there as if it were unit-free: the
+    term was the H2 norm of another disturbance. Oracle: the frequency-domain H2 integral of
+    the joint plant + observer system written in the model's units (`helpers.h2_by_integral`).
+    Plant: the LC filter of ``benchmarks/lc_filter.py`` (its unit-free row factors are not 1)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import lc_filter
+
+    m = lc_filter.lc_filter()
+    plant = fojax.DescriptorSystem(m["E"], m["A"], m["B"], m["C"])
+    d = design_functional_observer(plant, m["L"], q0=3, region=Disk(-3.0, 2.0), balance=True)
+    assert not np.allclose(d.solver["balance"]["row_factors"], 1.0)
+    Bw = np.zeros((6, 1))
+    Bw[2, 0] = Bw[3, 0] = 1.0  # a disturbance voltage in the output inductor's loop, a current into node 2
+    Dv = np.zeros((2, 0))
+    term = tuning.H2Term(Bw=Bw, Dv=Dv).bind(d)
+    value = float(term(d.structure, {k: jnp.asarray(v) for k, v in d.params.items()}))
+    np.testing.assert_allclose(value, h2_by_integral(plant, m["L"], d.observer, Bw, Dv) ** 2, rtol=1e-8)

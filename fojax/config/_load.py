@@ -68,6 +68,9 @@ examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
                                          # "centre" (eigenvalues as far inside a disk as the LMI allows)
     Bw = [[...]]                         # "hinf"/"h2": (n, mw) disturbance E x' = ... + Bw w
     Dv = [[...]]                         # "hinf"/"h2": (p, mv) noise y = C x + Dv nu
+    balance = true                       # optional, generalized/PI/proportional with objective
+                                         # "region"/"centre" on LTI models: design unit-free
+                                         # (design_functional_observer's balance; default: its default)
 
     [study]                              # optional Monte Carlo settings
     samples = 64
@@ -127,7 +130,7 @@ _TS = {"premise", "index", "lower", "upper", "plant"}
 #: name -> (the `fojax.models` nonlinear example, its T-S form); see `Config.plant`.
 NONLINEAR_PLANTS = ("robot_arm",)
 _OBSERVER = {"name", "kind", "region", "R", "q0", "q1", "objective", "Bw", "Dv", "D", "delay", "regions",
-             "method"}
+             "method", "balance"}
 OBJECTIVES = ("region", "hinf", "h2", "centre")
 _REGION = {"disk", "decay", "damping"}
 _DISK = {"center", "radius"}
@@ -159,13 +162,16 @@ class ObserverSpec:
     # kind = "finite-time": "auto", "lmi" or "place"; generalized / PI / proportional:
     # "lmi", "riccati" or "auto" (None: the design routine's default, "lmi")
     method: str | None = None
+    balance: bool | None = None  # design_functional_observer's `balance` (None: its default)
 
     def design_kwargs(self) -> dict:
-        """The ``objective`` and ``method`` keywords of
+        """The ``objective``, ``method`` and ``balance`` keywords of
         `fojax.design.design_functional_observer` (empty for the defaults)."""
         kw = {} if self.objective == "region" else {"objective": self.objective, "Bw": self.Bw, "Dv": self.Dv}
         if self.method is not None and self.kind not in SPECIAL_KINDS:
             kw["method"] = self.method
+        if self.balance is not None:
+            kw["balance"] = self.balance
         return kw
 
     def route_words(self) -> str:
@@ -495,6 +501,23 @@ def _objective(v: _V, key: str, o: dict, n: int, n_design: int, p: int, takagi_s
     return objective, Bw, Dv
 
 
+def _balance(v: _V, key: str, o: dict, kind: str, objective: str, takagi_sugeno: bool) -> bool | None:
+    """``balance`` of one ``[[observer]]`` (None when absent): a boolean, for the designs that
+    have it (`fojax.design.design_functional_observer` with objective "region"/"centre")."""
+    if "balance" not in o:
+        return None
+    k = _join(key, "balance")
+    value = v.boolean(k, o["balance"])
+    if takagi_sugeno:
+        raise v.err(k, "is for linear models (design_functional_observer), not [takagi_sugeno]: remove the key.")
+    if kind in SPECIAL_KINDS:
+        raise v.err(k, f"is for the generalized, PI and proportional kinds, not {kind!r}: remove the key.")
+    if objective in ("hinf", "h2"):
+        raise v.err(k, f'is not used with objective = "{objective}" (those designs are made on the data as '
+                    'given): remove the key, or use objective = "region" or "centre".')
+    return value
+
+
 def _region(v: _V, key: str, value):
     from ..design import Disk, HalfPlane, Intersection, Sector
 
@@ -699,7 +722,8 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
         if objective != "region" and kind in ("unknown-input", "finite-time"):
             raise v.err(_join(key, "objective"), f"is {objective!r}; objective = {objective!r} is for the generalized, PI "
                         f"and proportional kinds, not {kind!r}: remove the key.")
-        observers.append(ObserverSpec(oname, kind, region, R, q0, q1, objective, Bw, Dv, **special))
+        balance = _balance(v, key, o, kind, objective, ts is not None)
+        observers.append(ObserverSpec(oname, kind, region, R, q0, q1, objective, Bw, Dv, balance=balance, **special))
     _check_observer_names(v, [o.name for o in observers])
 
     study = None

@@ -54,6 +54,8 @@ from ._conditions import (
     check_regular,
     check_structure,
     default_R,
+    UNIT_FREE_CHECK_MAX as UNIT_FREE_CHECK_MAX,
+    unit_free_structure,
     unobservable_modes,
 )
 from ._parameterization import (
@@ -677,12 +679,6 @@ def balanced_design(s, region, *, kind, margin, solver, method="lmi", centre=Fal
     )  # fmt: skip
 
 
-#: Largest ``l + n`` for which designs made on the data as given are also checked in the
-#: unit-free frame (`unit_free_check`; `fojax.analysis.unit_scaling` costs a least-squares
-#: solve of size ``l + n``: ~0.8 s at n = 100 on a loaded 2-core CPU, ~19 s at n = 500).
-UNIT_FREE_CHECK_MAX = 200
-
-
 def unit_free_check(s, params) -> tuple | None:
     r"""``("unit-free relative residual", value, failure or None)``: conditions a.–d. of the
     observer of `params` on `s`, re-checked in the unit-free frame of
@@ -698,14 +694,10 @@ def unit_free_check(s, params) -> tuple | None:
     `balanced_design`) its residual is 2.5e-3 relative. A.–d. are statements about the
     observer, not the units, so a correct observer passes in both frames.
     """
-    from ..analysis._balance import unit_scaling
-
-    E, A, B, C, L = (np.asarray(x, dtype=float) for x in (s.E, s.A, s.B, s.C, s.L))
-    if A.ndim != 2 or E.shape[0] + E.shape[1] > UNIT_FREE_CHECK_MAX or getattr(s, "num_rules", 1) > 1:
+    uf = unit_free_structure(s)
+    if uf is None:
         return None
-    dl, dr = unit_scaling(E, A, B, C)
-    sb = observer_structure(dl[:, None] * E * dr, dl[:, None] * A * dr, dl[:, None] * B, C * dr, L * dr,
-                            np.asarray(s.R) * dr, q1=s.q1, psi=s.psi, Eperp=np.asarray(s.Eperp) / dl[None, :])
+    sb, dl, _ = uf
     mats = observer_matrices(s, **{k: np.asarray(v) for k, v in params.items()}, xp=np)
     mb = mats._replace(T=np.asarray(mats.T) / dl[None, :])
     res = design_residuals(sb, mb, xp=np)
@@ -740,6 +732,14 @@ def verify_balanced(sb, params, balance: dict, region, X, *, extra=None, checks=
     return mats, report
 
 
+def _lmi_params(s, Z, Ys) -> dict:
+    """The free parameters of an LMI (or Riccati) solution ``(Z, Ys)`` (``Y3 = 0``)."""
+    c = s.q0 + s.nw
+    blocks = split_Y(Ys[0], s.q0, c)
+    return {"Z": Z, "Y1": blocks["Y1"], "Y2": blocks["Y2"], "Y3": np.zeros((s.q, c)), "J": blocks["J"],
+            "G": blocks["G"]}
+
+
 def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, method="lmi", centre=False):
     why_not = _riccati.riccati_applies(region, kind, s.num_rules)
     if method == "riccati" and why_not is not None:
@@ -751,8 +751,21 @@ def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, 
     if centre:  # the largest tightening of the region that the LMI still meets (fojax.design._centre)
         from ._centre import centred_gains
 
-        X, Z, Ys, info = centred_gains(
-            lambda reg: solve_gains(s, reg, kind=kind, margin=margin, solver=solver), region, tighten)
+        def solve_inside(reg):
+            # a bisection step counts as feasible only if its gains put the error eigenvalues in
+            # the tightened region in float64 (an 'optimal' solver status alone is not enough:
+            # measured on fojax.models.flexible_drive at q0 = 2 with balance=True, the step at
+            # fraction 0.99 returned an eigenvalue at +0.80 and the design failed verification)
+            out = solve_gains(s, reg, kind=kind, margin=margin, solver=solver)
+            ev = np.linalg.eigvals(np.asarray(error_dynamics(
+                observer_matrices(s, **_lmi_params(s, out[1], out[2]), xp=np), xp=np))[0])
+            if not reg.contains(ev):
+                raise LMIInfeasibleError("region LMI (centre bisection step)", "optimal, but the float64 error "
+                                         f"eigenvalues are outside the tightened region (max margin violation "
+                                         f"{-float(np.min(reg.margin(ev))):.3g})", out[3].get("lmi"))
+            return out
+
+        X, Z, Ys, info = centred_gains(solve_inside, region, tighten)
         info["lmi"]["method"] = "lmi"
         c = info["centre"]
         bracket = (f"LMI infeasible above {c['infeasible_above']:.3f}" if c["infeasible_above"] is not None
@@ -764,16 +777,7 @@ def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, 
     else:
         X, Z, Ys, info = solve_gains(s, region.tightened(tighten), kind=kind, margin=margin, solver=solver)
         info["lmi"]["method"] = "lmi"
-    c = s.q0 + s.nw
-    blocks = split_Y(Ys[0], s.q0, c)
-    params = {
-        "Z": Z,
-        "Y1": blocks["Y1"],
-        "Y2": blocks["Y2"],
-        "Y3": np.zeros((s.q, c)),
-        "J": blocks["J"],
-        "G": blocks["G"],
-    }
+    params = _lmi_params(s, Z, Ys)
     route_key = "LMI route" if info["lmi"]["method"] == "lmi" else "design route"
     uf = tuple(c for c in (unit_free_check(s, params),) if c)
     mats, report = verify_structure_design(s, params, region, X, extra={route_key: info["lmi"]["route"], **extra},

@@ -73,7 +73,14 @@ def _channels(term, design):
                 "or start from an objective='hinf'/'h2' design.")
         Bw, Dv = np.asarray(cert.Bw), np.asarray(cert.Dv)
     s = design.structure
-    return check_channels(s.n, s.p, Bw, Dv, objective=type(term).__name__)
+    Bw, Dv = check_channels(s.n, s.p, Bw, Dv, objective=type(term).__name__)
+    balance = (getattr(design, "solver", None) or {}).get("balance")
+    if balance is not None:
+        # a balance=True design holds the unit-free structure (E_b = D_l E D_r, ...): the
+        # channel's rows are the model's equations, so B_w,b = D_l B_w; y and z keep their
+        # units (C_b x_b = C x), so D_v is unchanged (fojax.design._functional.balanced_design)
+        Bw = np.asarray(balance["row_factors"], dtype=float)[:, None] * Bw
+    return Bw, Dv
 
 
 class AbstractRobustnessTerm(eqx.Module):
