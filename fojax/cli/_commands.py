@@ -559,12 +559,22 @@ def study(
             "config_sha256": hashlib.sha256(config_bytes).hexdigest(), **options,
             # `samples` is the requested number; what is run, and why:
             "samples_run": plan.run, "sample_plan": plan.to_dict(),
-            "fojax_version": fojax_version(),
+            "fojax_version": fojax_version(), "jax_devices": _devices_line(),
         })
     out.say(f"samples: {plan.message}")
+    out.say(f"devices: {_devices_line()}")
     on_interrupt(f"every file in {folder} is complete (tuning checkpoints included). Continue "
                  f"with: fojax study --resume {folder}")
     return _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, resumed=resume is not None)
+
+
+def _devices_line() -> str:
+    """The devices the study's samples are spread over (`fojax.cli._devices`)."""
+    import jax
+
+    n, kind = jax.device_count(), jax.default_backend()
+    return f"{n} JAX {kind} device{'s' if n > 1 else ''}" + (
+        f" ({jax.process_count()} processes)" if jax.process_count() > 1 else "")
 
 
 def _resume_folder(folder, config_path, out_dir, given: dict):

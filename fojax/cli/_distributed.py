@@ -156,7 +156,10 @@ def run(command) -> int:
 
 
 def tuning_devices():
-    """The devices `tune` spreads its samples over: all processes' in a distributed run."""
+    """The devices `tune` spreads its samples over: every device of the run (all processes'
+    in a distributed run; the host devices `fojax.cli._devices` gives ``fojax study``), or
+    None with a single device. The iterates are the same bits either way
+    (`fojax.studies._sharding`)."""
     import jax
 
-    return jax.devices() if jax.process_count() > 1 else None
+    return jax.devices() if jax.device_count() > 1 else None
