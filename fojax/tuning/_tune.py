@@ -395,7 +395,8 @@ def tune(
     cfg_held = resolve_engine(heldout, obs0, cfg) if heldout is not None else cfg
 
     def heldout_loss(p):
-        return float(_evaluate(p, par, heldout, loss, quantile, w, cfg_held))
+        # on the mesh, as the iterates are (the starting parameters are not): one compilation
+        return float(_evaluate(replicate(p, devices), par, heldout, loss, quantile, w, cfg_held))
 
     with distributed_errors("tune"):  # every collective of the run (a dead process: DistributedError)
         initial_heldout = heldout_loss(params0) if heldout is not None else None
