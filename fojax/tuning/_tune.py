@@ -66,6 +66,7 @@ several processes only process 0 writes and reads it (the others receive its byt
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import dataclasses
 import os
 from collections.abc import Callable
@@ -394,12 +395,21 @@ def tune(
     cfg_train = resolve_engine(train_study, obs0, cfg)
     cfg_held = resolve_engine(heldout, obs0, cfg) if heldout is not None else cfg
 
-    def heldout_loss(p):
+    def heldout_args(p):
         # on the mesh, as the iterates are (the starting parameters are not): one compilation
-        return float(_evaluate(replicate(p, devices), par, heldout, loss, quantile, w, cfg_held))
+        return replicate(p, devices), par, heldout, loss, quantile, w, cfg_held
+
+    # the held-out program compiles on a thread while the first step compiles (XLA compiles
+    # without the GIL; the 2-core reference machine: issue 13); nothing runs until it is done
+    compiling = (None if heldout is None or (devices is not None and spans_processes(devices))
+                 else _compile_in_background(_evaluate, heldout_args(params0)))
+
+    def heldout_loss(p):
+        if compiling is not None:
+            compiling.result()  # (re-raises its error: the call below would raise it too)
+        return float(_evaluate(*heldout_args(p)))
 
     with distributed_errors("tune"):  # every collective of the run (a dead process: DistributedError)
-        initial_heldout = heldout_loss(params0) if heldout is not None else None
         xi, history = run_loop(
             xi, opt_state, key, steps=steps, step=_step,
             step_args=(coords, par, train_study, optimizer, loss, quantile, w, cfg_train, jnp.asarray(float(min_margin)),
@@ -411,6 +421,7 @@ def tune(
             devices=devices, place=lambda t: replicate(t, devices),
         )  # fmt: skip
         params = coords.params(xi)
+        initial_heldout = heldout_loss(params0) if heldout is not None else None
         final_heldout = heldout_loss(params) if heldout is not None else None
     tuned = par.certify(params)
     robust = None if channels is None else {
@@ -428,6 +439,18 @@ def tune(
         tuned = dataclasses.replace(tuned, report=tuned.verify())
     return TuneResult(design=tuned, params=params, history=history, initial_heldout=initial_heldout,
                       final_heldout=final_heldout, live_parameters=live, parameterization=par, robustness=robust)
+
+
+def _compile_in_background(fn, args) -> concurrent.futures.Future:
+    """Trace and compile the `equinox.filter_jit` function `fn` for `args` on a thread
+    (``fn.lower(*args).compile()``: the executable JAX's caches give the later call
+    ``fn(*args)``); a future of it. Only compiles: executing two programs at once on the
+    same devices could order their collectives differently per device."""
+    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="fojax-compile")
+    try:
+        return pool.submit(lambda: fn.lower(*args).compile())
+    finally:
+        pool.shutdown(wait=False)
 
 
 def _name(fn) -> str | None:
