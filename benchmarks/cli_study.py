@@ -13,8 +13,8 @@ excluded, as in the issue's target), and records:
 - ``os.getloadavg()`` before and after: the reference machine is a shared 2-core box, so
   the numbers are measured under load unless the load average is below 1.
 
-JAX gets one host device per core before it starts, as the ``fojax study`` program does
-(`fojax.cli._devices`); ``--host-devices 1`` measures the one-device run.
+One JAX device, as ``fojax study`` by default; ``--host-devices N`` gives JAX N host devices
+before it starts, as ``fojax study --devices N`` does (`fojax.cli._devices`).
 
     python benchmarks/cli_study.py            # writes benchmarks/results/cli_study_latest.json
 """
@@ -38,9 +38,10 @@ import _common  # noqa: E402
 
 _common.limit_blas_threads()
 _common.prefer_checkout()
-# as the `fojax study` program does (fojax.cli._devices): one JAX host device per core
-# (--host-devices N; 1: the one-device run), set before JAX is imported
-HOST_DEVICES = _common.force_host_devices()
+# `fojax study --devices N` (fojax.cli._devices): --host-devices N JAX host devices, set before
+# JAX is imported; without it one device, as `fojax study` by default
+if any(a.startswith("--host-devices") for a in sys.argv[1:]):
+    _common.force_host_devices()
 
 import jax  # noqa: E402
 
@@ -86,7 +87,7 @@ def main():
     ap.add_argument("--example", default=None, help="a config or shipped example (default: the command's own)")
     ap.add_argument("--out", default=str(_common.RESULTS / "cli_study_latest.json"))
     ap.add_argument("--host-devices", type=int, default=None,
-                    help="JAX host devices (default: one per core, as `fojax study`; read before JAX starts)")
+                    help="JAX host devices (default 1, as `fojax study`; read before JAX starts)")
     args = ap.parse_args()
     info = _common.machine_info()
     load0 = _common.load_average()

@@ -1,4 +1,4 @@
-"""`fojax study` on one JAX host device per core (`fojax.cli._devices`, issue 13).
+"""`fojax study --devices N` / ``FOJAX_DEVICES``: JAX host devices (`fojax.cli._devices`, issue 13).
 
 Oracle: the one-device run of the same command. A small study (example 4.1.3, 4 samples,
 0.5 s, 1 tuning step) run as the ``fojax`` program in two subprocesses, one with
@@ -80,17 +80,18 @@ def test_pytest_process_keeps_its_devices(two_runs):
 @pytest.mark.parametrize(
     "argv, environ, expected",
     [
-        (["study"], {}, usable_cores()),                                       # one per core
-        (["--quiet", "study", "my.toml"], {}, usable_cores()),                # options first
+        (["study"], {}, None),                                                 # default: one device
+        (["--quiet", "study", "my.toml", "--devices", "auto"], {}, usable_cores()),  # one per core
         (["study", "--devices", "3"], {}, 3),                                  # --devices
-        (["study", "--devices=1"], {}, 1),                                     # the opt-out
+        (["study", "--devices=1"], {}, 1),
         (["study"], {"FOJAX_DEVICES": "5"}, 5),                                # environment
+        (["study"], {"FOJAX_DEVICES": "auto"}, usable_cores()),
         (["study", "--devices", "2"], {"FOJAX_DEVICES": "5"}, 2),              # argv first
-        (["study"], {"XLA_FLAGS": f"{FLAG}=7"}, None),                         # the user's count wins
-        (["study"], {"JAX_PLATFORMS": "cuda"}, None),                          # not the CPU platform
-        (["study"], {"JAX_PLATFORMS": "cpu"}, usable_cores()),
-        (["design", "x.toml"], {}, None),                                      # runs no study
-        (["check", "study"], {}, None),                                        # a config named study
+        (["study", "--devices", "2"], {"XLA_FLAGS": f"{FLAG}=7"}, None),       # the user's count wins
+        (["study", "--devices", "2"], {"JAX_PLATFORMS": "cuda"}, None),        # not the CPU platform
+        (["study", "--devices", "2"], {"JAX_PLATFORMS": "cpu"}, 2),
+        (["design", "x.toml", "--devices", "2"], {}, None),                    # runs no study
+        (["check", "study", "--devices", "2"], {}, None),                      # a config named study
         (["study", "--devices", "0"], {}, None),                               # bad: argparse says so
         (["study"], {"FOJAX_DEVICES": "two"}, None),                           # bad: check_devices says so
     ],
@@ -107,7 +108,8 @@ def test_flag_rules(argv, environ, expected):
 
 def test_nothing_is_changed_once_jax_started():
     env = {"XLA_FLAGS": ""}
-    assert configure_host_devices(["study"], env, jax_started=True) is None and env == {"XLA_FLAGS": ""}
+    assert configure_host_devices(["study", "--devices", "2"], env, jax_started=True) is None
+    assert env == {"XLA_FLAGS": ""}
 
 
 def test_devices_that_jax_does_not_have_are_refused(capsys, monkeypatch):

@@ -1,22 +1,27 @@
-"""One JAX host device per core for ``fojax study`` (issue 13).
+"""JAX host devices for ``fojax study`` (issue 13): ``--devices N`` / ``FOJAX_DEVICES``.
 
 XLA exposes a single CPU device unless ``--xla_force_host_platform_device_count=N`` is in
 ``XLA_FLAGS`` when JAX starts; fojax shards its sample batches over every device
 (`fojax.studies.run_study`; `fojax.tune` with ``devices=``), and the results are the same
-bits on any number of devices (`fojax.studies._sharding`, ``tests/test_distributed.py``).
-So when the process is the ``fojax`` program running ``study``, `configure_host_devices`
+bits on any number of devices (`fojax.studies._sharding`, ``tests/test_cli_devices.py``).
+When the process is the ``fojax`` program running ``study``, `configure_host_devices`
 (called by ``fojax/cli/_startup.py`` while ``fojax`` is imported, before JAX is) adds that
-flag with ``N`` =
+flag with ``N`` from ``--devices N`` on the command line, else the environment variable
+``FOJAX_DEVICES``; ``auto`` is one device per core this process may use
+(``os.sched_getaffinity``).
 
-1. ``--devices N`` on the command line, else
-2. the environment variable ``FOJAX_DEVICES``, else
-3. the number of cores this process may use (``os.sched_getaffinity``).
+**Default: one device** (nothing set). Issue 13 asked for one device per core by default;
+measured on the default study (benchmarks/cli_study.py, the 2-core machine under load
+~5): 2 devices 59.3 s wall / 46.1 s CPU, 1 device 44.9 s / 40.9 s. The sharded tuning step
+and held-out evaluation compile ~30 % longer (jax_log_compiles: 22.2 s vs 16.9 s and
+13.1 s vs 9.6 s under that load), and the default study's batches (128 training samples,
+64 study samples) are too small for the parallel steps to pay that back; larger studies
+may (not measured here).
 
-It changes nothing when ``XLA_FLAGS`` already sets a device count (the user's choice
-wins), when ``JAX_PLATFORMS`` names another platform than ``cpu`` first, when JAX is
-already imported (a Python session calling `fojax.cli.main`: then ``--devices`` must
-match the devices JAX has, `check_devices`), for the other commands, and in a Python
-session that imports fojax. ``--devices 1`` (or ``FOJAX_DEVICES=1``) is the opt-out.
+Nothing is changed when ``XLA_FLAGS`` already sets a device count (the user's choice
+wins), when ``JAX_PLATFORMS`` names another platform than ``cpu`` first, for the other
+commands, and when JAX is already imported (a Python session calling `fojax.cli.main`:
+then ``--devices`` must match the devices JAX has, `check_devices`).
 """
 
 from __future__ import annotations
@@ -39,6 +44,9 @@ def usable_cores() -> int:
 
 
 def _positive_int(raw) -> int | None:
+    """A device count: a positive integer, or ``auto`` (one per usable core); None if bad."""
+    if str(raw).strip().lower() == "auto":
+        return usable_cores()
     try:
         value = int(str(raw).strip())
     except ValueError:
@@ -86,10 +94,8 @@ def configure_host_devices(argv: list[str] | None = None, environ=None, jax_star
     if platforms and platforms.split(",")[0].strip().lower() != "cpu":
         return None
     n = requested_devices(argv, environ)
-    if n is None:
-        if environ.get(ENV) or _command_and_devices(argv)[1] is not None:
-            return None  # a bad value: reported by the CLI, nothing guessed
-        n = usable_cores()
+    if n is None:  # not asked (the default: one device), or a bad value (reported by the CLI)
+        return None
     environ["XLA_FLAGS"] = (environ.get("XLA_FLAGS", "") + f" {FLAG}={n}").strip()
     return n
 
@@ -111,7 +117,8 @@ def check_devices(requested: int | None) -> int:
         where = f"{ENV}={os.environ[ENV]!r}"
         requested = _positive_int(os.environ[ENV])
         if requested is None:
-            raise InputError(f"{where}: expected a positive integer (the number of JAX CPU devices).")
+            raise InputError(f"{where}: expected a positive integer (the number of JAX CPU devices) or 'auto' "
+                             "(one per core).")
     have = jax.local_device_count()
     if requested is not None and requested != have:
         raise InputError(

@@ -43,8 +43,8 @@ files: fojax writes only inside the results folder (names in a config and --name
 be plain file names: letters, digits, '.', '_', '-'), atomically, with the permissions
 your umask gives, and lists what it wrote in the folder's fojax-manifest.json.
 environment: FOJAX_DEBUG=1 prints the full Python traceback instead of the one-line
-reason (attach it to bug reports). FOJAX_DEVICES=N: `fojax study` on N JAX CPU
-devices (default: one per core; the same as --devices N).
+reason (attach it to bug reports). FOJAX_DEVICES=N (or auto: one per core): `fojax
+study` on N JAX CPU devices (the same as --devices N; default 1).
 Python: fojax.config.load_config, fojax.results.save_design / load_design.
 """
 
@@ -242,9 +242,9 @@ def _run(argv: list[str] | None) -> int:
                    "regenerates are replaced (CONFIG, --samples, --horizon, --steps, if given, must "
                    "match the first run)")
     p.add_argument("--devices", metavar="N", type=_positive, default=None,
-                   help="JAX CPU devices to spread the samples over (default: one per core, or "
-                   "FOJAX_DEVICES; an XLA_FLAGS that sets xla_force_host_platform_device_count wins); "
-                   "--devices 1: one device. Results are the same bits on any count")
+                   help="JAX CPU devices to spread the samples over: a number, or 'auto' (one per "
+                   "core); default FOJAX_DEVICES, else 1 (faster on the default study; an XLA_FLAGS "
+                   "that sets xla_force_host_platform_device_count wins). The same bits on any count")
     p.add_argument("--distributed", action="store_true",
                    help="one study over several processes/hosts (jax.distributed): start this same "
                    "command on every process with JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, "
@@ -293,12 +293,11 @@ def _run(argv: list[str] | None) -> int:
 
 
 def _positive(raw: str) -> int:
-    try:
-        value = int(raw)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {raw!r}")
+    from ._devices import _positive_int
+
+    value = _positive_int(raw)
+    if value is None:
+        raise argparse.ArgumentTypeError(f"expected a positive integer or 'auto', got {raw!r}")
     return value
 
 
