@@ -374,18 +374,13 @@ def tune(
     if extra_loss is not None:
         check_extra_loss(extra_loss, par.observer(params0), par.design_params(params0))
     barrier = _DEFAULT_BARRIER.get(type(par), 0.0) if barrier is None else float(barrier)
-    live = par.live(params0)
-    coords = coordinates(params0, live, precondition)
-    xi = {"xi": jnp.zeros(coords.B.shape[1])}
     optimizer = shared_optimizer("adam", learning_rate=1e-2) if optimizer is None else optimizer
-    opt_state = optimizer.init(xi)
     key = jax.random.PRNGKey(0) if key is None else key
     cfg = SimConfig(stepper=resolve_stepper(stepper, method, solver, rtol, atol, max_steps, who="tune"),
                     devices=None if devices is None else tuple(devices))
-    if devices is not None and spans_processes(devices):
+    local = devices is None or not spans_processes(devices)
+    if not local:
         check_same_on_every_process((params0, train_study, heldout), "tune")
-    # on the mesh from the first step on (the step's outputs are): one compilation
-    xi, opt_state = replicate((xi, opt_state), devices)
     w = None if weights is None else jnp.asarray(weights, dtype=jnp.float64)
     path = None if checkpoint is None else os.fspath(checkpoint)
 
@@ -395,14 +390,37 @@ def tune(
     cfg_train = resolve_engine(train_study, obs0, cfg)
     cfg_held = resolve_engine(heldout, obs0, cfg) if heldout is not None else cfg
 
+    def step_args(coords):
+        return (coords, par, train_study, optimizer, loss, quantile, w, cfg_train, jnp.asarray(float(min_margin)),
+                int(max_backtracks), jnp.asarray(barrier), extra_loss, terms)
+
+    def start(coords):  # the optimizer's state at xi = 0, on the mesh (where the step's outputs are)
+        xi = {"xi": jnp.zeros(coords.B.shape[1])}
+        return replicate((xi, optimizer.init(xi)), devices)
+
+    # The step's program depends on shapes only, and for these preconditions B is square
+    # (total x total) whatever `live` finds: it compiles on a thread while `live` computes on
+    # this one (issue 13); waited for before the first step.
+    compiling_step = None
+    if local and precondition in ("live", "project", "none"):
+        names = tuple(sorted((k, tuple(np.shape(v))) for k, v in params0.items()))
+        total = sum(int(np.prod(shape)) for _, shape in names)
+        placeholder = Coordinates(jnp.zeros(total), jnp.zeros((total, total)), names)
+        compiling_step = _compile_in_background(_step, (*start(placeholder), *step_args(placeholder)))
+
     def heldout_args(p):
         # on the mesh, as the iterates are (the starting parameters are not): one compilation
         return replicate(p, devices), par, heldout, loss, quantile, w, cfg_held
 
-    # the held-out program compiles on a thread while the first step compiles (XLA compiles
-    # without the GIL; the 2-core reference machine: issue 13); nothing runs until it is done
-    compiling = (None if heldout is None or (devices is not None and spans_processes(devices))
+    # the held-out program compiles on a thread too (XLA compiles without the GIL; the 2-core
+    # reference machine: issue 13); nothing runs until it is done
+    compiling = (None if heldout is None or not local
                  else _compile_in_background(_evaluate, heldout_args(params0)))
+    live = par.live(params0)
+    coords = coordinates(params0, live, precondition)
+    xi, opt_state = start(coords)
+    if compiling_step is not None:
+        concurrent.futures.wait([compiling_step])  # its errors, if any, are the step's: raised by it
 
     def heldout_loss(p):
         if compiling is not None:
@@ -411,9 +429,7 @@ def tune(
 
     with distributed_errors("tune"):  # every collective of the run (a dead process: DistributedError)
         xi, history = run_loop(
-            xi, opt_state, key, steps=steps, step=_step,
-            step_args=(coords, par, train_study, optimizer, loss, quantile, w, cfg_train, jnp.asarray(float(min_margin)),
-                       int(max_backtracks), jnp.asarray(barrier), extra_loss, terms),
+            xi, opt_state, key, steps=steps, step=_step, step_args=step_args(coords),
             host_check=lambda x: par.host_check(coords.params(x)),
             heldout_loss=(lambda x: heldout_loss(coords.params(x))) if heldout is not None else None,
             eval_every=eval_every, callback=callback, to_params=coords.params, path=path, resume=resume,
