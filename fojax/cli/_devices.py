@@ -11,12 +11,12 @@ flag with ``N`` from ``--devices N`` on the command line, else the environment v
 (``os.sched_getaffinity``).
 
 **Default: one device** (nothing set). Issue 13 asked for one device per core by default;
-measured on the default study (benchmarks/cli_study.py, the 2-core machine under load
-~5): 2 devices 59.3 s wall / 46.1 s CPU, 1 device 44.9 s / 40.9 s. The sharded tuning step
-and held-out evaluation compile ~30 % longer (jax_log_compiles: 22.2 s vs 16.9 s and
-13.1 s vs 9.6 s under that load), and the default study's batches (128 training samples,
-64 study samples) are too small for the parallel steps to pay that back; larger studies
-may (not measured here).
+measured on the default study (benchmarks/cli_study.py, the shared 2-core machine, one run
+each): at load ~2, 2 devices 27.5 s wall / 44.2 s CPU, 1 device 26.9 s / 42.1 s; at load
+~5, 59.3 s / 46.1 s against 44.9 s / 40.9 s. The sharded tuning step and held-out
+evaluation compile ~30 % longer (jax_log_compiles at load ~5: 22.2 s vs 16.9 s and 13.1 s
+vs 9.6 s), and the default study's batches (128 training samples, 64 study samples) are
+too small for the parallel steps to pay that back; larger studies may (not measured here).
 
 Nothing is changed when ``XLA_FLAGS`` already sets a device count (the user's choice
 wins), when ``JAX_PLATFORMS`` names another platform than ``cpu`` first, for the other
