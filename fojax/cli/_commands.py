@@ -754,7 +754,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                            optimizer=tuning.shared_optimizer("adam", learning_rate=tspec.learning_rate),
                            eval_every=max(1, n_steps // 10), callback=_after_step,
                            checkpoint=checkpoint, resume=resumed, quiet=out.quiet,
-                           devices=_distributed.tuning_devices(),
+                           devices=_distributed.tuning_devices(cfg.is_takagi_sugeno),
                            robustness=_robustness_terms(tuning, tspec, designs[nm]))
             tuned_name = f"{nm}-tuned"
             designs[tuned_name] = tr.design
