@@ -13,6 +13,9 @@ excluded, as in the issue's target), and records:
 - ``os.getloadavg()`` before and after: the reference machine is a shared 2-core box, so
   the numbers are measured under load unless the load average is below 1.
 
+One JAX device, as ``fojax study`` by default; ``--host-devices N`` gives JAX N host devices
+before it starts, as ``fojax study --devices N`` does (`fojax.cli._devices`).
+
     python benchmarks/cli_study.py            # writes benchmarks/results/cli_study_latest.json
 """
 
@@ -35,6 +38,12 @@ import _common  # noqa: E402
 
 _common.limit_blas_threads()
 _common.prefer_checkout()
+# `fojax study --devices N` (fojax.cli._devices): --host-devices N JAX host devices, set before
+# JAX is imported; without it one device, as `fojax study` by default
+if any(a.startswith("--host-devices") for a in sys.argv[1:]):
+    _common.force_host_devices()
+
+import jax  # noqa: E402
 
 import fojax  # noqa: E402
 import fojax.cli  # noqa: E402
@@ -77,6 +86,8 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--example", default=None, help="a config or shipped example (default: the command's own)")
     ap.add_argument("--out", default=str(_common.RESULTS / "cli_study_latest.json"))
+    ap.add_argument("--host-devices", type=int, default=None,
+                    help="JAX host devices (default 1, as `fojax study`; read before JAX starts)")
     args = ap.parse_args()
     info = _common.machine_info()
     load0 = _common.load_average()
@@ -99,6 +110,7 @@ def main():
         target=TARGETS.get(args.example, "none stated"),
         command=f"fojax study {args.example or ''} --out <tmp>".replace("  ", " "),
         wall_s=wall, cpu_s=cpu, phases=phases(buf.getvalue()), trace_counts=traces,
+        jax_devices=jax.device_count(),
         machine=info, load_average_before=load0, load_average_after=_common.load_average(),
         note="measured once; on a shared 2-core machine under load unless the load averages are < 1",
     )

@@ -121,6 +121,43 @@ def test_samplers_are_reproducible_and_distinct():
     assert noise.values.values.shape == (3, 11, 2)
 
 
+def test_compiled_samplers_draw_the_eager_bits_and_compile_once_per_shape():
+    """`constant_delta`, `fault_scenarios`, `constant_faults` draw in one compiled program
+    (issue 13: eagerly every jax.random primitive compiled on its own). Oracle: the same
+    jax.random calls made eagerly here, compared byte for byte (the sign of zero included);
+    new ranges and keys do not compile again."""
+    from fojax.studies import _families
+
+    def eager_faults(key, count, nf, magnitude, onset, rise, which):
+        km, ks, kw, ko, kr = jax.random.split(key, 5)
+        a = jax.random.uniform(km, (count, nf), minval=magnitude[0], maxval=magnitude[1], dtype=jnp.float64)
+        a = a * jnp.where(jax.random.bernoulli(ks, 0.5, (count, nf)), 1.0, -1.0)
+        if which == "one":
+            a = a * jax.nn.one_hot(jax.random.randint(kw, (count,), 0, nf), nf, dtype=a.dtype)
+        return [a, jax.random.uniform(ko, (count,), minval=onset[0], maxval=onset[1], dtype=jnp.float64),
+                jax.random.uniform(kr, (count,), minval=rise[0], maxval=rise[1], dtype=jnp.float64)]
+
+    def same(xs, ys):
+        return all(np.asarray(x).tobytes() == np.asarray(y).tobytes() for x, y in zip(xs, ys, strict=True))
+
+    sizes = [f._cached._cache_size() for f in (_families._fault_scenarios, _families._constant_delta)]
+    for seed, (lo, hi), which in ((0, (0.5, 2.0), "one"), (5, (1.0, 1.5), "one"), (9, (0.2, 0.3), "all")):
+        k = jax.random.PRNGKey(seed)
+        f = S.fault_scenarios(k, 13, 3, magnitude=(lo, hi), onset=(1.0, 4.0), rise=(0.0, 0.5), which=which)
+        ref = eager_faults(k, 13, 3, (lo, hi), (1.0, 4.0), (0.0, 0.5), which)
+        assert same([f.values.amplitude, f.values.onset, f.values.rise], ref)
+        assert which == "all" or np.signbit(np.asarray(f.values.amplitude)).any()  # -0.0 kept
+        d = S.constant_delta(k, 13, 2, bounds=(-lo, lo))
+        assert same([d.values.value], [jax.random.uniform(k, (13, 2), minval=-lo, maxval=lo, dtype=jnp.float64)])
+        x0 = jnp.arange(7.0)
+        cf = S.constant_faults(k, 13, x0, 3, magnitude=(lo, hi))
+        amp = S.fault_scenarios(k, 13, 3, magnitude=(lo, hi), which="all").values.amplitude
+        assert same([cf.values], [jnp.concatenate([jnp.broadcast_to(x0[:4], (13, 4)), amp], axis=1)])
+    # one program per shape and option set: the three keys and ranges above compiled it once
+    assert _families._fault_scenarios._cached._cache_size() - sizes[0] <= 2  # which="one" and "all"
+    assert _families._constant_delta._cached._cache_size() - sizes[1] <= 1
+
+
 def test_fault_profile_shapes():
     step = S.FaultProfile(jnp.array([2.0]), onset=1.0, rise=0.0)
     ramp = S.FaultProfile(jnp.array([2.0]), onset=1.0, rise=2.0)

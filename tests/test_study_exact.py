@@ -355,3 +355,38 @@ def test_repeated_run_study_traces_nothing(multistep_study):
     assert _exact.TRACE_COUNTS["StudyProblem.joint"] == before
     assert not np.allclose(res.metrics["iae"], first.metrics["iae"])
     np.testing.assert_array_equal(again.metrics["iae"], first.metrics["iae"])
+
+
+def test_compile_only_compiles_the_program_the_run_then_uses(ex337):
+    """``run_study(..., compile_only=True)`` (what `fojax study` runs on a thread while it
+    tunes, issue 13) compiles the chunk program and runs no sample; the run afterwards, with
+    other observer numbers of the same structure (a tuned observer), compiles nothing.
+    Oracle: JAX's compilation log (jax_log_compiles) of the chunk kernel, and the run's
+    metrics against a plain run of the same call (equal bits)."""
+    import logging
+
+    _, (po, fg), _, _ = ex337
+    study = study337(ex337, 11, nu=2, nf=3)
+    one = jax.devices()[:1]
+    kw = dict(observer_names=("a", "b"), devices=one, chunk_size=5, quiet=True)  # a new chunk shape
+    compiled = []
+
+    class Log(logging.Handler):
+        def emit(self, record):
+            if "XLA compilation of jit(_chunk_core)" in record.getMessage():
+                compiled.append(record.getMessage())
+
+    handler, logger = Log(level=logging.DEBUG), logging.getLogger("jax")
+    logger.addHandler(handler)
+    try:
+        with jax.log_compiles(True):
+            assert S.run_study(study, (po, fg), compile_only=True, **kw) is None
+            assert len(compiled) == 1
+            tuned = jax.tree.map(lambda a: a * (1 + 1e-3) if eqx.is_inexact_array(a) else a, fg)
+            res = S.run_study(study, (po, tuned), **kw)
+            assert len(compiled) == 1  # nothing compiled again
+    finally:
+        logger.removeHandler(handler)
+    ref = S.run_study(study, (po, tuned), **kw)
+    for name in METRICS:
+        np.testing.assert_array_equal(res.metrics[name], ref.metrics[name])

@@ -198,6 +198,30 @@ def test_margin_and_barrier_jit_vmap_grad_and_no_retrace(hand_designs):
         np.testing.assert_allclose(float(g[name][idx]), fd, rtol=1e-6, atol=1e-9)
 
 
+def test_host_margin_is_one_compiled_program(hand_designs):
+    """`host_check` (every tuning iterate) computes the margin with one compiled program per
+    structure, shared with `SteinDisk.__init__`'s check; new numbers and another
+    parameterization of the same shapes do not compile again (issue 13: eagerly it cost ~0.1 s
+    a call). Oracle: the eager margin, and the sign from NumPy's eigenvalues (the disk test)."""
+    from fojax.design import _tunable
+
+    d = hand_designs["generalized"]
+    before = _tunable.MARGIN_TRACES["margin"]
+    par = SteinDisk(d)  # __init__ checks the starting margin with the same program
+    p = par.init(d)
+    for q in (p, dict(p, G=p["G"] - 0.1), dict(p, G=jnp.array([[5.0]]))):
+        m = par.host_margin(q)
+        np.testing.assert_allclose(m, float(par.margin(q)), rtol=1e-12)
+        mats = observer_matrices(d.structure, **par.design_params(q), xp=np)
+        ev = np.linalg.eigvals(np.block([[mats.N[0], mats.J[0]], [mats.S[0], mats.G[0]]]))
+        assert (m > 0) == bool(np.all(np.abs(ev + 2.0) < 1.0))
+        par.host_check(q)
+    other = SteinDisk(design_functional_observer(*_hand(), kind="generalized", q1=1, region=Disk(-2.0, 1.0),
+                                                 R=_hand()[1]))
+    other.host_check(p)
+    assert _tunable.MARGIN_TRACES["margin"] - before <= 1  # 0 if an earlier test compiled it
+
+
 def test_common_certificate_refuses_lti_designs(hand_designs):
     with pytest.raises(fojax.InputError, match="needs a TakagiSugenoObserverDesign"):
         CommonCertificate(hand_designs["generalized"])

@@ -73,3 +73,22 @@ def test_tune_with_new_region_delta_range_key_and_gains_does_not_retrace(setup):
         assert res.design.report.passed
     assert _tune.TRACE_COUNTS["tune_step"] == steps
     assert _exact.TRACE_COUNTS["study_loss_exact"] == losses
+
+
+def test_heldout_evaluation_on_several_devices_compiles_once(setup):
+    """With `devices` (as `fojax study` passes on one JAX device per core) the held-out loss
+    of the starting design and of every iterate is one program: the iterates live on the
+    mesh (replicated), so the starting parameters are placed there too (they were not, and
+    the evaluation compiled twice: issue 13). Oracle: the trace counter of the evaluation,
+    and the one-device run's history (the same bits on any number of devices)."""
+    ex, study = setup
+    d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
+    kw = dict(train_study=study(0, (-0.3, 0.3)), heldout=study(3, (-0.3, 0.3)), steps=2, eval_every=1,
+              method="exact")
+    before = _tune.TRACE_COUNTS["evaluate"]
+    two = tuning.tune(d, devices=jax.devices()[:2], **kw)
+    assert _tune.TRACE_COUNTS["evaluate"] - before == 1
+    one = tuning.tune(d, **kw)
+    assert two.initial_heldout == one.initial_heldout and two.final_heldout == one.final_heldout
+    assert two.history["heldout_loss"] == one.history["heldout_loss"]
+    assert two.history["train_loss"] == one.history["train_loss"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 import hashlib
 import json
 import pathlib
@@ -573,12 +574,22 @@ def study(
             "config_sha256": hashlib.sha256(config_bytes).hexdigest(), **options,
             # `samples` is the requested number; what is run, and why:
             "samples_run": plan.run, "sample_plan": plan.to_dict(),
-            "fojax_version": fojax_version(),
+            "fojax_version": fojax_version(), "jax_devices": _devices_line(),
         })
     out.say(f"samples: {plan.message}")
+    out.say(f"devices: {_devices_line()}")
     on_interrupt(f"every file in {folder} is complete (tuning checkpoints included). Continue "
                  f"with: fojax study --resume {folder}")
     return _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, resumed=resume is not None)
+
+
+def _devices_line() -> str:
+    """The devices the study's samples are spread over (`fojax.cli._devices`)."""
+    import jax
+
+    n, kind = jax.device_count(), jax.default_backend()
+    return f"{n} JAX {kind} device{'s' if n > 1 else ''}" + (
+        f" ({jax.process_count()} processes)" if jax.process_count() > 1 else "")
 
 
 def _resume_folder(folder, config_path, out_dir, given: dict):
@@ -692,6 +703,21 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
     st = ss.make_study(cfg, spec.seed, plan.run, T, spec.dt)
     assert st.num_samples == plan.run, (st.num_samples, plan.run)
     ts = st.ts
+    # Explicit Tsit5: the benchmark loops are not stiff (error poles in the designed disks)
+    # and the implicit default (Kvaerno5; works in studies since the issue-5 fix) is much
+    # slower here. Measured with `fojax study --samples 16 --horizon 2 --steps 0` on the
+    # 2 shared cores: first run_study call (compile + run) ~33 s vs ~12 s CPU time
+    # (49-80 s vs 17-21 s wall), a second call 0.2-0.5 s vs 0.06-0.13 s; mean IAEs
+    # agree to ~1e-6.
+    import diffrax
+
+    from ..simulation import Auto, Bands, Diffrax, Exact, Exponential, Metrics
+
+    stepper = {"auto": Auto(diffrax=Diffrax(diffrax.Tsit5())), "exact": Exact(), "exponential": Exponential(),
+               "diffrax": Diffrax(diffrax.Tsit5())}[spec.stepper]  # [study] stepper
+    monte_carlo = dict(stepper=stepper, quiet=out.quiet,
+                       save=Metrics(settle_tol=ss.SETTLE_TOL, bands=Bands((0.05, 0.5, 0.95))))
+    compiling = None  # the Monte Carlo program, compiled on a thread while the tuning runs
     sample_sets = {"evaluation": st}
     tuning_rows, tuned_pairs, tuning_note = [], {}, "Tuning: not available in this fojax version."
     tuning = _tuning_module()
@@ -721,6 +747,16 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         if tunable:
             sample_sets["training"] = train
             sample_sets["training_heldout_curve"] = heldout_small
+            # the study runs the designs and then the tuned ones (same structures as the designs
+            # they are tuned from): its program compiles on a thread while the tuning runs (XLA
+            # compiles without the GIL; issue 13). Not across processes (its collectives).
+            import jax
+
+            if jax.process_count() == 1:
+                planned = [(nm, nm) for nm in designs] + [(f"{nm}-tuned", nm) for nm in tunable]
+                compiling = _in_background(lambda: studies.run_study(
+                    st, [designs[base].observer for _, base in planned], observer_names=[nm for nm, _ in planned],
+                    compile_only=True, **monte_carlo))
         for nm in tunable:
             checkpoint = folder / f"tuning-{nm}"
             done = _checkpoint_step(checkpoint) if resumed else None
@@ -732,7 +768,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                            optimizer=tuning.shared_optimizer("adam", learning_rate=tspec.learning_rate),
                            eval_every=max(1, n_steps // 10), callback=_after_step,
                            checkpoint=checkpoint, resume=resumed, quiet=out.quiet,
-                           devices=_distributed.tuning_devices(),
+                           devices=_distributed.tuning_devices(cfg.is_takagi_sugeno),
                            robustness=_robustness_terms(tuning, tspec, designs[nm]))
             tuned_name = f"{nm}-tuned"
             designs[tuned_name] = tr.design
@@ -794,21 +830,9 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
     names = list(designs)
     with out.step(f"Monte Carlo study: {st.num_samples} samples x {len(names)} observers, "
                   f"{len(ts)} time steps (compiling first: this takes a while)"):
-        # Explicit Tsit5: the benchmark loops are not stiff (error poles in the designed disks)
-        # and the implicit default (Kvaerno5; works in studies since the issue-5 fix) is much
-        # slower here. Measured with `fojax study --samples 16 --horizon 2 --steps 0` on the
-        # 2 shared cores: first run_study call (compile + run) ~33 s vs ~12 s CPU time
-        # (49-80 s vs 17-21 s wall), a second call 0.2-0.5 s vs 0.06-0.13 s; mean IAEs
-        # agree to ~1e-6.
-        import diffrax
-
-        from ..simulation import Auto, Bands, Diffrax, Exact, Exponential, Metrics
-
-        stepper = {"auto": Auto(diffrax=Diffrax(diffrax.Tsit5())), "exact": Exact(), "exponential": Exponential(),
-                   "diffrax": Diffrax(diffrax.Tsit5())}[spec.stepper]  # [study] stepper
-        res = studies.run_study(st, [d.observer for d in designs.values()], observer_names=names,
-                                stepper=stepper, quiet=out.quiet,
-                                save=Metrics(settle_tol=ss.SETTLE_TOL, bands=Bands((0.05, 0.5, 0.95))))
+        if compiling is not None:  # its errors, if any, are the run's own: raised by it below
+            concurrent.futures.wait([compiling])
+        res = studies.run_study(st, [d.observer for d in designs.values()], observer_names=names, **monte_carlo)
         check_interrupted()  # a signal during the run whose interruption was swallowed
     flat = ss.flat_metrics(res)  # {metric: (observer, sample, signal)}
     # the samples are joint draws along one axis (the Study's fault axis has size 1): save
@@ -913,6 +937,15 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                 f"{row[6]:+.1f} %; sum of mean peaks {row[7]:.4g} -> {row[8]:.4g}, {row[9]:+.1f} %")
     out.say(f"\nresults: {folder} (report: {rep.name})")
     return 0 if all(d.report.passed for d in designs.values()) else 1
+
+
+def _in_background(fn) -> concurrent.futures.Future:
+    """``fn()`` on a thread (a future of its result)."""
+    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="fojax-compile")
+    try:
+        return pool.submit(fn)
+    finally:
+        pool.shutdown(wait=False)
 
 
 def _tunable(cfg, design, Disk) -> bool:

@@ -870,14 +870,16 @@ def gather_across_processes(tree, mesh):
     return jax.tree.map(lambda a: lax.with_sharding_constraint(a, rep), tree)
 
 
-def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, basis=None, host: bool = False):
+def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, basis=None, host: bool = False,
+                compile_only: bool = False):
     """Run a batch-kernel `problem` over every sample of ``p`` (leaves with a leading
     batch axis ``B``), streamed in fixed-size chunks (the last one padded with copies of
     the last sample; one compilation serves every chunk and every ``B``) and spread over
     `devices`. ``ts`` must be a concrete uniform grid. Returns the problem's reduction
     with the batch as the last axis ``B`` (JAX arrays; NumPy arrays with `host`), and the
     layout used (chunk size after rounding to ``block × devices``, number of chunks,
-    devices, block).
+    devices, block). With `compile_only` it only compiles the program every chunk runs
+    (JAX's caches then give it to the later run) and returns ``(None, layout)``.
 
     **Memory.** Besides the result itself, only one chunk's work is alive at a time: with
     `host` (`run_study`) each chunk's result is copied into one preallocated NumPy array
@@ -922,6 +924,9 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
     for i in range(n_chunks):
         pc = jax.tree.map(lambda a, i=i: lax.slice_in_dim(a, i * bc, (i + 1) * bc), p)
         nv = min(Bn - i * bc, bc)
+        if compile_only:  # one program for every chunk (the last one is padded)
+            _chunk_core.lower(problem, pc, jnp.asarray(nv), h, ts, block, basis, mesh).compile()
+            return None, layout
         o = _chunk_core(problem, pc, jnp.asarray(nv), h, ts, block, basis, mesh)
         if host:
             if pending is not None:

@@ -10,7 +10,10 @@ Paths are strings (not lambdas) so that a new family with new numbers has the sa
 static structure and reuses the compiled study.
 
 Every sampler takes a `jax.random` key and a count; the same key gives the same
-family (bit for bit).
+family (bit for bit). The draws of `constant_delta`, `fault_scenarios` and
+`constant_faults` are one compiled program per shape (their ranges are traced): drawn
+eagerly, every `jax.random` primitive compiled on its own, ~2 s of `fojax study`'s
+start-up on the 2-core reference machine (issue 13); the bits are the eager ones.
 """
 
 from __future__ import annotations
@@ -79,8 +82,18 @@ def constant_delta(key, count: int, k: int, bounds=(-1.0, 1.0), path=("plant", "
     With a constant $\delta$ the uncertain plant is time-invariant, so
     ``method="exact"`` (matrix exponential) applies.
     """
-    d = _uniform(key, (count, k), bounds)
-    return Family(jax.vmap(Constant)(d), path)
+    return Family(_constant_delta(key, int(count), int(k), _range(bounds)), path)
+
+
+def _range(bounds):
+    """A ``(lo, hi)`` range as a traced ``(2,)`` float64 array (new numbers, same program)."""
+    lo, hi = bounds
+    return jnp.stack([jnp.asarray(lo, dtype=jnp.float64), jnp.asarray(hi, dtype=jnp.float64)])
+
+
+@eqx.filter_jit
+def _constant_delta(key, count, k, bounds):
+    return jax.vmap(Constant)(_uniform(key, (count, k), (bounds[0], bounds[1])))
 
 
 def sinusoidal_delta(
@@ -192,16 +205,25 @@ def fault_scenarios(
     """
     if which not in ("one", "all"):
         raise InputError(f"which must be 'one' or 'all', got {which!r}.")
+    values = _fault_scenarios(key, int(count), int(nf), _range(magnitude), _range(onset), _range(rise), which,
+                              bool(signed))
+    return Family(values, path)
+
+
+@eqx.filter_jit
+def _fault_scenarios(key, count, nf, magnitude, onset, rise, which, signed):
     km, ks, kw, ko, kr = jax.random.split(key, 5)
-    a = _uniform(km, (count, nf), magnitude)
+    a = _uniform(km, (count, nf), (magnitude[0], magnitude[1]))
     if signed:
         a = a * jnp.where(jax.random.bernoulli(ks, 0.5, (count, nf)), 1.0, -1.0)
     if which == "one":
         pick = jax.random.randint(kw, (count,), 0, nf)
-        a = a * jax.nn.one_hot(pick, nf, dtype=a.dtype)
-    t_on = _uniform(ko, (count,), onset)
-    t_r = _uniform(kr, (count,), rise)
-    return Family(jax.vmap(FaultProfile)(a, t_on, t_r), path)
+        # a · one_hot, written as the select XLA makes of it, with the sign of a · 0 kept (-0.0
+        # for a < 0, as drawn eagerly; XLA's select would give +0.0)
+        a = jnp.where(jax.nn.one_hot(pick, nf, dtype=bool), a, jnp.copysign(0.0, a))
+    t_on = _uniform(ko, (count,), (onset[0], onset[1]))
+    t_r = _uniform(kr, (count,), (rise[0], rise[1]))
+    return jax.vmap(FaultProfile)(a, t_on, t_r)
 
 
 def constant_faults(key, count: int, x0, nf: int, magnitude=(0.5, 2.0), which: str = "all",
@@ -212,6 +234,11 @@ def constant_faults(key, count: int, x0, nf: int, magnitude=(0.5, 2.0), which: s
     (drawn as in `fault_scenarios`).
     """
     fam = fault_scenarios(key, count, nf, magnitude=magnitude, which=which, signed=signed)
-    x0 = jnp.asarray(x0, dtype=jnp.float64)
+    return Family(_with_faults(jnp.asarray(x0, dtype=jnp.float64), fam.values.amplitude, int(nf)), path)
+
+
+@eqx.filter_jit
+def _with_faults(x0, amplitude, nf):
+    count = amplitude.shape[0]
     base = jnp.broadcast_to(x0[: x0.shape[0] - nf], (count, x0.shape[0] - nf))
-    return Family(jnp.concatenate([base, fam.values.amplitude], axis=1), path)
+    return jnp.concatenate([base, amplitude], axis=1)

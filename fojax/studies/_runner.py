@@ -425,7 +425,8 @@ def run_study(
     max_steps: int | None = None,
     solver=None,
     quiet: bool = False,
-) -> StudyResult:
+    compile_only: bool = False,
+) -> StudyResult | None:
     r"""Simulate every sample of `study` with `observers` and return per-sample metrics.
 
     **Arguments:**
@@ -496,8 +497,13 @@ def run_study(
       (``method="auto"|"exact"|"exponential"|"diffrax"``;
       `fojax.simulation._steppers.as_stepper`); not together with `stepper`.
     - `quiet`: no progress bar.
+    - `compile_only`: only prepare and compile the program the batch engines (exact,
+      exponential) would run, and return ``None``: the same call afterwards (the same
+      study shapes and observer structures; new numbers are fine) runs it without
+      compiling. ``fojax study`` does this on a thread while it tunes (issue 13). Nothing
+      is compiled ahead for the ``vmap-simulate`` engine.
 
-    **Returns:** a `StudyResult`.
+    **Returns:** a `StudyResult` (``None`` with `compile_only`).
     """
     signal_study = observers is None  # the metrics of z = L x itself (no observer)
     if isinstance(observers, AbstractObserver):
@@ -531,8 +537,9 @@ def run_study(
             if engine == "exact-batch":
                 prepared, _reason = exact_problem(study, observers, settle_tol, keep, kinds=save.kinds)
                 if prepared is not None:
-                    res = _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, stride=stride)
-                    return _apply_save(res, save)
+                    res = _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, stride=stride,
+                                     compile_only=compile_only)
+                    return None if compile_only else _apply_save(res, save)
             elif engine == "exponential-batch":
                 options = stepper if isinstance(stepper, Exponential) else Exponential()
                 prepared, _reason = exponential_problem(study, observers, settle_tol, keep,
@@ -543,9 +550,12 @@ def run_study(
                     res = _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices,
                                      method="exponential",
                                      solver=f"ETDRK4, {substeps} steps per grid interval ({sub_start} in the "
-                                            f"first {n_start})", engine="exponential-batch", stride=stride)
-                    return _apply_save(res, save)
+                                            f"first {n_start})", engine="exponential-batch", stride=stride,
+                                     compile_only=compile_only)
+                    return None if compile_only else _apply_save(res, save)
             else:  # "vmap-simulate"
+                if compile_only:  # compiled by its first chunk's call (no program to compile ahead)
+                    return None
                 solver = stepper.diffrax_options.solver
                 res = _run_vmap(study, observers, names, quantiles, cfg, chunk_size, devices, keep, solver, quiet,
                                 stride)
@@ -635,7 +645,8 @@ def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, stride: int,
 
 
 def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices, method="exact",
-               solver="none (exact matrix-exponential stepping)", engine="exact-batch", stride=1) -> StudyResult:
+               solver="none (exact matrix-exponential stepping)", engine="exact-batch", stride=1,
+               compile_only=False) -> StudyResult | None:
     """`run_study` on the batch-last kernel (`run_batched`): the exact problem of
     `fojax.studies._exact` or the exponential one of `fojax.studies._exponential`."""
     problem, basis, idx = prepared
@@ -646,7 +657,9 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
     chunk = min(B, default) if chunk_size is None else int(chunk_size)
     devices = jax.devices() if devices is None else devices  # all processes' devices, as `_mesh`
     out, layout = run_batched(problem, idx, study.ts, chunk_size=chunk, block=DEFAULT_BLOCK, devices=devices,
-                              basis=basis, host=True)
+                              basis=basis, host=True, compile_only=compile_only)
+    if compile_only:
+        return None
     if keep:
         (mets, ok), traj = out
     else:

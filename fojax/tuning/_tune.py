@@ -66,6 +66,7 @@ several processes only process 0 writes and reads it (the others receive its byt
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import dataclasses
 import os
 from collections.abc import Callable
@@ -239,6 +240,13 @@ def _step(xi, opt_state, coords, par, study, optimizer, loss, quantile, weights,
 
 
 @eqx.filter_jit
+def _observer(par, params):
+    """The observer of `params`, compiled (eagerly, its ~80 primitives compiled one by one:
+    ~1 s of `fojax study`'s tuning start-up, issue 13)."""
+    return par.observer(params)
+
+
+@eqx.filter_jit
 def _evaluate(params, par, study, loss, quantile, weights, cfg):
     TRACE_COUNTS["evaluate"] += 1
     return study_loss(study, par.observer(params), loss=loss, quantile=quantile, weights=weights, cfg=cfg)
@@ -366,36 +374,62 @@ def tune(
     if extra_loss is not None:
         check_extra_loss(extra_loss, par.observer(params0), par.design_params(params0))
     barrier = _DEFAULT_BARRIER.get(type(par), 0.0) if barrier is None else float(barrier)
-    live = par.live(params0)
-    coords = coordinates(params0, live, precondition)
-    xi = {"xi": jnp.zeros(coords.B.shape[1])}
     optimizer = shared_optimizer("adam", learning_rate=1e-2) if optimizer is None else optimizer
-    opt_state = optimizer.init(xi)
     key = jax.random.PRNGKey(0) if key is None else key
     cfg = SimConfig(stepper=resolve_stepper(stepper, method, solver, rtol, atol, max_steps, who="tune"),
                     devices=None if devices is None else tuple(devices))
-    if devices is not None and spans_processes(devices):
+    local = devices is None or not spans_processes(devices)
+    if not local:
         check_same_on_every_process((params0, train_study, heldout), "tune")
-    # on the mesh from the first step on (the step's outputs are): one compilation
-    xi, opt_state = replicate((xi, opt_state), devices)
     w = None if weights is None else jnp.asarray(weights, dtype=jnp.float64)
     path = None if checkpoint is None else os.fspath(checkpoint)
 
     # the engine of each study decided once on its concrete values (a time-varying study: the
     # exponential engine's schedule, so the jitted step, where the study is traced, runs on it)
-    obs0 = par.observer(params0)
+    obs0 = _observer(par, params0)
     cfg_train = resolve_engine(train_study, obs0, cfg)
     cfg_held = resolve_engine(heldout, obs0, cfg) if heldout is not None else cfg
 
+    def step_args(coords):
+        return (coords, par, train_study, optimizer, loss, quantile, w, cfg_train, jnp.asarray(float(min_margin)),
+                int(max_backtracks), jnp.asarray(barrier), extra_loss, terms)
+
+    def start(coords):  # the optimizer's state at xi = 0, on the mesh (where the step's outputs are)
+        xi = {"xi": jnp.zeros(coords.B.shape[1])}
+        return replicate((xi, optimizer.init(xi)), devices)
+
+    # The step's program depends on shapes only, and for these preconditions B is square
+    # (total x total) whatever `live` finds: it compiles on a thread while `live` computes on
+    # this one (issue 13); waited for before the first step.
+    compiling_step = None
+    if local and precondition in ("live", "project", "none"):
+        names = tuple(sorted((k, tuple(np.shape(v))) for k, v in params0.items()))
+        total = sum(int(np.prod(shape)) for _, shape in names)
+        placeholder = Coordinates(jnp.zeros(total), jnp.zeros((total, total)), names)
+        compiling_step = _compile_in_background(_step, (*start(placeholder), *step_args(placeholder)))
+
+    def heldout_args(p):
+        # on the mesh, as the iterates are (the starting parameters are not): one compilation
+        return replicate(p, devices), par, heldout, loss, quantile, w, cfg_held
+
+    # the held-out program compiles on a thread too (XLA compiles without the GIL; the 2-core
+    # reference machine: issue 13); nothing runs until it is done
+    compiling = (None if heldout is None or not local
+                 else _compile_in_background(_evaluate, heldout_args(params0)))
+    live = par.live(params0)
+    coords = coordinates(params0, live, precondition)
+    xi, opt_state = start(coords)
+    if compiling_step is not None:
+        concurrent.futures.wait([compiling_step])  # its errors, if any, are the step's: raised by it
+
     def heldout_loss(p):
-        return float(_evaluate(p, par, heldout, loss, quantile, w, cfg_held))
+        if compiling is not None:
+            compiling.result()  # (re-raises its error: the call below would raise it too)
+        return float(_evaluate(*heldout_args(p)))
 
     with distributed_errors("tune"):  # every collective of the run (a dead process: DistributedError)
-        initial_heldout = heldout_loss(params0) if heldout is not None else None
         xi, history = run_loop(
-            xi, opt_state, key, steps=steps, step=_step,
-            step_args=(coords, par, train_study, optimizer, loss, quantile, w, cfg_train, jnp.asarray(float(min_margin)),
-                       int(max_backtracks), jnp.asarray(barrier), extra_loss, terms),
+            xi, opt_state, key, steps=steps, step=_step, step_args=step_args(coords),
             host_check=lambda x: par.host_check(coords.params(x)),
             heldout_loss=(lambda x: heldout_loss(coords.params(x))) if heldout is not None else None,
             eval_every=eval_every, callback=callback, to_params=coords.params, path=path, resume=resume,
@@ -403,6 +437,7 @@ def tune(
             devices=devices, place=lambda t: replicate(t, devices),
         )  # fmt: skip
         params = coords.params(xi)
+        initial_heldout = heldout_loss(params0) if heldout is not None else None
         final_heldout = heldout_loss(params) if heldout is not None else None
     tuned = par.certify(params)
     robust = None if channels is None else {
@@ -420,6 +455,18 @@ def tune(
         tuned = dataclasses.replace(tuned, report=tuned.verify())
     return TuneResult(design=tuned, params=params, history=history, initial_heldout=initial_heldout,
                       final_heldout=final_heldout, live_parameters=live, parameterization=par, robustness=robust)
+
+
+def _compile_in_background(fn, args) -> concurrent.futures.Future:
+    """Trace and compile the `equinox.filter_jit` function `fn` for `args` on a thread
+    (``fn.lower(*args).compile()``: the executable JAX's caches give the later call
+    ``fn(*args)``); a future of it. Only compiles: executing two programs at once on the
+    same devices could order their collectives differently per device."""
+    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="fojax-compile")
+    try:
+        return pool.submit(lambda: fn.lower(*args).compile())
+    finally:
+        pool.shutdown(wait=False)
 
 
 def _name(fn) -> str | None:
