@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 
+from .._background import in_background
 from ._signals import check as check_interrupted, on_interrupt
 
 
@@ -754,7 +755,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
 
             if jax.process_count() == 1:
                 planned = [(nm, nm) for nm in designs] + [(f"{nm}-tuned", nm) for nm in tunable]
-                compiling = _in_background(lambda: studies.run_study(
+                compiling = in_background(lambda: studies.run_study(
                     st, [designs[base].observer for _, base in planned], observer_names=[nm for nm, _ in planned],
                     compile_only=True, **monte_carlo))
         for nm in tunable:
@@ -937,15 +938,6 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                 f"{row[6]:+.1f} %; sum of mean peaks {row[7]:.4g} -> {row[8]:.4g}, {row[9]:+.1f} %")
     out.say(f"\nresults: {folder} (report: {rep.name})")
     return 0 if all(d.report.passed for d in designs.values()) else 1
-
-
-def _in_background(fn) -> concurrent.futures.Future:
-    """``fn()`` on a thread (a future of its result)."""
-    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="fojax-compile")
-    try:
-        return pool.submit(fn)
-    finally:
-        pool.shutdown(wait=False)
 
 
 def _tunable(cfg, design, Disk) -> bool:

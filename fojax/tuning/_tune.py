@@ -77,6 +77,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from .._background import in_background
 from .._errors import InputError
 from ..design import (
     AbstractParameterization,
@@ -460,13 +461,10 @@ def tune(
 def _compile_in_background(fn, args) -> concurrent.futures.Future:
     """Trace and compile the `equinox.filter_jit` function `fn` for `args` on a thread
     (``fn.lower(*args).compile()``: the executable JAX's caches give the later call
-    ``fn(*args)``); a future of it. Only compiles: executing two programs at once on the
-    same devices could order their collectives differently per device."""
-    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="fojax-compile")
-    try:
-        return pool.submit(lambda: fn.lower(*args).compile())
-    finally:
-        pool.shutdown(wait=False)
+    ``fn(*args)``); a future of it (`fojax._background.in_background`). Only compiles:
+    executing two programs at once on the same devices could order their collectives
+    differently per device."""
+    return in_background(lambda: fn.lower(*args).compile())
 
 
 def _name(fn) -> str | None:
