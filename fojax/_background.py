@@ -1,4 +1,5 @@
-"""One helper: run a function on a worker thread (used to compile XLA programs while the
+"""Ground floor (any package may import it; docs/CONTRIBUTING.md). One helper: run a
+function on a worker thread (used to compile XLA programs while the
 main thread works; XLA compiles without holding the GIL).
 
 The worker is a `concurrent.futures` thread, *not* a daemon: when a run ends early (Ctrl-C,

@@ -21,8 +21,11 @@ from fojax.design import TakagiSugenoObserverDesign
 from fojax.results import load_design, read_design_metadata
 
 
-# the resume tests: a small LTI study (no implicit solver), 4 tuning steps of about a second
-RESUME_ARGS = ("example_4_1_3", "--samples", "4", "--horizon", "1", "--steps", "4")
+# the resume tests: a small LTI study (no implicit solver) with a few tuning steps
+# 12 steps: the interrupted run must still be tuning when the test sees its first checkpoint
+# (with 4 steps of ~0.15 s a loaded machine could starve the polling test until the run ended)
+RESUME_STEPS = 12
+RESUME_ARGS = ("example_4_1_3", "--samples", "4", "--horizon", "1", "--steps", str(RESUME_STEPS))
 try:  # the Monte Carlo runner may not be part of this version: then `fojax study` exits 3
     import fojax.studies  # noqa: F401
 
@@ -418,7 +421,7 @@ def _assert_consistent(folder):
 @pytest.fixture(scope="module")
 def interrupted(runs):
     """A second study with the options of `runs["resume_a"]`, interrupted (SIGINT to its
-    process group, as Ctrl-C does) once its tuning checkpoint shows step 1 of 4; started
+    process group, as Ctrl-C does) once its tuning checkpoint shows step 1 of `RESUME_STEPS`; started
     after the first study, so that it reuses its compilation cache."""
     if not (STUDIES and TUNING):
         pytest.skip("fojax study with tuning is not available in this version")
@@ -448,11 +451,11 @@ def test_interrupted_study_leaves_a_consistent_folder(interrupted):
             "tuning-generalized.npz", "tuning-generalized.json"} <= names
     assert "generalized-tuned.npz" not in names and "report.md" not in names  # stopped while tuning
     ck = json.loads((folder / "tuning-generalized.json").read_text())
-    assert 1 <= ck["step"] < 4  # interrupted before the last step
+    assert 1 <= ck["step"] < RESUME_STEPS  # interrupted before the last step
     assert ck["history"]["step"] == list(range(1, ck["step"] + 1))
     opts = json.loads((folder / "study-options.json").read_text())
     assert {k: opts[k] for k in ("samples", "horizon", "steps", "seed")} == {
-        "samples": 4, "horizon": 1.0, "steps": 4, "seed": 0}
+        "samples": 4, "horizon": 1.0, "steps": RESUME_STEPS, "seed": 0}
 
 
 @pytest.fixture(scope="module")
@@ -467,19 +470,19 @@ def test_resumed_study_equals_the_uninterrupted_one_bit_for_bit(runs, resumed):
     r, folder, before, step = resumed
     assert r.returncode == 0, r.stderr
     assert f"resuming example_4_1_3 in {folder}" in r.stdout
-    assert f"steps {step + 1}..4 (resumed from the checkpoint at step {step})" in r.stdout
+    assert f"steps {step + 1}..{RESUME_STEPS} (resumed from the checkpoint at step {step})" in r.stdout
     first = _study_folder(runs["resume_a"])  # the same study, never interrupted
     # the tuned design, the whole tuning checkpoint (parameters, optimizer state, history) and
     # every Monte Carlo metric are bit-identical to the uninterrupted run's
     a, b = load_design(first / "generalized-tuned.npz"), load_design(folder / "generalized-tuned.npz")
-    assert b.report.passed and b.solver["tuning"]["steps"] == 4
+    assert b.report.passed and b.solver["tuning"]["steps"] == RESUME_STEPS
     for k in ("N", "J", "F", "H", "S", "G", "M", "P", "Q"):
         assert np.array_equal(getattr(a.observer, k), getattr(b.observer, k)), k
     for name in ("generalized-tuned.npz", "tuning-generalized.npz", "metrics.npz", "study.npz"):
         _assert_same_arrays(_npz(first / name), _npz(folder / name))
     ha = json.loads((first / "tuning-generalized.json").read_text())
     hb = json.loads((folder / "tuning-generalized.json").read_text())
-    assert ha["step"] == hb["step"] == 4
+    assert ha["step"] == hb["step"] == RESUME_STEPS
     for k, v in ha["history"].items():
         assert np.array_equal(np.asarray(v, float), np.asarray(hb["history"][k], float), equal_nan=True), k
     # the first run's files that are not regenerated are untouched; the folder is complete
@@ -522,7 +525,7 @@ def test_resume_refuses_a_folder_of_another_study_with_one_line(runs, tmp_path, 
         ([other, "--resume", first], f"--resume {first}: CONFIG {other} differs from the config.toml"),
         (["--resume", first, "--samples", "8"], "the study in it was made with --samples 4, not 8; omit --samples"),
         (["--resume", first, "--horizon", "3"], "made with --horizon 1.0, not 3.0"),
-        (["--resume", first, "--steps", "5"], "made with --steps 4, not 5"),
+        (["--resume", first, "--steps", "5"], f"made with --steps {RESUME_STEPS}, not 5"),
         (["--resume", first, "--out", tmp_path], f"--resume reuses {first}; --out cannot be given with it."),
     ]
     for argv, message in cases:

@@ -17,7 +17,7 @@ import fojax.tuning
 
 
 #: The ground floor every package may use (ARCHITECTURE.md).
-GROUND = {"_errors", "_io", "_dtype", "_linalg"}
+GROUND = {"_errors", "_io", "_dtype", "_linalg", "_background"}  # + docs/CONTRIBUTING.md's worker-thread helper
 
 
 def _cross_package_imports():
