@@ -54,3 +54,21 @@ def test_tune_trains_on_the_exponential_engine_without_retracing(setup):
     assert np.all(np.isfinite(res2.history["train_loss"])) and res2.design.report.passed
     held = fojax.run_study(study(2), res2.design.observer, quiet=True, quantiles=())
     np.testing.assert_allclose(res2.final_heldout, held.metrics["iae"][0].mean(), rtol=1e-9)
+
+
+def test_tune_over_several_devices_refuses_a_study_off_the_exact_engine(setup):
+    """The diffrax path's reverse mode fails inside `jax.shard_map` (equinox 0.13.8:
+    "Closure-converted function called with different dynamic arguments";
+    patrick-kidger/diffrax#765): measured on this study and on the Takagi–Sugeno robot arm
+    before the check. `tune` now refuses before compiling anything, naming `devices`, and
+    `fojax study` passes one device for such a study."""
+    from fojax.cli import _distributed
+
+    d, study = setup
+    train = study(0)
+    assert S.exact_refusal(train, (d.observer,)) is not None  # time-varying δ(t): not the exact engine
+    steps = _tune.TRACE_COUNTS["tune_step"]
+    with pytest.raises(fojax.InputError, match=r"devices=None.*diffrax#765|diffrax#765.*devices=None"):
+        tuning.tune(d, train, steps=1, quiet=True, devices=jax.devices()[:2])
+    assert _tune.TRACE_COUNTS["tune_step"] == steps  # refused before the step was traced
+    assert _distributed.tuning_devices(exact=False) is None  # the CLI's choice on one process

@@ -667,7 +667,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         write_report,
     )
     from ..results._io import atomic_write_json, atomic_write_npz
-    from . import _distributed, _study_samples as ss
+    from . import _study_samples as ss
 
     ow = resumed  # a resumed run replaces the files it regenerates
     reports = [structure_report(sys_, cfg.L) for sys_ in cfg.rule_systems()]
@@ -769,7 +769,6 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                            optimizer=tuning.shared_optimizer("adam", learning_rate=tspec.learning_rate),
                            eval_every=max(1, n_steps // 10), callback=_after_step,
                            checkpoint=checkpoint, resume=resumed, quiet=out.quiet,
-                           devices=_distributed.tuning_devices(cfg.is_takagi_sugeno),
                            robustness=_robustness_terms(tuning, tspec, designs[nm]))
             tuned_name = f"{nm}-tuned"
             designs[tuned_name] = tr.design
@@ -982,7 +981,11 @@ def _tune(tuning, cfg, design, train, **kw):
         from ..simulation import Auto, Diffrax
 
         kw.update(stepper=Auto(diffrax=Diffrax(diffrax.Tsit5())), barrier=TS_BARRIER)
-    return tuning.tune(design, train, **kw)  # LTI and T-S designs: one `tune`
+    from .. import studies
+    from . import _distributed
+
+    exact = studies.exact_refusal(train, (design.observer,)) is None
+    return tuning.tune(design, train, devices=_distributed.tuning_devices(exact), **kw)  # LTI and T-S: one `tune`
 
 
 def _after_step(step, record):

@@ -155,16 +155,16 @@ def run(command) -> int:
         os._exit(2)
 
 
-def tuning_devices(takagi_sugeno: bool = False):
+def tuning_devices(exact: bool = True):
     """The devices `tune` spreads its samples over: every device of the run (all processes'
     in a distributed run; the host devices of ``fojax study --devices N``), or None with a
     single device. The iterates are the same bits either way (`fojax.studies._sharding`).
-    A Takagi–Sugeno study on one process tunes on one device: its diffrax tuning step on
-    several local devices fails (equinox: "Closure-converted function called with different
-    dynamic arguments", tests/test_cli_ts.py under the test suite's 4 host devices; not
-    investigated, found at the end of issue 13's session)."""
+    A study that is not on the exact engine (`exact`: ``fojax.studies.exact_refusal`` is
+    None; Takagi–Sugeno observers, time-varying δ(t)) tunes on one device of one process:
+    `tune` refuses to differentiate the diffrax path over several devices (see its
+    ``devices`` argument); over several processes it raises that error."""
     import jax
 
     if jax.process_count() > 1:
         return jax.devices()
-    return jax.devices() if jax.device_count() > 1 and not takagi_sugeno else None
+    return jax.devices() if jax.device_count() > 1 and exact else None

@@ -7,6 +7,7 @@ processes (`fojax.tuning.tune` and ``fojax study --distributed`` use them):
 `distributed_errors` (a lost peer becomes `fojax.DistributedError`).
 """
 
+from ._exact import exact_refusal as exact_refusal
 from ._families import (
     constant_delta as constant_delta,
     constant_faults as constant_faults,

@@ -93,6 +93,7 @@ from ..simulation import resolve_stepper
 from ..studies import (
     check_same_on_every_process,
     distributed_errors,
+    exact_refusal,
     replicate,
     resolve_engine,
     SimConfig,
@@ -348,7 +349,12 @@ def tune(
     - `devices`: spread the training samples over these devices (e.g. ``jax.devices()``
       after `jax.distributed.initialize`: every process's devices; each process computes
       its share of the loss and gradient). The iterates are bit-identical to the default
-      (``None``: one device), see `fojax.studies` (its multi-process helpers). Every process runs the same
+      (``None``: one device), see `fojax.studies` (its multi-process helpers). Several
+      devices need a training study on the exact engine (`fojax.studies.exact_refusal` is
+      None: LTI samples with known signals); any other (Takagi–Sugeno observers, a
+      time-varying δ(t)) raises `fojax.InputError`, because the diffrax path's reverse mode
+      fails inside `jax.shard_map` (equinox 0.13 compares sharding metadata when it calls a
+      closure-converted loop body: patrick-kidger/diffrax#765). Every process runs the same
       `tune` call (checked; `fojax.DistributedError` otherwise or when another dies).
       With `checkpoint`, only process 0 writes it (at its `checkpoint` path), and with
       `resume` every process continues from process 0's checkpoint (sent to the others:
@@ -388,6 +394,15 @@ def tune(
     # the engine of each study decided once on its concrete values (a time-varying study: the
     # exponential engine's schedule, so the jitted step, where the study is traced, runs on it)
     obs0 = _observer(par, params0)
+    if cfg.devices is not None and len(cfg.devices) > 1:
+        why = (exact_refusal(train_study, (obs0,)) if "exact-batch" in cfg.stepper.engines
+               else f"the stepper {type(cfg.stepper).__name__} excludes the exact engine")
+        if why is not None:
+            raise InputError(
+                f"tune over {len(cfg.devices)} devices differentiates the study on the exact engine only, and this "
+                f"study is not on it ({why}): its loss would run on diffrax, whose reverse mode fails inside "
+                "jax.shard_map with equinox 0.13 (closure conversion compares sharding metadata; upstream "
+                "patrick-kidger/diffrax#765). Pass devices=None (one device).")
     cfg_train = resolve_engine(train_study, obs0, cfg)
     cfg_held = resolve_engine(heldout, obs0, cfg) if heldout is not None else cfg
 
