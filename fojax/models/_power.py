@@ -92,8 +92,9 @@ def two_area_power(inertia_uncertainty: float = 0.4, **params) -> ThesisExample:
     live directions). Whether such an observer of the design's order and $R$ also has its
     eigenvalues in the tuning region, and what the trade-off with the initial-state transient
     costs, is what the tuning benchmark measures (``benchmarks/tuning_circuit.py --model
-    two_area_power``). Contrast: on the flexible drive $z = \tau_2$ contains the uncertain
-    stiffness itself ($\tau_2 = k_2\varphi_2 + \dots$), so no observer can be insensitive.
+    two_area_power``). Contrast: on the flexible drive $z = \tau_2 = k_2\varphi_2 + \dots$
+    contains the uncertain stiffness itself and the load speed is not measured, so an estimate
+    of $\tau_2$ has to lean on $k_2$ (an a-priori remark, not a proved bound).
 
     **Benchmark settings (fixed and committed before the first tuning run;
     ``benchmarks/tuning_circuit.py --model two_area_power``).** Region ``Disk(-3.5, 2.5)``
@@ -119,6 +120,13 @@ def two_area_power(inertia_uncertainty: float = 0.4, **params) -> ThesisExample:
     first settings tried (before any tuning: $u = 0.1\sin 0.5t$, 20 s on a 0.04 s grid) gave
     a δ-caused share of 11 % on the centred design; they were replaced by the other models'
     input frequency and horizon.
+
+    **Measured by that benchmark (one run with the settings above, under load).** Tuning from
+    the centred design: held-out IAE −94.1 % (to 0.00648), −8.2 % against the min-gain design;
+    from the min-gain design: −4.5 %. The error $H_1$'s uncertainty alone causes (initial
+    states 0) falls from 0.0207 (centred) / 0.00042 (min-gain) to 0.000054 (tuned): the
+    tuned observer is nearly insensitive to $H_1$, as (ii) predicts, and its IAE is 99 %
+    initial-state transient.
 
     **Values**: `POWER_PARAMS`, the two-area example of H. Saadat, *Power System Analysis*
     (McGraw-Hill, 1999), ch. 12 (the two-area LFC example: $R_1 = 0.05$, $D_1 = 0.6$,
