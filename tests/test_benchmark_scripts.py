@@ -334,3 +334,34 @@ def test_tuning_benchmark_flexible_drive_twin_is_the_same_drive():
     assert x0p.shape == (3, 8) and st_plain.signal_names == ("tau2",)
     np.testing.assert_allclose(x0t * np.diag(S), x0p, rtol=1e-12)
     assert not np.any(x0p[:, 5:]) and np.all(np.abs(x0p[:, :5]) <= 1.0) and np.ptp(x0p[:, :5]) > 0.5
+
+
+def test_tuning_benchmark_two_area_power_twin_is_the_same_system():
+    """`tuning_circuit.py --model two_area_power`: the twin has the plain model's finite poles
+    (oracle: the plain model's QZ), the same y and z for the same physical state, the studies
+    draw the same physical initial states on the seven differential states, with the model's
+    own input amplitude (0.1 pu), region and order, and `delta_bound`/`x0_scale` = 0 keep the
+    other draws."""
+    import tuning_circuit as tc
+
+    plain, twin = tc.two_area_power(), tc.two_area_power(scaled=True)
+    assert np.ptp(np.log10(tc.POWER_TWIN_ROWS)) == 6 and np.ptp(np.log10(tc.POWER_TWIN_STATES)) == 6
+    assert_eigenvalues_match(_finite_poles(twin["A"], twin["E"]), _finite_poles(plain["A"], plain["E"]), rtol=1e-6)
+    S = twin["Dc"]
+    x = np.arange(1.0, 11.0)
+    for k in ("C", "L"):
+        np.testing.assert_allclose(twin[k] @ np.linalg.solve(S, x), plain[k] @ x, rtol=1e-14)
+    _, _, st_plain = tc.build(False, 2, 3, seed=0, model="two_area_power")
+    _, _, st_twin = tc.build(True, 2, 3, seed=0, model="two_area_power")
+    x0p, x0t = (np.asarray(st.scenarios[0].values) for st in (st_plain, st_twin))
+    assert x0p.shape == (3, 10) and st_plain.signal_names == ("Pm1",)
+    np.testing.assert_allclose(x0t * np.diag(S), x0p, rtol=1e-12)
+    assert not np.any(x0p[:, 7:]) and np.all(np.abs(x0p[:, [0, 2]]) <= 0.002) and np.ptp(x0p[:, 3:7]) > 0.01
+    np.testing.assert_allclose(np.asarray(st_plain.u(np.asarray(np.pi / 4))), [0.1], rtol=1e-12)
+    assert tc.region_of("two_area_power").describe() != tc.region_of("flexible_drive").describe()
+    assert tc.MODELS["two_area_power"]["q0"] == 5 and "q0" not in tc.MODELS["flexible_drive"]
+    _, _, no_delta = tc.build(False, 2, 3, seed=0, model="two_area_power", delta_bound=0.0)
+    _, _, no_x0 = tc.build(False, 2, 3, seed=0, model="two_area_power", x0_scale=0.0)
+    assert not np.any(np.asarray(no_delta.uncertainty[0].values.value))
+    np.testing.assert_array_equal(np.asarray(no_delta.scenarios[0].values), x0p)
+    assert not np.any(np.asarray(no_x0.scenarios[0].values))

@@ -219,6 +219,7 @@ def gains(ex, names="NJFHSGMPQ", suffix=""):
 
 ALL = [
     fm.flexible_drive,
+    fm.two_area_power,
     fm.electrical_motor,
     fm.robot_arm,
     fm.robot_arm_ts,

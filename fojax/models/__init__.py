@@ -1,5 +1,5 @@
 """The thesis's numerical examples, with every printed quantity and documented typo fixes, and
-`flexible_drive`, a model of our own (not from the thesis) for the tuning benchmarks."""
+`flexible_drive` and `two_area_power`, models of our own (not from the thesis) for the tuning benchmarks."""
 
 from ._base import ThesisExample as ThesisExample
 from ._chapter3 import (
@@ -15,4 +15,5 @@ from ._chapter4 import (
 )
 from ._drive import flexible_drive as flexible_drive
 from ._motor import electrical_motor as electrical_motor
+from ._power import two_area_power as two_area_power
 from ._robot_arm import robot_arm as robot_arm, robot_arm_ts as robot_arm_ts
