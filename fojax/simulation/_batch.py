@@ -546,24 +546,27 @@ BLOCK_BYTES = 2**21
 
 
 #: Bytes of one block's ``Φ`` (``8 N² b``) that `block_for` aims at below
-#: ``MULTISTEP_MIN_N`` (the batch-last time loop): the L1 data cache of one core (32 KiB
-#: on the 2-core EPYC of the benchmarks), since every step reads all of ``Φ``. Time loop
-#: of the §4.1.3 workload (N = 7, 6 outputs, B = 10,000, T = 1,001, one device, measured
-#: under load ~9): blocks of 256 (100 KB of ``Φ``, L2) 0.117 s, of 64 (25 KB) 0.087 s.
-STEP_BLOCK_BYTES = 2**15
+#: ``MULTISTEP_MIN_N`` (the batch-last time loop reads all of ``Φ`` at every step): about
+#: twice the L1 data cache of one core (32 KiB on the 2-core EPYC of the benchmarks). §4.1.3
+#: workload through `run_study` (N = 7, B = 10,000, T = 1,001, one device, CPU time,
+#: measured under load 9-10): blocks of 256 (100 KB of ``Φ``) 0.159 s, 128 (50 KB)
+#: 0.127-0.134 s, 64 (25 KB) 0.127-0.129 s, 32 0.156 s (the set-up's per-block cost
+#: grows); the time loop alone 9.7 / 7.0 / 6.9 / 7.9 ns per sample and step. ``N ≤ 5``
+#: keeps 256 (``n = 4`` of benchmarks/scaling.py, N = 5: 128 was not faster).
+STEP_BLOCK_BYTES = 2**16
 
 
 def block_for(N: int | None, block: int) -> int:
     """The block size for joint size ``N``: `block`, capped so that a block's ``Φ^m``
     takes at most ``BLOCK_BYTES`` (at least 4 samples) when ``N ≥ MULTISTEP_MIN_N``,
     and below it so that ``Φ`` takes at most ``STEP_BLOCK_BYTES`` (a power of two, at
-    least 32 samples). ``N ≤ 4``: 256; 7: 64; 9: 32; 22: 256 (unchanged); 64: 64;
+    least 64 samples). ``N ≤ 5``: 256; 6 … 8: 128; 9: 64; 22: 256 (unchanged); 64: 64;
     128: 16; 256: 4."""
     if N is None or N < 1:
         return block
     if N < MULTISTEP_MIN_N:
         fit = STEP_BLOCK_BYTES // (8 * N * N)
-        return max(1, min(block, max(32, 1 << max(0, fit.bit_length() - 1))))
+        return max(1, min(block, max(64, 1 << max(0, fit.bit_length() - 1))))
     return max(1, min(block, max(4, BLOCK_BYTES // (8 * N * N))))
 
 
