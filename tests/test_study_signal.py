@@ -272,3 +272,23 @@ def test_iae_only_accumulates_one_sum_and_still_flags_a_blown_up_sample():
     r = np.exp(-h)
     want = h * ((1 - r ** (N + 1)) / (1 - r) - 0.5 * (1.0 + r**N))
     np.testing.assert_allclose(one.metrics["iae"][0, 0, 0, 0], want, rtol=1e-12)
+
+
+def test_loop_413_blocks_sized_for_the_cache_do_not_change_the_metrics(monkeypatch):
+    # The batch-last kernel sizes its blocks so that one block's Φ (8 N² b bytes) stays in
+    # cache (`_batch.block_for`, N < MULTISTEP_MIN_N): 128 samples at the loop's N = 7
+    # instead of 256. Oracles: the workload's own NumPy metrics (`peers.expm_reference`), and
+    # the same study in one block of all 160 samples (the former sizing), bit for bit: each
+    # sample's arithmetic does not depend on the block it is stepped in.
+    assert _batch.block_for(7, _batch.DEFAULT_BLOCK) == 128 and 8 * 7 * 7 * 128 <= _batch.STEP_BLOCK_BYTES
+    assert _batch.block_for(5, _batch.DEFAULT_BLOCK) == _batch.DEFAULT_BLOCK  # tiny loops: unchanged
+    batch = wl.make_workload(160, seed=11)
+    st = ws.of_workload(batch)
+    save = fojax.Metrics(kinds="iae", bands=None)
+
+    small = S.run_study(st, devices=ONE, save=save, quiet=True)  # blocks of 128 and 32
+    monkeypatch.setattr(_batch, "STEP_BLOCK_BYTES", 2**30)
+    assert _batch.block_for(7, _batch.DEFAULT_BLOCK) == _batch.DEFAULT_BLOCK
+    one = S.run_study(st, devices=ONE, save=save, quiet=True)  # one block of 160
+    np.testing.assert_array_equal(small.metrics["iae"], one.metrics["iae"])
+    np.testing.assert_allclose(ws.two_metrics(small), peers.expm_reference(batch), rtol=1e-10)

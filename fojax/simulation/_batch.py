@@ -434,7 +434,7 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         Aj, w0, G, ok, jumps = problem.joint(pk)
         K = G.shape[0]
         if basis is None:
-            return Aj, w0, G, jnp.ones((K,), Aj.dtype), ok, jumps
+            return Aj, w0, G, jnp.ones((K,), Aj.dtype), ok, jumps, None
         ind, Nc = basis
         dep = tuple(i for i in range(K) if i not in ind)
         Gi = G[jnp.array(ind)]
@@ -446,11 +446,17 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         Gd = G[jnp.array(dep, dtype=int)] @ Sinv if dep else jnp.zeros((0, S.shape[0]), S.dtype)
         if jumps is not None:
             jumps = (jumps[0], jumps[1] @ S.T)
-        return S @ Aj @ Sinv, S @ w0, Gd, d, ok, jumps
+        return Aj, S @ w0, Gd, d, ok, jumps, (S, Sinv)
 
-    Aj, w0, G, scale, ok, jumps = jax.vmap(per_sample)(p)  # (b,N,N), (b,N), (b,·,N), (b,·), (b,)
+    Aj, w0, G, scale, ok, jumps, sim = jax.vmap(per_sample)(p)  # (b,N,N), (b,N), (b,·,N), (b,·), (b,)
+    Aj = jnp.moveaxis(Aj, 0, -1)  # (N, N, b)
+    if sim is not None:
+        # the joint matrix in the output coordinates, S A S⁻¹, as two batch-last products
+        # (`_mm_last`): as batched dots under `jax.vmap` they took ~9 ms of the ~40 ms
+        # set-up of the §4.1.3 workload at B = 10,000 (7 × 7, measured under load)
+        Aj = _mm_last(_mm_last(jnp.moveaxis(sim[0], 0, -1), Aj), jnp.moveaxis(sim[1], 0, -1))
     K = scale.shape[1] if basis is None else len(basis[0]) + G.shape[1]
-    Phi = expm(jnp.moveaxis(h * Aj, 0, -1))  # (N, N, b)
+    Phi = expm(h * Aj)  # (N, N, b)
     G = jnp.moveaxis(G, 0, -1)  # (K or K-ρ, N, b)
     scale = scale.T
     w0 = w0.T  # (N, b)
@@ -460,8 +466,8 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         kon = jnp.searchsorted(ts, jt, side="left")  # first grid index with t_k ≥ t_j
         valid = (kon >= 1) & (kon <= T - 1) & jnp.isfinite(jt)
         tau = jnp.where(valid, ts[jnp.clip(kon, 0, T - 1)] - jnp.where(valid, jt, 0.0), 0.0)
-        Mj = tau[:, :, None, None] * Aj[:, None]  # (b, J, N, N)
-        Psi = expm(jnp.moveaxis(Mj.reshape((b_ * J,) + Aj.shape[1:]), 0, -1))
+        Mj = tau[:, :, None, None] * jnp.moveaxis(Aj, -1, 0)[:, None]  # (b, J, N, N)
+        Psi = expm(jnp.moveaxis(Mj.reshape((b_ * J,) + Aj.shape[:2]), 0, -1))
         jv = matvec(Psi, jnp.moveaxis(dW.reshape(b_ * J, -1), 0, -1))  # (N, b J)
         jv = jnp.moveaxis(jv.reshape(jv.shape[0], b_, J), 2, 0)  # (J, N, b)
         jv = jnp.where(valid.T[:, None, :], jv, 0.0)
@@ -539,12 +545,28 @@ TRIANGULAR_MIN_N = 32
 BLOCK_BYTES = 2**21
 
 
+#: Bytes of one block's ``Φ`` (``8 N² b``) that `block_for` aims at below
+#: ``MULTISTEP_MIN_N`` (the batch-last time loop reads all of ``Φ`` at every step): about
+#: twice the L1 data cache of one core (32 KiB on the 2-core EPYC of the benchmarks). §4.1.3
+#: workload through `run_study` (N = 7, B = 10,000, T = 1,001, one device, CPU time,
+#: measured under load 9-10): blocks of 256 (100 KB of ``Φ``) 0.159 s, 128 (50 KB)
+#: 0.127-0.134 s, 64 (25 KB) 0.127-0.129 s, 32 0.156 s (the set-up's per-block cost
+#: grows); the time loop alone 9.7 / 7.0 / 6.9 / 7.9 ns per sample and step. ``N ≤ 5``
+#: keeps 256 (``n = 4`` of benchmarks/scaling.py, N = 5: 128 was not faster).
+STEP_BLOCK_BYTES = 2**16
+
+
 def block_for(N: int | None, block: int) -> int:
     """The block size for joint size ``N``: `block`, capped so that a block's ``Φ^m``
-    takes at most ``BLOCK_BYTES`` (at least 4 samples) when ``N ≥ MULTISTEP_MIN_N``.
-    ``N = 22``: 256 (unchanged); 64: 64; 128: 16; 256: 4."""
-    if N is None or N < MULTISTEP_MIN_N:
+    takes at most ``BLOCK_BYTES`` (at least 4 samples) when ``N ≥ MULTISTEP_MIN_N``,
+    and below it so that ``Φ`` takes at most ``STEP_BLOCK_BYTES`` (a power of two, at
+    least 64 samples). ``N ≤ 5``: 256; 6 … 8: 128; 9: 64; 22: 256 (unchanged); 64: 64;
+    128: 16; 256: 4."""
+    if N is None or N < 1:
         return block
+    if N < MULTISTEP_MIN_N:
+        fit = STEP_BLOCK_BYTES // (8 * N * N)
+        return max(1, min(block, max(64, 1 << max(0, fit.bit_length() - 1))))
     return max(1, min(block, max(4, BLOCK_BYTES // (8 * N * N))))
 
 
@@ -1104,8 +1126,9 @@ def simulate_lti_batch(
     - `chunk_size`: samples per compiled call (default 4096).
     - `block`: samples stepped together in one time loop (default 256): ``Φ`` and the
       output maps of a block, ``8 (N² + k N) · block`` bytes, should fit in the CPU's
-      L2 cache (for a joint size ``N ≥ 10`` it is capped by `block_for`: 64 at
-      ``N = 64``, 16 at ``N = 128``). (Unrolling the time loop was measured slower.)
+      L2 cache; it is capped by `block_for`: for ``N ≥ 10`` 64 at ``N = 64``, 16 at
+      ``N = 128``; below, ``Φ`` within 64 KiB (128 at ``N = 6 … 8``, 64 at ``N = 9``).
+      (Unrolling the time loop was measured slower.)
     - `devices`: the devices to spread the blocks over (default `jax.local_devices()`).
 
     **Returns:** a dict ``name -> (B,)`` or ``(B, k)`` array (float64).
