@@ -120,3 +120,27 @@ def test_power_of_two_twin_gets_the_same_functional(drive):
     R = _default(E, A, B, C, L)
     Rt = _default(*twin)
     np.testing.assert_allclose(Rt, R * dr[None, :], atol=1e-10 * np.abs(R * dr).max())
+
+
+def test_unknown_input_candidates_do_not_depend_on_the_svd_basis(monkeypatch):
+    """The unknown-input observer's candidate R's (`_candidate_Rs`, greedy prefixes of the
+    same kind of complement bases) on §4.1.3's closed loop with d in the row of x3."""
+    from fojax.design._unknown_input import _candidate_Rs
+    from fojax.models import example_4_1_3
+
+    ex = example_4_1_3()
+    E, A, B, C, L = (np.asarray(x) for x in (ex.E, ex.A, ex.B, ex.C, ex.L))
+    A = A + B @ L
+    D = np.eye(4)[:, [2]]
+    Ep = la.perp(np.hstack([E, D]))
+    Psi = np.vstack([Ep @ A, C])
+    Gam = np.vstack([E, Psi])
+    ref = _candidate_Rs(Gam, Psi, L, None)
+    for seed in (1, 2, 3):
+        with monkeypatch.context() as mp:
+            _rotated_row_space(mp, seed)
+            mp.setattr("fojax.design._unknown_input.row_space", la.row_space, raising=False)
+            got = _candidate_Rs(Gam, Psi, L, None)
+        assert [R.shape for R in got] == [R.shape for R in ref]
+        for Rg, Rr in zip(got, ref):
+            np.testing.assert_allclose(Rg, Rr, atol=1e-10)
