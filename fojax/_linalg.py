@@ -84,6 +84,62 @@ def row_space(M, tol: float | None = None) -> np.ndarray:
     return Vt[:k].copy()
 
 
+#: Relative tolerance under which two residual norms count as tied in `canonical_row_space`'s
+#: pivoting (the lower column index wins). Rounding moves them by ~1e-15 relative.
+PIVOT_TIE_RTOL = 1e-8
+
+
+def canonical_row_space(M, tol: float | None = None) -> np.ndarray:
+    r"""Orthonormal rows spanning the row space of `M`, in an order and with signs that depend
+    only on the subspace (and the coordinate order), not on the basis an SVD returns.
+
+    `row_space` returns the leading right singular vectors: when singular values are equal
+    (e.g. $M$ is an orthogonal projector, all of them 1) that basis is an arbitrary rotation
+    $WQ$ decided by rounding, and even distinct singular values leave the signs to LAPACK.
+    Callers that take only the *first* rows of a basis, or search along its rows, must not
+    depend on that. Derivation: let $Q$ ($k 	imes c$) be any orthonormal basis and
+    $P = Q^	op Q$ the orthogonal projector onto the subspace (the same for every $WQ$, $W$
+    orthogonal). Pivoted Gram–Schmidt on the columns $Qe_j$ selects $J_1$ = the column of
+    largest norm $\|Qe_j\|^2 = P_{jj}$, then the column of largest residual after removing
+    the span of the columns chosen so far, and so on; these norms are functions of the Gram
+    matrix $(Qe_i)^	op Qe_j = P_{ij}$ only, so the pivots $J = (J_1, \dots, J_k)$ do not
+    depend on $W$. With the QR factorization $Q_{:,J} = U R_J$ ($R_J$ upper triangular with
+    positive diagonal, unique) the result is $U^	op Q$: for $WQ$ the factorization is
+    $(WU)R_J$ and $(WU)^	op WQ = U^	op Q$, exactly the same rows. Row $i$ is the
+    normalised component of $Pe_{J_i}$ orthogonal to $Pe_{J_1}, \dots, Pe_{J_{i-1}}$; in
+    particular the first row is $Pe_{J_1}/\|Pe_{J_1}\|$, the direction of the subspace
+    closest to coordinate $J_1$, the coordinate the subspace sees best. Since the first $i$
+    rows span $\{Pe_{J_1}, \dots, Pe_{J_i}\}$, taking a prefix of the rows is well defined.
+
+    **Ties.** Residual norms within `PIVOT_TIE_RTOL` (relative) of the largest count as equal
+    and the lowest column index wins, so exact ties (symmetric models) are broken by the
+    order of the coordinates, not by rounding. Only a genuine difference of about
+    `PIVOT_TIE_RTOL` between two residuals could still be resolved differently by rounding.
+    Coordinates matter: pivots are chosen among columns, so rescaling columns changes the
+    choice (fojax's design layer calls this in the unit-free frame of
+    `fojax.analysis.unit_scaling`).
+
+    **Returns:** ``(k, c)`` with ``k`` the numerical rank of `M` (fojax's rank rule).
+    """
+    Q = row_space(M, tol)
+    k = Q.shape[0]
+    if k == 0:
+        return Q
+    Res = Q.copy()
+    J: list[int] = []
+    for _ in range(k):
+        nrm = np.einsum("ij,ij->j", Res, Res)
+        nrm[J] = -1.0
+        j = int(np.flatnonzero(nrm >= nrm.max() * (1.0 - PIVOT_TIE_RTOL))[0])
+        J.append(j)
+        u = Res[:, j] / np.sqrt(nrm[j])
+        Res = Res - np.outer(u, u @ Res)
+        Res = Res - np.outer(u, u @ Res)  # twice is enough (Kahan–Parlett)
+    U, RJ = np.linalg.qr(Q[:, J])
+    U = U * np.where(np.diag(RJ) < 0, -1.0, 1.0)[None, :]
+    return U.T @ Q
+
+
 def pinv(M, tol: float | None = None) -> np.ndarray:
     """Moore–Penrose pseudo-inverse with the fojax rank tolerance."""
     M = np.asarray(M, dtype=float)

@@ -12,7 +12,7 @@ from .._errors import (
     IrregularSystemError,
     RankConditionError,
 )
-from .._linalg import rank, RANK_RTOL, row_space
+from .._linalg import canonical_row_space, rank, RANK_RTOL
 from ._parameterization import FunctionalObserverStructure, observer_structure, pieces
 from ._regions import AbstractRegion
 
@@ -291,14 +291,22 @@ def check_detectability(
 def _order_candidates(Gam, Psi, L, q0):
     """Candidate R's by increasing order: a row basis of L, then directions of Γ outside
     the row space of [R; Ψ] (they enlarge Σ), then directions of Γ outside the row space of
-    R (inside Ψ's span). The largest order is rank Γ (= rank [L; Γ] under Assumption 1)."""
-    base = L if rank(L) == L.shape[0] else row_space(L)
-    G_rows = row_space(Gam)
+    R (inside Ψ's span). The largest order is rank Γ (= rank [L; Γ] under Assumption 1).
+
+    Every basis here is `canonical_row_space`: a candidate takes only the first rows of a
+    complement (``rows[:j]``), and the complement of a subspace of Γ's row space is, in
+    G_rows coordinates, an orthogonal projector whose singular values are all 1, so the
+    SVD's basis of it is a rotation decided by rounding. Before (issue: default R depends on
+    rounding), rotating that basis changed the default R's row space on
+    `fojax.models.flexible_drive` (order 2: projector distance 0.30-0.38), and a model and
+    its power-of-two rescaled twin could get different default designs."""
+    base = L if rank(L) == L.shape[0] else canonical_row_space(L)
+    G_rows = canonical_row_space(Gam)
 
     def complement(S):
         if S.size == 0:
             return G_rows
-        return row_space(G_rows - G_rows @ np.linalg.pinv(S) @ S)
+        return canonical_row_space(G_rows - G_rows @ np.linalg.pinv(S) @ S)
 
     extra = complement(np.vstack([base, Psi]))
     more = complement(np.vstack([base, extra])) if extra.size else complement(base)
@@ -366,7 +374,11 @@ def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int
 
     1. Orders: start from a row basis of ``L`` (``q0 = rank L``, the smallest order)
        and add rows of an orthonormal basis of the row space of Γ = [E; Ψ] not yet in
-       the row space of Σ = [R; Ψ], one at a time (only order `q0` when given).
+       the row space of Σ = [R; Ψ], one at a time (only order `q0` when given). The bases
+       are `fojax._linalg.canonical_row_space` (pivoted on the states of the unit-free
+       frame): the rows taken first are decided by the subspaces, not by the rotation or
+       the signs an SVD returns, so neither LAPACK's rounding nor a power-of-two rescaling
+       of the model changes the default R (before, both could: see `_order_candidates`).
     2. For each order, R must satisfy the rank conditions; the modes that no gain can
        move (`fixed_modes`, Lemma 8) must lie in the region. When they do not, R is
        moved inside the row space of Γ, starting from the candidate, by a
@@ -411,7 +423,8 @@ def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int
         _, modes = _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R0)
         if all(inner.contains([m]) for m in modes):
             return R0
-        # Search R = R0 + D @ G_rows (rows stay in the row space of Γ).
+        # Search R = R0 + D @ G_rows (rows stay in the row space of Γ). G_rows is canonical,
+        # so the Nelder–Mead start simplex (steps along its rows) does not depend on SVD signs.
         nR = np.linalg.norm(R0)
 
         def f(d, R0=R0):

@@ -102,7 +102,7 @@ from .._errors import (
     RankConditionError,
     ShapeError,
 )
-from .._linalg import rank, row_space
+from .._linalg import canonical_row_space, rank
 from ..observer._unknown_input import UnknownInputObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
 from . import _ladder, _lmi
@@ -415,13 +415,15 @@ def _candidate_Rs(Gam: np.ndarray, Psi: np.ndarray, L: np.ndarray, q0: int | Non
     Γ that are new to Σ = [R; Ψ] (as `fojax.design.default_R` does), then rows of the
     row space of Ψ. The latter make Σ row-redundant, i.e. create the output-injection
     directions N3 ≠ 0 through which the unknown-input error is seen (rank N3 ≥ l is
-    necessary); the plain functional observer never needs them.
+    necessary); the plain functional observer never needs them. The bases are
+    `fojax._linalg.canonical_row_space`, so the rows taken first do not depend on the rotation
+    or signs an SVD returns (see `fojax.design._conditions._order_candidates`).
     """
-    base = L if rank(L) == L.shape[0] else row_space(L)
+    base = L if rank(L) == L.shape[0] else canonical_row_space(L)
     S0 = np.vstack([base, Psi])
-    G_rows = row_space(Gam)
-    extra = row_space(G_rows - G_rows @ np.linalg.pinv(S0) @ S0) if S0.size else G_rows
-    pool = [*extra, *row_space(Psi), *G_rows]
+    G_rows = canonical_row_space(Gam)
+    extra = canonical_row_space(G_rows - G_rows @ np.linalg.pinv(S0) @ S0) if S0.size else G_rows
+    pool = [*extra, *canonical_row_space(Psi), *G_rows]
     cands, R = [base], base
     for r in pool:
         if rank(np.vstack([R, r])) > R.shape[0]:
