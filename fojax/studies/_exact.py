@@ -378,6 +378,10 @@ class LossProblem(eqx.Module):
     study: StudyProblem
     metric: str = eqx.field(static=True)
     keep = False
+    # `update` adds a function of the step's outputs to the accumulator: the adjoint of
+    # `fojax.studies._adjoint.split_recurrence_reduce` takes the outputs' cotangents of a
+    # whole checkpoint segment at once
+    additive = True
 
     def joint(self, p):
         return self.study.joint(p)
