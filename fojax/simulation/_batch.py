@@ -508,10 +508,10 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     Jumps of the exogenous state at ``t_j`` (between grid points ``t_{k-1} < t_j ≤ t_k``)
     enter exactly: ``w_k = Φ w_{k-1} + e^{\mathcal A (t_k - t_j)} Δw_j``.
 
-    With `differentiable` the squarings of `expm_last` run as a fixed-length scan (steps
-    beyond the block's largest count skipped by a `jax.lax.cond`) instead of a
-    data-dependent loop, so the whole block is reverse-differentiable (``jax.grad``); the
-    time loop is the same `jax.lax.scan`. (This replaced `expm_small` under `jax.vmap`:
+    With `differentiable` `expm_last` gets a squaring budget (``_DIFF_MAX_SQUARINGS``) and
+    its hand-written reverse mode (`_expm_last_diff`; it was a fixed-length scan of
+    `jax.lax.cond` squarings), so the whole block is reverse-differentiable
+    (``jax.grad``); the time loop is the same `jax.lax.scan`. (This replaced `expm_small` under `jax.vmap`:
     on the default §3.3.7 study at B = 1,000 the study_loss value_and_grad compiled in
     ~5.2 s instead of 6.6-8.7 s and ran 2.2-2.3 s instead of 2.5-2.7 s.)
 
