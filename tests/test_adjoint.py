@@ -182,3 +182,55 @@ def test_split_loop_equals_joint_scan_and_its_gradient_blocks(data, segment):
     want = (gP[M:, M:], gP[M:, :M], gG[:, M:], gG[:, :M], gw[M:], gj[:, M:])
     for a, b in zip(g, want):
         np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12 * float(jnp.max(jnp.abs(b))))
+
+
+class _Sums(eqx.Module):
+    """IAE, ISE and ITAE sums: ``update`` adds a function of ``(o, k, ts)``; with `additive`
+    the adjoint takes the outputs' cotangents of a whole segment at once."""
+
+    additive: bool = eqx.field(static=True)
+
+    def init(self, o0):
+        return (jnp.zeros_like(o0),) * 3
+
+    def update(self, acc, o, k, ts):
+        a = jnp.abs(o)
+        return acc[0] + a, acc[1] + o * o, acc[2] + (ts[k] - ts[0]) * a
+
+
+@pytest.mark.parametrize("segment", [None, 4])
+def test_additive_adjoint_equals_generic_and_plain_scan(data, segment):
+    # issue 13: the additive fast path (LossProblem: ō of a whole segment at once, the
+    # scan carrying only λ) against the generic per-step VJP and jax.grad of a plain scan
+    # of the same sums (oracle 1), with the grid ts differentiated too (its cotangent is
+    # only formed when ts is perturbed) and without it
+    d0, plant, ts, kon = split_data(data)
+
+    def scalar(d, ts, additive):
+        (s1, s2, s3), _, xi_end = split_recurrence_reduce(d + (ts,), plant, _Sums(additive), kon, segment)
+        return jnp.sum(s1) + 0.7 * jnp.sum(s2) - 0.3 * jnp.sum(s3) + jnp.sum(jnp.sin(xi_end))
+
+    def oracle(d, ts):
+        Poo, Pop, Go, Gp, xi0, jvo = d
+        Ppp, p0, jvp = plant
+
+        def step(c, k):
+            p, xi, acc = c
+            hit = (kon == k).astype(p.dtype)
+            pn = jnp.einsum("ijb,jb->ib", Ppp, p) + jnp.einsum("jb,jib->ib", hit, jvp)
+            xn = jnp.einsum("ijb,jb->ib", Poo, xi) + jnp.einsum("ijb,jb->ib", Pop, p) + jnp.einsum("jb,jib->ib", hit, jvo)
+            return (pn, xn, _Sums(False).update(acc, jnp.einsum("kib,ib->kb", Go, xn) + jnp.einsum("kib,ib->kb", Gp, pn),
+                                                k, ts)), None
+
+        (_, xi_end, (s1, s2, s3)), _ = jax.lax.scan(step, (p0, xi0, (jnp.zeros((K, B)),) * 3), jnp.arange(1, T))
+        return jnp.sum(s1) + 0.7 * jnp.sum(s2) - 0.3 * jnp.sum(s3) + jnp.sum(jnp.sin(xi_end))
+
+    want_v, want_g = jax.value_and_grad(oracle, argnums=(0, 1))(d0, ts)
+    for additive in (True, False):
+        v, g = jax.jit(jax.value_and_grad(lambda d, t, a=additive: scalar(d, t, a), argnums=(0, 1)))(d0, ts)
+        assert np.isclose(float(v), float(want_v), rtol=1e-13)
+        for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(want_g)):
+            np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-13 * max(1.0, float(jnp.max(jnp.abs(b)))))
+        gd = jax.jit(jax.grad(lambda d, a=additive: scalar(d, ts, a)))(d0)  # ts not differentiated
+        for a, b in zip(jax.tree.leaves(gd), jax.tree.leaves(want_g[0])):
+            np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-13 * max(1.0, float(jnp.max(jnp.abs(b)))))

@@ -50,6 +50,19 @@ backward recomputes one segment at a time (storing its $S$ states) and then runs
 adjoint through it. Memory is $O(2\sqrt n\, N b)$ instead of $O(n N b)$; the cost is one
 extra forward pass (the last segment is shorter when $S \nmid n$).
 
+**Where the reverse pass spends its time** (`study_loss` on the default §3.3.7 study,
+``q = 10`` observer states, ``m = 9`` plant states, ``K = 5`` outputs, blocks of ``b = 32``
+samples, 1,000 steps, B = 2,048; CPU seconds measured under load 3-11, issue 13): the
+forward 0.085 s; in the backward the segment recompute about 0.1 s, the λ scan 0.12 s,
+the outer-product sums (``q·N + K·N`` FMAs per sample and step, as many as a forward step)
+0.14 s, the outputs' cotangents 0.05 s. For problems whose ``update`` adds a function of
+``(o, k, ts)`` (``problem.additive``: `fojax.studies._exact.LossProblem`) the outputs'
+cotangents of a segment are taken at once and the λ scan carries only
+$\Phi_{\xi\xi}^\top\lambda$; other problems take the per-step VJP. Tried and not kept:
+unrolling the scans (2-8x slower on XLA CPU), one scan running the λ steps of a segment
+together with the recompute of the previous one (no faster), the outer-product sums as
+unrolled FMAs or batch-first einsums, or over a whole block (slower), blocks of 16 or 64.
+
 Only the observers' arrays (and ``ts``) are differentiated; ``update`` and ``init`` must depend on
 the problem's own arrays only through non-differentiable quantities (the settling
 threshold enters only an integer index).
@@ -94,13 +107,19 @@ def _float_part(tree):
 # --- the loop split into the plant (constant) and the observers (differentiated) ----------
 
 
-def _split_step(problem, plant, diff, kon, p, xi, acc, k):
-    """Step ``k`` (``1 ≤ k ≤ n``) of the split loop: ``(p_k, ξ_k, acc_k)``."""
+def _split_outputs(plant, diff, kon, p, xi, k):
+    """Step ``k`` (``1 ≤ k ≤ n``) of the split loop without the reduction: ``(p_k, ξ_k, o_k)``."""
     Ppp, _, jvp = plant
     Poo, Pop, Go, Gp, _, jvo, ts = diff
     pn = _jump(_matvec_last(Ppp, p), jvp, kon, k)
     xn = _jump(_matvec_last(Poo, xi) + _matvec_last(Pop, p), jvo, kon, k)
-    return pn, xn, problem.update(acc, _matvec_last(Go, xn) + _matvec_last(Gp, pn), k, ts)
+    return pn, xn, _matvec_last(Go, xn) + _matvec_last(Gp, pn)
+
+
+def _split_step(problem, plant, diff, kon, p, xi, acc, k):
+    """Step ``k`` (``1 ≤ k ≤ n``) of the split loop: ``(p_k, ξ_k, acc_k)``."""
+    pn, xn, o = _split_outputs(plant, diff, kon, p, xi, k)
+    return pn, xn, problem.update(acc, o, k, diff[6])
 
 
 def _split_layout(T: int, segment: int | None):
@@ -216,47 +235,74 @@ def _split_bwd(saved, grad_obj, perturbed, args, problem, kon, segment=None):
         acc_f0, given, is_leaf=lambda x: x is None)
     mu = jnp.zeros_like(xi0) if xi_bar is None else xi_bar
 
+    ts_bar = bool(perturbed[0][6])  # the grid's cotangent only when the grid is differentiated
+    additive = bool(getattr(problem, "additive", False))
+    q = xi0.shape[0]
+
     def update_vjp(acc_prev, o, k, cot):
         accf, acci = _float_part(acc_prev)
 
         def f(accf, o, ts):
             return _float_part(problem.update(eqx.combine(accf, acci), o, k, ts))[0]
 
-        _, vjp = jax.vjp(f, accf, o, ts)
-        return vjp(cot)
+        if ts_bar:
+            _, vjp = jax.vjp(f, accf, o, ts)
+            return vjp(cot)
+        _, vjp = jax.vjp(lambda accf, o: f(accf, o, ts), accf, o)
+        return vjp(cot) + (None,)
 
     def back_step(carry, x):
         mu, acc_bar, tb = carry
-        p_k, xi_k, acc_prev, k = x
-        o_k = _matvec_last(Go, xi_k) + _matvec_last(Gp, p_k)
+        o_k, acc_prev, k = x
         acc_bar, o_bar, t_bar = update_vjp(acc_prev, o_k, k, acc_bar)
         # Gᵀō as a dot: written as FMAs, XLA fused it (and ō) into every element of the
         # Φᵀλ product and recomputed it there (backward 6x slower)
         lam = mu + jnp.einsum("kib,kb->ib", Go, o_bar)
-        return (_rmatvec_last(Poo, lam), acc_bar, tb + t_bar), (lam, o_bar)
+        return (_rmatvec_last(Poo, lam), acc_bar, tb if t_bar is None else tb + t_bar), (lam, o_bar)
+
+    def lam_step(mu, r_k):
+        lam = mu + r_k
+        return _rmatvec_last(Poo, lam), lam
 
     def back(carry, start, ks):
         """The adjoint through the steps ``ks`` from the checkpoint ``start``."""
-        mu, acc_bar, Poo_b, Pop_b, Go_b, Gp_b, jb, tb = carry
+        mu, acc_bar, Po_b, G_b, jb, tb = carry
 
         def rec(c, k):
-            new = _split_step(problem, plant, diff, kon, *c, k)
-            return new, (c[0], c[1], c[2], new[0], new[1])
+            p, xi, acc = c
+            pn, xn, o = _split_outputs(plant, diff, kon, p, xi, k)
+            return (pn, xn, problem.update(acc, o, k, ts)), (pn, xn, o, acc)
 
-        _, (p_prev, xi_prev, acc_prev, p_k, xi_k) = lax.scan(rec, start, ks)
-        (mu, acc_bar, tb), (lam, o_bar) = lax.scan(back_step, (mu, acc_bar, tb), (p_k, xi_k, acc_prev, ks),
-                                                   reverse=True)
-        Poo_b = Poo_b + jnp.einsum("kib,kjb->ijb", lam, xi_prev)
-        Pop_b = Pop_b + jnp.einsum("kib,kjb->ijb", lam, p_prev)
-        Go_b = Go_b + jnp.einsum("kib,kjb->ijb", o_bar, xi_k)
-        Gp_b = Gp_b + jnp.einsum("kib,kjb->ijb", o_bar, p_k)
+        _, (p_k, xi_k, o_k, acc_prev) = lax.scan(rec, start, ks)
+        if additive:
+            # acc_k = acc_{k-1} + g(o_k): its cotangent is the same at every step, so the
+            # outputs' cotangents and Gᵀō of the whole segment are computed at once, and
+            # the sequential scan carries only λ_k = Φᵀλ_{k+1} + Gᵀō_k (q² FMAs per step)
+            _, o_bar, t_bar = jax.vmap(lambda a, o, k: update_vjp(a, o, k, acc_bar))(acc_prev, o_k, ks)
+            if t_bar is not None:
+                tb = tb + jnp.sum(t_bar, axis=0)
+            r = Go[0][None] * o_bar[:, 0][:, None, :]
+            for i in range(1, Go.shape[0]):
+                r = r + Go[i][None] * o_bar[:, i][:, None, :]
+            mu, lam = lax.scan(lam_step, mu, r, reverse=True)
+        else:
+            (mu, acc_bar, tb), (lam, o_bar) = lax.scan(back_step, (mu, acc_bar, tb), (o_k, acc_prev, ks),
+                                                       reverse=True)
+        # the outer-product sums, observer and plant columns in one product each:
+        # Σ λ_k [ξ_{k-1}; p_{k-1}]ᵀ and Σ ō_k [ξ_k; p_k]ᵀ
+        w_k = jnp.concatenate([xi_k, p_k], axis=1)
+        w_prev = jnp.concatenate([jnp.concatenate([start[1], start[0]], axis=0)[None], w_k[:-1]], axis=0)
+        Po_b = Po_b + jnp.einsum("kib,kjb->ijb", lam, w_prev)
+        G_b = G_b + jnp.einsum("kib,kjb->ijb", o_bar, w_k)
         if jb is not None:
             hit = jnp.where(kon[None] == ks[:, None, None], 1.0, 0.0)  # (steps, J, b)
             jb = jb + jnp.einsum("kjb,kib->jib", hit, lam)
-        return (mu, acc_bar, Poo_b, Pop_b, Go_b, Gp_b, jb, tb)
+        return (mu, acc_bar, Po_b, G_b, jb, tb)
 
     zeros = jnp.zeros_like
-    carry = (mu, acc_bar, zeros(Poo), zeros(Pop), zeros(Go), zeros(Gp), None if jvo is None else zeros(jvo), zeros(ts))
+    N = q + Pop.shape[1]
+    carry = (mu, acc_bar, jnp.zeros((q, N) + Poo.shape[2:], Poo.dtype), jnp.zeros((Go.shape[0], N) + Go.shape[2:], Go.dtype),
+             None if jvo is None else zeros(jvo), zeros(ts))
     if tail:
         carry = back(carry, tail_ck, 1 + full * S + jnp.arange(tail))
 
@@ -266,7 +312,8 @@ def _split_bwd(saved, grad_obj, perturbed, args, problem, kon, segment=None):
 
     if full:
         carry, _ = lax.scan(segment_back, carry, jnp.arange(full), reverse=True)
-    mu, acc_bar, Poo_b, Pop_b, Go_b, Gp_b, jb, tb = carry
+    mu, acc_bar, Po_b, G_b, jb, tb = carry
+    Poo_b, Pop_b, Go_b, Gp_b = Po_b[:, :q], Po_b[:, q:], G_b[:, :q], G_b[:, q:]
     o0 = _matvec_last(Go, xi0) + _matvec_last(Gp, p0)
     _, vjp0 = jax.vjp(lambda o: _float_part(problem.init(o))[0], o0)
     (o0_bar,) = vjp0(acc_bar)

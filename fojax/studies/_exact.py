@@ -378,6 +378,10 @@ class LossProblem(eqx.Module):
     study: StudyProblem
     metric: str = eqx.field(static=True)
     keep = False
+    # `update` adds a function of the step's outputs to the accumulator: the adjoint of
+    # `fojax.studies._adjoint.split_recurrence_reduce` takes the outputs' cotangents of a
+    # whole checkpoint segment at once
+    additive = True
 
     def joint(self, p):
         return self.study.joint(p)
@@ -513,7 +517,7 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
     """Per-sample metrics ``(5, K, B)`` and success ``(B,)`` of every sample, exactly and
     reverse-differentiably with respect to the observers (the time loop split into the
     plant and the observers, `_split_loop`; blocks of `DIFF_BLOCK` samples, `expm_last` with a
-    fixed-length squaring scan, the masked full-size slow coordinates so that nothing
+    squaring budget and its hand-written reverse mode, the masked full-size slow coordinates so that nothing
     needs ``rank E`` on the host). With `metric` (``"iae"`` or ``"ise"``) only that metric
     is accumulated (`LossProblem`) and the result is ``(1, K, B)``. With a `mesh`
     (`fojax.studies._sharding.sample_mesh`) the samples are cut over its devices, possibly
