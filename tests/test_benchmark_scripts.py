@@ -314,6 +314,26 @@ def test_hinf_vs_region_lc_case_is_the_lc_filter_with_consistent_x0():
     assert not np.any(np.asarray(hinf_vs_region.study(None, "lc_noise", 2, 1, 0.5, 0.05, seed=3).x0))  # at rest
 
 
+def _twin_is_the_same_system(tc, model, rows, states, n):
+    """The rescaled twin of `tuning_circuit.py --model <model>`: scale factors spanning
+    1e-3…1e3, the plain model's finite poles (oracle: its QZ), the same y and z for the same
+    physical state, and studies drawing the same physical initial states (x0' = Dc⁻¹ x0).
+    Returns the plain study's initial states and the plain study."""
+    plain, twin = getattr(tc, model)(), getattr(tc, model)(scaled=True)
+    assert np.ptp(np.log10(rows)) == 6 and np.ptp(np.log10(states)) == 6
+    assert_eigenvalues_match(_finite_poles(twin["A"], twin["E"]), _finite_poles(plain["A"], plain["E"]), rtol=1e-6)
+    S = twin["Dc"]
+    x = np.arange(1.0, n + 1.0)
+    for k in ("C", "L"):
+        np.testing.assert_allclose(twin[k] @ np.linalg.solve(S, x), plain[k] @ x, rtol=1e-14)
+    _, _, st_plain = tc.build(False, 2, 3, seed=0, model=model)
+    _, _, st_twin = tc.build(True, 2, 3, seed=0, model=model)
+    x0p, x0t = (np.asarray(st.scenarios[0].values) for st in (st_plain, st_twin))
+    assert x0p.shape == (3, n)
+    np.testing.assert_allclose(x0t * np.diag(S), x0p, rtol=1e-12)
+    return x0p, st_plain
+
+
 def test_tuning_benchmark_flexible_drive_twin_is_the_same_drive():
     """`tuning_circuit.py --model flexible_drive`: the twin (rows and states rescaled by
     1e-3 .. 1e3) has the drive's finite poles (oracle: the plain model's QZ), the same y and z
@@ -321,18 +341,8 @@ def test_tuning_benchmark_flexible_drive_twin_is_the_same_drive():
     (x0' = Dc^-1 x0) on the five differential states only."""
     import tuning_circuit as tc
 
-    plain, twin = tc.flexible_drive(), tc.flexible_drive(scaled=True)
-    assert np.ptp(np.log10(tc.DRIVE_TWIN_ROWS)) == 6 and np.ptp(np.log10(tc.DRIVE_TWIN_STATES)) == 6
-    assert_eigenvalues_match(_finite_poles(twin["A"], twin["E"]), _finite_poles(plain["A"], plain["E"]), rtol=1e-6)
-    S = twin["Dc"]
-    x = np.arange(1.0, 9.0)
-    for k in ("C", "L"):
-        np.testing.assert_allclose(twin[k] @ np.linalg.solve(S, x), plain[k] @ x, rtol=1e-14)
-    _, _, st_plain = tc.build(False, 2, 3, seed=0, model="flexible_drive")
-    _, _, st_twin = tc.build(True, 2, 3, seed=0, model="flexible_drive")
-    x0p, x0t = (np.asarray(st.scenarios[0].values) for st in (st_plain, st_twin))
-    assert x0p.shape == (3, 8) and st_plain.signal_names == ("tau2",)
-    np.testing.assert_allclose(x0t * np.diag(S), x0p, rtol=1e-12)
+    x0p, st_plain = _twin_is_the_same_system(tc, "flexible_drive", tc.DRIVE_TWIN_ROWS, tc.DRIVE_TWIN_STATES, 8)
+    assert st_plain.signal_names == ("tau2",)
     assert not np.any(x0p[:, 5:]) and np.all(np.abs(x0p[:, :5]) <= 1.0) and np.ptp(x0p[:, :5]) > 0.5
 
 
@@ -344,18 +354,8 @@ def test_tuning_benchmark_two_area_power_twin_is_the_same_system():
     other draws."""
     import tuning_circuit as tc
 
-    plain, twin = tc.two_area_power(), tc.two_area_power(scaled=True)
-    assert np.ptp(np.log10(tc.POWER_TWIN_ROWS)) == 6 and np.ptp(np.log10(tc.POWER_TWIN_STATES)) == 6
-    assert_eigenvalues_match(_finite_poles(twin["A"], twin["E"]), _finite_poles(plain["A"], plain["E"]), rtol=1e-6)
-    S = twin["Dc"]
-    x = np.arange(1.0, 11.0)
-    for k in ("C", "L"):
-        np.testing.assert_allclose(twin[k] @ np.linalg.solve(S, x), plain[k] @ x, rtol=1e-14)
-    _, _, st_plain = tc.build(False, 2, 3, seed=0, model="two_area_power")
-    _, _, st_twin = tc.build(True, 2, 3, seed=0, model="two_area_power")
-    x0p, x0t = (np.asarray(st.scenarios[0].values) for st in (st_plain, st_twin))
-    assert x0p.shape == (3, 10) and st_plain.signal_names == ("Pm1",)
-    np.testing.assert_allclose(x0t * np.diag(S), x0p, rtol=1e-12)
+    x0p, st_plain = _twin_is_the_same_system(tc, "two_area_power", tc.POWER_TWIN_ROWS, tc.POWER_TWIN_STATES, 10)
+    assert st_plain.signal_names == ("Pm1",)
     assert not np.any(x0p[:, 7:]) and np.all(np.abs(x0p[:, [0, 2]]) <= 0.002) and np.ptp(x0p[:, 3:7]) > 0.01
     np.testing.assert_allclose(np.asarray(st_plain.u(np.asarray(np.pi / 4))), [0.1], rtol=1e-12)
     assert tc.region_of("two_area_power").describe() != tc.region_of("flexible_drive").describe()
