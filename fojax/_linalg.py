@@ -97,15 +97,15 @@ def canonical_row_space(M, tol: float | None = None) -> np.ndarray:
     (e.g. $M$ is an orthogonal projector, all of them 1) that basis is an arbitrary rotation
     $WQ$ decided by rounding, and even distinct singular values leave the signs to LAPACK.
     Callers that take only the *first* rows of a basis, or search along its rows, must not
-    depend on that. Derivation: let $Q$ ($k 	imes c$) be any orthonormal basis and
-    $P = Q^	op Q$ the orthogonal projector onto the subspace (the same for every $WQ$, $W$
+    depend on that. Derivation: let $Q$ ($k \times c$) be any orthonormal basis and
+    $P = Q^\top Q$ the orthogonal projector onto the subspace (the same for every $WQ$, $W$
     orthogonal). Pivoted Gram–Schmidt on the columns $Qe_j$ selects $J_1$ = the column of
     largest norm $\|Qe_j\|^2 = P_{jj}$, then the column of largest residual after removing
     the span of the columns chosen so far, and so on; these norms are functions of the Gram
-    matrix $(Qe_i)^	op Qe_j = P_{ij}$ only, so the pivots $J = (J_1, \dots, J_k)$ do not
+    matrix $(Qe_i)^\top Qe_j = P_{ij}$ only, so the pivots $J = (J_1, \dots, J_k)$ do not
     depend on $W$. With the QR factorization $Q_{:,J} = U R_J$ ($R_J$ upper triangular with
-    positive diagonal, unique) the result is $U^	op Q$: for $WQ$ the factorization is
-    $(WU)R_J$ and $(WU)^	op WQ = U^	op Q$, exactly the same rows. Row $i$ is the
+    positive diagonal, unique) the result is $U^\top Q$: for $WQ$ the factorization is
+    $(WU)R_J$ and $(WU)^\top WQ = U^\top Q$, exactly the same rows. Row $i$ is the
     normalised component of $Pe_{J_i}$ orthogonal to $Pe_{J_1}, \dots, Pe_{J_{i-1}}$; in
     particular the first row is $Pe_{J_1}/\|Pe_{J_1}\|$, the direction of the subspace
     closest to coordinate $J_1$, the coordinate the subspace sees best. Since the first $i$

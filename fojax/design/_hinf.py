@@ -621,9 +621,9 @@ RICCATI_GAPS = (1e-4, 1e-3, 1e-2)
 def riccati_gamma(A, B, C, D, norm) -> float | None:
     r"""A certified bound γ ≥ ‖T‖∞ for a system without an LMI certificate (a tuned design): the
     stabilizing solution $Y$ of the bounded-real Riccati equation at $\gamma_0 = $ `norm`
-    ``·(1 + gap)`` (`RICCATI_GAPS`, tried in turn), $A^	op Y + YA + C^	op C + \epsilon I + (YB + C^	op D)
-    (\gamma_0^2I - D^	op D)^{-1}(B^	op Y + D^	op C) = 0$ (SciPy ``solve_continuous_are`` with
-    the negative definite weight $-(\gamma_0^2I - D^	op D)$), gives $X = Y/\gamma_0$ at which the BRL
+    ``·(1 + gap)`` (`RICCATI_GAPS`, tried in turn), $A^\top Y + YA + C^\top C + \epsilon I + (YB + C^\top D)
+    (\gamma_0^2I - D^\top D)^{-1}(B^\top Y + D^\top C) = 0$ (SciPy ``solve_continuous_are`` with
+    the negative definite weight $-(\gamma_0^2I - D^\top D)$), gives $X = Y/\gamma_0$ at which the BRL
     matrix of the designs (`brl_matrix`) is negative definite (Schur complement); `certify_gamma`
     re-checks it in float64 exactly as for an H∞ design. ``None`` when that fails (reported as
     "not certified")."""
