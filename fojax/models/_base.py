@@ -30,6 +30,21 @@ def _array(rows) -> np.ndarray:
     return arr
 
 
+def physical_parameters(model: str, defaults: Mapping[str, float], given: Mapping[str, Any],
+                        positive: tuple[str, ...], what: str) -> dict[str, float]:
+    """The parameters of a model that is not from the thesis: `defaults` overridden by
+    `given` (as floats). Raises `TypeError` naming unknown names and `ValueError` naming the
+    first of `positive` that is not > 0 (`what` says what those are, for the message)."""
+    unknown = set(given) - set(defaults)
+    if unknown:
+        raise TypeError(f"{model} got unknown parameters {sorted(unknown)}; known: {sorted(defaults)}")
+    p = {**defaults, **{k: float(v) for k, v in given.items()}}
+    for k in positive:
+        if not p[k] > 0:
+            raise ValueError(f"{model}: {k} must be positive ({what}); got {p[k]}.")
+    return p
+
+
 @dataclasses.dataclass(frozen=True, eq=False, repr=False)
 class ThesisExample:
     r"""One numerical example of the thesis, with every printed quantity.

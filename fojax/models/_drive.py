@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..plant import DescriptorSystem
-from ._base import _array, ThesisExample
+from ._base import _array, physical_parameters, ThesisExample
 
 
 #: per-unit defaults of `flexible_drive` (see its docstring)
@@ -70,14 +70,8 @@ def flexible_drive(k_2_uncertainty: float = 0.5, **params) -> ThesisExample:
     above), ``L`` (``(1, 8)``: $z = \tau_2$), ``dA`` (``(8, 8)``), ``params`` and ``states``
     (the names, in order).
     """
-    unknown = set(params) - set(DRIVE_PARAMS)
-    if unknown:
-        raise TypeError(f"flexible_drive got unknown parameters {sorted(unknown)}; known: {sorted(DRIVE_PARAMS)}")
-    p = {**DRIVE_PARAMS, **{k: float(v) for k, v in params.items()}}
-    for k in ("J_m", "J_1", "J_2", "R", "N", "k_1", "k_2"):
-        if not p[k] > 0:
-            raise ValueError(f"flexible_drive: {k} must be positive (a physical inertia, resistance, gear ratio "
-                             f"or stiffness); got {p[k]}.")
+    p = physical_parameters("flexible_drive", DRIVE_PARAMS, params, ("J_m", "J_1", "J_2", "R", "N", "k_1", "k_2"),
+                            "a physical inertia, resistance, gear ratio or stiffness")
     iw, ip1, iw1, ip2, iw2, ii, it1, it2 = range(8)
     E = np.diag([p["J_m"], 1.0, p["J_1"], 1.0, p["J_2"], 0.0, 0.0, 0.0])
     A = np.zeros((8, 8))

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..plant import DescriptorSystem
-from ._base import _array, ThesisExample
+from ._base import _array, physical_parameters, ThesisExample
 
 
 #: per-unit defaults of `two_area_power` (see its docstring)
@@ -144,14 +144,9 @@ def two_area_power(inertia_uncertainty: float = 0.4, **params) -> ThesisExample:
     `fojax.DescriptorSystem` and the quantities ``E, A, B, C`` (as above), ``L``
     (``(1, 10)``: $z = \Delta P_{m1}$), ``dA`` (``(10, 10)``), ``params`` and ``states``.
     """
-    unknown = set(params) - set(POWER_PARAMS)
-    if unknown:
-        raise TypeError(f"two_area_power got unknown parameters {sorted(unknown)}; known: {sorted(POWER_PARAMS)}")
-    p = {**POWER_PARAMS, **{k: float(v) for k, v in params.items()}}
-    for k in ("H_1", "H_2", "R_1", "R_2", "tau_g1", "tau_t1", "tau_g2", "tau_t2", "P_s"):
-        if not p[k] > 0:
-            raise ValueError(f"two_area_power: {k} must be positive (an inertia, droop, time constant or "
-                             f"synchronizing coefficient); got {p[k]}.")
+    p = physical_parameters("two_area_power", POWER_PARAMS, params,
+                            ("H_1", "H_2", "R_1", "R_2", "tau_g1", "tau_t1", "tau_g2", "tau_t2", "P_s"),
+                            "an inertia, droop, time constant or synchronizing coefficient")
     a = float(inertia_uncertainty)
     if not 0.0 <= a < 1.0:
         raise ValueError(f"two_area_power: inertia_uncertainty must be in [0, 1) (1/(2 H_1) times 1 + a delta, "
