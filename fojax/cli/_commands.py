@@ -984,7 +984,7 @@ def _tune(tuning, cfg, design, train, **kw):
     from .. import studies
     from . import _distributed
 
-    exact = studies.exact_refusal(train, (design.observer,)) is None
+    exact = studies.exact_refusal(train, (design.observer,), kw.get("stepper")) is None
     return tuning.tune(design, train, devices=_distributed.tuning_devices(exact), **kw)  # LTI and T-S: one `tune`
 
 

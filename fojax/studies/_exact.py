@@ -435,12 +435,16 @@ def blocked(fn, p, width: int):
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
 
-def exact_refusal(study, observers) -> str | None:
+def exact_refusal(study, observers, stepper=None) -> str | None:
     """Why the exact batch kernel cannot run `study` (``None``: it can): the one test of
-    `exact_problem` (`run_study`) and `traced_qualifies` (`study_loss`). Decided from the
-    types and shapes of sample 0 (no arrays are computed, so it also works on a traced
-    study) and from the grid when it is concrete (`grid_deviation`, the one uniform-grid
-    test; a traced grid is assumed uniform, as `fojax.Auto` does)."""
+    `exact_problem` (`run_study`), `study_loss`, `resolve_engine` and `tune`'s device
+    check. Decided from the types and shapes of sample 0 (no arrays are computed, so it
+    also works on a traced study) and from the grid when it is concrete (`grid_deviation`,
+    the one uniform-grid test; a traced grid is assumed uniform, as `fojax.Auto` does).
+    With a `stepper` (`fojax.Auto`, `fojax.Exact`, ...), also refused when its engines
+    exclude ``"exact-batch"``."""
+    if stepper is not None and "exact-batch" not in stepper.engines:
+        return f"the stepper {type(stepper).__name__} excludes the exact engine"
     if not all(_structure(_observer_lti, o) is not None for o in observers):
         return "an observer is not LTI"
     if is_concrete(study.ts) and not grid_deviation(study.ts)[0] <= UNIFORM_GRID_RTOL:
@@ -451,12 +455,6 @@ def exact_refusal(study, observers) -> str | None:
     if not exactly_generated(study.u) or (fault is not None and not exactly_generated(fault)):
         return "a signal has no exact exosystem"
     return None
-
-
-def traced_qualifies(study, observers) -> bool:
-    """Whether `study_loss` can use the exact kernel (`exact_refusal`; works on a traced
-    study inside `jax.jit` / `jax.grad`)."""
-    return exact_refusal(study, observers) is None
 
 
 def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts):

@@ -74,7 +74,7 @@ from ..simulation._save import (
     UNSET,
 )
 from ..simulation._steppers import AbstractStepper, Exponential, resolve_stepper
-from ._exact import exact_problem, sample_metrics_traced, traced_qualifies
+from ._exact import exact_problem, exact_refusal, sample_metrics_traced
 from ._exponential import exponential_metrics_traced, exponential_problem, exponential_schedule
 from ._families import Family
 from ._sharding import (
@@ -699,7 +699,7 @@ def resolve_engine(study: Study, observers, cfg: SimConfig = SimConfig()) -> Sim
     """
     observers = tuple(observers) if isinstance(observers, (tuple, list)) else (observers,)
     stepper = cfg.stepper
-    if "exact-batch" in stepper.engines and traced_qualifies(study, observers):
+    if exact_refusal(study, observers, stepper) is None:
         return cfg
     if "exponential-batch" not in stepper.engines or sample_mesh(cfg.devices) is not None:
         return cfg
@@ -750,7 +750,7 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     w = jnp.full((study.num_signals,), 1.0 / study.num_signals) if weights is None else jnp.asarray(weights)
     mesh = sample_mesh(cfg.devices)
     stepper = cfg.stepper  # its engines, in order (fojax.simulation._steppers)
-    if "exact-batch" in stepper.engines and traced_qualifies(study, (observer,)):
+    if exact_refusal(study, (observer,), stepper) is None:
         # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
         mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh, metric=loss)
         per = w @ mets[0]  # (B,)

@@ -395,8 +395,7 @@ def tune(
     # exponential engine's schedule, so the jitted step, where the study is traced, runs on it)
     obs0 = _observer(par, params0)
     if cfg.devices is not None and len(cfg.devices) > 1:
-        why = (exact_refusal(train_study, (obs0,)) if "exact-batch" in cfg.stepper.engines
-               else f"the stepper {type(cfg.stepper).__name__} excludes the exact engine")
+        why = exact_refusal(train_study, (obs0,), cfg.stepper)
         if why is not None:
             raise InputError(
                 f"tune over {len(cfg.devices)} devices differentiates the study on the exact engine only, and this "
