@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import math
 from collections.abc import Callable, Mapping
 
 import equinox as eqx
@@ -282,8 +283,6 @@ def _expm_parts(M):
 
 
 def _taylor_coefficient(k: int) -> float:
-    import math
-
     return 1.0 / math.factorial(k)
 
 
@@ -311,11 +310,16 @@ def expm_last(M, max_squarings: int | None = None):
     if max_squarings is not None:
         return _expm_last_diff(M, int(max_squarings))
     s, _, _, _, E = _expm_parts(M)
+    return lax.fori_loop(0, jnp.max(s), _squaring(s), E)
+
+
+def _squaring(s):
+    """The ``i``-th squaring of `expm_last`, applied to the samples with ``i < s``."""
 
     def square(i, E):
         return jnp.where((i < s)[None, None, :], _mm_last(E, E), E)
 
-    return lax.fori_loop(0, jnp.max(s), square, E)
+    return square
 
 
 def _mm_t(A, B):
@@ -334,10 +338,7 @@ def _expm_diff_forward(M, max_squarings: int, keep: bool = False):
     inputs ``stack`` ``(max_squarings, N, N, b)`` (from index ``smax`` on unused)."""
     s, X, powers, horner, E = _expm_parts(M)
     smax = jnp.minimum(jnp.max(s), max_squarings)
-
-    def square(i, E):
-        return jnp.where((i < s)[None, None, :], _mm_last(E, E), E)
-
+    square = _squaring(s)
     if keep:
         def square_keep(i, c):
             E, stack = c
