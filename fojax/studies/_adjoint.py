@@ -281,9 +281,7 @@ def _split_bwd(saved, grad_obj, perturbed, args, problem, kon, segment=None):
             _, o_bar, t_bar = jax.vmap(lambda a, o, k: update_vjp(a, o, k, acc_bar))(acc_prev, o_k, ks)
             if t_bar is not None:
                 tb = tb + jnp.sum(t_bar, axis=0)
-            r = Go[0][None] * o_bar[:, 0][:, None, :]
-            for i in range(1, Go.shape[0]):
-                r = r + Go[i][None] * o_bar[:, i][:, None, :]
+            r = jax.vmap(_rmatvec_last, in_axes=(None, 0))(Go, o_bar)  # Gᵀō_k for every step k
             mu, lam = lax.scan(lam_step, mu, r, reverse=True)
         else:
             (mu, acc_bar, tb), (lam, o_bar) = lax.scan(back_step, (mu, acc_bar, tb), (o_k, acc_prev, ks),
