@@ -94,10 +94,17 @@ of two areas joined by a tie line, index 1, n = 10, y = the two frequencies and 
 flow, z = area 1's mechanical power, area 1's inverse inertia uncertain by ±40 %. Its settings
 (region ``Disk(-3.5, 2.5)``, ``q0 = 5``, $u = 0.1\sin 2t$, small initial deviations; the rest
 as above) and the a-priori argument are in the model's docstring, committed before its first
-tuning run. Because its centred design is 15× worse than its min-gain LMI design (measured
-before tuning), it also records tuning from the min-gain design (``"plain_from_min_gain_lmi/live"``,
+tuning run. Because its centred design was 15× worse than its min-gain LMI design (measured
+before tuning, with the earlier default R), it also records tuning from the min-gain design (``"plain_from_min_gain_lmi/live"``,
 ``summary.a_from_min_gain_lmi_heldout_change``). ``--delta-share`` (all models) measures the
 δ-caused share of the centred and the tuned designs' held-out IAE (``"delta_share"``).
+
+Its current run (the committed settings, after the default R's bases became canonical, load
+1.8–6; ``tuning_two_area_power_latest.json``): (a) −94.2 % against the centred design
+(0.1269 → 0.0073) and −90.9 % against the min-gain design (0.0799); (b) DFO at equal
+wall-clock found no better point; (c) twin −0.6 % (``live``), −23 % (``whiten``: the plain
+model's whitened run stalls at 0.0094). The first run below used the earlier,
+rounding-dependent default R (another basis of the same block; ``previous_run_svd_basis_R``).
 
 Its first run (the committed settings, one run, load average 11.7 → 16.1): (a) −94.1 %
 against the centred design (0.1099 → 0.00648; 10 of 251 parameters live; 100 steps, none
@@ -112,7 +119,8 @@ twin's centred design is not the plain one's (IAE 0.0518 vs 0.1099, both ``balan
 nearly insensitive to $H_1$ (the a-priori argument (ii)); what remains (δ = 0: 0.00644, 99 %
 of the tuned IAE) is the initial-state transient, which the region bounds.
 
-**Why tuning gains what it gains (``--delta-share`` on each model, one run each, under load;
+**Why tuning gains what it gains (``--delta-share`` on each model with the earlier default R,
+one run each, under load; re-run with the canonical R in each result's ``"delta_share"``;
 held-out IAE of the centred → tuned design, on the samples as drawn / with δ = 0 / with the
 initial states 0, i.e. the error δ alone causes).** LC filter: 0.681 → 0.532 (−21.9 %) /
 0.488 → 0.306 (−37 %) / 0.169 → 0.203 (+20 %): tuning speeds up the transient and pays with
@@ -177,22 +185,31 @@ POWER_TWIN_ROWS = np.array([1e-3, 1e2, 1.0, 1e3, 1e-2, 10.0, 1e-3, 1e3, 1e-2, 10
 POWER_TWIN_STATES = np.array([1e3, 1e-3, 1e2, 1.0, 1e-3, 1e3, 1e-2, 10.0, 1e2, 1e-3])
 
 
-def flexible_drive(scaled: bool = False) -> dict:
-    """``dict(E, A, B, C, L, dA, Dc)`` of `fojax.models.flexible_drive` (defaults), or of its
-    badly scaled twin (`lc_filter.rescaled` by `DRIVE_TWIN_ROWS`, `DRIVE_TWIN_STATES`)."""
-    ex = fojax.models.flexible_drive()
+def _model_matrices(factory, rows, states, scaled: bool) -> dict:
+    """``dict(E, A, B, C, L, dA, Dc)`` of a `fojax.models` model at its defaults, or of its
+    badly scaled twin (`lc_filter.rescaled` by `rows`, `states`)."""
+    ex = factory()
     m = {k: np.asarray(getattr(ex, k)) for k in ("E", "A", "B", "C", "L", "dA")}
     n = m["A"].shape[0]
-    return rescaled(m, DRIVE_TWIN_ROWS, DRIVE_TWIN_STATES) if scaled else rescaled(m, np.ones(n), np.ones(n))
+    return rescaled(m, rows, states) if scaled else rescaled(m, np.ones(n), np.ones(n))
+
+
+def flexible_drive(scaled: bool = False) -> dict:
+    """`fojax.models.flexible_drive` (defaults), or its twin (`DRIVE_TWIN_ROWS`, `DRIVE_TWIN_STATES`)."""
+    return _model_matrices(fojax.models.flexible_drive, DRIVE_TWIN_ROWS, DRIVE_TWIN_STATES, scaled)
 
 
 def two_area_power(scaled: bool = False) -> dict:
-    """``dict(E, A, B, C, L, dA, Dc)`` of `fojax.models.two_area_power` (defaults: inverse inertia
-    of area 1 uncertain by ±40 %), or of its badly scaled twin (`POWER_TWIN_ROWS`, `POWER_TWIN_STATES`)."""
-    ex = fojax.models.two_area_power()
-    m = {k: np.asarray(getattr(ex, k)) for k in ("E", "A", "B", "C", "L", "dA")}
-    n = m["A"].shape[0]
-    return rescaled(m, POWER_TWIN_ROWS, POWER_TWIN_STATES) if scaled else rescaled(m, np.ones(n), np.ones(n))
+    """`fojax.models.two_area_power` (defaults: inverse inertia of area 1 uncertain by ±40 %), or
+    its twin (`POWER_TWIN_ROWS`, `POWER_TWIN_STATES`)."""
+    return _model_matrices(fojax.models.two_area_power, POWER_TWIN_ROWS, POWER_TWIN_STATES, scaled)
+
+
+def centred_design(sys_, m, args, **kw):
+    """The start of (a): the well-centred generalized LMI design of `args.model` at `args.q0`
+    (``balance=args.balance`` unless `kw` says otherwise)."""
+    kw = dict(q0=args.q0, objective="centre", balance=bool(args.balance)) | kw
+    return design_functional_observer(sys_, m["L"], kind="generalized", region=region_of(args.model), **kw)
 
 
 #: ``--model``: matrices(scaled), the bound of the physical initial draws per state (0: an
@@ -353,8 +370,7 @@ def long_run(args):
     load0 = _common.load_average()
     m, sys_, train = build(False, args.nu, args.nx, seed=0, model=args.model)
     _, _, held = build(False, args.heldout_nu, args.heldout_nx, seed=1, model=args.model)
-    d = design_functional_observer(sys_, m["L"], kind="generalized", region=region_of(args.model), q0=args.q0, objective="centre",
-                                   balance=bool(args.balance))
+    d = centred_design(sys_, m, args)
     opt = fojax.tuning.shared_optimizer("adam", learning_rate=args.lr)
     res, wall = clock(lambda: fojax.tune(d, train, heldout=held, optimizer=opt, steps=args.long_steps,
                                          eval_every=100, method="exact"))
@@ -383,8 +399,7 @@ def dfo_rerun(args):
     load0 = _common.load_average()
     m, sys_, train = build(False, args.nu, args.nx, seed=0, model=args.model)
     _, _, held = build(False, args.heldout_nu, args.heldout_nx, seed=1, model=args.model)
-    d = design_functional_observer(sys_, m["L"], kind="generalized", region=region_of(args.model), q0=args.q0, objective="centre",
-                                   balance=bool(args.balance))
+    d = centred_design(sys_, m, args)
     budget = out["tune"]["plain/live"]["wall_s"]
     if "dfo_certify_at_end" not in out:
         out["dfo_certify_at_end"] = out["dfo"]
@@ -465,10 +480,8 @@ def delta_share(args):
     helds = {"as_drawn": build(False, args.heldout_nu, args.heldout_nx, seed=1, model=args.model)[2],
              "delta_0": build(False, args.heldout_nu, args.heldout_nx, seed=1, model=args.model, delta_bound=0.0)[2],
              "x0_0": build(False, args.heldout_nu, args.heldout_nx, seed=1, model=args.model, x0_scale=0.0)[2]}
-    d = design_functional_observer(sys_, m["L"], kind="generalized", region=region_of(args.model), q0=args.q0,
-                                   objective="centre", balance=bool(args.balance))
-    d_min = design_functional_observer(sys_, m["L"], kind="generalized", region=region_of(args.model), q0=args.q0,
-                                       balance=bool(args.balance))
+    d = centred_design(sys_, m, args)
+    d_min = centred_design(sys_, m, args, objective="region")  # the default objective: min-gain
     res, _, r = run_tune(d, train, helds["as_drawn"], args.steps, args.lr, "live")
     rows = {}
     for label, design_ in (("centred", d), ("min_gain", d_min), ("tuned", res.design)):
@@ -503,8 +516,7 @@ def diagnose(args):
     big, huge = Disk(-6.0, 5.9), Disk(-30.0, 29.9)  # both contain Disk(-3, 2)
 
     def design(q0):
-        return design_functional_observer(sys_, m["L"], kind="generalized", region=region_of(args.model), q0=q0,
-                                          objective="centre", balance=True)
+        return centred_design(sys_, m, args, q0=q0, balance=True)
 
     d3 = design(args.q0)
     opt = fojax.tuning.shared_optimizer("adam", learning_rate=args.lr)
