@@ -253,13 +253,32 @@ def test_balance_key_reaches_the_design(tmp_path):
     assert design.report.passed and "balance" in design.solver
 
 
+def test_balance_key_reaches_the_unknown_input_design(tmp_path):
+    """``balance = true`` on an ``unknown-input`` observer reaches
+    `design_unknown_input_observer` through the CLI's design step (the design is the unit-free
+    one: ``solver["balance"]`` holds the factors)."""
+    from fojax.cli._commands import _design_observer
+
+    d = base()
+    d["observer"][0].update(kind="unknown-input", D=[[0.0], [0.0], [1.0], [0.0]], balance=True)
+    cfg = load_config(write(tmp_path, d))
+    spec = cfg.observers[0]
+    assert spec.balance is True
+    design = _design_observer(None, cfg.design_system(), cfg.design_L(), spec)
+    assert design.report.passed and "balance" in design.solver
+
+
 @pytest.mark.parametrize("extra,what", [
     ({"objective": "hinf", "Bw": [[1.0]] * 4}, r'is not used with objective = "hinf"'),
-    ({"kind": "unknown-input", "D": [[1.0], [0.0], [0.0], [0.0]]}, r"not 'unknown-input': remove the key"),
+    ({"kind": "finite-time", "delay": 0.5, "regions": [{"center": -5.0, "radius": 0.5},
+                                                       {"center": -2.0, "radius": 0.5}]},
+     r"not 'finite-time': remove the key"),
 ])
 def test_balance_key_refused_where_the_design_has_none(tmp_path, extra, what):
     d = base()
     d["observer"][0].update(balance=True, **extra)
+    if "regions" in extra:  # a finite-time observer has two regions instead of one
+        del d["observer"][0]["region"]
     p = write(tmp_path, d)
     with pytest.raises(fojax.ConfigError, match=what) as info:
         load_config(p)

@@ -363,6 +363,66 @@ def test_uio_estimates_constant_unknown_input_and_functional(plant413cl, uio, ui
     np.testing.assert_allclose(np.asarray(sol.estimates[0]) - z, eps @ np.asarray(o.P).T, atol=1e-9 * ez[0])
 
 
+# Badly scaled twin of the §4.1.3 unknown-input example: rows and states rescaled by 1e-6…1e6
+# (E' = Dr E Dc, A' = Dr A Dc, B' = Dr B, C' = C Dc, D' = Dr D, L' = L Dc, x' = Dc⁻¹ x: the same
+# u, y, z and d). Oracle: the twin's observer, driven by the *unscaled* plant's u and y in the
+# SciPy reference above, must obey the error law σ(t) = expm(𝔸t) σ(0) with the physical
+# T = T' Dr (conditions a.–f. in the model's own units), and estimate d.
+UIO_TWIN_ROWS = np.array([1e-6, 1e6, 1e6, 1e-6])
+UIO_TWIN_STATES = np.array([1e6, 1e-6, 1.0, 1e-6])
+
+
+def _uio_twin(plant413cl, **kw):
+    E, A, B, C, L = plant413cl
+    Dr, Dc = np.diag(UIO_TWIN_ROWS), np.diag(UIO_TWIN_STATES)
+    sys_ = fojax.DescriptorSystem(Dr @ E @ Dc, Dr @ A @ Dc, Dr @ B, C @ Dc)
+    return design_unknown_input_observer(sys_, Dr @ UIO_D, L @ Dc, region=Disk(-3.0, 2.0), **kw)
+
+
+def test_uio_badly_scaled_twin_on_the_raw_data_is_refused(plant413cl):
+    # Regression: this design was returned (residual 2e-19 relative on the data as given, whose
+    # terms are ~1e12) while a.–f. fail at 0.14–0.2 relative in the unit-free frame.
+    with pytest.raises(fojax.DesignVerificationError, match="unit-free frame"):
+        _uio_twin(plant413cl, balance=False)
+
+
+def test_uio_badly_scaled_twin_default_design_is_correct_in_physical_units(plant413cl):
+    E = plant413cl[0]
+    d = _uio_twin(plant413cl)  # balance=None: falls back to the unit-free design
+    assert "balance" in d.report.extra and d.verify().passed
+    assert d.report.extra["unit-free relative residual"] <= 1e-8
+    o = d.observer
+    T_phys = d.T @ np.diag(UIO_TWIN_ROWS)  # ζ - T'E'x' = ζ - T' Dr E x
+    np.testing.assert_allclose(d.R @ np.diag(1.0 / UIO_TWIN_STATES), plant413cl[4], rtol=1e-12)
+    xs, xi = _uio_reference(plant413cl, o)
+    sig = np.column_stack([xi[:, : o.q0] - xs @ (T_phys @ E).T, xi[:, o.q0 :]])
+    sig[:, -1] -= UIO_DVAL
+    pred = np.stack([scipy.linalg.expm(d.error_matrix * t) @ sig[0] for t in UIO_TS])
+    assert np.abs(pred - sig).max() <= 1e-7 * np.abs(sig).max()
+    assert abs(xi[-1, -1] - UIO_DVAL) <= 1e-3 * UIO_DVAL
+
+
+def test_uio_balance_true_maps_back_to_the_models_units(plant413cl, tmp_path):
+    E, A, B, C, L = plant413cl
+    d = design_unknown_input_observer(fojax.DescriptorSystem(E, A, B, C), UIO_D, L, balance=True)
+    assert d.report.passed and "balance" in d.solver
+    o = d.observer
+    # conditions a.–f. written out in the model's units with the returned T, D, L (module docstring)
+    Ep = np.asarray(d.structure.Eperp) * np.asarray(d.solver["balance"]["row_factors"])[None, :]
+    np.testing.assert_allclose(Ep @ np.hstack([E, UIO_D]), 0.0, atol=1e-13)
+    Psi, TE = np.vstack([Ep @ A, C]), d.T @ E
+    np.testing.assert_array_equal(d.D, UIO_D)
+    for lhs, terms in [(o.N @ TE + o.F @ Psi - d.T @ A, (o.N @ TE, o.F @ Psi, d.T @ A)),
+                       (o.H - d.T @ B, (o.H, d.T @ B)), (o.Delta - d.T @ UIO_D, (o.Delta, d.T @ UIO_D)),
+                       (o.S @ TE + o.M @ Psi, (o.S @ TE, o.M @ Psi)), (o.Phi @ TE - o.W @ Psi, (o.Phi @ TE, o.W @ Psi)),
+                       (o.P @ TE + o.Q @ Psi - L, (o.P @ TE, o.Q @ Psi, L))]:
+        assert np.abs(lhs).max() <= 1e-10 * max(np.abs(np.asarray(t)).max() for t in terms)
+    path = fojax.save_design(d, tmp_path / "uio.npz")
+    back = fojax.load_design(path)  # verified on load
+    np.testing.assert_array_equal(back.R, d.R)
+    assert back.verify().passed
+
+
 def test_uio_block_diagonal_certificate_is_infeasible(uio, rng):
     # Documented claim: with X = diag(X_εv, X_d) the d̃-block of the region LMI is L_R ⊗ X_d,
     # which is never negative definite for a stable region. The full-X LMI (the design) is.

@@ -389,7 +389,8 @@ def _design_observer(design_fn, sys_, L, spec):
     from ..design import design_finite_time_observer, design_unknown_input_observer
 
     if spec.kind == "unknown-input":
-        return design_unknown_input_observer(sys_, spec.D, L, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1)
+        return design_unknown_input_observer(sys_, spec.D, L, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1,
+                                             **({} if spec.balance is None else {"balance": spec.balance}))
     if spec.kind == "finite-time":
         return design_finite_time_observer(sys_, L, h=spec.delay, regions=spec.regions, R=spec.R, q0=spec.q0,
                                            q1=spec.q1, method=spec.method)

@@ -69,8 +69,8 @@ examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
     Bw = [[...]]                         # "hinf"/"h2": (n, mw) disturbance E x' = ... + Bw w
     Dv = [[...]]                         # "hinf"/"h2": (p, mv) noise y = C x + Dv nu
     balance = true                       # optional, generalized/PI/proportional with objective
-                                         # "region"/"centre" on LTI models: design unit-free
-                                         # (design_functional_observer's balance; default: its default)
+                                         # "region"/"centre", or unknown-input, on LTI models: design
+                                         # unit-free (the design routine's balance; default: its default)
 
     [study]                              # optional Monte Carlo settings
     samples = 64
@@ -162,7 +162,7 @@ class ObserverSpec:
     # kind = "finite-time": "auto", "lmi" or "place"; generalized / PI / proportional:
     # "lmi", "riccati" or "auto" (None: the design routine's default, "lmi")
     method: str | None = None
-    balance: bool | None = None  # design_functional_observer's `balance` (None: its default)
+    balance: bool | None = None  # the design routine's `balance` (None: its default)
 
     def design_kwargs(self) -> dict:
         """The ``objective``, ``method`` and ``balance`` keywords of
@@ -503,15 +503,17 @@ def _objective(v: _V, key: str, o: dict, n: int, n_design: int, p: int, takagi_s
 
 def _balance(v: _V, key: str, o: dict, kind: str, objective: str, takagi_sugeno: bool) -> bool | None:
     """``balance`` of one ``[[observer]]`` (None when absent): a boolean, for the designs that
-    have it (`fojax.design.design_functional_observer` with objective "region"/"centre")."""
+    have it (`fojax.design.design_functional_observer` with objective "region"/"centre",
+    `fojax.design.design_unknown_input_observer`)."""
     if "balance" not in o:
         return None
     k = _join(key, "balance")
     value = v.boolean(k, o["balance"])
     if takagi_sugeno:
         raise v.err(k, "is for linear models (design_functional_observer), not [takagi_sugeno]: remove the key.")
-    if kind in SPECIAL_KINDS:
-        raise v.err(k, f"is for the generalized, PI and proportional kinds, not {kind!r}: remove the key.")
+    if kind == "finite-time":
+        raise v.err(k, f"is for the generalized, PI, proportional and unknown-input kinds, not {kind!r}: remove "
+                    "the key.")
     if objective in ("hinf", "h2"):
         raise v.err(k, f'is not used with objective = "{objective}" (those designs are made on the data as '
                     'given): remove the key, or use objective = "region" or "centre".')

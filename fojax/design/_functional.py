@@ -703,11 +703,15 @@ def unit_free_check(s, params) -> tuple | None:
     res = design_residuals(sb, mb, xp=np)
     scale = float(res.pop("scale"))
     rel = relative_residual(res, scale, condition_scales(sb, mb))
-    failure = None if rel <= RESIDUAL_RTOL else (
-        f"conditions a.-d. in the unit-free frame (fojax.analysis.unit_scaling) have relative residual "
+    return ("unit-free relative residual", rel, unit_free_failure(rel, "a.-d."))
+
+
+def unit_free_failure(rel: float, conditions: str) -> str | None:
+    """The failure of a unit-free check of `conditions` at relative residual `rel` (``None``: passed)."""
+    return None if rel <= RESIDUAL_RTOL else (
+        f"conditions {conditions} in the unit-free frame (fojax.analysis.unit_scaling) have relative residual "
         f"{rel:.2e} > {RESIDUAL_RTOL:.0e}: on this badly scaled model the observer passes the test on the "
         "data as given only because its terms are large; design with balance=True")
-    return ("unit-free relative residual", rel, failure)
 
 
 def verify_balanced(sb, params, balance: dict, region, X, *, extra=None, checks=()):

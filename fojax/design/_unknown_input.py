@@ -95,6 +95,7 @@ import numpy as np
 
 from .._dtype import as_matrix
 from .._errors import (
+    DesignVerificationError,
     DetectabilityError,
     ExistenceConditionError,
     FunctionalObservabilityError,
@@ -113,9 +114,18 @@ from ._conditions import (
     check_regular,
     check_structure,
     default_R,
+    unit_free_structure,
     unobservable_modes,
 )
-from ._functional import _as_system, carried_extra, choose_Z, StructureDesignMixin, TIGHTEN
+from ._functional import (
+    _as_system,
+    carried_extra,
+    choose_Z,
+    condition_scales,
+    StructureDesignMixin,
+    TIGHTEN,
+    unit_free_failure,
+)
 from ._parameterization import (
     FunctionalObserverStructure,
     observer_matrices,
@@ -124,7 +134,7 @@ from ._parameterization import (
 )
 from ._regions import AbstractRegion, as_region, Disk
 from ._stein import host_stein_certificate
-from ._verify import VerificationReport, verify
+from ._verify import relative_residual, RESIDUAL_RTOL, VerificationReport, verify
 
 
 # ---------------------------------------------------------------------------- parameterization
@@ -215,6 +225,48 @@ def unknown_input_residuals(s: FunctionalObserverStructure, D, mats, xp=np) -> d
     return out
 
 
+def unknown_input_condition_scales(s: FunctionalObserverStructure, D, mats) -> dict:
+    """Per condition a.–f., the sum of the norms of its terms (host): the scale its residual
+    is relative to in `verify`, as for the functional observer (`condition_scales`: a., b.,
+    and its c., d. are d., f. here); c. ``‖Δ‖ + ‖T‖‖D‖``, e. ``‖Φ‖‖TE‖ + ‖W‖‖Ψ‖``."""
+
+    def nrm(x):
+        x = np.asarray(x, dtype=float)
+        return float(np.linalg.norm(x, ord=2)) if x.size else 0.0
+
+    fo = condition_scales(s, mats)
+    T = np.asarray(mats.T)
+    Psi = np.vstack([np.asarray(s.Eperp) @ np.asarray(s.A), np.asarray(s.C)])
+    return {"a": fo["a"], "b": fo["b"], "c": nrm(mats.Delta) + nrm(T) * nrm(D), "d": fo["c"],
+            "e": nrm(mats.Phi) * nrm(T @ np.asarray(s.E)) + nrm(mats.W) * nrm(Psi), "f": fo["d"]}
+
+
+def _residuals(s, D, mats) -> tuple[dict, float, dict]:
+    """``(residuals a.–f., data scale, per-condition scales)`` on the host."""
+    res = {k: float(v) for k, v in unknown_input_residuals(s, D, mats).items()}
+    scale = res.pop("scale")
+    return res, scale, unknown_input_condition_scales(s, D, mats)
+
+
+def unit_free_check(s: FunctionalObserverStructure, D, params) -> tuple | None:
+    r"""``("unit-free relative residual", value, failure or None)``: conditions a.–f. of the
+    observer of `params` re-checked in the unit-free frame (`fojax.analysis.unit_scaling`:
+    $E_b = D_lED_r$, …, $D_b = D_lD$, $E^\perp_b = E^\perp D_l^{-1}$, $T_b = TD_l^{-1}$, the
+    other observer matrices unchanged, so $\Delta = T_bD_b$), or ``None`` for models larger
+    than `fojax.design._conditions.UNIT_FREE_CHECK_MAX` — the functional observer's
+    `fojax.design._functional.unit_free_check` with the unknown input. Why (measured): the
+    §4.1.3 unknown-input example with rows and states rescaled by 1e-6…1e6 got an observer
+    whose residual on the data as given was 2e-19 relative, and 0.14 in the unit-free frame."""
+    uf = unit_free_structure(s)
+    if uf is None:
+        return None
+    sb, dl, _ = uf
+    mats = unknown_input_observer_matrices(s, D, **params, xp=np)
+    mb = mats._replace(T=np.asarray(mats.T) / dl[None, :])
+    rel = relative_residual(*_residuals(sb, dl[:, None] * np.asarray(D, float), mb))
+    return ("unit-free relative residual", rel, unit_free_failure(rel, "a.-f."))
+
+
 # ---------------------------------------------------------------------------- design object
 
 
@@ -254,7 +306,8 @@ class UnknownInputObserverDesign(StructureDesignMixin, AbstractDesign):
         """Re-run the float64 verification (`fojax.design.AbstractDesign.verify`): conditions
         a.–f. at `params`, the eigenvalues of 𝔸 in `region` and the region LMI at `X`."""
         return verify_unknown_input_design(self.structure, self.D, self.params, self.region, self.X,
-                                           extra=carried_extra(self.report))[1]
+                                           extra=carried_extra(self.report),
+                                           balance=self.solver.get("balance"))[1]
 
     def __str__(self) -> str:
         o = self.observer
@@ -492,6 +545,7 @@ def design_unknown_input_observer(
     q1: int | None = None,
     margin: float = 1e-3,
     solver: str = _lmi.DEFAULT_SOLVER,
+    balance: bool | None = None,
 ) -> UnknownInputObserverDesign:
     r"""Design a verified functional observer that also estimates an unknown input (§3.2).
 
@@ -517,10 +571,24 @@ def design_unknown_input_observer(
       unknown-input estimation).
     - `margin`: strictness of the LMI (``⪯ -margin·I`` with ``X ⪰ I``).
     - `solver`: ``"auto"`` (default), ``"CLARABEL"`` or ``"SCS"``.
+    - `balance`: as for `fojax.design.design_functional_observer`. ``True``: the default
+      ``R``, the LMI and its coordinates are computed on the model rescaled by
+      `fojax.analysis.unit_scaling`'s diagonal factors ($E_b = D_lED_r$, $A_b = D_lAD_r$,
+      $B_b = D_lB$, $C_b = CD_r$, $D_b = D_lD$, $L_b = LD_r$; the unknown input keeps its
+      units) and mapped back exactly (the same observer; $T = T_bD_l$, $R = R_bD_r^{-1}$);
+      verified on the model as given and in the unit-free frame. ``False``: on the data as
+      given, also verified in the unit-free frame. **Default ``None``**: on the data as
+      given, and the ``balance=True`` design when only the unit-free check fails (the
+      report says so under ``"balance"``). Measured: the §4.1.3 example with rows and states
+      rescaled by 1e-6…1e6 got, on the data as given, an observer with residual 2e-19 there
+      and 0.14 in the unit-free frame (before the unit-free check, it was returned).
 
     **Returns:** an `UnknownInputObserverDesign`; its `report` lists the residuals of
-    a.–f. (≤ 1e-8 relative), the eigenvalues of $\mathbb A$ (inside `region`) and the
-    region LMI re-checked at $X$.
+    a.–f. (≤ 1e-8 relative, each relative to the norms of its own terms), the
+    eigenvalues of $\mathbb A$ (inside `region`), the region LMI re-checked at $X$ and the
+    unit-free relative residual. A ``balance=True`` design holds the unit-free `structure`
+    and `params` (``design.R``, ``design.L``, ``design.T``, ``design.D`` are in the model's
+    units; ``design.solver["balance"]`` has the factors).
 
     **Raises:** `IrregularSystemError` (singular pencil), `DataRangeError`, `ShapeError`,
     `RankConditionError` (rank of D, rank conditions),
@@ -537,6 +605,42 @@ def design_unknown_input_observer(
     L = np.asarray(check_functional(sys, L))
     check_data_range({"E": E, "A": A, "B": B, "C": C, "D": D, "L": L},
                      fname="design_unknown_input_observer")
+    if R is not None:
+        R = np.asarray(as_matrix("R", R, cols=n, hint=f"R needs one column per state (n = {n})."))
+    kw = dict(region=region, q0=q0, q1=q1, margin=margin, solver=solver)
+    if balance:
+        return _balanced_design(E, A, B, C, D, L, R, **kw)
+    try:
+        return _design(E, A, B, C, D, L, R, **kw)
+    except DesignVerificationError as err:  # balance=None: redesign unit-free when only that frame fails
+        rel = (getattr(err.report, "extra", None) or {}).get("unit-free relative residual")
+        if balance is False or rel is None or rel <= RESIDUAL_RTOL:
+            raise
+        d = _balanced_design(E, A, B, C, D, L, R, **kw)
+        note = (f"the design on the data as given failed conditions a.-f. in the unit-free frame (relative "
+                f"residual {rel:.2e}; on the data as given {err.report.relative_residual:.2e}): designed on "
+                "the unit-free model instead (balance=True)")
+        return dataclasses.replace(d, report=dataclasses.replace(d.report, extra={**d.report.extra,
+                                                                                  "balance": note}))
+
+
+def _balanced_design(E, A, B, C, D, L, R, **kw) -> UnknownInputObserverDesign:
+    """``balance=True`` (`design_unknown_input_observer`): design on the unit-free model, map back."""
+    from ..analysis._balance import unit_scaling
+
+    dl, dr = unit_scaling(E, A, B, C)
+    Rb = None if R is None else R * dr[None, :]
+    db = _design(dl[:, None] * E * dr, dl[:, None] * A * dr, dl[:, None] * B, C * dr, dl[:, None] * D, L * dr, Rb,
+                 **kw)
+    balance = {"row_factors": dl.tolist(), "state_factors": dr.tolist()}
+    _, report = verify_unknown_input_design(db.structure, D, db.params, db.region, db.X,
+                                            extra=carried_extra(db.report), balance=balance)
+    return dataclasses.replace(db, D=D, T=np.asarray(db.T) * dl[None, :], report=report,
+                               solver={**db.solver, "balance": balance})
+
+
+def _design(E, A, B, C, D, L, R, *, region, q0, q1, margin, solver) -> UnknownInputObserverDesign:
+    """The design on the data as given (`design_unknown_input_observer`, after its checks of the input)."""
     from ..analysis._pencil import (
         e_perp,  # analysis decides rank [E D] (balanced, blocks normalised)
     )
@@ -545,11 +649,9 @@ def design_unknown_input_observer(
     _check_functional_observability(E, A, C, L, Ep, D)
     if R is None:
         R = _choose_R(E, A, B, C, L, D, Ep, region, q0)
-    else:
-        R = np.asarray(as_matrix("R", R, cols=n, hint=f"R needs one column per state (n = {n})."))
-        if q0 is not None and q0 != R.shape[0]:
-            raise RankConditionError("observer order", f"q0 = {q0} but R has {R.shape[0]} rows.",
-                                     "Give either R or q0.", lhs=q0, rhs=R.shape[0])
+    elif q0 is not None and q0 != R.shape[0]:
+        raise RankConditionError("observer order", f"q0 = {q0} but R has {R.shape[0]} rows.",
+                                 "Give either R or q0.", lhs=q0, rhs=R.shape[0])
     s = observer_structure(E, A, B, C, L, R, q1=0, psi="descriptor", Eperp=Ep)
     check_structure(s)
     check_detectability(s, region)
@@ -600,18 +702,40 @@ def design_unknown_input_observer(
     )
 
 
-def verify_unknown_input_design(s, D, params, region, X, *, extra=None):
-    """The matrices of `params` (eq. 3.110) and their float64 verification by
-    `fojax.design.verify`: residuals of a.–f., the eigenvalues of 𝔸, the region LMI at
-    `X`, and ``E⊥[E D] = 0`` recorded (``extra["Eperp [E D] residual"]``)."""
-    mats = unknown_input_observer_matrices(s, D, **params, xp=np)
-    res = {k: float(v) for k, v in unknown_input_residuals(s, D, mats).items()}
-    scale = res.pop("scale")
-    Ep = np.asarray(s.Eperp)
+def verify_unknown_input_design(s, D, params, region, X, *, extra=None, balance=None):
+    r"""The matrices of `params` (eq. 3.110) and their float64 verification by
+    `fojax.design.verify`: residuals of a.–f. (each relative to the norms of its own terms,
+    `unknown_input_condition_scales`, as for the functional observer), the eigenvalues of
+    𝔸, the region LMI at `X`, ``E⊥[E D] = 0`` recorded (``extra["Eperp [E D] residual"]``)
+    and a.–f. in the unit-free frame (`unit_free_check`).
+
+    With `balance` (``{"row_factors": d_l, "state_factors": d_r}`` of a ``balance=True``
+    design) `s` is the unit-free structure and `D` the model's: a.–f. are checked on the
+    model as given ($E = D_l^{-1}E_bD_r^{-1}$, …, $E^\perp = E^\perp_bD_l$, $T = T_bD_l$,
+    the other matrices unchanged; the report's residuals) and in the unit-free frame (a
+    named check). Returns the unit-free frame's matrices then."""
+    D = np.asarray(D, float)
+    if balance is None:
+        so, Do, checks = s, D, tuple(c for c in (unit_free_check(s, D, params),) if c)
+        mats = mo = unknown_input_observer_matrices(s, D, **params, xp=np)
+    else:
+        dl, dr = (np.asarray(balance[k], float) for k in ("row_factors", "state_factors"))
+        Db = dl[:, None] * D
+        mats = unknown_input_observer_matrices(s, Db, **params, xp=np)
+        rel = relative_residual(*_residuals(s, Db, mats))
+        checks = (("unit-free relative residual", rel, None if rel <= RESIDUAL_RTOL else (
+            f"conditions a.-f. in the unit-free frame have relative residual {rel:.2e} > {RESIDUAL_RTOL:.0e}")),)
+        Eb, Ab, Bb, Cb, Lb = (np.asarray(x, dtype=float) for x in (s.E, s.A, s.B, s.C, s.L))
+        so = observer_structure(Eb / dl[:, None] / dr, Ab / dl[:, None] / dr, Bb / dl[:, None], Cb / dr, Lb / dr,
+                                np.asarray(s.R) / dr, q1=s.q1, psi=s.psi, Eperp=np.asarray(s.Eperp) * dl[None, :])
+        Do, mo = D, mats._replace(T=np.asarray(mats.T) * dl[None, :])
+    res, scale, scales = _residuals(so, Do, mo)
+    Ep = np.asarray(so.Eperp)
     extra = {**(extra or {}),
-             "Eperp [E D] residual": float(np.abs(Ep @ np.hstack([np.asarray(s.E), np.asarray(D)])).max())
+             "Eperp [E D] residual": float(np.abs(Ep @ np.hstack([np.asarray(so.E), Do])).max())
              if Ep.size else 0.0}
-    report = verify(res, scale, unknown_input_error_dynamics(mats, xp=np), region, X, extra=extra)
+    report = verify(res, scale, unknown_input_error_dynamics(mats, xp=np), region, X, extra=extra, scales=scales,
+                    checks=checks)
     return mats, report
 
 
