@@ -88,6 +88,21 @@ def test_descriptor_example_3_1_2_is_exact_after_h():
     assert 0 < d.reconstruction_residual <= 1e-8 or d.reconstruction_residual == 0.0
 
 
+def test_badly_scaled_twin_is_checked_in_the_unit_free_frame_at_design_time():
+    # Rows and states of §3.1.2 rescaled by 1e-3…1e3 (E' = Dr E Dc, …): each observer's a.–d. are
+    # re-checked in the unit-free frame when designed, as `verify()` does (before, only there);
+    # oracle for the design itself: the exact simulation of the *unscaled* plant with the twin's
+    # observers (same u, y, z), which must reconstruct z for t >= h.
+    ex = fojax.models.example_3_1_2()
+    E, A, B, C, L = (np.asarray(x) for x in (ex.E, ex.A, ex.B, ex.C, ex.L))
+    Dr, Dc = np.diag([1e-3, 1e3, 1e3, 1e-3]), np.diag([1e3, 1e-3, 1.0, 1e-3])
+    twin = fojax.DescriptorSystem(Dr @ E @ Dc, Dr @ A @ Dc, Dr @ B, C @ Dc)
+    d = design_finite_time_observer(twin, L @ Dc, h=0.5, regions=((-5, 0.5), (-2, 0.5)))
+    assert all(x.report.extra["unit-free relative residual"] <= 1e-8 for x in d.designs)
+    err, _, scale = check_exact(ex.system, L, d, np.array([-0.5, 1, 2.5, -1.0]))
+    assert err <= 1e-7 * max(1.0, scale), (err, scale)
+
+
 def test_reconstruction_matrix_full_rank_under_lemma_6(rng):
     # Lemma 6: separated spectra => [I e^{A1 h}; I e^{A2 h}] nonsingular => M has full column rank.
     A1 = -5.0 * np.eye(3) + 0.3 * rng.normal(size=(3, 3))

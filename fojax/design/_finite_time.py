@@ -30,12 +30,18 @@ from ._functional import (
     solve_gains,
     split_Y,
     TIGHTEN,
+    unit_free_check,
     verify_structure_design,
 )
 from ._parameterization import observer_structure, pieces
 from ._regions import as_region, Disk
 from ._stein import host_stein_certificate
 from ._verify import combine_reports, VerificationReport
+
+
+#: What a failed unit-free check tells the user (the finite-time design has no ``balance``).
+UNIT_FREE_FIX = ("rescale the equations and states of the model (fojax.analysis.unit_scaling gives diagonal "
+                 "factors that remove their units) and design on the rescaled model")
 
 
 #: Smallest singular value of 𝕄 (relative to its largest) accepted for the reconstruction.
@@ -322,7 +328,9 @@ def _design_ft(
         params = {"Z": Z, "Y1": b["Y1"], "Y2": b["Y2"], "Y3": np.zeros((s.q, c)), "J": b["J"], "G": b["G"]}
         route = (info["lmi"]["route"] if "lmi" in info else "pole placement" + (
             f" (LMI refused: {info['lmi_status']})" if info["lmi_status"] else ""))
-        mats, report = verify_structure_design(s, params, reg, X, extra={"LMI route": route})
+        # the unit-free check as in every functional-observer design (and in its verify())
+        uf = tuple(c for c in (unit_free_check(s, params, UNIT_FREE_FIX),) if c)
+        mats, report = verify_structure_design(s, params, reg, X, extra={"LMI route": route}, checks=uf)
         designs.append(
             FunctionalObserverDesign(
                 observer=build_observer(s, mats, kind=kind),

@@ -679,7 +679,7 @@ def balanced_design(s, region, *, kind, margin, solver, method="lmi", centre=Fal
     )  # fmt: skip
 
 
-def unit_free_check(s, params) -> tuple | None:
+def unit_free_check(s, params, fix: str = "design with balance=True") -> tuple | None:
     r"""``("unit-free relative residual", value, failure or None)``: conditions a.–d. of the
     observer of `params` on `s`, re-checked in the unit-free frame of
     `fojax.analysis.unit_scaling` (a named check for `fojax.design.verify`), or ``None``
@@ -703,15 +703,16 @@ def unit_free_check(s, params) -> tuple | None:
     res = design_residuals(sb, mb, xp=np)
     scale = float(res.pop("scale"))
     rel = relative_residual(res, scale, condition_scales(sb, mb))
-    return ("unit-free relative residual", rel, unit_free_failure(rel, "a.-d."))
+    return ("unit-free relative residual", rel, unit_free_failure(rel, "a.-d.", fix))
 
 
-def unit_free_failure(rel: float, conditions: str) -> str | None:
-    """The failure of a unit-free check of `conditions` at relative residual `rel` (``None``: passed)."""
+def unit_free_failure(rel: float, conditions: str, fix: str = "design with balance=True") -> str | None:
+    """The failure of a unit-free check of `conditions` at relative residual `rel` (``None``:
+    passed); `fix` says what to change."""
     return None if rel <= RESIDUAL_RTOL else (
         f"conditions {conditions} in the unit-free frame (fojax.analysis.unit_scaling) have relative residual "
         f"{rel:.2e} > {RESIDUAL_RTOL:.0e}: on this badly scaled model the observer passes the test on the "
-        "data as given only because its terms are large; design with balance=True")
+        f"data as given only because its terms are large; {fix}")
 
 
 def verify_balanced(sb, params, balance: dict, region, X, *, extra=None, checks=()):
