@@ -269,7 +269,6 @@ def test_balance_key_reaches_the_unknown_input_design(tmp_path):
 
 
 @pytest.mark.parametrize("extra,what", [
-    ({"objective": "hinf", "Bw": [[1.0]] * 4}, r'is not used with objective = "hinf"'),
     ({"kind": "finite-time", "delay": 0.5, "regions": [{"center": -5.0, "radius": 0.5},
                                                        {"center": -2.0, "radius": 0.5}]},
      r"not 'finite-time': remove the key"),

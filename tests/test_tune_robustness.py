@@ -238,3 +238,29 @@ def test_h2_term_of_a_balanced_design_takes_the_channel_in_the_models_units():
     term = tuning.H2Term(Bw=Bw, Dv=Dv).bind(d)
     value = float(term(d.structure, {k: jnp.asarray(v) for k, v in d.params.items()}))
     np.testing.assert_allclose(value, h2_by_integral(plant, m["L"], d.observer, Bw, Dv) ** 2, rtol=1e-8)
+
+
+def test_h2_term_of_a_balanced_h2_design_takes_the_certificates_channel_as_it_is():
+    """A ``balance=True`` H2 design (``balance`` applies to H∞/H2 designs since issue 14's
+    units work) holds its certificate's channel in the unit-free frame (``D_l B_w``), the frame
+    of its structure: the term built from the certificate must not map it again. Oracle: the
+    frequency-domain H2 integral of the joint plant + observer system in the model's units, and
+    the design's own norm (SciPy's Lyapunov solver)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import lc_filter
+
+    m = lc_filter.lc_filter()
+    plant = fojax.DescriptorSystem(m["E"], m["A"], m["B"], m["C"])
+    Bw = np.zeros((6, 1))
+    Bw[2, 0] = Bw[3, 0] = 1.0
+    d = design_functional_observer(plant, m["L"], q0=3, region=Disk(-3.0, 2.0), objective="h2", Bw=Bw,
+                                   balance=True)
+    assert "balance" in d.solver and d.verify().passed
+    term = tuning.H2Term().bind(d)  # channels from the certificate
+    value = float(term(d.structure, {k: jnp.asarray(v) for k, v in d.params.items()}))
+    np.testing.assert_allclose(value, h2_by_integral(plant, m["L"], d.observer, Bw, np.zeros((2, 0))) ** 2,
+                               rtol=1e-8)
+    np.testing.assert_allclose(value, d.h2.norm ** 2, rtol=1e-8)

@@ -115,6 +115,35 @@ def test_twin_gets_the_same_verified_observer(lc_designs, kind):
     np.testing.assert_allclose(Rb, a.R, rtol=0, atol=1e-8 * np.abs(a.R).max())
 
 
+@pytest.mark.parametrize("objective", ["hinf", "h2"])
+def test_hinf_and_h2_designs_are_unit_free_with_balance(objective):
+    """``balance`` now applies to ``objective="hinf"``/``"h2"`` (it was ignored: the design was
+    made on the data as given, and the twin's was refused by the unit-free check, whose
+    message pointed to ``balance=True``). The same physical disturbance (``Bw`` of the twin =
+    ``D_r Bw``) gives the same certified bound on model and twin (oracle: the plain model's
+    design; the bound is the SDP's optimal value, unique, and the proportional region-only
+    design it starts from is unique at the default order, see above), and each design
+    estimates z (the plant's transfer functions)."""
+    out = []
+    for scaled in (False, True):
+        m = lc_filter.lc_filter(scaled)
+        Bw = lc_filter.lc_filter(False)["E"][:, :4]  # disturbances on the four differential rows
+        Bw = np.diag(lc_filter.TWIN_ROWS) @ Bw if scaled else Bw
+        sysm = fojax.DescriptorSystem(m["E"], m["A"], m["B"], m["C"])
+        d = design_functional_observer(sysm, m["L"], kind="proportional", region=REGION, objective=objective,
+                                       Bw=Bw, balance=True)
+        assert d.report.passed and d.verify().passed and "balance" in d.solver
+        assert max(_observer_error(d.observer, m, s) for s in POINTS) <= 1e-9
+        cert = d.hinf if objective == "hinf" else d.h2
+        out.append((cert.gamma if objective == "hinf" else cert.nu, cert.norm))
+        if scaled:  # the default (balance=None): the raw design fails the unit-free check, so unit-free
+            d0 = design_functional_observer(sysm, m["L"], kind="proportional", region=REGION, objective=objective,
+                                            Bw=Bw)
+            assert "balance" in d0.report.extra and d0.verify().passed
+    (b0, n0), (b1, n1) = out
+    assert b1 == pytest.approx(b0, rel=1e-6) and n1 == pytest.approx(n0, rel=1e-6)
+
+
 def test_regression_unbalanced_twin_design_is_refused_or_redesigned():
     """The twin's order-1 design on the raw data passes the relative residual test there
     (8e-10: its terms are ~1e6) but does not estimate z (1.87 at s = 0.3i). Regression: it

@@ -68,9 +68,9 @@ examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
                                          # "centre" (eigenvalues as far inside a disk as the LMI allows)
     Bw = [[...]]                         # "hinf"/"h2": (n, mw) disturbance E x' = ... + Bw w
     Dv = [[...]]                         # "hinf"/"h2": (p, mv) noise y = C x + Dv nu
-    balance = true                       # optional, generalized/PI/proportional with objective
-                                         # "region"/"centre", or unknown-input, on LTI models: design
-                                         # unit-free (the design routine's balance; default: its default)
+    balance = true                       # optional, generalized/PI/proportional/unknown-input on LTI
+                                         # models: design unit-free (the design routine's balance;
+                                         # default: its default)
 
     [study]                              # optional Monte Carlo settings
     samples = 64
@@ -501,10 +501,9 @@ def _objective(v: _V, key: str, o: dict, n: int, n_design: int, p: int, takagi_s
     return objective, Bw, Dv
 
 
-def _balance(v: _V, key: str, o: dict, kind: str, objective: str, takagi_sugeno: bool) -> bool | None:
+def _balance(v: _V, key: str, o: dict, kind: str, takagi_sugeno: bool) -> bool | None:
     """``balance`` of one ``[[observer]]`` (None when absent): a boolean, for the designs that
-    have it (`fojax.design.design_functional_observer` with objective "region"/"centre",
-    `fojax.design.design_unknown_input_observer`)."""
+    have it (`fojax.design.design_functional_observer`, `fojax.design.design_unknown_input_observer`)."""
     if "balance" not in o:
         return None
     k = _join(key, "balance")
@@ -514,9 +513,6 @@ def _balance(v: _V, key: str, o: dict, kind: str, objective: str, takagi_sugeno:
     if kind == "finite-time":
         raise v.err(k, f"is for the generalized, PI, proportional and unknown-input kinds, not {kind!r}: remove "
                     "the key.")
-    if objective in ("hinf", "h2"):
-        raise v.err(k, f'is not used with objective = "{objective}" (those designs are made on the data as '
-                    'given): remove the key, or use objective = "region" or "centre".')
     return value
 
 
@@ -724,7 +720,7 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
         if objective != "region" and kind in ("unknown-input", "finite-time"):
             raise v.err(_join(key, "objective"), f"is {objective!r}; objective = {objective!r} is for the generalized, PI "
                         f"and proportional kinds, not {kind!r}: remove the key.")
-        balance = _balance(v, key, o, kind, objective, ts is not None)
+        balance = _balance(v, key, o, kind, ts is not None)
         observers.append(ObserverSpec(oname, kind, region, R, q0, q1, objective, Bw, Dv, balance=balance, **special))
     _check_observer_names(v, [o.name for o in observers])
 

@@ -172,7 +172,7 @@ class FunctionalObserverDesign(StructureDesignMixin, AbstractDesign):
         if (self.solver or {}).get("balance") is not None:
             return verify_balanced(self.structure, self.params, self.solver["balance"], self.region, self.X,
                                    extra=carried_extra(self.report), checks=checks)[1]
-        uf = () if self.hinf is not None else tuple(c for c in (unit_free_check(self.structure, self.params),) if c)
+        uf = tuple(c for c in (unit_free_check(self.structure, self.params),) if c)
         return verify_structure_design(self.structure, self.params, self.region, self.X,
                                        extra=carried_extra(self.report), checks=checks + uf)[1]
 
@@ -571,8 +571,11 @@ def design_functional_observer(
       fails with `DesignVerificationError` there. **Default ``None``**: the design on the
       data as given, and when only the unit-free check fails, the ``balance=True`` design
       instead (the report says so under ``"balance"``). Use ``balance=True`` for models
-      whose rows or states span several orders of magnitude, and for the start of tuning. Applies to ``objective="region"``/``"centre"``; ``"hinf"``/``"h2"``
-      design on the raw data. Either way the default ``R`` is chosen unit-free
+      whose rows or states span several orders of magnitude, and for the start of tuning. For
+      ``objective="hinf"``/``"h2"`` the disturbance channel is mapped as $D_lB_w$ (``w`` keeps
+      its units; ``Dv`` is unchanged since ``y`` is), so the norm is the same map's, and
+      ``design.hinf``/``design.h2`` hold the unit-free frame's ``Bw``. Either way the default
+      ``R`` is chosen unit-free
       (`fojax.design.default_R`).
 
     **Returns:** a `FunctionalObserverDesign` whose `report` shows residuals of
@@ -608,30 +611,47 @@ def design_functional_observer(
     if q1 is None:
         q1 = s.q0
     s = observer_structure(s.E, s.A, s.B, s.C, s.L, s.R, q1=q1, psi=s.psi, Eperp=s.Eperp)
+    kw = dict(kind=kind, margin=margin, solver=solver, method=method)
     if objective in ("hinf", "h2"):
-        from ._hinf import design_hinf
-        return design_hinf(s, region, kind=kind, margin=margin, solver=solver, Bw=Bw, Dv=Dv, tighten=TIGHTEN,
-                           method=method, objective=objective)
+        from ._hinf import check_channels, design_hinf
+
+        Bw, Dv = check_channels(s.n, s.p, Bw, Dv, objective=objective)
+        perf = dict(objective=objective, Bw=Bw, Dv=Dv)
+
+        def raw():
+            return design_hinf(s, region, Bw=Bw, Dv=Dv, tighten=TIGHTEN, objective=objective, **kw)
+    else:
+        perf = dict(centre=objective == "centre")
+
+        def raw():
+            return _design_from_structure(s, region, **kw, **perf)
+
+    return unit_free_fallback(raw, lambda: balanced_design(s, region, **kw, **perf), balance, "a.-d.")
+
+
+def unit_free_fallback(raw, balanced, balance: bool | None, conditions: str):
+    """``balanced()`` when `balance` is true; else ``raw()``, and with ``balance=None`` the
+    ``balanced()`` design when ``raw()`` failed only in the unit-free frame (its report says
+    so under ``"balance"``). The one rule of `design_functional_observer` and
+    `design_unknown_input_observer` (`conditions` names theirs)."""
     if balance:
-        return balanced_design(s, region, kind=kind, margin=margin, solver=solver, method=method,
-                               centre=objective == "centre")
+        return balanced()
     try:
-        return _design_from_structure(s, region, kind=kind, margin=margin, solver=solver, method=method,
-                                      centre=objective == "centre")
+        return raw()
     except DesignVerificationError as err:  # balance=None: redesign unit-free when only that frame fails
         rel = (getattr(err.report, "extra", None) or {}).get("unit-free relative residual")
         if balance is False or rel is None or rel <= RESIDUAL_RTOL:
             raise
-        d = balanced_design(s, region, kind=kind, margin=margin, solver=solver, method=method,
-                            centre=objective == "centre")
-        note = (f"the design on the data as given failed conditions a.-d. in the unit-free frame (relative "
+        d = balanced()
+        note = (f"the design on the data as given failed conditions {conditions} in the unit-free frame (relative "
                 f"residual {rel:.2e}; on the data as given {err.report.relative_residual:.2e}): designed on "
                 "the unit-free model instead (balance=True)")
         return dataclasses.replace(d, report=dataclasses.replace(d.report, extra={**d.report.extra,
                                                                                   "balance": note}))
 
 
-def balanced_design(s, region, *, kind, margin, solver, method="lmi", centre=False):
+def balanced_design(s, region, *, kind, margin, solver, method="lmi", centre=False, objective=None, Bw=None,
+                    Dv=None):
     r"""Design on the unit-free model and map the observer back (``balance=True``).
 
     With $d_l, d_r$ of `fojax.analysis.unit_scaling` ($D_l, D_r$ diagonal), the scaled model
@@ -667,15 +687,24 @@ def balanced_design(s, region, *, kind, margin, solver, method="lmi", centre=Fal
     dl, dr = unit_scaling(E, A, B, C)
     sb = observer_structure(dl[:, None] * E * dr, dl[:, None] * A * dr, dl[:, None] * B, C * dr, L * dr,
                             np.asarray(s.R) * dr, q1=s.q1, psi=s.psi)
-    db = _design_from_structure(sb, region, kind=kind, margin=margin, solver=solver, method=method, centre=centre)
+    checks = ()
+    if objective in ("hinf", "h2"):
+        from ._hinf import design_hinf
+
+        db = design_hinf(sb, region, kind=kind, margin=margin, solver=solver, Bw=dl[:, None] * np.asarray(Bw),
+                         Dv=Dv, tighten=TIGHTEN, method=method, objective=objective)
+        checks = () if db.hinf is None else tuple(db.hinf.checks(sb, db.params, db.X))
+    else:
+        db = _design_from_structure(sb, region, kind=kind, margin=margin, solver=solver, method=method,
+                                    centre=centre)
     solver_info = dict(db.solver)
     solver_info["balance"] = {"row_factors": dl.tolist(), "state_factors": dr.tolist()}
     mats, report = verify_balanced(sb, db.params, solver_info["balance"], region, db.X,
-                                   extra=carried_extra(db.report))
+                                   extra=carried_extra(db.report), checks=checks)
     return FunctionalObserverDesign(
         observer=db.observer, kind=kind, region=region, structure=sb, params=db.params,
         T=np.asarray(mats.T) * dl[None, :], K=np.asarray(mats.K), Z_eff=np.asarray(mats.Z_eff), X=db.X,
-        report=report, solver=solver_info,
+        report=report, solver=solver_info, hinf=db.hinf, h2=db.h2,
     )  # fmt: skip
 
 

@@ -95,7 +95,6 @@ import numpy as np
 
 from .._dtype import as_matrix
 from .._errors import (
-    DesignVerificationError,
     DetectabilityError,
     ExistenceConditionError,
     FunctionalObservabilityError,
@@ -125,6 +124,7 @@ from ._functional import (
     StructureDesignMixin,
     TIGHTEN,
     unit_free_failure,
+    unit_free_fallback,
 )
 from ._parameterization import (
     FunctionalObserverStructure,
@@ -608,20 +608,8 @@ def design_unknown_input_observer(
     if R is not None:
         R = np.asarray(as_matrix("R", R, cols=n, hint=f"R needs one column per state (n = {n})."))
     kw = dict(region=region, q0=q0, q1=q1, margin=margin, solver=solver)
-    if balance:
-        return _balanced_design(E, A, B, C, D, L, R, **kw)
-    try:
-        return _design(E, A, B, C, D, L, R, **kw)
-    except DesignVerificationError as err:  # balance=None: redesign unit-free when only that frame fails
-        rel = (getattr(err.report, "extra", None) or {}).get("unit-free relative residual")
-        if balance is False or rel is None or rel <= RESIDUAL_RTOL:
-            raise
-        d = _balanced_design(E, A, B, C, D, L, R, **kw)
-        note = (f"the design on the data as given failed conditions a.-f. in the unit-free frame (relative "
-                f"residual {rel:.2e}; on the data as given {err.report.relative_residual:.2e}): designed on "
-                "the unit-free model instead (balance=True)")
-        return dataclasses.replace(d, report=dataclasses.replace(d.report, extra={**d.report.extra,
-                                                                                  "balance": note}))
+    return unit_free_fallback(lambda: _design(E, A, B, C, D, L, R, **kw),
+                              lambda: _balanced_design(E, A, B, C, D, L, R, **kw), balance, "a.-f.")
 
 
 def _balanced_design(E, A, B, C, D, L, R, **kw) -> UnknownInputObserverDesign:

@@ -71,7 +71,9 @@ def _channels(term, design):
                 f"{type(term).__name__}: the design has no H∞/H2 certificate to take the channels from; "
                 f"pass them, e.g. {type(term).__name__}(Bw=..., Dv=...) ((n, mw) disturbance, (p, mv) noise), "
                 "or start from an objective='hinf'/'h2' design.")
-        Bw, Dv = np.asarray(cert.Bw), np.asarray(cert.Dv)
+        # the certificate's channels are in the frame of the design's structure (a balance=True
+        # H∞/H2 design holds the unit-free D_l B_w: fojax.design._functional.balanced_design)
+        return tuple(np.asarray(x, dtype=float) for x in (cert.Bw, cert.Dv))
     s = design.structure
     Bw, Dv = check_channels(s.n, s.p, Bw, Dv, objective=type(term).__name__)
     balance = (getattr(design, "solver", None) or {}).get("balance")
