@@ -63,6 +63,19 @@ unrolling the scans (2-8x slower on XLA CPU), one scan running the λ steps of a
 together with the recompute of the previous one (no faster), the outer-product sums as
 unrolled FMAs or batch-first einsums, or over a whole block (slower), blocks of 16 or 64.
 
+**Passes** (issue 13, `pass_recurrence_reduce`): the loss without jumps (what `tune`
+trains) runs the same split loop on passes of ``S = 8`` grid steps, $\Phi^S$ and the
+stacked rows $[G\Phi; \dots; G\Phi^S]$: the state's update, the λ scan and the λ outer
+products $S$ times fewer. Measured on the default study (B = 2,048, under load 4-5):
+value-and-gradient 0.42 s instead of 0.71 s, of which the set-up (joint exponential and
+its VJP, the plant's exponential, the pass matrices) is about 0.2 s. The shared observer
+block $e^{N h}$ (the same for every sample) was profiled first and not used: the loss's
+gradient must be formed per sample (`fojax.studies._sharding`: the sum over samples in one
+order on any split), so the cotangent of $e^{Nh}$ cannot be one sum over the block, and
+the per-sample $\Phi_{\xi p}$ still needs the joint exponential; the λ outer products
+were 0.22 s and the λ scan 0.13 s of the 0.56 s loop, and as one GEMM over the block
+the observers' outer products were no faster (0.568 s against 0.561 s).
+
 Only the observers' arrays (and ``ts``) are differentiated; ``update`` and ``init`` must depend on
 the problem's own arrays only through non-differentiable quantities (the settling
 threshold enters only an integer index).

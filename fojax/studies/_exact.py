@@ -467,7 +467,11 @@ def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts):
     do not involve the observers) and discretised by its own `expm_last`: nothing the
     observers' parameters reach is treated as constant, and differentiating with respect
     to the study's arrays raises `fojax.InputError` (the adjoint has no plant part). ``Φ_pp = e^{A_p h}`` is the plant block of ``e^{\mathcal A h}`` (block
-    lower-triangular ``\mathcal A``), equal up to rounding."""
+    lower-triangular ``\mathcal A``), equal up to rounding.
+
+    The loss (`LossProblem`) without jumps runs in passes of ``S`` grid steps
+    (`fojax.studies._adjoint.pass_recurrence_reduce`, ``S = pass_length(T − 1)``, static);
+    with jumps, other reductions, or ``S = 1``, step by step."""
     sp = problem.study if isinstance(problem, LossProblem) else problem
     n = sp.E0.shape[0]
     nq = sum(o.state_size for o in sp.observers)
