@@ -63,6 +63,19 @@ unrolling the scans (2-8x slower on XLA CPU), one scan running the λ steps of a
 together with the recompute of the previous one (no faster), the outer-product sums as
 unrolled FMAs or batch-first einsums, or over a whole block (slower), blocks of 16 or 64.
 
+**Passes** (issue 13, `pass_recurrence_reduce`): the loss without jumps (what `tune`
+trains) runs the same split loop on passes of ``S = 8`` grid steps, $\Phi^S$ and the
+stacked rows $[G\Phi; \dots; G\Phi^S]$: the state's update, the λ scan and the λ outer
+products $S$ times fewer. Measured on the default study (B = 2,048, under load 4-5):
+value-and-gradient 0.42 s instead of 0.71 s, of which the set-up (joint exponential and
+its VJP, the plant's exponential, the pass matrices) is about 0.2 s. The shared observer
+block $e^{N h}$ (the same for every sample) was profiled first and not used: the loss's
+gradient must be formed per sample (`fojax.studies._sharding`: the sum over samples in one
+order on any split), so the cotangent of $e^{Nh}$ cannot be one sum over the block, and
+the per-sample $\Phi_{\xi p}$ still needs the joint exponential; the λ outer products
+were 0.22 s and the λ scan 0.13 s of the 0.56 s loop, and as one GEMM over the block
+the observers' outer products were no faster (0.568 s against 0.561 s).
+
 Only the observers' arrays (and ``ts``) are differentiated; ``update`` and ``init`` must depend on
 the problem's own arrays only through non-differentiable quantities (the settling
 threshold enters only an integer index).
@@ -89,6 +102,10 @@ def _rmatvec_last(M, v):
     for i in range(1, v.shape[0]):
         acc = acc + M[i] * v[i][None, :]
     return acc
+
+
+#: Output rows up to which the additive adjoint forms ``Gᵀō`` as unrolled FMAs (`_rmatvec_last`).
+_RMATVEC_MAX = 8
 
 
 def _jump(w, jv, kon, k):
@@ -151,6 +168,106 @@ def _split_forward(problem, plant, diff, kon, segment, checkpoints: bool):
         carry = run(carry, 1 + full * S + jnp.arange(tail))
     p_end, xi_end, acc = carry
     return (acc, p_end, xi_end), ((saved, saved_tail) if checkpoints else None)
+
+
+#: Most grid steps one pass of `pass_recurrence_reduce` takes (a power of two; the pass is
+#: the largest power of two up to this that divides the number of steps).
+PASS_MAX = 8
+
+
+#: Passes of `pass_recurrence_reduce` up to which its backward recomputes them in one
+#: segment (its states: ``(2 dim p + dim ξ + 2 S K) · 8 · 32`` bytes per pass and block,
+#: 3 MB for the 124 passes of a 1,000-step grid at ``S = 8``), instead of ``⌈√n⌉``-pass
+#: checkpoint segments and a shorter last one: the same run time, and one segment body
+#: less to compile (the tuning step's compile, CPU seconds under load: 9.1 s against 9.5-10.4 s).
+PASS_SEGMENT_MAX = 256
+
+
+def pass_length(n: int) -> int:
+    """Static: the steps per pass of `pass_recurrence_reduce` for ``n`` grid steps, the
+    largest power of two ``≤ PASS_MAX`` dividing ``n`` and leaving at least two passes
+    (``1``: step by step, `split_recurrence_reduce`)."""
+    S = 1
+    while 2 * S <= PASS_MAX and n % (2 * S) == 0 and n // (2 * S) >= 2:
+        S *= 2
+    return S
+
+
+def _pass_matrices(Ppp, Poo, Pop, Go, Gp, S: int):
+    r"""Per sample (batch last): the blocks of $\Phi^S$ and the rows $G\Phi^i$,
+    $i = 1, \dots, S$ (stacked step-major: row $(i-1)K + k$), of the block lower-triangular
+    $\Phi = [[\Phi_{pp}, 0], [\Phi_{\xi p}, \Phi_{\xi\xi}]]$ and $G = [G_p, G_\xi]$, by
+    doubling: $R_{w+1..2w} = R_{1..w}\Phi^w$, $\Phi^{2w} = \Phi^w\Phi^w$ ($S$ a power of
+    two), as batched batch-first products (measured: the batch-last einsums compiled
+    1 s slower; `jax.lax.scan`s of the steps 2 s slower).
+    Returns ``(Φ^S_pp, Φ^S_ξp, Φ^S_ξξ, R_p, R_ξ)``."""
+
+    Pp, Pxx, Pxp, Go, Gp = (jnp.moveaxis(X, -1, 0) for X in (Ppp, Poo, Pop, Go, Gp))  # batch first: batched GEMMs
+    m = Pp.shape[1]
+    X = jnp.concatenate([Pxp, Pxx], axis=2)  # the observers' rows of Φ^w, (b, q, N)
+    zero = jnp.zeros(Pp.shape[:2] + (Pxx.shape[1],), Pp.dtype)
+
+    def joint(Pp, X):
+        return jnp.concatenate([jnp.concatenate([Pp, zero], axis=2), X], axis=1)  # Φ^w, (b, N, N)
+
+    R = jnp.concatenate([Gp, Go], axis=2) @ joint(Pp, X)  # G Φ
+    w = 1
+    while w < S:
+        F = joint(Pp, X)
+        R, X, Pp = jnp.concatenate([R, R @ F], axis=1), X @ F, Pp @ Pp
+        w *= 2
+    Pp, Pxp, Pxx, Rp, Rx = (jnp.moveaxis(Y, 0, -1) for Y in (Pp, X[..., :m], X[..., m:], R[..., :m], R[..., m:]))
+    return Pp, Pxp, Pxx, Rp, Rx
+
+
+def pass_recurrence_reduce(diff, plant, problem, S: int, segment=None):
+    r"""`split_recurrence_reduce` for an additive reduction (``problem.update(acc, o, k,
+    ts) = acc + g(o)``, ``g`` elementwise, independent of ``k`` and ``ts``: `LossProblem`)
+    without jumps, ``S`` grid steps per pass (`pass_length`).
+
+    The step-by-step loop costs per sample and step $\dim\xi\,(\dim\xi + \dim p)$ +
+    $\dim p^2 + K(\dim\xi + \dim p)$ FMAs forward, and its reverse pass (recompute, λ,
+    the outer-product sums) about twice as many again. With $w'_j = w_{jS}$ the loop is
+    the same recurrence on the passes,
+
+    $$w'_j = \Phi^S w'_{j-1},\qquad
+    O_j = \begin{bmatrix} G\Phi \\ \vdots \\ G\Phi^S\end{bmatrix} w'_j
+    = (o_{jS+1}, \dots, o_{jS+S}),$$
+
+    so `split_recurrence_reduce` runs on the ``n/S − 1`` passes ``j = 1 … n/S − 1`` with
+    $\Phi^S$ and the stacked rows $R = [G\Phi; \dots; G\Phi^S]$ ($SK$ outputs; its adjoint
+    is unchanged), the first pass's outputs $O_0 = R w_0$ (steps ``1 … S``) are added
+    here, and $w_n = \Phi^S w'_{n/S-1}$. Per sample and step this is about
+    $(\dim\xi + \dim p)(\dim\xi + \dim p + SK)/S$ FMAs forward: the outputs'
+    rows are as many as before, the state's update $S$ times fewer. $\Phi^S$ and $R$
+    (`_pass_matrices`: $\log_2 S$ squarings and doublings) are differentiated by `jax`.
+    Equal to the step-by-step loop up to rounding (the products are associated
+    differently; tested to 1e-12 relative).
+
+    **Arguments:** as `split_recurrence_reduce` (``jvo``, ``jvp`` ``None``, no ``kon``);
+    ``S`` (static) divides ``n = T − 1`` and leaves at least two passes.
+
+    **Returns:** ``(acc, p_end, xi_end)``: ``acc`` ``(K, b)`` summed over the ``S`` rows of
+    each output in order.
+    """
+    Poo, Pop, Go, Gp, xi0, jvo, ts = diff
+    Ppp, p0, jvp = plant
+    n = ts.shape[0] - 1
+    if jvo is not None or jvp is not None or n % S or n // S < 2 or not getattr(problem, "additive", False):
+        raise InputError(f"pass_recurrence_reduce: {S} steps per pass need an additive problem, no jumps and "
+                         f"S | n with n / S >= 2 (n = {n}).")
+    K = Go.shape[0]
+    Pp, Pxp, Pxx, Rp, Rx = _pass_matrices(Ppp, Poo, Pop, Go, Gp, S)
+    if segment is None and n // S - 1 <= PASS_SEGMENT_MAX:
+        segment = n // S - 1  # one checkpoint segment (no shorter last one to compile)
+    acc, p_end, xi_end = split_recurrence_reduce((Pxx, Pxp, Rx, Rp, xi0, None, ts[: n // S]),
+                                                 (Pp, p0, None), problem, None, segment)
+    # differentiated by jax: einsums (the transpose of the unrolled `_matvec_last` pads a
+    # cotangent per column: +2 s of compile)
+    mv = lambda M, v: jnp.einsum("ijb,jb->ib", M, v)  # noqa: E731
+    acc = problem.update(acc, mv(Rx, xi0) + mv(Rp, p0), 0, ts)  # steps 1 … S
+    acc = acc.reshape((S, K) + acc.shape[1:]).sum(axis=0)
+    return acc, mv(Pp, p_end), mv(Pxx, xi_end) + mv(Pxp, p_end)
 
 
 def split_recurrence_reduce(diff, plant, problem, kon, segment=None):
@@ -281,7 +398,10 @@ def _split_bwd(saved, grad_obj, perturbed, args, problem, kon, segment=None):
             _, o_bar, t_bar = jax.vmap(lambda a, o, k: update_vjp(a, o, k, acc_bar))(acc_prev, o_k, ks)
             if t_bar is not None:
                 tb = tb + jnp.sum(t_bar, axis=0)
-            r = jax.vmap(_rmatvec_last, in_axes=(None, 0))(Go, o_bar)  # Gᵀō_k for every step k
+            # Gᵀō_k for every step k; for the many output rows of `pass_recurrence_reduce`
+            # (S K) a dot: the unrolled FMAs compiled 1.8 s slower and ran slower
+            r = (jnp.einsum("kib,skb->sib", Go, o_bar) if Go.shape[0] > _RMATVEC_MAX
+                 else jax.vmap(_rmatvec_last, in_axes=(None, 0))(Go, o_bar))
             mu, lam = lax.scan(lam_step, mu, r, reverse=True)
         else:
             (mu, acc_bar, tb), (lam, o_bar) = lax.scan(back_step, (mu, acc_bar, tb), (o_k, acc_prev, ks),
@@ -315,7 +435,7 @@ def _split_bwd(saved, grad_obj, perturbed, args, problem, kon, segment=None):
     o0 = _matvec_last(Go, xi0) + _matvec_last(Gp, p0)
     _, vjp0 = jax.vjp(lambda o: _float_part(problem.init(o))[0], o0)
     (o0_bar,) = vjp0(acc_bar)
-    lam0 = mu + _rmatvec_last(Go, o0_bar)
+    lam0 = mu + (jnp.einsum("kib,kb->ib", Go, o0_bar) if Go.shape[0] > _RMATVEC_MAX else _rmatvec_last(Go, o0_bar))
     Go_b = Go_b + o0_bar[:, None, :] * xi0[None, :, :]
     Gp_b = Gp_b + o0_bar[:, None, :] * p0[None, :, :]
     return (Poo_b, Pop_b, Go_b, Gp_b, lam0, jb, tb), jax.tree.map(lambda _: None, plant)

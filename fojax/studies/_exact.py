@@ -49,7 +49,7 @@ from ..simulation._reduction import (
 )
 from ..simulation._save import METRIC_NAMES
 from ..simulation._steppers import grid_deviation, UNIFORM_GRID_RTOL
-from ._adjoint import split_recurrence_reduce
+from ._adjoint import pass_length, pass_recurrence_reduce, split_recurrence_reduce
 from ._sharding import per_sample
 from ._wrappers import FaultProfile, FaultyPlant
 
@@ -467,7 +467,11 @@ def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts):
     do not involve the observers) and discretised by its own `expm_last`: nothing the
     observers' parameters reach is treated as constant, and differentiating with respect
     to the study's arrays raises `fojax.InputError` (the adjoint has no plant part). ``Φ_pp = e^{A_p h}`` is the plant block of ``e^{\mathcal A h}`` (block
-    lower-triangular ``\mathcal A``), equal up to rounding."""
+    lower-triangular ``\mathcal A``), equal up to rounding.
+
+    The loss (`LossProblem`) without jumps runs in passes of ``S`` grid steps
+    (`fojax.studies._adjoint.pass_recurrence_reduce`, ``S = pass_length(T − 1)``, static);
+    with jumps, other reductions, or ``S = 1``, step by step."""
     sp = problem.study if isinstance(problem, LossProblem) else problem
     n = sp.E0.shape[0]
     nq = sum(o.state_size for o in sp.observers)
@@ -506,7 +510,11 @@ def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts):
         jvp = jnp.where(valid.T[:, None, :], jvp, 0.0)
     diff = (obs(obs(Phi, 0), 1), rows(obs(Phi, 0), 1), obs(G, 1), rows(G, 1), obs(w0, 0),
             None if jv is None else obs(jv, 1), ts)
-    acc, p_end, xi_end = split_recurrence_reduce(diff, (Ppp, p0.T, jvp), problem, kon)
+    S = pass_length(ts.shape[0] - 1) if isinstance(problem, LossProblem) and jv is None else 1
+    if S > 1:  # the loss without jumps: S steps per pass (static choice, one compiled path)
+        acc, p_end, xi_end = pass_recurrence_reduce(diff, (Ppp, p0.T, None), problem, S)
+    else:
+        acc, p_end, xi_end = split_recurrence_reduce(diff, (Ppp, p0.T, jvp), problem, kon)
     w_end = jnp.concatenate([p_end[:n], xi_end, p_end[n:]], axis=0)
     return acc, w_end
 
