@@ -30,7 +30,6 @@ from ._functional import (
     solve_gains,
     split_Y,
     TIGHTEN,
-    unit_free_check,
     verify_structure_design,
 )
 from ._parameterization import observer_structure, pieces
@@ -329,8 +328,7 @@ def _design_ft(
         route = (info["lmi"]["route"] if "lmi" in info else "pole placement" + (
             f" (LMI refused: {info['lmi_status']})" if info["lmi_status"] else ""))
         # the unit-free check as in every functional-observer design (and in its verify())
-        uf = tuple(c for c in (unit_free_check(s, params, UNIT_FREE_FIX),) if c)
-        mats, report = verify_structure_design(s, params, reg, X, extra={"LMI route": route}, checks=uf)
+        mats, report = verify_structure_design(s, params, reg, X, extra={"LMI route": route}, unit_free=UNIT_FREE_FIX)
         designs.append(
             FunctionalObserverDesign(
                 observer=build_observer(s, mats, kind=kind),

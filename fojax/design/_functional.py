@@ -172,9 +172,8 @@ class FunctionalObserverDesign(StructureDesignMixin, AbstractDesign):
         if (self.solver or {}).get("balance") is not None:
             return verify_balanced(self.structure, self.params, self.solver["balance"], self.region, self.X,
                                    extra=carried_extra(self.report), checks=checks)[1]
-        uf = tuple(c for c in (unit_free_check(self.structure, self.params),) if c)
         return verify_structure_design(self.structure, self.params, self.region, self.X,
-                                       extra=carried_extra(self.report), checks=checks + uf)[1]
+                                       extra=carried_extra(self.report), checks=checks, unit_free=UNIT_FREE_FIX)[1]
 
     def __str__(self) -> str:
         o = self.observer
@@ -411,10 +410,13 @@ def carried_extra(report: VerificationReport) -> dict:
 
 
 def verify_structure_design(s, params, region, X, *, rtol=None, extra=None, common_lyapunov=False,
-                            checks=()) -> tuple[Any, VerificationReport]:
+                            checks=(), unit_free: str | None = None) -> tuple[Any, VerificationReport]:
     """Compute the matrices for `params` and verify them (residuals, eigenvalues, LMI; the
     common Lyapunov inequality of every rule with `common_lyapunov`; `checks` as in
-    `fojax.design.verify`)."""
+    `fojax.design.verify`). With `unit_free` (the fix its failure names, e.g.
+    `UNIT_FREE_FIX`) also a.–d. in the unit-free frame (`unit_free_check`, after `checks`)."""
+    if unit_free is not None:
+        checks = tuple(checks) + tuple(c for c in (unit_free_check(s, params, unit_free),) if c)
     mats = observer_matrices(s, **{k: np.asarray(v) for k, v in params.items()}, xp=np)
     res = design_residuals(s, mats, xp=np)
     scale = float(res.pop("scale"))
@@ -708,7 +710,11 @@ def balanced_design(s, region, *, kind, margin, solver, method="lmi", centre=Fal
     )  # fmt: skip
 
 
-def unit_free_check(s, params, fix: str = "design with balance=True") -> tuple | None:
+#: What a failed unit-free check of a design with ``balance`` tells the user.
+UNIT_FREE_FIX = "design with balance=True"
+
+
+def unit_free_check(s, params, fix: str = UNIT_FREE_FIX) -> tuple | None:
     r"""``("unit-free relative residual", value, failure or None)``: conditions a.–d. of the
     observer of `params` on `s`, re-checked in the unit-free frame of
     `fojax.analysis.unit_scaling` (a named check for `fojax.design.verify`), or ``None``
@@ -735,13 +741,22 @@ def unit_free_check(s, params, fix: str = "design with balance=True") -> tuple |
     return ("unit-free relative residual", rel, unit_free_failure(rel, "a.-d.", fix))
 
 
-def unit_free_failure(rel: float, conditions: str, fix: str = "design with balance=True") -> str | None:
+def unit_free_failure(rel: float, conditions: str, fix: str = UNIT_FREE_FIX) -> str | None:
     """The failure of a unit-free check of `conditions` at relative residual `rel` (``None``:
     passed); `fix` says what to change."""
     return None if rel <= RESIDUAL_RTOL else (
         f"conditions {conditions} in the unit-free frame (fojax.analysis.unit_scaling) have relative residual "
         f"{rel:.2e} > {RESIDUAL_RTOL:.0e}: on this badly scaled model the observer passes the test on the "
         f"data as given only because its terms are large; {fix}")
+
+
+def model_structure(sb, dl, dr):
+    r"""The unit-free structure `sb` of a ``balance=True`` design back in the model's units:
+    $E = D_l^{-1}E_bD_r^{-1}$, $A = D_l^{-1}A_bD_r^{-1}$, $B = D_l^{-1}B_b$, $C = C_bD_r^{-1}$,
+    $L = L_bD_r^{-1}$, $R = R_bD_r^{-1}$, $E^\perp = E_b^\perp D_l$ (`balanced_design`)."""
+    Eb, Ab, Bb, Cb, Lb = (np.asarray(x, dtype=float) for x in (sb.E, sb.A, sb.B, sb.C, sb.L))
+    return observer_structure(Eb / dl[:, None] / dr, Ab / dl[:, None] / dr, Bb / dl[:, None], Cb / dr, Lb / dr,
+                              np.asarray(sb.R) / dr, q1=sb.q1, psi=sb.psi, Eperp=np.asarray(sb.Eperp) * dl[None, :])
 
 
 def verify_balanced(sb, params, balance: dict, region, X, *, extra=None, checks=()):
@@ -752,9 +767,7 @@ def verify_balanced(sb, params, balance: dict, region, X, *, extra=None, checks=
     Raises `fojax.DesignVerificationError` when either fails."""
     dl, dr = np.asarray(balance["row_factors"], float), np.asarray(balance["state_factors"], float)
     mats, rep_b = verify_structure_design(sb, params, region, X, extra=extra, checks=checks)
-    Eb, Ab, Bb, Cb, Lb = (np.asarray(x, dtype=float) for x in (sb.E, sb.A, sb.B, sb.C, sb.L))
-    so = observer_structure(Eb / dl[:, None] / dr, Ab / dl[:, None] / dr, Bb / dl[:, None], Cb / dr, Lb / dr,
-                            np.asarray(sb.R) / dr, q1=sb.q1, psi=sb.psi, Eperp=np.asarray(sb.Eperp) * dl[None, :])
+    so = model_structure(sb, dl, dr)
     mo = mats._replace(T=np.asarray(mats.T) * dl[None, :])
     res = design_residuals(so, mo, xp=np)
     scale = float(res.pop("scale"))
@@ -813,9 +826,8 @@ def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, 
         info["lmi"]["method"] = "lmi"
     params = _lmi_params(s, Z, Ys)
     route_key = "LMI route" if info["lmi"]["method"] == "lmi" else "design route"
-    uf = tuple(c for c in (unit_free_check(s, params),) if c)
     mats, report = verify_structure_design(s, params, region, X, extra={route_key: info["lmi"]["route"], **extra},
-                                           checks=uf)
+                                           unit_free=UNIT_FREE_FIX)
     obs = build_observer(s, mats, kind=kind)
     return FunctionalObserverDesign(
         observer=obs,

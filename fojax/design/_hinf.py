@@ -517,7 +517,7 @@ def design_hinf(s, region, *, kind, margin, solver, Bw, Dv, tighten, method="lmi
         build_observer,
         FunctionalObserverDesign,
         split_Y,
-        unit_free_check,
+        UNIT_FREE_FIX,
         verify_structure_design,
     )
 
@@ -545,8 +545,7 @@ def design_hinf(s, region, *, kind, margin, solver, Bw, Dv, tighten, method="lmi
     blocks = split_Y(Y, s.q0, c)
     params = {"Z": Z, "Y1": blocks["Y1"], "Y2": blocks["Y2"], "Y3": Y3, "J": blocks["J"], "G": blocks["G"]}
     route = _lmi.describe_route(info, "min-γ" if objective == "hinf" else "min-tr(W)")
-    uf = tuple(c for c in (unit_free_check(s, params),) if c)  # as every functional-observer design
-    mats, report = verify_structure_design(s, params, region, X, extra={"LMI route": route}, checks=uf)
+    mats, report = verify_structure_design(s, params, region, X, extra={"LMI route": route}, unit_free=UNIT_FREE_FIX)
     A, B, C, D = error_system(s, mats, Bw, Dv)
     if objective == "h2":
         Dcal = _dcal(s, Bw, Dv)

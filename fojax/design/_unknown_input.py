@@ -121,6 +121,7 @@ from ._functional import (
     carried_extra,
     choose_Z,
     condition_scales,
+    model_structure,
     StructureDesignMixin,
     TIGHTEN,
     unit_free_failure,
@@ -713,9 +714,7 @@ def verify_unknown_input_design(s, D, params, region, X, *, extra=None, balance=
         rel = relative_residual(*_residuals(s, Db, mats))
         checks = (("unit-free relative residual", rel, None if rel <= RESIDUAL_RTOL else (
             f"conditions a.-f. in the unit-free frame have relative residual {rel:.2e} > {RESIDUAL_RTOL:.0e}")),)
-        Eb, Ab, Bb, Cb, Lb = (np.asarray(x, dtype=float) for x in (s.E, s.A, s.B, s.C, s.L))
-        so = observer_structure(Eb / dl[:, None] / dr, Ab / dl[:, None] / dr, Bb / dl[:, None], Cb / dr, Lb / dr,
-                                np.asarray(s.R) / dr, q1=s.q1, psi=s.psi, Eperp=np.asarray(s.Eperp) * dl[None, :])
+        so = model_structure(s, dl, dr)
         Do, mo = D, mats._replace(T=np.asarray(mats.T) * dl[None, :])
     res, scale, scales = _residuals(so, Do, mo)
     Ep = np.asarray(so.Eperp)
