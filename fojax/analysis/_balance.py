@@ -278,7 +278,16 @@ def tg01ad_scaling(E, A, B=None, C=None) -> Scaling:
 
 def apply_scaling(s: Scaling, E, A, B=None, C=None):
     """``(D_l E D_r, D_l A D_r, D_l B, C D_r)`` (exact: powers of two)."""
-    dl, dr = s.left, s.right
+    return scale_model(s.left, s.right, E, A, B, C)
+
+
+def scale_model(dl, dr, E, A, B=None, C=None):
+    """``(D_l E D_r, D_l A D_r, D_l B, C D_r)`` for row factors `dl` ``(l,)`` and state factors
+    `dr` ``(n,)`` (`None` for a `B` or `C` not given). `A` and `B` may carry a leading rule
+    axis (Takagi–Sugeno: ``(r, l, n)``, ``(r, l, m)``). The one place where a model is
+    rescaled: `apply_scaling` (the exact powers of two of the rank decisions) and the
+    unit-free frame of `unit_scaling` (the design's ``balance``) both call it."""
+    dl, dr = np.asarray(dl, dtype=float), np.asarray(dr, dtype=float)
     E = np.asarray(E, dtype=float)
     A = np.asarray(A, dtype=float)
     out = [dl[:, None] * E * dr[None, :], dl[:, None] * A * dr[None, :]]

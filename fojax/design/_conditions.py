@@ -159,7 +159,7 @@ def unit_free_structure(s: FunctionalObserverStructure, *, orthonormal: bool = F
     larger than `UNIT_FREE_CHECK_MAX` or has rules. With `orthonormal` $E^\perp_b$ is
     replaced by an orthonormal basis of its rows (the same row space, so the same rank
     conditions; for rank decisions, not for mapping parameters)."""
-    from ..analysis._balance import unit_scaling
+    from ..analysis._balance import scale_model, unit_scaling
 
     E, A, B, C, L = (np.asarray(x, dtype=float) for x in (s.E, s.A, s.B, s.C, s.L))
     if A.ndim != 2 or E.shape[0] + E.shape[1] > UNIT_FREE_CHECK_MAX or getattr(s, "num_rules", 1) > 1:
@@ -168,8 +168,8 @@ def unit_free_structure(s: FunctionalObserverStructure, *, orthonormal: bool = F
     Epb = np.asarray(s.Eperp) / dl[None, :]
     if orthonormal and Epb.size:
         Epb = np.linalg.svd(Epb, full_matrices=False)[2][: Epb.shape[0]]
-    sb = observer_structure(dl[:, None] * E * dr, dl[:, None] * A * dr, dl[:, None] * B, C * dr, L * dr,
-                            np.asarray(s.R) * dr, q1=s.q1, psi=s.psi, Eperp=Epb)
+    sb = observer_structure(*scale_model(dl, dr, E, A, B, C), L * dr, np.asarray(s.R) * dr, q1=s.q1, psi=s.psi,
+                            Eperp=Epb)
     return sb, dl, dr
 
 
@@ -395,15 +395,15 @@ def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int
     As = A if A.ndim == 3 else A[None]
     Ep = np.asarray(Eperp, float)
     if balance:
-        from ..analysis._balance import unit_scaling
+        from ..analysis._balance import scale_model, unit_scaling
 
         Bs = B if B.ndim == 3 else B[None]
         dl, dr = unit_scaling(E, As[0], Bs[0], C)
         Epb = Ep / dl[None, :]
         if Epb.size:
             Epb = np.linalg.svd(Epb, full_matrices=False)[2][: Ep.shape[0]]  # orthonormal rows, same row space
-        Rb = default_R(dl[:, None] * E * dr, dl[:, None] * A * dr, dl[..., :, None] * B, C * dr, L * dr, psi=psi,
-                       Eperp=Epb, region=region, q0=q0, q1=q1, max_iter=max_iter, balance=False)
+        Rb = default_R(*scale_model(dl, dr, E, A, B, C), L * dr, psi=psi, Eperp=Epb, region=region, q0=q0, q1=q1,
+                       max_iter=max_iter, balance=False)
         if Rb.shape == L.shape and np.array_equal(Rb, L * dr):
             return L.copy()  # the row basis of L itself (step 1): exactly L, not L D_r / D_r
         return Rb / dr[None, :]

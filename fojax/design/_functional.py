@@ -683,12 +683,11 @@ def balanced_design(s, region, *, kind, margin, solver, method="lmi", centre=Fal
     data instead fails the same way: that structure's solvability restriction $Z_0$,
     $\Pi_Z$ is decided on badly scaled numbers; measured: a wrong pole.)
     """
-    from ..analysis._balance import unit_scaling
+    from ..analysis._balance import scale_model, unit_scaling
 
     E, A, B, C, L = (np.asarray(x, dtype=float) for x in (s.E, s.A, s.B, s.C, s.L))
     dl, dr = unit_scaling(E, A, B, C)
-    sb = observer_structure(dl[:, None] * E * dr, dl[:, None] * A * dr, dl[:, None] * B, C * dr, L * dr,
-                            np.asarray(s.R) * dr, q1=s.q1, psi=s.psi)
+    sb = observer_structure(*scale_model(dl, dr, E, A, B, C), L * dr, np.asarray(s.R) * dr, q1=s.q1, psi=s.psi)
     checks = ()
     if objective in ("hinf", "h2"):
         from ._hinf import design_hinf

@@ -615,12 +615,12 @@ def design_unknown_input_observer(
 
 def _balanced_design(E, A, B, C, D, L, R, **kw) -> UnknownInputObserverDesign:
     """``balance=True`` (`design_unknown_input_observer`): design on the unit-free model, map back."""
-    from ..analysis._balance import unit_scaling
+    from ..analysis._balance import scale_model, unit_scaling
 
     dl, dr = unit_scaling(E, A, B, C)
     Rb = None if R is None else R * dr[None, :]
-    db = _design(dl[:, None] * E * dr, dl[:, None] * A * dr, dl[:, None] * B, C * dr, dl[:, None] * D, L * dr, Rb,
-                 **kw)
+    Eb, Ab, Bb, Cb = scale_model(dl, dr, E, A, B, C)
+    db = _design(Eb, Ab, Bb, Cb, dl[:, None] * D, L * dr, Rb, **kw)
     balance = {"row_factors": dl.tolist(), "state_factors": dr.tolist()}
     _, report = verify_unknown_input_design(db.structure, D, db.params, db.region, db.X,
                                             extra=carried_extra(db.report), balance=balance)
