@@ -12,7 +12,6 @@ after the death can raise it: the heartbeat, 10 s here, ends a process that JAX 
 waiting for the dead one, with JAX's own message.)
 """
 
-import collections
 import faulthandler
 import os
 import signal
@@ -33,7 +32,6 @@ from fojax import studies as S, tuning  # noqa: E402
 
 
 SIGNALS = ("z1", "z2", "f1", "f2", "f3")
-TRACES = collections.Counter()
 
 
 def studies():
@@ -65,25 +63,27 @@ def time_varying_study():
                    signal_names=SIGNALS)
 
 
-def study_and_tuning(design, devices, loss_devices, checkpoint, steps=3):
+def study_and_tuning(design, devices, loss_devices, checkpoint):
     """As a flat dict of NumPy arrays:
 
     - metrics and quantile bands of the evaluation study (`run_study` over `devices`);
     - its metrics with ``chunk_size=2``: blocks of 2 samples, dealt to the devices
       unevenly (7 samples: on 3 devices 2 + 2 + 2 and then 1);
     - the metrics of `time_varying_study` (exponential engine, ``chunk_size=2``);
-    - `steps` Adam steps of the tuning parameters (`fojax.tuning.initial_parameters`, the
-      loss `study_loss` that `tune` differentiates, spread over `loss_devices`) on the
-      training study: losses, gradients and final parameters;
-    - `fojax.tune` over `loss_devices`: 1 step with a checkpoint at `checkpoint`, then
-      resumed from it to step 2: history and parameters.
+    - `fojax.tune` over `loss_devices` on the training study (Adam on the loss
+      `study_loss`, spread over `loss_devices`): 1 step with a checkpoint at `checkpoint`,
+      then resumed from it to step 2: history (the training losses) and parameters; the
+      checkpoint (parameters and Adam's moments, i.e. functions of each step's gradient)
+      is compared file for file by the test, and the trace count says whether resuming
+      with new parameters compiled again.
+
+    (A hand-written Adam loop of `study_loss` over `loss_devices` was here too. It compiled a
+    third gradient program in every process and proved nothing the above does not: its
+    losses are `tune`'s ``train_loss``, its gradients enter Adam's moments in the
+    checkpoint and the parameters of every process, its one trace is ``tune_traces``; and
+    the gradient on several devices is compared with one device bit for bit in-process,
+    tests/test_distributed.py::test_study_loss_and_gradient_on_several_devices_equal_one_device.)
     """
-    import equinox as eqx
-    import optax
-
-    from fojax.studies._runner import SimConfig
-    from fojax.studies._sharding import replicate
-
     ev, train = studies()
     res = S.run_study(ev, design.observer, devices=devices, quantiles=(0.1, 0.5, 0.9), quiet=True)
     out = {f"metric:{k}": np.asarray(v) for k, v in res.metrics.items()}
@@ -92,28 +92,6 @@ def study_and_tuning(design, devices, loss_devices, checkpoint, steps=3):
     tv = S.run_study(time_varying_study(), design.observer, devices=devices, chunk_size=2, quantiles=(), quiet=True)
     out.update({f"tv:{k}": np.asarray(v) for k, v in tv.metrics.items()})
     out["tv_engine"] = np.asarray(tv.attrs["engine"])
-    cfg = SimConfig(devices=None if loss_devices is None else tuple(loss_devices))
-    fx, params = tuning.initial_parameters(design)
-    opt = optax.adam(1e-2)
-
-    @eqx.filter_jit
-    def step(params, state):
-        TRACES["step"] += 1
-        loss, grads = eqx.filter_value_and_grad(
-            lambda p: S.study_loss(train, tuning.observer_from_parameters(fx, p)[0], cfg=cfg))(params)
-        updates, state = opt.update(grads, state, params)
-        return loss, grads, optax.apply_updates(params, updates), state
-
-    state = opt.init(params)
-    params, state = replicate((params, state), None if loss_devices is None else tuple(loss_devices))
-    losses = []
-    for k in range(steps):
-        loss, grads, params, state = step(params, state)
-        losses.append(np.asarray(loss))
-        out.update({f"grad{k}:{name}": np.asarray(v) for name, v in grads.items()})
-    out["train_loss"] = np.asarray(losses)
-    out.update({f"param:{k}": np.asarray(v) for k, v in params.items()})
-    out["step_traces"] = np.asarray(TRACES["step"])  # 1: new parameters never recompile
     for n_steps, resume in ((1, False), (2, True)):
         tr = tuning.tune(design, train, steps=n_steps, checkpoint=checkpoint, resume=resume,
                          devices=None if loss_devices is None else tuple(loss_devices))

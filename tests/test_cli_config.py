@@ -40,7 +40,10 @@ except ImportError:
     TUNING = False
 
 
-# 8 of the malformed configs of test_config.py, through the command line
+# 8 of the malformed configs of test_config.py, through the command line (`main(argv)`, in this
+# process: each would cost a subprocess ~2 s of CPU importing JAX and fojax before failing
+# on the file; the program's own exit codes and stderr are those of the "missing" and
+# "radius0" subprocesses)
 CLI_MALFORMED = [MALFORMED[i] for i in (0, 1, 2, 3, 9, 11, 17, 22)]
 
 
@@ -81,6 +84,19 @@ class _Run:
         return self.proc.returncode
 
 
+class _InProcess:
+    """`fojax ARGS` as `main(ARGS)` in this process: `.returncode`, `.stdout`, `.stderr`."""
+
+    def __init__(self, *args):
+        import contextlib
+        import io
+
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            self.returncode = main([str(a) for a in args])
+        self.stdout, self.stderr = out.getvalue(), err.getvalue()
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """Every independent command, started concurrently (the CI machine has 2 cores, and
@@ -104,7 +120,7 @@ def runs(tmp_path_factory):
         "quiet": _Run("check", "example_3_1_3", "--quiet"),
         "help": _Run("--help"),
         "design_help": _Run("design", "--help"),
-        "examples": _Run("examples"),
+        "examples": _InProcess("examples"),
         # 5 samples: not a multiple of the 4 fault scenarios the study used to multiply by
         "study": _Run("study", "--samples", "5", "--horizon", "2", "--steps", "2", "--out", tmp / "study",
                       env=study_env),
@@ -112,7 +128,7 @@ def runs(tmp_path_factory):
         "missing": _Run("check", tmp / "missing.toml"),
         "radius0": _Run("design", radius0, "--out", tmp / "radius0-out"),
     }
-    r |= {f"bad:{k}": _Run("check", p) for k, p in bad.items()}
+    r |= {f"bad:{k}": _InProcess("check", p) for k, p in bad.items()}
     r["tmp"], r["bad"], r["study_env"] = tmp, bad, study_env
     yield r
     for v in r.values():
@@ -193,15 +209,16 @@ def test_design_of_the_takagi_sugeno_example(designed):
 
 
 def test_second_design_never_destroys_the_first(tmp_path):
-    first = fojax("--quiet", "design", "example_4_2_2", "--out", tmp_path, "--name", "run")
+    # in this process (`main(argv)`): three subprocesses cost ~7 s of CPU importing JAX
+    first = _InProcess("--quiet", "design", "example_4_2_2", "--out", tmp_path, "--name", "run")
     assert first.returncode == 0 and first.stdout == "", first.stderr
     folder = tmp_path / "run"
     snapshot = {p.name: p.read_bytes() for p in folder.iterdir()}
     assert {"config.toml", "report.md", "designs.json", "generalized.npz", "poles-generalized.png"} <= set(snapshot)
-    again = fojax("design", "example_4_2_2", "--out", tmp_path, "--name", "run")
+    again = _InProcess("design", "example_4_2_2", "--out", tmp_path, "--name", "run")
     assert again.returncode == 2
     assert "run already exists and is not empty" in again.stderr and "--overwrite" in again.stderr
-    timestamped = fojax("design", "example_4_2_2", "--out", tmp_path, "--quiet")
+    timestamped = _InProcess("design", "example_4_2_2", "--out", tmp_path, "--quiet")
     assert timestamped.returncode == 0
     assert len([p for p in tmp_path.iterdir() if p.is_dir()]) == 2
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == snapshot
