@@ -262,17 +262,24 @@ def test_auto_picks_exact_then_falls_back(plant413, refs413):
         fojax.simulate(plant413, X0_413, ts, method="exact")
 
 
+@pytest.fixture(scope="module")
+def ref31():
+    """SciPy's Radau reference of the stiff §3.1 loop on TS (computed once, for both methods)."""
+    d, _, rhs, full = hand_reduced(E31, ACL31, B31)
+    xd = scipy_trajectory(lambda t, x: rhs(x, np.zeros(2)), X0_31[d], TS, method="Radau")
+    return np.stack([full(x, np.zeros(2)) for x in xd])
+
+
 @pytest.mark.parametrize("method", ["exact", "diffrax"])
-def test_stiff_thesis_31_against_scipy(method):
+def test_stiff_thesis_31_against_scipy(method, ref31):
     poles = scipy.linalg.eigvals(ACL31, E31)
     assert np.min(poles[np.isfinite(poles)].real) < -270  # the stiff pole near -275
-    ts = TS  # same shapes as example 4.1.3: the compiled simulations are reused
+    # Same shapes as example 4.1.3 (and, for diffrax, the same zero input with the step +
+    # sine's structure): the compiled simulations of test_thesis_413_against_scipy are reused.
+    u = zero_input413() if method == "diffrax" else None
     plant = fojax.DescriptorSystem(E31, ACL31, B31, C31)
-    sol = fojax.simulate(plant, X0_31, ts, method=method)
-    d, _, rhs, full = hand_reduced(E31, ACL31, B31)
-    xd = scipy_trajectory(lambda t, x: rhs(x, np.zeros(2)), X0_31[d], ts, method="Radau")
-    ref = np.stack([full(x, np.zeros(2)) for x in xd])
-    assert rel_err(sol.xs, ref) <= 1e-6
+    sol = fojax.simulate(plant, X0_31, TS, u, method=method)
+    assert rel_err(sol.xs, ref31) <= 1e-6
     assert float(sol.stats["constraint_residual"]) <= 1e-8
 
 
@@ -380,9 +387,13 @@ def test_grad_exact_path_matches_finite_differences(plant413):
         sol = fojax.simulate(fojax.DescriptorSystem(E413, A, B413, C413), X0_413, ts, u)
         return jnp.sum(sol.xs**2) * dt
 
-    g = float(jax.grad(cost)(0.0))
+    # One compiled program (the cost and its reverse pass) gives the gradient and the three
+    # cost values the central difference needs: jax.grad outside jit and cost() besides it
+    # compiled three (forward with residuals, transpose, forward alone).
+    vg = jax.jit(jax.value_and_grad(cost))
+    g = float(vg(jnp.asarray(0.0))[1])
     h = 1e-3  # cost ~157 is evaluated to ~1e-12 relative: smaller h amplifies that noise
-    fd = (float(cost(h)) - float(cost(-h))) / (2 * h)
+    fd = (float(vg(jnp.asarray(h))[0]) - float(vg(jnp.asarray(-h))[0])) / (2 * h)
     assert abs(g - fd) <= 1e-5 * abs(fd)
 
 
@@ -402,11 +413,13 @@ def test_grad_diffrax_path_matches_finite_differences():
         return jnp.sum(sol.xs**2) * dt
 
     k0 = ROBOT["k"]
-    g = float(jax.grad(cost)(jnp.asarray(k0)))
+    # One compiled program (the cost and its reverse pass) gives the gradient and the cost
+    # values of the central difference (as in test_tuning_ts): jax.grad outside jit and
+    # cost() besides it compiled three programs, the adaptive solve in each.
+    vg = jax.jit(jax.value_and_grad(cost))
+    g = float(vg(jnp.asarray(k0))[1])
     h = 1e-4
-    # arrays, not Python floats: a float leaf is static under filter_jit and would compile
-    # the forward solve once per evaluation
-    fd = (float(cost(jnp.asarray(k0 + h))) - float(cost(jnp.asarray(k0 - h)))) / (2 * h)
+    fd = (float(vg(jnp.asarray(k0 + h))[0]) - float(vg(jnp.asarray(k0 - h))[0])) / (2 * h)
     assert abs(g - fd) <= 1e-5 * abs(fd)
 
 

@@ -81,8 +81,10 @@ def test_live_parameters_known_by_hand(hand_designs):
 def test_tune_moves_only_live_directions_and_reports_them(hand_designs):
     d = hand_designs["generalized"]
     sysm, L = _hand()
-    st = S.Study(sysm, jnp.array([1.0, -1.0, 0.5]), jnp.linspace(0.0, 2.0, 21), L, fojax.Sine(jnp.array([1.0]), 1.0))
-    res = tuning.tune(d, st, steps=3, optimizer=tuning.shared_optimizer("adam", learning_rate=0.05), method="exact")
+    # the training study, optimizer and (square) coordinates of the whitened-tuning test below with
+    # precondition="none": one compiled tuning step serves both tests
+    st = S.Study(sysm, jnp.array([1.0, -1.0, 0.5]), jnp.linspace(0.0, 3.0, 31), L, fojax.Sine(jnp.array([1.0]), 1.0))
+    res = tuning.tune(d, st, steps=3, optimizer=tuning.shared_optimizer("adam", learning_rate=0.1), method="exact")
     assert res.live_parameters.live == 1
     assert res.design.solver["tuning"]["live_parameters"] == 1
     assert res.design.solver["tuning"]["free_parameters"] == res.live_parameters.total
