@@ -1,5 +1,6 @@
 """Gradient tuning: starts at the LMI design, stays certified, improves held-out IAE, resumes exactly."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -71,11 +72,30 @@ def test_stein_certificate_matches_scipy_and_detects_the_disk(setup, rng):
 ADAM = tuning.shared_optimizer("adam", learning_rate=0.1)
 
 
+class GainPenalty(eqx.Module):
+    """A user term: weight · ‖F‖² (the size of the output-injection gain). The weight is an
+    array, a leaf of the jitted step rather than part of its structure, so tunings with
+    different weights run one compiled step: the module's other tunings use weight 0 (the
+    objective exactly: + 0 to the loss and to its gradient), the extra-loss test
+    `GAIN_WEIGHT`, and the tuning step, the module's largest program, compiles once. The
+    ``extra_loss=None`` branch is exercised by the other tuning modules (e.g.
+    tests/test_tune_retrace.py, tests/test_tunable.py) and the CLI studies."""
+
+    weight: jax.Array
+
+    def __call__(self, obs, p):
+        return self.weight * jnp.sum(obs.F**2)
+
+
+GAIN_WEIGHT = 0.05
+NO_PENALTY = GainPenalty(jnp.asarray(0.0, dtype=jnp.float64))
+
+
 def test_tuning_improves_heldout_iae_and_stays_certified(setup):
     _, d, train, heldout = setup
     before = _tune.TRACE_COUNTS["tune_step"]
     res = tuning.tune(d, train, heldout=heldout, steps=30, optimizer=ADAM, method="exact",
-                      eval_every=30)
+                      eval_every=30, extra_loss=NO_PENALTY)
     assert _tune.TRACE_COUNTS["tune_step"] == before + 1  # one jitted step, compiled once
     assert all(res.history["accepted"]) and min(res.history["margin"]) > 0
     reduction = 1 - res.final_heldout / res.initial_heldout
@@ -99,7 +119,8 @@ def test_resume_from_checkpoint_equals_uninterrupted(setup, tmp_path):
     # the same study, optimizer and settings as above: the compiled step is reused
     _, d, train, _ = setup
     # asked for anew: the same configuration gives the same object, hence the same compiled step
-    opts = dict(optimizer=tuning.shared_optimizer("adam", learning_rate=0.1), method="exact")
+    opts = dict(optimizer=tuning.shared_optimizer("adam", learning_rate=0.1), method="exact",
+                extra_loss=NO_PENALTY)
     assert opts["optimizer"] is ADAM
     before = _tune.TRACE_COUNTS["tune_step"]
     full = tuning.tune(d, train, steps=4, **opts)
@@ -143,18 +164,13 @@ def test_shared_optimizer_is_one_object_per_configuration_and_refuses_bad_input(
         tuning.shared_optimizer("adam", learning_rate=[0.1])
 
 
-def _gain_penalty(obs, p):  # a user term: the size of the output-injection gain F
-    return GAIN_WEIGHT * jnp.sum(obs.F**2)
-
-
-GAIN_WEIGHT = 0.05
-
-
 def test_extra_loss_is_part_of_the_objective_and_changes_the_result(setup):
     _, d, train, _ = setup
     opts = dict(steps=5, optimizer=ADAM, method="exact")
-    plain = tuning.tune(d, train, **opts)  # the module's compiled step (no user term)
-    pen = tuning.tune(d, train, extra_loss=_gain_penalty, **opts)
+    before = _tune.TRACE_COUNTS["tune_step"]
+    plain = tuning.tune(d, train, extra_loss=NO_PENALTY, **opts)  # both: the module's compiled step
+    pen = tuning.tune(d, train, extra_loss=GainPenalty(jnp.asarray(GAIN_WEIGHT, dtype=jnp.float64)), **opts)
+    assert _tune.TRACE_COUNTS["tune_step"] == before  # a new weight is new data, not a new program
     # step 0 is evaluated at the LMI design: the objectives differ by the term, computed here
     # from the design's own F in NumPy
     F0 = np.asarray(d.observer.F)
@@ -164,7 +180,7 @@ def test_extra_loss_is_part_of_the_objective_and_changes_the_result(setup):
     normF = [float(np.linalg.norm(np.asarray(r.design.observer.F))) for r in (plain, pen)]
     assert normF[1] < normF[0] and normF[1] < np.linalg.norm(F0)
     assert pen.design.report.passed and pen.design.report.relative_residual <= 1e-8
-    assert pen.design.solver["tuning"]["extra_loss"] == "_gain_penalty"
+    assert pen.design.solver["tuning"]["extra_loss"] == "GainPenalty"
 
 
 @pytest.mark.parametrize("bad, match", [
