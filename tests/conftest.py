@@ -66,31 +66,43 @@ def _release_compiled_code():
     gc.collect()
 
 
-#: Test modules by the time they take in a CI run, longest first (measured 2026-11-21 with
-#: ``--durations=0``; the executed notebooks and the CLI module spend most of it in
-#: subprocesses). pytest-xdist (``--dist loadfile``, two workers) hands out whole modules in
-#: collection order — ``--no-loadscope-reorder`` in pyproject.toml, otherwise it reorders them
-#: by their number of tests and the one-test notebook modules ran last, alone — so this
-#: order is longest-processing-time-first scheduling.
+#: Test modules by the time they take in a CI run, longest first (measured 2026-11-27 with
+#: ``--junitxml``, the sum of each module's test times in a full run on 2 workers; the executed
+#: notebooks and the CLI modules spend most of it in subprocesses). pytest-xdist (``--dist
+#: loadfile``, two workers) hands out whole modules in collection order — ``--no-loadscope-reorder``
+#: in pyproject.toml, otherwise it reorders them by their number of tests and the one-test
+#: notebook modules ran last, alone — so this order is longest-processing-time-first scheduling.
 HEAVY_FIRST = (
     "test_distributed.py",
     "test_simulation.py",
-    "test_cli_ts.py",
     "test_cli_config.py",
     "test_tuning_ts.py",
+    "test_cli_ts.py",
     "test_studies.py",
-    "test_notebook_quickstart.py",
+    "test_cli_signals.py",
+    "test_study_exact.py",
+    "test_batch_simulation.py",
+    "test_cli_devices.py",
+    "test_tunable.py",
+    "test_exponential.py",
+    "test_adjoint.py",
     "test_tuning.py",
     "test_implicit_solver.py",
-    "test_notebook_monte_carlo.py",
-    "test_exponential.py",
-    "test_study_exponential.py",
-    "test_batch_simulation.py",
+    "test_notebook_quickstart.py",
+    "test_steppers.py",
+    "test_study_signal.py",
+    "test_study_loss_exponential.py",
+    "test_study_loss_blocks.py",
+    "test_tune_retrace.py",
+    "test_tune_time_varying.py",
+    "test_tune_robustness.py",
     "test_notebook_observers.py",
+    "test_adjoint_passes.py",
+    "test_design.py",
+    "test_notebook_monte_carlo.py",
+    "test_cli.py",
     "test_control.py",
     "test_ts_uio.py",
-    "test_benchmark_workload.py",
-    "test_design.py",
     "test_notebook_control.py",
 )
 
