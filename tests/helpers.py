@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
@@ -312,3 +315,25 @@ def channels_3_3_7(delta_max: float = 0.3, sigma: float = 0.05):
     ex = fojax.models.example_3_3_7()
     Bw, _ = hinf_uncertainty_channel(np.asarray(ex.dA), delta_max)
     return ex, Bw, sigma * np.eye(3)
+
+
+
+class WeightedPenalty(eqx.Module):
+    """A user term for `fojax.tune`'s ``extra_loss``: ``weight · of(obs, p)``. The weight is an
+    array, a leaf of the jitted tuning step rather than part of its structure (``of``, a
+    module-level function, is), so tunings with different weights run one compiled step: a
+    test module tunes with weight 0 wherever it needs the plain objective (+ 0 to the loss
+    and to its gradient: the objective exactly) and its extra-loss test with another weight,
+    and its tuning step, the module's largest program, compiles once. The
+    ``extra_loss=None`` branch is exercised by the other tuning modules (e.g.
+    tests/test_tune_retrace.py, tests/test_tunable.py) and the CLI studies."""
+
+    weight: jax.Array
+    of: object = eqx.field(static=True)
+
+    def __init__(self, weight, of):
+        self.weight = jnp.asarray(weight, dtype=jnp.float64)
+        self.of = of
+
+    def __call__(self, obs, p):
+        return self.weight * self.of(obs, p)

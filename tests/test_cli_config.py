@@ -618,13 +618,8 @@ def _tiny(tmp_path, observers, file="tiny.toml", **top):
 
 
 def _design_main(*args):
-    import contextlib
-    import io
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main([str(a) for a in args])
-    return code, out.getvalue(), err.getvalue()
+    r = _InProcess(*args)
+    return r.returncode, r.stdout, r.stderr
 
 
 def _umask():

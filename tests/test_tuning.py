@@ -1,12 +1,11 @@
 """Gradient tuning: starts at the LMI design, stays certified, improves held-out IAE, resumes exactly."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from helpers import uncertain_plant_3_3_7
+from helpers import uncertain_plant_3_3_7, WeightedPenalty
 
 import fojax
 from fojax import studies as S, tuning
@@ -72,23 +71,12 @@ def test_stein_certificate_matches_scipy_and_detects_the_disk(setup, rng):
 ADAM = tuning.shared_optimizer("adam", learning_rate=0.1)
 
 
-class GainPenalty(eqx.Module):
-    """A user term: weight · ‖F‖² (the size of the output-injection gain). The weight is an
-    array, a leaf of the jitted step rather than part of its structure, so tunings with
-    different weights run one compiled step: the module's other tunings use weight 0 (the
-    objective exactly: + 0 to the loss and to its gradient), the extra-loss test
-    `GAIN_WEIGHT`, and the tuning step, the module's largest program, compiles once. The
-    ``extra_loss=None`` branch is exercised by the other tuning modules (e.g.
-    tests/test_tune_retrace.py, tests/test_tunable.py) and the CLI studies."""
-
-    weight: jax.Array
-
-    def __call__(self, obs, p):
-        return self.weight * jnp.sum(obs.F**2)
+def _gain_size(obs, p):  # a user term: the size of the output-injection gain F, ‖F‖²
+    return jnp.sum(obs.F**2)
 
 
 GAIN_WEIGHT = 0.05
-NO_PENALTY = GainPenalty(jnp.asarray(0.0, dtype=jnp.float64))
+NO_PENALTY = WeightedPenalty(0.0, _gain_size)  # the module's tunings: one compiled step (helpers)
 
 
 def test_tuning_improves_heldout_iae_and_stays_certified(setup):
@@ -169,7 +157,7 @@ def test_extra_loss_is_part_of_the_objective_and_changes_the_result(setup):
     opts = dict(steps=5, optimizer=ADAM, method="exact")
     before = _tune.TRACE_COUNTS["tune_step"]
     plain = tuning.tune(d, train, extra_loss=NO_PENALTY, **opts)  # both: the module's compiled step
-    pen = tuning.tune(d, train, extra_loss=GainPenalty(jnp.asarray(GAIN_WEIGHT, dtype=jnp.float64)), **opts)
+    pen = tuning.tune(d, train, extra_loss=WeightedPenalty(GAIN_WEIGHT, _gain_size), **opts)
     assert _tune.TRACE_COUNTS["tune_step"] == before  # a new weight is new data, not a new program
     # step 0 is evaluated at the LMI design: the objectives differ by the term, computed here
     # from the design's own F in NumPy
@@ -180,7 +168,7 @@ def test_extra_loss_is_part_of_the_objective_and_changes_the_result(setup):
     normF = [float(np.linalg.norm(np.asarray(r.design.observer.F))) for r in (plain, pen)]
     assert normF[1] < normF[0] and normF[1] < np.linalg.norm(F0)
     assert pen.design.report.passed and pen.design.report.relative_residual <= 1e-8
-    assert pen.design.solver["tuning"]["extra_loss"] == "GainPenalty"
+    assert pen.design.solver["tuning"]["extra_loss"] == "WeightedPenalty"
 
 
 @pytest.mark.parametrize("bad, match", [

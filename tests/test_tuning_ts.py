@@ -3,12 +3,12 @@
 IAE (physical-parameter uncertainty on k, m, J_l; samples never seen in training) drops."""
 
 import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from helpers import WeightedPenalty
 
 import fojax
 from fojax.design import (
@@ -50,21 +50,12 @@ OPT = optax.adam(optax.cosine_decay_schedule(LR, STEPS, alpha=0.05))
 SOLVER = diffrax.Tsit5()  # the arm and the observer (poles in [-3, -1]) are not stiff
 
 
-class GPenalty(eqx.Module):
-    """A user term on the per-rule generalized-state gains G_i: weight · Σ G². The weight is an
-    array (a leaf of the jitted step, not part of its structure), so tunings with different
-    weights run one compiled step: `run` and the resume test tune with weight 0 (the objective
-    exactly: + 0 to the loss, + 0 to its gradient), the extra-loss test with G_WEIGHT, and the
-    step, the module's largest program, is compiled once, not twice."""
-
-    weight: jax.Array
-
-    def __call__(self, obs, p):
-        return self.weight * jnp.sum(p["G"] ** 2)
+def _g_size(obs, p):  # a user term on the per-rule generalized-state gains G_i: Σ G²
+    return jnp.sum(p["G"] ** 2)
 
 
 G_WEIGHT = 0.1
-NO_PENALTY = GPenalty(jnp.asarray(0.0, dtype=jnp.float64))
+NO_PENALTY = WeightedPenalty(0.0, _g_size)  # `run` and the resume test: one compiled step (helpers)
 
 
 def _study(theta_family):
@@ -259,7 +250,7 @@ def test_extra_loss_is_part_of_the_ts_objective(setup, run):
     opts = dict(steps=2, optimizer=OPT, barrier=BARRIER, solver=SOLVER)
     before = TRACE_COUNTS["tune_step"]
     plain = tune(des, train, extra_loss=NO_PENALTY, **opts)  # both: the step compiled by `run`
-    pen = tune(des, train, extra_loss=GPenalty(jnp.asarray(G_WEIGHT, dtype=jnp.float64)), **opts)
+    pen = tune(des, train, extra_loss=WeightedPenalty(G_WEIGHT, _g_size), **opts)
     assert TRACE_COUNTS["tune_step"] == before
     # step 0 is evaluated at the LMI design: the objectives differ by the term (NumPy, design's G)
     np.testing.assert_allclose(pen.history["train_loss"][0] - plain.history["train_loss"][0],
@@ -267,4 +258,4 @@ def test_extra_loss_is_part_of_the_ts_objective(setup, run):
     # its gradient acts: the penalized run ends with the smaller G
     normG = [float(np.linalg.norm(np.asarray(r.params["G"]))) for r in (plain, pen)]
     assert normG[1] < normG[0]
-    assert pen.design.solver["tuning"]["extra_loss"] == "GPenalty"
+    assert pen.design.solver["tuning"]["extra_loss"] == "WeightedPenalty"

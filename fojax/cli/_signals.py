@@ -110,18 +110,14 @@ class Interrupts:
     # ------------------------------------------------------------------ handlers
     @classmethod
     def _in_paired_write(cls, frame) -> bool:
-        while frame is not None:
-            code = frame.f_code
-            if any(code.co_name == n and part in code.co_filename for n, part in cls.PAIRED_WRITERS):
-                return True
-            frame = frame.f_back
-        return False
+        return _on_stack(frame, lambda code: any(code.co_name == n and part in code.co_filename
+                                                 for n, part in cls.PAIRED_WRITERS))
 
     def _handler(self, signum, frame):
         self.signum = self.signum or signum
         if self._finishing or self._raised:
             return  # recorded; the interruption is already on its way
-        if _on_stack(frame, Interrupts._unraisable.__code__):
+        if _on_stack(frame, _is_hook):
             # inside our own unraisable hook: an exception raised here would be swallowed too
             # ("Exception ignored in sys.unraisablehook"); the helper thread raises it once
             # the hook has returned
@@ -176,17 +172,21 @@ class Interrupts:
         in a full test run at load ~4)."""
         import _thread
 
-        hook = Interrupts._unraisable.__code__
-        while _on_stack(sys._current_frames().get(main_id), hook):
+        while _on_stack(sys._current_frames().get(main_id), _is_hook):
             time.sleep(0.001)
         self._reraising = False
         _thread.interrupt_main(self.signum)
 
 
-def _on_stack(frame, code) -> bool:
-    """Whether `code` runs in `frame` or in one of its callers."""
+def _is_hook(code) -> bool:
+    """Whether `code` is `Interrupts._unraisable`'s (the unraisable hook)."""
+    return code is Interrupts._unraisable.__code__
+
+
+def _on_stack(frame, match) -> bool:
+    """Whether the code object of `frame` or of one of its callers satisfies `match`."""
     while frame is not None:
-        if frame.f_code is code:
+        if match(frame.f_code):
             return True
         frame = frame.f_back
     return False
