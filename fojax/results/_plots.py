@@ -64,19 +64,19 @@ _DISK_VERTICES = 720
 
 
 def _clip(poly: np.ndarray, a: np.ndarray, b: float) -> np.ndarray:
-    """The part of the convex polygon `poly` ((k, 2) vertices) where ``a · p <= b``."""
+    """The part of the convex polygon `poly` ((k, 2) vertices) where ``a · p <= b``
+    (one Sutherland-Hodgman pass, vectorised: each vertex p is kept where ``a·p <= b``, and
+    followed by the crossing point of the edge to the next vertex where that edge crosses
+    the line; a loop over the vertices took ~0.5 s per disk of `_DISK_VERTICES` sides)."""
     if len(poly) == 0:
         return poly
-    out = []
-    vals = poly @ a - b
-    for i in range(len(poly)):
-        p, q = poly[i], poly[(i + 1) % len(poly)]
-        vp, vq = vals[i], vals[(i + 1) % len(poly)]
-        if vp <= 0:
-            out.append(p)
-        if (vp < 0 < vq) or (vq < 0 < vp):
-            out.append(p + (q - p) * (vp / (vp - vq)))
-    return np.asarray(out).reshape(-1, 2)
+    q = np.roll(poly, -1, axis=0)
+    vp = poly @ a - b
+    vq = np.roll(vp, -1)
+    cross = ((vp < 0) & (vq > 0)) | ((vq < 0) & (vp > 0))
+    frac = np.divide(vp, vp - vq, out=np.zeros_like(vp), where=cross)
+    points = np.stack([poly, poly + (q - poly) * frac[:, None]], axis=1).reshape(-1, 2)
+    return points[np.stack([vp <= 0, cross], axis=1).reshape(-1)]
 
 
 def _part_halfspaces(part) -> list[tuple[np.ndarray, float]]:
