@@ -109,11 +109,11 @@ def runs(tmp_path_factory):
         bad[key] = p
     radius0 = tmp / "radius0.toml"
     radius0.write_text(dumps(_mutate(("observer", 0, "region", "disk", "radius"), 0.0)))
-    # The study subprocesses inherit the test run's persistent JAX compilation cache
-    # (conftest.py) and write every program to it, however short its compilation: the later
-    # studies (second run, interrupted run, resumed run) then skip the minutes of compiling
-    # the first one pays.
-    study_env = dict(os.environ, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    # The study subprocesses inherit the test run's persistent JAX compilation cache, which
+    # keeps every program however short its compilation (conftest.py): the later studies
+    # (second run, interrupted run, resumed run) then skip the minutes of compiling the first
+    # one pays.
+    study_env = dict(os.environ)
     r = {
         "check": _Run("check", *example_names()),
         "design": _Run("design", *example_names(), "--out", tmp / "runs"),

@@ -28,7 +28,6 @@ ARGS = ("study", "example_4_1_3", "--samples", "4", "--horizon", "0.5", "--steps
 def _env(**extra):
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "FOJAX_DEVICES")}
     env["XLA_FLAGS"] = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if FLAG not in f)
-    env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     return env | extra
 
 

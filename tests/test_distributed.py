@@ -210,10 +210,9 @@ def _fojax_study(args, *, processes=None, timeout=TIMEOUT):
         r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
         return [(r.returncode, r.stdout + r.stderr)]
     env.update(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{_free_port()}", JAX_NUM_PROCESSES=str(processes),
-               FOJAX_INITIALIZATION_TIMEOUT="120", FOJAX_HEARTBEAT_TIMEOUT="60",
-               # every program into the run's persistent cache (tests/conftest.py): the
-               # resumed run (same 2 processes) reads the first run's instead of compiling
-               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+               # (every program goes into the run's persistent cache, tests/conftest.py: the
+               # resumed run, on the same 2 processes, reads the first run's instead of compiling)
+               FOJAX_INITIALIZATION_TIMEOUT="120", FOJAX_HEARTBEAT_TIMEOUT="60")
     procs = [subprocess.Popen([*cmd, "--distributed"], env=dict(env, JAX_PROCESS_ID=str(pid)),
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
              for pid in range(processes)]
