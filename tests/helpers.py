@@ -317,7 +317,6 @@ def channels_3_3_7(delta_max: float = 0.3, sigma: float = 0.05):
     return ex, Bw, sigma * np.eye(3)
 
 
-
 class WeightedPenalty(eqx.Module):
     """A user term for `fojax.tune`'s ``extra_loss``: ``weight · of(obs, p)``. The weight is an
     array, a leaf of the jitted tuning step rather than part of its structure (``of``, a

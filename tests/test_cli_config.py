@@ -113,7 +113,6 @@ def runs(tmp_path_factory):
     # keeps every program however short its compilation (conftest.py): the later studies
     # (second run, interrupted run, resumed run) then skip the minutes of compiling the first
     # one pays.
-    study_env = dict(os.environ)
     r = {
         "check": _Run("check", *example_names()),
         "design": _Run("design", *example_names(), "--out", tmp / "runs"),
@@ -122,14 +121,13 @@ def runs(tmp_path_factory):
         "design_help": _Run("design", "--help"),
         "examples": _InProcess("examples"),
         # 5 samples: not a multiple of the 4 fault scenarios the study used to multiply by
-        "study": _Run("study", "--samples", "5", "--horizon", "2", "--steps", "2", "--out", tmp / "study",
-                      env=study_env),
-        "resume_a": _Run("study", *RESUME_ARGS, "--out", tmp / "resume-a", env=study_env),
+        "study": _Run("study", "--samples", "5", "--horizon", "2", "--steps", "2", "--out", tmp / "study"),
+        "resume_a": _Run("study", *RESUME_ARGS, "--out", tmp / "resume-a"),
         "missing": _Run("check", tmp / "missing.toml"),
         "radius0": _Run("design", radius0, "--out", tmp / "radius0-out"),
     }
     r |= {f"bad:{k}": _InProcess("check", p) for k, p in bad.items()}
-    r["tmp"], r["bad"], r["study_env"] = tmp, bad, study_env
+    r["tmp"], r["bad"] = tmp, bad
     yield r
     for v in r.values():
         if isinstance(v, _Run):
@@ -288,7 +286,7 @@ def test_default_study_and_a_second_run_keeps_the_first(runs):
         assert "| FGDO-tuned |" in report and "## Tuning" in report and "study IAE total, LMI" in report
     snapshot = {p.name: p.read_bytes() for p in first.iterdir()}
     again = fojax("--quiet", "study", "--samples", "5", "--horizon", "2", "--steps", "0",
-                  "--out", runs["tmp"] / "study", env=runs["study_env"])
+                  "--out", runs["tmp"] / "study")
     assert again.returncode == 0 and again.stdout == "", again.stderr
     folders = sorted((runs["tmp"] / "study").iterdir())
     assert len(folders) == 2 and first in folders
@@ -444,7 +442,7 @@ def interrupted(runs):
         pytest.skip("fojax study with tuning is not available in this version")
     assert runs["resume_a"].returncode == 0, runs["resume_a"].stderr
     out = runs["tmp"] / "interrupted"
-    run = _Run("study", *RESUME_ARGS, "--out", out, env=runs["study_env"])
+    run = _Run("study", *RESUME_ARGS, "--out", out)
     deadline = time.monotonic() + 600
     while run.proc.poll() is None and time.monotonic() < deadline:
         ck = list(out.glob("*/tuning-generalized.json"))
@@ -480,7 +478,7 @@ def resumed(interrupted, runs):
     _, folder = interrupted
     before = {p.name: p.read_bytes() for p in folder.iterdir()}
     step = json.loads((folder / "tuning-generalized.json").read_text())["step"]
-    return fojax("study", "--resume", folder, env=runs["study_env"]), folder, before, step
+    return fojax("study", "--resume", folder), folder, before, step
 
 
 def test_resumed_study_equals_the_uninterrupted_one_bit_for_bit(runs, resumed):

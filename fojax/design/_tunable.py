@@ -352,14 +352,6 @@ def _matrices_and_jacobian(observer_fn, names, flat):
     return mats(flat), jax.jacfwd(mats)(flat)
 
 
-def _features_and_jacobian(observer_fn, names, flat, rho: float, K: int):
-    """The response features of the observer at `flat` and their Jacobian in the flattened
-    parameters: the matrices' Jacobian traced (`_matrices_and_jacobian`), the response's on the
-    host (`_response_and_jacobian`)."""
-    mats, jac = _matrices_and_jacobian(observer_fn, names, flat)
-    return _response_and_jacobian(mats, jac, rho, K)
-
-
 def _channel_weights(f0: np.ndarray) -> np.ndarray:
     r"""Weights $1/(r_ic_j)$ of the response entries $H_{ij}$ (``f0``: ``(points, q, m + p)``):
     $r_i$ the norm of output $i$'s response over every point and input, then $c_j$ the norm
@@ -388,7 +380,8 @@ def _live(observer_fn, params, kind: str = "", error_matrices=None) -> LiveParam
     K = 2 * As.shape[-1] + 2
     if flat0.size == 0:
         return LiveParameters(0, 0, np.zeros(0), np.zeros((0, 0)), names, 0.0, kind)
-    f0, Jm = _features_and_jacobian(observer_fn, names, flat0, rho, K)
+    mats, jac = _matrices_and_jacobian(observer_fn, names, flat0)  # compiled; the response on the host
+    f0, Jm = _response_and_jacobian(mats, jac, rho, K)
     w = _channel_weights(f0)
     Jm = (w[..., None] * Jm).reshape(-1, Jm.shape[-1])  # (features, parameters), channels weighted
     fnorm = float(np.linalg.norm(w * f0))
