@@ -6,7 +6,9 @@ Oracle: the one-device run of the same command. A small study (example 4.1.3, 4 
 array (metrics, study, samples, designs, the tuned design, the tuning checkpoint); only
 the device count and the time stamps may differ. The device count of the pytest process
 itself (4, tests/conftest.py) is never touched. The flag logic is checked on explicit
-argv/environment dicts against the rules stated in the module docstring.
+argv/environment dicts against the rules stated in the module docstring; so is the
+compile flag the program adds (`configure_compiler`), and a child started as the program
+must show it in its environment and start JAX's CPU backend with it.
 """
 
 import json
@@ -18,7 +20,15 @@ import jax
 import numpy as np
 import pytest
 
-from fojax.cli._devices import configure_host_devices, FLAG, usable_cores
+from fojax.cli._devices import (
+    _jaxlib_version,
+    COMPILE_FLAG,
+    COMPILE_FLAG_JAXLIB,
+    configure_compiler,
+    configure_host_devices,
+    FLAG,
+    usable_cores,
+)
 from fojax.cli._main import main
 
 
@@ -109,6 +119,43 @@ def test_nothing_is_changed_once_jax_started():
     env = {"XLA_FLAGS": ""}
     assert configure_host_devices(["study", "--devices", "2"], env, jax_started=True) is None
     assert env == {"XLA_FLAGS": ""}
+
+
+@pytest.mark.parametrize(
+    "environ, jax_started, jaxlib, added",
+    [
+        ({}, False, COMPILE_FLAG_JAXLIB[0], True),
+        ({"XLA_FLAGS": f"{FLAG}=2"}, False, COMPILE_FLAG_JAXLIB[0], True),                 # others kept
+        ({"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}, False, COMPILE_FLAG_JAXLIB[0], False),  # user's
+        ({}, True, COMPILE_FLAG_JAXLIB[0], False),                                        # too late
+        ({}, False, (0, 4), False),                                                       # not measured there
+        ({}, False, (99, 0), False),
+        ({"JAX_PLATFORMS": "cuda,cpu"}, False, COMPILE_FLAG_JAXLIB[0], False),            # not the CPU
+        ({"JAX_PLATFORMS": "cpu"}, False, COMPILE_FLAG_JAXLIB[0], True),
+    ],
+)
+def test_compile_flag_rules(environ, jax_started, jaxlib, added):
+    env = dict(environ)
+    before = env.get("XLA_FLAGS")
+    assert configure_compiler(env, jax_started=jax_started, jaxlib=jaxlib) is added
+    if added:
+        assert env["XLA_FLAGS"] == f"{before or ''} {COMPILE_FLAG}".strip()
+    else:
+        assert env.get("XLA_FLAGS") == before
+
+
+def test_the_program_compiles_with_the_flag_on_the_measured_jaxlib():
+    # a child that is the `fojax` program (argv[0]; fojax/cli/_startup.py runs while fojax is
+    # imported): the flag is in its XLA_FLAGS exactly on a measured jaxlib, and JAX starts with it
+    env = _env()
+    env["XLA_FLAGS"] = " ".join(f for f in env["XLA_FLAGS"].split() if "fusion_emitters" not in f)
+    code = ("import sys; sys.argv = ['fojax']; import os, fojax, jax; "
+            "print(os.environ.get('XLA_FLAGS', '')); print(jax.devices('cpu')[0].platform)")
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    flags, platform = r.stdout.split("\n")[:2]
+    assert (COMPILE_FLAG in flags.split()) is (_jaxlib_version() in COMPILE_FLAG_JAXLIB), flags
+    assert platform == "cpu"
 
 
 def test_devices_that_jax_does_not_have_are_refused(capsys, monkeypatch):
