@@ -74,6 +74,18 @@ def force_host_devices() -> int:
     return n
 
 
+def program_compile_flags() -> bool:
+    """XLA's compile flags as the ``fojax`` program sets them before JAX starts
+    (``configure_compiler`` of fojax/cli/_devices.py, loaded from its file: importing the
+    fojax package would import JAX). Call before JAX is imported; returns whether a flag was added."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_fojax_cli_devices", REPO / "fojax" / "cli" / "_devices.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.configure_compiler()
+
+
 def limit_blas_threads() -> dict:
     """Single-threaded BLAS unless the caller set the variables (call before NumPy)."""
     return {v: os.environ.setdefault(v, "1") for v in BLAS_VARS}

@@ -14,7 +14,8 @@ excluded, as in the issue's target), and records:
   the numbers are measured under load unless the load average is below 1.
 
 One JAX device, as ``fojax study`` by default; ``--host-devices N`` gives JAX N host devices
-before it starts, as ``fojax study --devices N`` does (`fojax.cli._devices`).
+before it starts, as ``fojax study --devices N`` does (`fojax.cli._devices`); XLA's compile
+flag as the program sets it (`fojax.cli._devices.configure_compiler`; recorded as ``xla_flags``).
 
     python benchmarks/cli_study.py            # writes benchmarks/results/cli_study_latest.json
 """
@@ -24,6 +25,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
+import os
 import re
 import sys
 import tempfile
@@ -42,6 +44,8 @@ _common.prefer_checkout()
 # JAX is imported; without it one device, as `fojax study` by default
 if any(a.startswith("--host-devices") for a in sys.argv[1:]):
     _common.force_host_devices()
+# and its compile flag (fojax.cli._devices.configure_compiler): what the program runs with
+_common.program_compile_flags()
 
 import jax  # noqa: E402
 
@@ -110,7 +114,7 @@ def main():
         target=TARGETS.get(args.example, "none stated"),
         command=f"fojax study {args.example or ''} --out <tmp>".replace("  ", " "),
         wall_s=wall, cpu_s=cpu, phases=phases(buf.getvalue()), trace_counts=traces,
-        jax_devices=jax.device_count(),
+        jax_devices=jax.device_count(), xla_flags=os.environ.get("XLA_FLAGS", ""),
         machine=info, load_average_before=load0, load_average_after=_common.load_average(),
         note="measured once; on a shared 2-core machine under load unless the load averages are < 1",
     )
