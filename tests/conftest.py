@@ -34,14 +34,16 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 #: XLA:CPU flag of the test runs: compile without the fusion emitters. The suite is dominated
-#: by single-threaded XLA compilation; measured on an Intel Xeon (2 cores): the study loss's
-#: value-and-gradient compiled in 4.0-4.7 s instead of 6.9-7.2 s and ran as fast (min of 6
-#: runs 0.51 s against 0.47 s, medians 0.56 and 0.55 s), and test_adjoint_passes +
-#: test_study_loss_blocks + test_exponential took 80 s instead of 121 s. It changes how XLA
-#: generates code, not what it computes (the tests hold on any BLAS kernel, so on either
-#: code generator). An XLA flag that a jaxlib does not know aborts the process, so it is
-#: added only after a child process with it has started JAX's CPU backend (once, in the first
-#: process; the xdist workers, notebook kernels and CLI subprocesses inherit the result).
+#: by single-threaded XLA compilation. Measured on an Intel Xeon (2 cores): a tuning step of
+#: benchmarks/tuning_step.py compiled in 8.2 s instead of 11.8 s (but ran 0.52 s instead of
+#: 0.40 s: some kernels run slower, see fojax/cli/_devices.py), test_adjoint_passes +
+#: test_study_loss_blocks + test_exponential took 80 s instead of 121 s, and the whole suite
+#: (clean clone, 2 workers) 16 min 46 s instead of 23 min 0 s. It changes how XLA generates
+#: code, not what it computes (the tests hold on any BLAS kernel, so on either code
+#: generator). An XLA flag that a jaxlib does not know aborts the process, so it is added
+#: only after a child process with it has started JAX's CPU backend (once, in the first
+#: process; the xdist workers, notebook kernels and CLI subprocesses inherit the result;
+#: ``FOJAX_TEST_XLA_FLAG=`` (empty) runs the suite with XLA's default).
 TEST_XLA_FLAG = "--xla_cpu_use_fusion_emitters=false"
 if "FOJAX_TEST_XLA_FLAG" not in os.environ:
     _flags = f"{os.environ['XLA_FLAGS']} {TEST_XLA_FLAG}"

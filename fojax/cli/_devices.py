@@ -26,15 +26,21 @@ then ``--devices`` must match the devices JAX has, `check_devices`).
 **Compilation** (`configure_compiler`, every command of the ``fojax`` program). The
 program's runs are dominated by XLA:CPU compiling fojax's programs once each; without
 XLA's CPU fusion emitters (``--xla_cpu_use_fusion_emitters=false``, the older loop emitter)
-they compile about a third faster and run as fast. Measured on an Intel Xeon (2 cores,
-jaxlib 0.10.2, one run each, alternating): ``fojax study`` (the README's first command)
-39.4 s and 40.3 s wall → 29.3 s and 30.1 s, CPU 58.5–59.9 s → 40.4–42.1 s, every array of
-every ``.npz`` it writes bit for bit the same; the study loss's value-and-gradient
-(``benchmarks/tuning_step.py``'s study) compiled in 4.0–4.7 s instead of 6.9–7.2 s and ran
-as fast. An XLA flag that a jaxlib does not know aborts the process, so the flag is added
-only for the jaxlib versions it was measured on (`COMPILE_FLAG_JAXLIB`; others run with
-XLA's defaults), and never when ``XLA_FLAGS`` mentions it (the user's choice wins:
-``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true`` restores XLA's default), when
+they compile about a third faster, and some run slower. Measured on an Intel Xeon (2 cores,
+jaxlib 0.10.2, load ~1.5-2): ``fojax study`` (the README's first command, default study)
+37.7-40.3 s wall → 25.8-30.1 s, CPU 58.5-59.9 s → 38.4-42.5 s, every array of every
+``.npz`` it writes bit for bit the same; `fojax.run_study` on the default study at
+B = 10,000 first call 5.9 → 5.2 s, warm 2.09 → 2.23 s; but the differentiable study loss
+runs slower: on ``benchmarks/tuning_step.py``'s study (B = 2,048) its forward 0.097 →
+0.162 s, its value-and-gradient 0.475 → 0.510 s, a `fojax.tune` step 0.40 → 0.52 s,
+while that step compiles in 8.2 s instead of 11.8 s. So the flag pays where compiling
+dominates (the default study's 60 steps on 128 samples) and costs ~0.1 s per tuning
+step at a few thousand training samples (break-even near 35 steps there). Set
+``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true`` for long tuning runs on large batches.
+
+An XLA flag that a jaxlib does not know aborts the process, so the flag is added only for
+the jaxlib versions it was measured on (`COMPILE_FLAG_JAXLIB`; others run with XLA's
+defaults), and never when ``XLA_FLAGS`` mentions it (the user's choice wins), when
 ``JAX_PLATFORMS`` names another platform first, or once JAX is imported. A Python session
 importing fojax is untouched (a library does not change how XLA compiles the user's other
 programs).
