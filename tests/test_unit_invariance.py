@@ -169,6 +169,39 @@ def test_regression_unbalanced_twin_design_is_refused_or_redesigned():
     assert max(_observer_error(d0.observer, m0, s) for s in POINTS) < 1e-8
 
 
+def test_certify_checks_the_unit_free_frame_as_verify_does(monkeypatch):
+    """`fojax.design.certify` runs the checks of the design's own ``verify()``, the unit-free
+    frame included (it did not: a tuned observer could pass on the data as given only
+    because its terms are large, the defect of the test above). On the plain LC filter's
+    design (data as given): the certified design's report holds the unit-free residual, equal
+    to what its ``verify()`` computes; and when that check fails (made to, here: the
+    parameterization keeps a.–d. exact by construction, so no honest parameter set fails
+    it on this model), certify raises `DesignVerificationError` naming it and the fix."""
+    from fojax.design import _functional, certify, SteinDisk
+
+    m0 = lc_filter.lc_filter(False)
+    d0 = design_functional_observer(fojax.DescriptorSystem(m0["E"], m0["A"], m0["B"], m0["C"]), m0["L"],
+                                    kind="generalized", region=REGION)
+    assert "balance" not in d0.report.extra  # the structure is the data as given
+    par = SteinDisk(d0)
+    params = par.init(d0)
+    params["G"] = params["G"] - 0.1
+    v = certify(par, params)
+    rel = v.report.extra["unit-free relative residual"]
+    assert rel <= 1e-8 and v.verify().extra["unit-free relative residual"] == rel
+    checked = []
+
+    def failing(s, p, fix):
+        checked.append(fix)
+        return ("unit-free relative residual", 2.5e-3, _functional.unit_free_failure(2.5e-3, "a.-d.", fix))
+
+    monkeypatch.setattr(_functional, "unit_free_check", failing)
+    with pytest.raises(fojax.DesignVerificationError, match="unit-free frame") as err:
+        certify(par, params)
+    assert "balance=True" in str(err.value) and err.value.report.extra["unit-free relative residual"] == 2.5e-3
+    assert checked
+
+
 def _markov(s, p, kind, K):
     o = build_observer(s, observer_matrices(s, **p, xp=np), kind=kind)
     A, Bu, By, C, Du, Dy = (np.asarray(x) for x in o.linear_matrices())

@@ -262,11 +262,13 @@ class AbstractParameterization(eqx.Module):
         )  # fmt: skip
 
     def certify(self, params):
-        """The verified design of `params` (host, float64).
+        """The verified design of `params` (host, float64): the checks of the design's own
+        ``verify()``, including a.–d. in the unit-free frame (models with ``l + n ≤ 200``;
+        `fojax.design._functional.unit_free_check`).
 
         **Raises:** `fojax.DesignVerificationError` (with the report) when a residual of
-        a.–d. exceeds 1e-8 relative, an eigenvalue is outside the region, or the region LMI
-        fails at the certificate.
+        a.–d. exceeds 1e-8 relative (on the data as given or in the unit-free frame), an
+        eigenvalue is outside the region, or the region LMI fails at the certificate.
         """
         p = {k: np.asarray(v, dtype=float) for k, v in self.design_params(params).items()}
         X = self.certificate(params)
@@ -278,7 +280,7 @@ class AbstractParameterization(eqx.Module):
                 f"{type(self).__name__}.certify: no finite certificate for these parameters although their "
                 f"error dynamics are inside {self.region.describe()} (margin {report.region_margin:.3e}); "
                 "please report this.", report)
-        mats, report = verify_structure_design(self.structure, p, self.region, X)
+        mats, report = verify_structure_design(self.structure, p, self.region, X, unit_free=CERTIFY_UNIT_FREE_FIX)
         return self._design(p, mats, X, report)
 
     def host_margin(self, params) -> float:
@@ -306,6 +308,11 @@ class AbstractParameterization(eqx.Module):
     def live(self, params) -> LiveParameters:
         """How many directions of `params` reach the estimate (module docstring; host)."""
         return _live(self.observer, params, self.kind)
+
+
+#: What a failed unit-free check of `AbstractParameterization.certify` tells the user.
+CERTIFY_UNIT_FREE_FIX = ("start from a design made with balance=True (its parameters are those of the unit-free "
+                         "model, fojax.analysis.unit_scaling)")
 
 
 #: Traces of the host margin programs (`AbstractParameterization.host_margin`).
@@ -759,7 +766,8 @@ def certify(parameterization: AbstractParameterization, params):
     public call that turns tuned (or hand-set) parameters into a design.
 
     Equivalent to ``parameterization.certify(params)``: the residuals of a.–d. (≤ 1e-8
-    relative to the terms of each condition), the eigenvalues of the error dynamics in the
+    relative to the terms of each condition; for LTI models with ``l + n ≤ 200`` also in the
+    unit-free frame of `fojax.analysis.unit_scaling`, as the design's ``verify()`` does), the eigenvalues of the error dynamics in the
     region and the region LMI at the certificate (`SteinDisk`: the Stein solution of these
     parameters; `FixedCertificateDisk`, `CommonCertificate`: the design's fixed ``X``, plus
     the common Lyapunov inequality for T-S) are checked by `fojax.design.verify`. Parameters
