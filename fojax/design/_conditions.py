@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import collections
 import hashlib
+import threading
 
 import numpy as np
 
@@ -155,6 +156,7 @@ UNIT_FREE_CHECK_MAX = 200
 #: Models whose unit-free scaling `_unit_scaling` keeps (least recently used dropped first).
 _UNIT_SCALING_KEEP = 32
 _UNIT_SCALINGS: collections.OrderedDict = collections.OrderedDict()
+_UNIT_SCALINGS_LOCK = threading.Lock()
 
 
 def _unit_scaling(E, A, B, C):
@@ -168,13 +170,17 @@ def _unit_scaling(E, A, B, C):
         digest.update(repr(x.shape).encode())
         digest.update(np.ascontiguousarray(x, dtype=float).tobytes())
     key = digest.hexdigest()
-    if key in _UNIT_SCALINGS:
-        _UNIT_SCALINGS.move_to_end(key)
-    else:
-        _UNIT_SCALINGS[key] = tuple(np.array(d, dtype=float) for d in unit_scaling(E, A, B, C))
-        while len(_UNIT_SCALINGS) > _UNIT_SCALING_KEEP:
-            _UNIT_SCALINGS.popitem(last=False)
-    return tuple(d.copy() for d in _UNIT_SCALINGS[key])
+    with _UNIT_SCALINGS_LOCK:
+        found = _UNIT_SCALINGS.get(key)
+        if found is not None:
+            _UNIT_SCALINGS.move_to_end(key)
+    if found is None:
+        found = tuple(np.array(d, dtype=float) for d in unit_scaling(E, A, B, C))
+        with _UNIT_SCALINGS_LOCK:
+            _UNIT_SCALINGS[key] = found
+            while len(_UNIT_SCALINGS) > _UNIT_SCALING_KEEP:
+                _UNIT_SCALINGS.popitem(last=False)
+    return tuple(d.copy() for d in found)
 
 
 def unit_free_structure(s: FunctionalObserverStructure, *, orthonormal: bool = False):
