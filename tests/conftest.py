@@ -43,9 +43,10 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 #: generator). An XLA flag that a jaxlib does not know aborts the process, so it is added
 #: only after a child process with it has started JAX's CPU backend (once, in the first
 #: process; the xdist workers, notebook kernels and CLI subprocesses inherit the result;
-#: ``FOJAX_TEST_XLA_FLAG=`` (empty) runs the suite with XLA's default).
+#: ``FOJAX_TEST_XLA_FLAG=`` (empty) runs the suite with XLA's default; an ``XLA_FLAGS`` that
+#: names the flag wins, as in the ``fojax`` program, fojax/cli/_devices.py).
 TEST_XLA_FLAG = "--xla_cpu_use_fusion_emitters=false"
-if "FOJAX_TEST_XLA_FLAG" not in os.environ:
+if "FOJAX_TEST_XLA_FLAG" not in os.environ and TEST_XLA_FLAG.split("=")[0] not in os.environ["XLA_FLAGS"]:
     _flags = f"{os.environ['XLA_FLAGS']} {TEST_XLA_FLAG}"
     try:
         _probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices('cpu')"], capture_output=True,
@@ -53,7 +54,7 @@ if "FOJAX_TEST_XLA_FLAG" not in os.environ:
     except subprocess.TimeoutExpired:
         _probe = None
     os.environ["FOJAX_TEST_XLA_FLAG"] = TEST_XLA_FLAG if _probe == 0 else ""
-    if _probe == 0 and TEST_XLA_FLAG not in os.environ["XLA_FLAGS"]:
+    if _probe == 0:
         os.environ["XLA_FLAGS"] = _flags
 
 import jax  # noqa: E402

@@ -9,12 +9,22 @@ so tests compare them with `assert_eigenvalues_match`, an optimal one-to-one mat
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+
+
+def child_xla_flags(devices: int | None = None) -> str:
+    """``XLA_FLAGS`` for a child process: this process's (e.g. the suite's compile flag,
+    tests/conftest.py) without its host-device count, and with `devices` host devices if given."""
+    from fojax.cli._devices import FLAG
+
+    kept = [f for f in os.environ.get("XLA_FLAGS", "").split() if FLAG not in f]
+    return " ".join(kept + ([] if devices is None else [f"{FLAG}={devices}"]))
 
 
 def _fmt(z: np.ndarray) -> str:

@@ -19,6 +19,7 @@ import sys
 import jax
 import numpy as np
 import pytest
+from helpers import child_xla_flags
 
 from fojax.cli._devices import (
     _jaxlib_version,
@@ -37,7 +38,7 @@ ARGS = ("study", "example_4_1_3", "--samples", "4", "--horizon", "0.5", "--steps
 
 def _env(**extra):
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "FOJAX_DEVICES")}
-    env["XLA_FLAGS"] = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if FLAG not in f)
+    env["XLA_FLAGS"] = child_xla_flags()
     return env | extra
 
 

@@ -25,7 +25,7 @@ import jax
 import numpy as np
 import pytest
 from distributed_worker import studies, study_and_tuning
-from helpers import json_differences as _differences
+from helpers import child_xla_flags, json_differences as _differences
 
 import fojax
 from fojax import studies as S
@@ -60,18 +60,13 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _xla_flags(devices: int) -> str:
-    """`devices` host devices, and the suite's compile flag (tests/conftest.py)."""
-    return f"--xla_force_host_platform_device_count={devices} {os.environ.get('FOJAX_TEST_XLA_FLAG', '')}".strip()
-
-
 def _launch(tmp_path, design, n, devices_each, kill=None, when=None):
     """Start `n` workers, wait (bounded), kill any left; returns (outputs, logs, return codes)."""
     path = tmp_path / "design.npz"
     if not path.exists():
         fojax.save_design(design, path)
     port = _free_port()
-    env = dict(os.environ, XLA_FLAGS=_xla_flags(devices_each),
+    env = dict(os.environ, XLA_FLAGS=child_xla_flags(devices_each),
                PYTHONPATH=os.pathsep.join([str(HERE), str(HERE.parent), os.environ.get("PYTHONPATH", "")]),
                JAX_PLATFORMS="cpu")
     procs, logs = [], []
@@ -209,7 +204,7 @@ def _fojax_study(args, *, processes=None, timeout=TIMEOUT):
     """Run ``python -m fojax.cli study ARGS`` in one process (``processes=None``) or with
     ``--distributed`` on that many local processes (one device each, the same command line,
     as on a cluster); returns the processes' (return code, output)."""
-    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=_xla_flags(1))
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=child_xla_flags(1))
     cmd = [sys.executable, "-m", "fojax.cli", "study", *args]
     if processes is None:
         r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
