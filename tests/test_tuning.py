@@ -152,6 +152,47 @@ def test_shared_optimizer_is_one_object_per_configuration_and_refuses_bad_input(
         tuning.shared_optimizer("adam", learning_rate=[0.1])
 
 
+def test_a_new_learning_rate_reuses_the_compiled_step(setup):
+    # A learning-rate sweep must not recompile the step (issue 13: new numbers never
+    # recompile): `shared_optimizer` gives the step its float hyperparameters as data.
+    # Oracle: the same run with optax's own object, whose learning rate is a constant of its
+    # own program (compiled once more): the same iterates bit for bit.
+    _, d, train, _ = setup
+    opts = dict(steps=3, method="exact", extra_loss=NO_PENALTY)
+    tuning.tune(d, train, optimizer=ADAM, **opts)  # the module's step (learning rate 0.1)
+    before = _tune.TRACE_COUNTS["tune_step"]
+    runs = {lr: tuning.tune(d, train, optimizer=tuning.shared_optimizer("adam", learning_rate=lr), **opts)
+            for lr in (0.05, 0.2)}
+    assert _tune.TRACE_COUNTS["tune_step"] == before  # two new learning rates, no new trace
+    plain = tuning.tune(d, train, optimizer=optax.adam(0.2), **opts)
+    assert _tune.TRACE_COUNTS["tune_step"] == before + 1  # a plain optax object: its own program
+    for k in plain.params:
+        assert np.array_equal(np.asarray(plain.params[k]), np.asarray(runs[0.2].params[k])), k
+    assert plain.history["train_loss"] == runs[0.2].history["train_loss"]
+    # the learning rate took effect: the two shared runs moved differently
+    assert runs[0.05].history["train_loss"][-1] != runs[0.2].history["train_loss"][-1]
+
+
+def test_shared_optimizer_keeps_untraceable_hyperparameters_as_constants(monkeypatch):
+    # an optax function that branches on a float hyperparameter in Python cannot take it as
+    # data: `shared_optimizer` then hands tune the object itself (one program per value)
+    import optax as _optax
+
+    from fojax.tuning import _optimizer
+
+    def branching(learning_rate):
+        if learning_rate > 0.5:  # a Python branch on the value: fails on a tracer
+            return _optax.sgd(learning_rate)
+        return _optax.adam(learning_rate)
+
+    monkeypatch.setattr(_optax, "fojax_test_branching", branching, raising=False)
+    opt = tuning.shared_optimizer("fojax_test_branching", learning_rate=0.1)
+    assert _optimizer.step_optimizer(opt) is opt
+    spec = _optimizer.step_optimizer(tuning.shared_optimizer("adam", learning_rate=0.3, nesterov=True))
+    assert isinstance(spec, _optimizer.OptimizerSpec)
+    assert spec.static == (("nesterov", True),) and float(spec.numeric["learning_rate"]) == 0.3
+
+
 def test_extra_loss_is_part_of_the_objective_and_changes_the_result(setup):
     _, d, train, _ = setup
     opts = dict(steps=5, optimizer=ADAM, method="exact")

@@ -102,7 +102,7 @@ from ..studies import (
     study_loss,
 )
 from ._loop import backtracked_update, check_extra_loss, run_loop
-from ._optimizer import shared_optimizer
+from ._optimizer import shared_optimizer, step_optimizer, transformation
 from ._robustness import robustness_terms
 
 
@@ -235,7 +235,7 @@ def _step(xi, opt_state, coords, par, study, optimizer, loss, quantile, weights,
     TRACE_COUNTS["tune_step"] += 1
     value, grads = eqx.filter_value_and_grad(_loss_fn)(xi, coords, par, study, loss, quantile, weights, cfg,
                                                        barrier, extra_loss, terms)
-    updates, new_state = optimizer.update(grads, opt_state, xi)
+    updates, new_state = transformation(optimizer).update(grads, opt_state, xi)
     new_xi, margin, accepted, backtracks = backtracked_update(
         xi, updates, lambda cand: par.margin(coords.params(cand)), min_margin, n_back)
     return value, new_xi, new_state, margin, accepted, backtracks
@@ -303,7 +303,8 @@ def tune(
     - `steps`: total number of optimizer steps (including those of a resumed run).
     - `optimizer`: an optax transformation (default
       ``shared_optimizer("adam", learning_rate=1e-2)``); the jitted step compiles once per
-      optimizer *object* (use `fojax.tuning.shared_optimizer` to share it between runs).
+      optax object, or, for `fojax.tuning.shared_optimizer`'s, once for every value of its
+      float hyperparameters (a learning-rate sweep compiles once).
     - `loss`: ``"iae"`` or ``"ise"`` of $\hat z - z$ (mean over signals, or `weights`);
       `quantile`: use this quantile over samples instead of the mean.
     - `extra_loss`: user terms added to the training loss, ``extra_loss(observer,
@@ -406,7 +407,7 @@ def tune(
     cfg_held = resolve_engine(heldout, obs0, cfg) if heldout is not None else cfg
 
     def step_args(coords):
-        return (coords, par, train_study, optimizer, loss, quantile, w, cfg_train, jnp.asarray(float(min_margin)),
+        return (coords, par, train_study, step_optimizer(optimizer), loss, quantile, w, cfg_train, jnp.asarray(float(min_margin)),
                 int(max_backtracks), jnp.asarray(barrier), extra_loss, terms)
 
     def start(coords):  # the optimizer's state at xi = 0, on the mesh (where the step's outputs are)
