@@ -173,6 +173,26 @@ def test_a_new_learning_rate_reuses_the_compiled_step(setup):
     assert runs[0.05].history["train_loss"][-1] != runs[0.2].history["train_loss"][-1]
 
 
+def test_a_new_quantile_level_reuses_the_compiled_step(setup):
+    # The quantile level is data of the step too. Oracle: the first step's training loss (barrier 0:
+    # the loss alone) is
+    # the loss at the LMI design, `np.quantile` of the per-sample IAEs (mean over the signals)
+    # that `run_study` reports on the same samples (exact engine, trapezoid rule).
+    _, d, train, _ = setup
+    opts = dict(steps=1, method="exact", extra_loss=NO_PENALTY, optimizer=ADAM, barrier=0.0)
+    tuning.tune(d, train, quantile=0.9, **opts)
+    before = _tune.TRACE_COUNTS["tune_step"]
+    res = fojax.run_study(train, [d.observer], quantiles=(), method="exact")
+    per = np.asarray(res.metrics["iae"])[0].reshape(-1, train.num_signals).mean(axis=1)
+    for q in (0.5, 0.75):
+        first = tuning.tune(d, train, quantile=q, **opts).history["train_loss"][0]
+        assert first == pytest.approx(np.quantile(per, q), rel=1e-9), q
+    assert _tune.TRACE_COUNTS["tune_step"] == before  # two new levels, no new trace
+    for bad in (1.5, -0.1, "high"):
+        with pytest.raises(fojax.InputError, match="quantile must be a number in"):
+            tuning.tune(d, train, quantile=bad, **opts)
+
+
 def test_shared_optimizer_keeps_untraceable_hyperparameters_as_constants(monkeypatch):
     # an optax function that branches on a float hyperparameter in Python cannot take it as
     # data: `shared_optimizer` then hands tune the object itself (one program per value)

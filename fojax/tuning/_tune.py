@@ -306,7 +306,8 @@ def tune(
       optax object, or, for `fojax.tuning.shared_optimizer`'s, once for every value of its
       float hyperparameters (a learning-rate sweep compiles once).
     - `loss`: ``"iae"`` or ``"ise"`` of $\hat z - z$ (mean over signals, or `weights`);
-      `quantile`: use this quantile over samples instead of the mean.
+      `quantile`: use this quantile over samples instead of the mean (a number in [0, 1],
+      given to the compiled step as data: a new level does not compile it again).
     - `extra_loss`: user terms added to the training loss, ``extra_loss(observer,
       design_params) -> scalar`` (`design_params`: ``Z, Y1, Y2, Y3, J, G``); a pure JAX
       function. The held-out loss is the study loss alone.
@@ -370,6 +371,8 @@ def tune(
     """
     if loss not in ("iae", "ise"):
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
+    q_level = _quantile_level(quantile)  # data of the compiled programs
+    quantile = None if q_level is None else float(q_level)
     terms, channels = robustness_terms(robustness, design)
     par = make_parameterization(design, parameterization, region, tune_Z=tune_Z)
     params0 = par.init(design)
@@ -407,7 +410,7 @@ def tune(
     cfg_held = resolve_engine(heldout, obs0, cfg) if heldout is not None else cfg
 
     def step_args(coords):
-        return (coords, par, train_study, step_optimizer(optimizer), loss, quantile, w, cfg_train, jnp.asarray(float(min_margin)),
+        return (coords, par, train_study, step_optimizer(optimizer), loss, q_level, w, cfg_train, jnp.asarray(float(min_margin)),
                 int(max_backtracks), jnp.asarray(barrier), extra_loss, terms)
 
     def start(coords):  # the optimizer's state at xi = 0, on the mesh (where the step's outputs are)
@@ -426,7 +429,7 @@ def tune(
 
     def heldout_args(p):
         # on the mesh, as the iterates are (the starting parameters are not): one compilation
-        return replicate(p, devices), par, heldout, loss, quantile, w, cfg_held
+        return replicate(p, devices), par, heldout, loss, q_level, w, cfg_held
 
     # the held-out program compiles on a thread too (XLA compiles without the GIL; the 2-core
     # reference machine: issue 13); nothing runs until it is done
@@ -471,6 +474,21 @@ def tune(
         tuned = dataclasses.replace(tuned, report=tuned.verify())
     return TuneResult(design=tuned, params=params, history=history, initial_heldout=initial_heldout,
                       final_heldout=final_heldout, live_parameters=live, parameterization=par, robustness=robust)
+
+
+def _quantile_level(quantile):
+    """`quantile` as a float64 array (data of the jitted step and evaluation: a new level
+    reuses their programs), or None; `fojax.InputError` outside [0, 1]."""
+    if quantile is None:
+        return None
+    try:
+        q = float(quantile)
+    except (TypeError, ValueError):
+        q = float("nan")
+    if not 0.0 <= q <= 1.0:
+        raise InputError(f"quantile must be a number in [0, 1] (e.g. 0.9: the 90 % quantile of the per-sample "
+                         f"losses) or None (their mean), got {quantile!r}.")
+    return jnp.asarray(q, dtype=jnp.float64)
 
 
 def _compile_in_background(fn, args) -> concurrent.futures.Future:
