@@ -174,10 +174,9 @@ def test_a_new_learning_rate_reuses_the_compiled_step(setup):
 
 
 def test_a_new_quantile_level_reuses_the_compiled_step(setup):
-    # The quantile level is data of the step too. Oracle: the first step's training loss (barrier 0:
-    # the loss alone) is
-    # the loss at the LMI design, `np.quantile` of the per-sample IAEs (mean over the signals)
-    # that `run_study` reports on the same samples (exact engine, trapezoid rule).
+    # The quantile level is data of the step too. Oracle: the first step's training loss
+    # (barrier 0: the loss alone) at the LMI design is `np.quantile` of the per-sample IAEs
+    # (mean over the signals) that `run_study` reports on the same samples (exact engine).
     _, d, train, _ = setup
     opts = dict(steps=1, method="exact", extra_loss=NO_PENALTY, optimizer=ADAM, barrier=0.0)
     tuning.tune(d, train, quantile=0.9, **opts)
