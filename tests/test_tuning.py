@@ -128,6 +128,28 @@ def test_resume_from_checkpoint_equals_uninterrupted(setup, tmp_path):
     assert _tune.TRACE_COUNTS["tune_step"] <= before + 1
 
 
+def test_resume_refuses_the_checkpoint_of_another_run(tmp_path):
+    # A checkpoint is the state of one run: resuming it with another optimizer (another state
+    # layout) or other coordinates must say so, not fail on a missing array or load the wrong
+    # arrays into the state.
+    from fojax.tuning._loop import load_checkpoint, save_checkpoint
+
+    path = str(tmp_path / "ckpt")
+    xi = {"xi": jnp.arange(3.0)}
+    adam = optax.adam(0.1)
+    state = adam.init(xi)
+    save_checkpoint(path, xi, state, 2, jax.random.PRNGKey(0), {"step": [1, 2]})
+    p, s, step, _, _ = load_checkpoint(path, xi, state)  # the same run: restored
+    assert step == 2 and np.array_equal(p["xi"], xi["xi"])
+    others = [(xi, optax.sgd(0.1, momentum=0.9).init(xi)),  # another optimizer: fewer arrays
+              (xi, optax.sgd(0.1).init(xi)),  # one without state
+              (xi, optax.chain(optax.scale_by_adam(), optax.trace(0.9)).init(xi)),  # more arrays
+              ({"xi": jnp.zeros(4)}, adam.init({"xi": jnp.zeros(4)}))]  # other coordinates: shapes
+    for params, st in others:
+        with pytest.raises(fojax.InputError, match="holds the tuning state of another run"):
+            load_checkpoint(path, params, st)
+
+
 def test_non_disk_region_is_refused(setup):
     _, d, _, _ = setup
     with pytest.raises(fojax.InputError, match="disk regions only"):

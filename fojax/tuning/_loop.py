@@ -132,10 +132,22 @@ def load_checkpoint(path, params, opt_state, data: bytes | None = None):
     data = read_checkpoint(path) if data is None else data
     n = int.from_bytes(data[:8], "little")
     meta = json.loads(data[8 : 8 + n].decode())
+    like = jax.tree.leaves((params, opt_state))
     with np.load(io.BytesIO(data[8 + n :])) as npz:
-        leaves = [jnp.asarray(npz[f"leaf{i}"]) for i in range(len(jax.tree.leaves((params, opt_state))))]
+        saved = sorted((k for k in npz.files if k.startswith("leaf")), key=lambda k: int(k[4:]))
+        leaves = [np.asarray(npz[k]) for k in saved]
         key = jnp.asarray(npz["key"])
         npz_step = int(npz["step"]) if "step" in npz else meta["step"]
+    want = [(tuple(np.shape(x)), np.dtype(getattr(x, "dtype", type(x)))) for x in like]
+    got = [(x.shape, x.dtype) for x in leaves]
+    if got != want:
+        raise InputError(
+            f"checkpoint {path}: it holds the tuning state of another run ({len(got)} arrays of shapes "
+            f"{[g[0] for g in got]}; this run's optimizer and parameters have {len(want)} of shapes "
+            f"{[w[0] for w in want]}): it was written with another optimizer, parameterization, "
+            "precondition or design. Resume with the options of the run that wrote it, or pass another "
+            "checkpoint path (or delete its .npz and .json) to start anew.")
+    leaves = [jnp.asarray(x) for x in leaves]
     if npz_step != meta["step"]:
         raise InputError(
             f"checkpoint {path}: {path}.npz holds step {npz_step} but {path}.json step {meta['step']} "
