@@ -88,6 +88,28 @@ def test_unit_scaling_is_equivariant():
     assert np.abs(B).max() == pytest.approx(np.abs(C).max(), rel=1e-14)
 
 
+def test_unit_scaling_is_computed_once_per_model_and_returned_as_copies(monkeypatch):
+    # `certify` checks every tuning iterate in the unit-free frame: the least-squares solve
+    # runs once per model. Oracle: the uncached computation; a caller mutating its result
+    # must not change what the next caller gets; another model is computed anew.
+    from fojax.analysis import _balance
+
+    m = lc_filter.lc_filter()
+    args = (m["E"], m["A"], m["B"], m["C"])
+    want = _balance._unit_scaling(*(np.asarray(x, dtype=float) for x in args))
+    calls = []
+    monkeypatch.setattr(_balance, "_unit_scaling", lambda *a: calls.append(1) or want)
+    monkeypatch.setattr(_balance, "_UNIT_SCALINGS", _balance.collections.OrderedDict())
+    first = unit_scaling(*args)
+    first[0][:] = 0.0  # the caller's copy
+    second = unit_scaling(*args)
+    assert len(calls) == 1
+    for got, ref in zip(second, want):
+        np.testing.assert_array_equal(got, ref)
+    unit_scaling(2.0 * m["E"], m["A"], m["B"], m["C"])
+    assert len(calls) == 2
+
+
 @pytest.mark.parametrize("kind", ["proportional", "generalized"])
 def test_twin_gets_the_same_verified_observer(lc_designs, kind):
     (m0, d0), (m1, d1) = lc_designs[False], lc_designs[True]

@@ -38,6 +38,9 @@ does for ``numpy.linalg.eigvals``) is used, its factors rounded to powers of two
 
 from __future__ import annotations
 
+import collections
+import hashlib
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -212,6 +215,12 @@ def _ward_exponents(E, A, B, C, *, rounded: bool = True) -> tuple[np.ndarray, np
     return e[:l], e[l:]
 
 
+#: Models whose `unit_scaling` is kept (least recently used dropped first).
+_UNIT_SCALING_KEEP = 32
+_UNIT_SCALINGS: collections.OrderedDict = collections.OrderedDict()
+_UNIT_SCALINGS_LOCK = threading.Lock()
+
+
 def unit_scaling(E, A, B=None, C=None) -> tuple[np.ndarray, np.ndarray]:
     r"""Diagonal factors ``(d_l, d_r)`` that remove the units of the equations and states.
 
@@ -239,12 +248,37 @@ def unit_scaling(E, A, B=None, C=None) -> tuple[np.ndarray, np.ndarray]:
 
     **Returns:** ``(d_l, d_r)``, positive ``(l,)`` and ``(n,)`` arrays (ones when `E` and `A`
     are zero or empty).
+
+    Computed once per model (`_UNIT_SCALING_KEEP` models kept, keyed by the matrices' bytes
+    and shapes; each call returns fresh copies): `fojax.design.certify` checks every tuning
+    iterate in the unit-free frame, on the same model each time.
     """
     E = np.asarray(E, dtype=float)
     A = np.asarray(A, dtype=float)
     l, n = E.shape
     B = np.zeros((l, 0)) if B is None else np.asarray(B, dtype=float)
     C = np.zeros((0, n)) if C is None else np.asarray(C, dtype=float)
+    digest = hashlib.sha256()
+    for x in (E, A, B, C):
+        digest.update(repr(x.shape).encode())
+        digest.update(np.ascontiguousarray(x).tobytes())
+    key = digest.hexdigest()
+    with _UNIT_SCALINGS_LOCK:
+        found = _UNIT_SCALINGS.get(key)
+        if found is not None:
+            _UNIT_SCALINGS.move_to_end(key)
+    if found is None:  # computed outside the lock
+        found = _unit_scaling(E, A, B, C)
+        with _UNIT_SCALINGS_LOCK:
+            _UNIT_SCALINGS[key] = found
+            while len(_UNIT_SCALINGS) > _UNIT_SCALING_KEEP:
+                _UNIT_SCALINGS.popitem(last=False)
+    return found[0].copy(), found[1].copy()
+
+
+def _unit_scaling(E, A, B, C) -> tuple[np.ndarray, np.ndarray]:
+    """`unit_scaling` of float arrays ``(E, A, B, C)`` (``B``, ``C`` possibly empty), computed."""
+    l, n = E.shape
     if l == 0 or n == 0 or not (np.any(A) or np.any(E)):
         return np.ones(l), np.ones(n)
     el, er = _ward_exponents(E, A, B, C, rounded=False)

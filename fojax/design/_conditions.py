@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import collections
-import hashlib
-import threading
-
 import numpy as np
 
 from .._errors import (
@@ -153,34 +149,6 @@ def check_functional_observability(E, A, C, L, Eperp=None, *, what: str = "L", D
 #: `fojax.analysis.unit_scaling` costs a least-squares solve of size ``l + n``: ~0.8 s at
 #: n = 100 on a loaded 2-core CPU, ~19 s at n = 500).
 UNIT_FREE_CHECK_MAX = 200
-#: Models whose unit-free scaling `_unit_scaling` keeps (least recently used dropped first).
-_UNIT_SCALING_KEEP = 32
-_UNIT_SCALINGS: collections.OrderedDict = collections.OrderedDict()
-_UNIT_SCALINGS_LOCK = threading.Lock()
-
-
-def _unit_scaling(E, A, B, C):
-    """`fojax.analysis.unit_scaling` of ``(E, A, B, C)``, computed once per model (keyed by
-    the matrices' bytes and shapes): `fojax.design.certify` checks every tuning iterate in
-    the unit-free frame, on the same model each time."""
-    from ..analysis._balance import unit_scaling
-
-    digest = hashlib.sha256()
-    for x in (E, A, B, C):
-        digest.update(repr(x.shape).encode())
-        digest.update(np.ascontiguousarray(x, dtype=float).tobytes())
-    key = digest.hexdigest()
-    with _UNIT_SCALINGS_LOCK:
-        found = _UNIT_SCALINGS.get(key)
-        if found is not None:
-            _UNIT_SCALINGS.move_to_end(key)
-    if found is None:
-        found = tuple(np.array(d, dtype=float) for d in unit_scaling(E, A, B, C))
-        with _UNIT_SCALINGS_LOCK:
-            _UNIT_SCALINGS[key] = found
-            while len(_UNIT_SCALINGS) > _UNIT_SCALING_KEEP:
-                _UNIT_SCALINGS.popitem(last=False)
-    return tuple(d.copy() for d in found)
 
 
 def unit_free_structure(s: FunctionalObserverStructure, *, orthonormal: bool = False):
@@ -191,12 +159,12 @@ def unit_free_structure(s: FunctionalObserverStructure, *, orthonormal: bool = F
     larger than `UNIT_FREE_CHECK_MAX` or has rules. With `orthonormal` $E^\perp_b$ is
     replaced by an orthonormal basis of its rows (the same row space, so the same rank
     conditions; for rank decisions, not for mapping parameters)."""
-    from ..analysis._balance import scale_model
+    from ..analysis._balance import scale_model, unit_scaling
 
     E, A, B, C, L = (np.asarray(x, dtype=float) for x in (s.E, s.A, s.B, s.C, s.L))
     if A.ndim != 2 or E.shape[0] + E.shape[1] > UNIT_FREE_CHECK_MAX or getattr(s, "num_rules", 1) > 1:
         return None
-    dl, dr = _unit_scaling(E, A, B, C)
+    dl, dr = unit_scaling(E, A, B, C)
     Epb = np.asarray(s.Eperp) / dl[None, :]
     if orthonormal and Epb.size:
         Epb = np.linalg.svd(Epb, full_matrices=False)[2][: Epb.shape[0]]
