@@ -33,6 +33,21 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 # compiling per design less). Programs with host callbacks (the diffrax path) are never cached.
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
+
+def _program_compile_flag() -> str:
+    """``COMPILE_FLAG`` of fojax/cli/_devices.py, the flag the ``fojax`` program adds (one
+    literal; the module is loaded from its file: importing fojax here would import JAX
+    before the environment above is set)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "fojax" / "cli" / "_devices.py"
+    spec = importlib.util.spec_from_file_location("_fojax_cli_devices_for_tests", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.COMPILE_FLAG
+
+
 #: XLA:CPU flag of the test runs: compile without the fusion emitters. The suite is dominated
 #: by single-threaded XLA compilation. Measured on an Intel Xeon (2 cores): a tuning step of
 #: benchmarks/tuning_step.py compiled in 8.2 s instead of 11.8 s (but ran 0.52 s instead of
@@ -45,7 +60,7 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 #: process; the xdist workers, notebook kernels and CLI subprocesses inherit the result;
 #: ``FOJAX_TEST_XLA_FLAG=`` (empty) runs the suite with XLA's default; an ``XLA_FLAGS`` that
 #: names the flag wins, as in the ``fojax`` program, fojax/cli/_devices.py).
-TEST_XLA_FLAG = "--xla_cpu_use_fusion_emitters=false"
+TEST_XLA_FLAG = _program_compile_flag()
 if "FOJAX_TEST_XLA_FLAG" not in os.environ and TEST_XLA_FLAG.split("=")[0] not in os.environ["XLA_FLAGS"]:
     _flags = f"{os.environ['XLA_FLAGS']} {TEST_XLA_FLAG}"
     try:
