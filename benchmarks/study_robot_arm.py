@@ -38,6 +38,10 @@ from pathlib import Path
 
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import _common  # noqa: E402
+
+
 COMPILED = re.compile(r"Finished XLA compilation of (.+?) in ([0-9.eE+-]+) s")
 
 
@@ -81,6 +85,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="parent folder of the study's results (default: a temporary one)")
     args = ap.parse_args(argv)
 
+    _common.prefer_checkout()
+    # what the `fojax` program does before JAX starts (fojax/cli/_devices.py: XLA:CPU without
+    # its fusion emitters); this script runs the command in-process, so it sets them itself
+    flags = _common.program_compile_flags()
     load_before = os.getloadavg()
     t0, c0 = time.monotonic(), _cpu()
     import jax
@@ -90,12 +98,11 @@ def main(argv=None) -> int:
     logging.getLogger("jax").addHandler(handler)
     logging.getLogger("jax").setLevel(logging.DEBUG)
     from fojax.cli._main import main as fojax_main
-    from fojax.config import example_path
     from fojax.studies import _runner
     from fojax.tuning import _tune
 
     t_import, c_import = time.monotonic() - t0, _cpu() - c0
-    cmd = ["study", str(example_path("robot_arm_ts"))]
+    cmd = ["study", "robot_arm_ts"]  # a built-in example by name, as `fojax examples` lists it
     if args.steps is not None:
         cmd += ["--steps", str(args.steps)]
     with tempfile.TemporaryDirectory() as tmp:
@@ -126,6 +133,8 @@ def main(argv=None) -> int:
         per_name[name][1] += sec
     top = sorted(per_name.items(), key=lambda kv: -kv[1][1])[:15]
     result = {
+        "machine": _common.machine_info(),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""), "program_compile_flag_added": flags,
         "command": "fojax " + " ".join(cmd[:-2] + ["--out", "DIR"]),
         "exit_code": code,
         "import_wall_s": round(t_import, 2), "import_cpu_s": round(c_import, 2),
@@ -141,9 +150,7 @@ def main(argv=None) -> int:
     }
     print(json.dumps(result, indent=1))
     if args.steps is None:
-        out = HERE / "results" / "study_robot_arm_latest.json"
-        out.write_text(json.dumps(result, indent=1) + "\n")
-        print(f"wrote {out}")
+        _common.write_result(HERE / "results" / "study_robot_arm_latest.json", result)
     return code
 
 
