@@ -22,9 +22,11 @@ from fojax.results import load_design, read_design_metadata
 
 
 # the resume tests: a small LTI study (no implicit solver) with a few tuning steps
-# 12 steps: the interrupted run must still be tuning when the test sees its first checkpoint
-# (with 4 steps of ~0.15 s a loaded machine could starve the polling test until the run ended)
-RESUME_STEPS = 12
+# 40 steps: the interrupted run must still be tuning when the test sees its first checkpoint.
+# A step of this study takes ~0.04 s (measured: 212 steps 8.7 s more than 12, Intel Xeon), so
+# 12 steps left the polling test a window of ~0.5 s, which a loaded 2-core machine (two test
+# workers beside the run) could starve; 40 give ~1.7 s for ~2.5 s more in the three runs.
+RESUME_STEPS = 40
 RESUME_ARGS = ("example_4_1_3", "--samples", "4", "--horizon", "1", "--steps", str(RESUME_STEPS))
 try:  # the Monte Carlo runner may not be part of this version: then `fojax study` exits 3
     import fojax.studies  # noqa: F401
