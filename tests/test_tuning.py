@@ -128,6 +128,17 @@ def test_resume_from_checkpoint_equals_uninterrupted(setup, tmp_path):
     assert _tune.TRACE_COUNTS["tune_step"] <= before + 1
 
 
+def test_tune_shows_progress_unless_quiet(setup, capsys):
+    # long-running work shows progress (a tqdm bar on stderr, like run_study's); quiet=True: none
+    _, d, train, _ = setup
+    opts = dict(steps=2, method="exact", extra_loss=NO_PENALTY, optimizer=ADAM)
+    tuning.tune(d, train, **opts)
+    err = capsys.readouterr().err
+    assert "tune" in err and "2/2" in err, err
+    tuning.tune(d, train, quiet=True, **opts)
+    assert capsys.readouterr().err == ""
+
+
 def test_resume_refuses_the_checkpoint_of_another_run(tmp_path):
     # A checkpoint is the state of one run: resuming it with another optimizer (another state
     # layout) or other coordinates must say so, not fail on a missing array or load the wrong

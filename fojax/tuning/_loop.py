@@ -206,7 +206,7 @@ def run_loop(
             params, opt_state, start, key, history = load_checkpoint(path, params, opt_state, data)
             if place is not None:
                 params, opt_state = place((params, opt_state))
-    for i in tqdm(range(start, steps), disable=quiet, desc=desc, unit="step"):
+    for i in tqdm(range(start, steps), disable=quiet or not writer, desc=desc, unit="step"):
         key, _ = jax.random.split(key)
         value, cand, cand_state, _, ok, nback = step(params, opt_state, *step_args)
         accepted = bool(ok)

@@ -285,7 +285,7 @@ def tune(
     max_steps: int | None = None,
     solver=None,
     callback: Callable | None = None,
-    quiet: bool = True,
+    quiet: bool = False,
     devices=None,
 ) -> TuneResult:
     r"""Tune the free parameters of a functional-observer design by gradient descent.
@@ -347,7 +347,8 @@ def tune(
       (`fojax.simulation._steppers.as_stepper`); not together with `stepper`.
     - `callback`: called as ``callback(step, record)`` after every step; ``record`` is the
       step's history entry plus ``params`` (the current, accepted parameters).
-    - `quiet`: no progress bar.
+    - `quiet`: no progress bar (by default one on stderr, as `fojax.run_study` shows; in a
+      run over several processes only process 0's).
     - `devices`: spread the training samples over these devices (e.g. ``jax.devices()``
       after `jax.distributed.initialize`: every process's devices; each process computes
       its share of the loss and gradient). The iterates are bit-identical to the default
