@@ -82,7 +82,7 @@ def shared_optimizer(name: str = "adam", **hyperparameters) -> optax.GradientTra
 
     Two calls with the same `name` and hyperparameters return *the same* object, and
     `fojax.tuning.tune` gives its step the float hyperparameters as data (module
-    docstring): runs with this optimizer compile the step once for every value of them
+    docstring): runs with this optimizer compile the step once, whatever their values
     (e.g. ``learning_rate=0.1``, then ``0.05``). `tune` defaults to
     ``shared_optimizer("adam", learning_rate=1e-2)``.
 

@@ -303,8 +303,8 @@ def tune(
     - `steps`: total number of optimizer steps (including those of a resumed run).
     - `optimizer`: an optax transformation (default
       ``shared_optimizer("adam", learning_rate=1e-2)``); the jitted step compiles once per
-      optax object, or, for `fojax.tuning.shared_optimizer`'s, once for every value of its
-      float hyperparameters (a learning-rate sweep compiles once).
+      optax object, or, for `fojax.tuning.shared_optimizer`'s, once whatever the values of
+      its float hyperparameters (a learning-rate sweep compiles once).
     - `loss`: ``"iae"`` or ``"ise"`` of $\hat z - z$ (mean over signals, or `weights`);
       `quantile`: use this quantile over samples instead of the mean (a number in [0, 1],
       given to the compiled step as data: a new level does not compile it again).
