@@ -49,15 +49,18 @@ def _is_float(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, (bool, numbers.Integral))
 
 
-@functools.cache
-def _build(name: str, hyperparameters: tuple) -> optax.GradientTransformation:
-    return getattr(optax, name)(**dict(hyperparameters))
-
-
 #: The `OptimizerSpec` of each object `shared_optimizer` returned (by ``id``: the objects stay
 #: alive in `_build`'s cache, so an ``id`` is never reused), or None when its float
 #: hyperparameters cannot be traced.
 _SPECS: dict[int, OptimizerSpec | None] = {}
+
+
+@functools.cache
+def _build(name: str, hyperparameters: tuple) -> optax.GradientTransformation:
+    """One object per configuration, its `OptimizerSpec` registered in `_SPECS`."""
+    optimizer = getattr(optax, name)(**dict(hyperparameters))
+    _SPECS[id(optimizer)] = _spec(name, hyperparameters, optimizer)
+    return optimizer
 
 
 def _spec(name: str, hyperparameters: tuple, optimizer) -> OptimizerSpec | None:
@@ -105,10 +108,7 @@ def shared_optimizer(name: str = "adam", **hyperparameters) -> optax.GradientTra
         raise InputError(f"shared_optimizer({name!r}): the hyperparameters must be hashable ({e}); create "
                          "an unhashable one (e.g. an array) once and pass your own optax object to tune "
                          "instead, reusing that object across runs.") from None
-    optimizer = _build(name, key)
-    if id(optimizer) not in _SPECS:
-        _SPECS[id(optimizer)] = _spec(name, key, optimizer)
-    return optimizer
+    return _build(name, key)
 
 
 def step_optimizer(optimizer: optax.GradientTransformation):
