@@ -116,7 +116,7 @@ def test_study_loss_in_passes_equals_step_by_step_run_study_and_central_differen
     st, observer = study
     calls = []
     real = _exact.pass_recurrence_reduce
-    monkeypatch.setattr(_exact, "pass_recurrence_reduce", lambda *a: calls.append(a[3]) or real(*a))
+    monkeypatch.setattr(_exact, "pass_recurrence_reduce", lambda *a, **k: calls.append(a[3]) or real(*a, **k))
     f, dyn = _vg(st, observer, "ise")
     v, g = f(dyn)
     assert calls == [4]  # the loss took the passes, 4 steps each

@@ -495,7 +495,33 @@ class _ModelProblem(eqx.Module):
 _DIFF_MAX_SQUARINGS = 24
 
 
-def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_loop=None):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(1, 2))
+def repeat_groups(a, reps: int, axis: int):
+    """``jnp.repeat(a, reps, axis)`` (each entry along `axis` becomes ``reps`` consecutive
+    copies: one group's value for each of its samples) whose reverse pass sums each
+    group's ``reps`` cotangents as a chain of additions in sample order, so that the sum
+    has the same bits in every program (a ``reduce`` XLA may split or fuse differently in
+    one- and many-device programs; see `fojax.studies._sharding.sum_rows`)."""
+    return jnp.repeat(a, reps, axis=axis)
+
+
+def _repeat_fwd(a, reps, axis):
+    return repeat_groups(a, reps, axis), None
+
+
+def _repeat_bwd(reps, axis, _, ct):
+    ct = jnp.moveaxis(ct, axis, 0)
+    ct = ct.reshape((ct.shape[0] // reps, reps) + ct.shape[1:])
+    acc = ct[:, 0]
+    for r in range(1, reps):
+        acc = acc + ct[:, r]
+    return (jnp.moveaxis(acc, 0, axis),)
+
+
+repeat_groups.defvjp(_repeat_fwd, _repeat_bwd)
+
+
+def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_loop=None, groups=None):
     r"""One block of samples (leading axis ``b`` of every leaf of ``p``): the problem's
     reduction, batch last.
 
@@ -521,6 +547,16 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     ``None`` without jumps), e.g. `fojax.studies._exact._split_loop` (through
     `fojax.studies._adjoint.split_recurrence_reduce`), whose
     custom VJP is the adjoint recurrence; the reduction's `final` is applied here.
+
+    `groups`: ``(p_rep, reps)``, one representative per run of ``reps``
+    consecutive samples of ``p`` whose joint matrix, output map and validity are the same
+    (a study's scenarios of one uncertainty sample: `fojax.studies._exact.scenario_free`).
+    The joint matrix, its exponential and the output map are then formed once per group
+    (``b / reps`` columns) and the time loop is called as
+    ``time_loop(problem, Phi, w0, G, jv, kon, ts, reps)`` with group-level ``Phi``, ``G``
+    and sample-level ``w0``, jumps; the initial states and jumps stay per sample. Without
+    a `time_loop` (or with kept outputs) ``Phi`` and ``G`` are repeated to the samples
+    before the generic loop.
     """
     if not differentiable and time_loop is None:
         # layout by N: several steps per pass as matrix products from MULTISTEP_MIN_N on, the
@@ -555,15 +591,29 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
             jumps = (jumps[0], jumps[1] @ S.T)
         return Aj, S @ w0, Gd, d, ok, jumps, (S, Sinv)
 
-    Aj, w0, G, scale, ok, jumps, sim = jax.vmap(per_sample)(p)  # (b,N,N), (b,N), (b,·,N), (b,·), (b,)
-    Aj = jnp.moveaxis(Aj, 0, -1)  # (N, N, b)
+    reps = 1
+    if groups is not None:
+        if basis is not None:
+            raise ValueError("_block_kernel: groups need basis=None")
+        p_rep, reps = groups
+        # the representatives' matrices and validity; the samples' initial states and
+        # jumps (their joint matrices are unused: removed as dead code)
+        Aj, _, G, scale, ok, _, sim = jax.vmap(per_sample)(p_rep)
+        _, w0, _, _, _, jumps, _ = jax.vmap(per_sample)(p)
+        ok = jnp.repeat(ok, reps)  # not differentiated
+    else:
+        Aj, w0, G, scale, ok, jumps, sim = jax.vmap(per_sample)(p)  # (b,N,N), (b,N), (b,·,N), (b,·), (b,)
+    Aj = jnp.moveaxis(Aj, 0, -1)  # (N, N, b), or (N, N, b / reps)
     if sim is not None:
         # the joint matrix in the output coordinates, S A S⁻¹, as two batch-last products
         # (`_mm_last`): as batched dots under `jax.vmap` they took ~9 ms of the ~40 ms
         # set-up of the §4.1.3 workload at B = 10,000 (7 × 7, measured under load)
         Aj = _mm_last(_mm_last(jnp.moveaxis(sim[0], 0, -1), Aj), jnp.moveaxis(sim[1], 0, -1))
     K = scale.shape[1] if basis is None else len(basis[0]) + G.shape[1]
-    Phi = expm(h * Aj)  # (N, N, b)
+    Phi = expm(h * Aj)  # (N, N, b), or (N, N, b / reps)
+    grouped_loop = reps > 1 and time_loop is not None and not problem.keep
+    if reps > 1 and not grouped_loop:  # the generic loop: every sample's own copy
+        Phi, G = repeat_groups(Phi, reps, -1), repeat_groups(G, reps, 0)  # G: (b / reps, K, N) here
     G = jnp.moveaxis(G, 0, -1)  # (K or K-ρ, N, b)
     scale = scale.T
     w0 = w0.T  # (N, b)
@@ -573,7 +623,9 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         kon = jnp.searchsorted(ts, jt, side="left")  # first grid index with t_k ≥ t_j
         valid = (kon >= 1) & (kon <= T - 1) & jnp.isfinite(jt)
         tau = jnp.where(valid, ts[jnp.clip(kon, 0, T - 1)] - jnp.where(valid, jt, 0.0), 0.0)
-        Mj = tau[:, :, None, None] * jnp.moveaxis(Aj, -1, 0)[:, None]  # (b, J, N, N)
+        Ajb = jnp.moveaxis(Aj, -1, 0)
+        Ajb = Ajb if Ajb.shape[0] == b_ else repeat_groups(Ajb, reps, 0)  # groups: each sample's copy
+        Mj = tau[:, :, None, None] * Ajb[:, None]  # (b, J, N, N)
         Psi = expm(jnp.moveaxis(Mj.reshape((b_ * J,) + Aj.shape[:2]), 0, -1))
         jv = matvec(Psi, jnp.moveaxis(dW.reshape(b_ * J, -1), 0, -1))  # (N, b J)
         jv = jnp.moveaxis(jv.reshape(jv.shape[0], b_, J), 2, 0)  # (J, N, b)
@@ -604,8 +656,12 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         return (w, problem.update(acc, o, k, ts)), (o if problem.keep else None)  # keep: 0 or the stride
 
     if time_loop is not None and basis is None and not problem.keep:
-        acc, w_end = time_loop(problem, Phi, w0, G, jv if jumps is not None else None,
-                               kon if jumps is not None else None, ts)
+        loop_args = (problem, Phi, w0, G, jv if jumps is not None else None, kon if jumps is not None else None, ts)
+        if not grouped_loop:
+            acc, w_end = time_loop(*loop_args)
+        else:
+            acc, w_end = time_loop(*loop_args, reps)
+            G = repeat_groups(G, reps, -1)
         return problem.final(acc, matvec(G, w0), matvec(G, w_end), ts, h, ok)
     o0 = outputs(w0)
     stride = int(problem.keep)

@@ -91,7 +91,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from .._errors import InputError
-from ..simulation._batch import _matvec_last
+from ..simulation._batch import _matvec_last, repeat_groups
 
 
 def _rmatvec_last(M, v):
@@ -220,7 +220,7 @@ def _pass_matrices(Ppp, Poo, Pop, Go, Gp, S: int):
     return Pp, Pxp, Pxx, Rp, Rx
 
 
-def pass_recurrence_reduce(diff, plant, problem, S: int, segment=None):
+def pass_recurrence_reduce(diff, plant, problem, S: int, segment=None, reps: int = 1):
     r"""`split_recurrence_reduce` for an additive reduction (``problem.update(acc, o, k,
     ts) = acc + g(o)``, ``g`` elementwise, independent of ``k`` and ``ts``: `LossProblem`)
     without jumps, ``S`` grid steps per pass (`pass_length`).
@@ -245,7 +245,10 @@ def pass_recurrence_reduce(diff, plant, problem, S: int, segment=None):
     differently; tested to 1e-12 relative).
 
     **Arguments:** as `split_recurrence_reduce` (``jvo``, ``jvp`` ``None``, no ``kon``);
-    ``S`` (static) divides ``n = T − 1`` and leaves at least two passes.
+    ``S`` (static) divides ``n = T − 1`` and leaves at least two passes. ``reps``
+    (static): the matrices (``Poo``, ``Pop``, ``Go``, ``Gp``, ``Ppp``) are given once per
+    group of ``reps`` consecutive samples (``xi0``, ``p0``: per sample); the pass matrices
+    are formed per group and repeated to the samples.
 
     **Returns:** ``(acc, p_end, xi_end)``: ``acc`` ``(K, b)`` summed over the ``S`` rows of
     each output in order.
@@ -258,6 +261,8 @@ def pass_recurrence_reduce(diff, plant, problem, S: int, segment=None):
                          f"S | n with n / S >= 2 (n = {n}).")
     K = Go.shape[0]
     Pp, Pxp, Pxx, Rp, Rx = _pass_matrices(Ppp, Poo, Pop, Go, Gp, S)
+    if reps > 1:
+        Pp, Pxp, Pxx, Rp, Rx = (repeat_groups(X, reps, -1) for X in (Pp, Pxp, Pxx, Rp, Rx))
     if segment is None and n // S - 1 <= PASS_SEGMENT_MAX:
         segment = n // S - 1  # one checkpoint segment (no shorter last one to compile)
     acc, p_end, xi_end = split_recurrence_reduce((Pxx, Pxp, Rx, Rp, xi0, None, ts[: n // S]),
