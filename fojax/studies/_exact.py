@@ -545,8 +545,9 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
     plant's exponential and the pass matrices are formed once per group, a block holds
     ``max(2, DIFF_BLOCK // Nf)`` whole groups, and samples are spread over devices by whole groups
     (so each group's sum of cotangents is the same on any split). On the default §3.3.7
-    study (10 scenarios, B = 2,048) the value-and-gradient took 0.21–0.25 s instead of
-    0.40–0.47 s (paired runs, Intel Xeon, one device); values and gradients agree with the
+    study (10 scenarios, B = 2,048) the value-and-gradient took 0.21–0.30 s instead of
+    0.40–0.51 s (paired runs, Intel Xeon under load, one device;
+    ``benchmarks/results/tuning_step_latest.json``); values and gradients agree with the
     per-sample computation to rounding (tested). With a `mesh`
     (`fojax.studies._sharding.sample_mesh`) the samples are cut over its devices, possibly
     of several processes; the values and their gradient are bit-identical to one device
@@ -609,7 +610,7 @@ def scenario_free(problem, observers) -> bool:
     on ``j`` when an equation that produces it reads one that does (an equation with a
     sub-program counts as reading all its inputs for all its outputs), so the answer errs
     towards "depends" and never wrongly says "free". Typically free: scenarios that set the
-    initial state (`fojax.studies.constant_faults`, `initial_states`) or a step/ramp
+    initial state (`fojax.studies.constant_faults`, `initial_conditions`) or a step/ramp
     fault's onset and size (those enter as the exosystem's state and its jumps); not free:
     e.g. a sine fault whose frequency differs by scenario. Traces ``joint`` once (no
     arrays are computed)."""
