@@ -22,12 +22,27 @@ from fojax.results import load_design, read_design_metadata
 
 
 # the resume tests: a small LTI study (no implicit solver) with a few tuning steps
-# 40 steps: the interrupted run must still be tuning when the test sees its first checkpoint.
-# A step of this study takes ~0.04 s (measured: 212 steps 8.7 s more than 12, Intel Xeon), so
-# 12 steps left the polling test a window of ~0.5 s, which a loaded 2-core machine (two test
-# workers beside the run) could starve; 40 give ~1.7 s for ~2.5 s more in the three runs.
-RESUME_STEPS = 40
+RESUME_STEPS = 12
 RESUME_ARGS = ("example_4_1_3", "--samples", "4", "--horizon", "1", "--steps", str(RESUME_STEPS))
+# `python -c PAUSED ARGS` is `fojax ARGS` whose tuning waits after writing its step-1 checkpoint
+# (the real writer, then a sleep that the test's SIGINT interrupts): the interruption test no
+# longer races the tuning (a step takes ~0.03 s; a window of 40 steps was once missed on a
+# loaded machine). The signal arrives outside the checkpoint write, as a Ctrl-C between steps.
+# SIGINT starts at Python's default, as a shell gives a foreground program (an xdist worker may
+# ignore it, and an ignored signal is inherited and stays ignored in `fojax`).
+PAUSED = (
+    "import runpy, signal, sys, time\n"
+    "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+    "import fojax.tuning._loop as loop\n"
+    "real = loop.save_checkpoint\n"
+    "def save_checkpoint(*args):\n"
+    "    real(*args)\n"
+    "    if args[3] == 1:\n"
+    "        time.sleep(120)\n"
+    "loop.save_checkpoint = save_checkpoint\n"
+    "sys.argv = ['fojax', *sys.argv[1:]]\n"
+    "runpy.run_module('fojax.cli', run_name='__main__')\n"
+)
 try:  # the Monte Carlo runner may not be part of this version: then `fojax study` exits 3
     import fojax.studies  # noqa: F401
 
@@ -59,9 +74,9 @@ def fojax(*args, cwd=None, env=None):
 class _Run:
     """A subprocess started at once; `.returncode`, `.stdout`, `.stderr` wait for it."""
 
-    def __init__(self, *args, env=None):
+    def __init__(self, *args, env=None, program=("-m", "fojax.cli")):
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "fojax.cli", *map(str, args)],
+            [sys.executable, *program, *map(str, args)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
             start_new_session=True,  # its own process group (the resume test interrupts one)
         )
@@ -438,13 +453,14 @@ def _assert_consistent(folder):
 @pytest.fixture(scope="module")
 def interrupted(runs):
     """A second study with the options of `runs["resume_a"]`, interrupted (SIGINT to its
-    process group, as Ctrl-C does) once its tuning checkpoint shows step 1 of `RESUME_STEPS`; started
-    after the first study, so that it reuses its compilation cache."""
+    process group, as Ctrl-C does) once its tuning checkpoint shows step 1 of `RESUME_STEPS`, where
+    the run waits (`PAUSED`); started after the first study, so that it reuses its compilation
+    cache."""
     if not (STUDIES and TUNING):
         pytest.skip("fojax study with tuning is not available in this version")
     assert runs["resume_a"].returncode == 0, runs["resume_a"].stderr
     out = runs["tmp"] / "interrupted"
-    run = _Run("study", *RESUME_ARGS, "--out", out)
+    run = _Run("study", *RESUME_ARGS, "--out", out, program=("-c", PAUSED))
     deadline = time.monotonic() + 600
     while run.proc.poll() is None and time.monotonic() < deadline:
         ck = list(out.glob("*/tuning-generalized.json"))
