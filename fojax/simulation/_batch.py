@@ -495,18 +495,23 @@ class _ModelProblem(eqx.Module):
 _DIFF_MAX_SQUARINGS = 24
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(1, 2))
 def repeat_groups(a, reps: int, axis: int):
     """``jnp.repeat(a, reps, axis)`` (each entry along `axis` becomes ``reps`` consecutive
     copies: one group's value for each of its samples) whose reverse pass sums each
     group's ``reps`` cotangents as a chain of additions in sample order, so that the sum
     has the same bits in every program (a ``reduce`` XLA may split or fuse differently in
-    one- and many-device programs; see `fojax.studies._sharding.sum_rows`)."""
+    one- and many-device programs; see `fojax.studies._sharding.sum_rows`). ``reps = 1``:
+    `a` itself."""
+    return a if reps == 1 else _repeat_groups(a, reps, axis)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(1, 2))
+def _repeat_groups(a, reps: int, axis: int):
     return jnp.repeat(a, reps, axis=axis)
 
 
 def _repeat_fwd(a, reps, axis):
-    return repeat_groups(a, reps, axis), None
+    return _repeat_groups(a, reps, axis), None
 
 
 def _repeat_bwd(reps, axis, _, ct):
@@ -518,7 +523,7 @@ def _repeat_bwd(reps, axis, _, ct):
     return (jnp.moveaxis(acc, 0, axis),)
 
 
-repeat_groups.defvjp(_repeat_fwd, _repeat_bwd)
+_repeat_groups.defvjp(_repeat_fwd, _repeat_bwd)
 
 
 def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_loop=None, groups=None):
@@ -543,7 +548,7 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     ~5.2 s instead of 6.6-8.7 s and ran 2.2-2.3 s instead of 2.5-2.7 s.)
 
     `time_loop` (with ``basis=None``): a replacement of the time loop,
-    ``time_loop(problem, Phi, w0, G, jv, kon, ts) -> (acc, w_end)`` (``jv``/``kon``
+    ``time_loop(problem, Phi, w0, G, jv, kon, ts, reps) -> (acc, w_end)`` (``jv``/``kon``
     ``None`` without jumps), e.g. `fojax.studies._exact._split_loop` (through
     `fojax.studies._adjoint.split_recurrence_reduce`), whose
     custom VJP is the adjoint recurrence; the reduction's `final` is applied here.
@@ -552,11 +557,11 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     consecutive samples of ``p`` whose joint matrix, output map and validity are the same
     (a study's scenarios of one uncertainty sample: `fojax.studies._exact.scenario_free`).
     The joint matrix, its exponential and the output map are then formed once per group
-    (``b / reps`` columns) and the time loop is called as
-    ``time_loop(problem, Phi, w0, G, jv, kon, ts, reps)`` with group-level ``Phi``, ``G``
-    and sample-level ``w0``, jumps; the initial states and jumps stay per sample. Without
-    a `time_loop` (or with kept outputs) ``Phi`` and ``G`` are repeated to the samples
-    before the generic loop.
+    (``b / reps`` columns) and passed so to the time loop, which is called as
+    ``time_loop(problem, Phi, w0, G, jv, kon, ts, reps)`` (``reps = 1``: per-sample
+    matrices); the initial states and jumps stay per sample. Without a `time_loop` (or
+    with kept outputs) ``Phi`` and ``G`` are repeated to the samples before the generic
+    loop.
     """
     if not differentiable and time_loop is None:
         # layout by N: several steps per pass as matrix products from MULTISTEP_MIN_N on, the
@@ -623,8 +628,7 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         kon = jnp.searchsorted(ts, jt, side="left")  # first grid index with t_k ≥ t_j
         valid = (kon >= 1) & (kon <= T - 1) & jnp.isfinite(jt)
         tau = jnp.where(valid, ts[jnp.clip(kon, 0, T - 1)] - jnp.where(valid, jt, 0.0), 0.0)
-        Ajb = jnp.moveaxis(Aj, -1, 0)
-        Ajb = Ajb if Ajb.shape[0] == b_ else repeat_groups(Ajb, reps, 0)  # groups: each sample's copy
+        Ajb = repeat_groups(jnp.moveaxis(Aj, -1, 0), reps, 0)  # each sample's copy
         Mj = tau[:, :, None, None] * Ajb[:, None]  # (b, J, N, N)
         Psi = expm(jnp.moveaxis(Mj.reshape((b_ * J,) + Aj.shape[:2]), 0, -1))
         jv = matvec(Psi, jnp.moveaxis(dW.reshape(b_ * J, -1), 0, -1))  # (N, b J)
@@ -656,12 +660,10 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         return (w, problem.update(acc, o, k, ts)), (o if problem.keep else None)  # keep: 0 or the stride
 
     if time_loop is not None and basis is None and not problem.keep:
-        loop_args = (problem, Phi, w0, G, jv if jumps is not None else None, kon if jumps is not None else None, ts)
-        if not grouped_loop:
-            acc, w_end = time_loop(*loop_args)
-        else:
-            acc, w_end = time_loop(*loop_args, reps)
-            G = repeat_groups(G, reps, -1)
+        r = reps if grouped_loop else 1  # the matrices' columns per sample group as passed
+        acc, w_end = time_loop(problem, Phi, w0, G, jv if jumps is not None else None,
+                               kon if jumps is not None else None, ts, r)
+        G = repeat_groups(G, r, -1)
         return problem.final(acc, matvec(G, w0), matvec(G, w_end), ts, h, ok)
     o0 = outputs(w0)
     stride = int(problem.keep)

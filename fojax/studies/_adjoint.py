@@ -261,8 +261,7 @@ def pass_recurrence_reduce(diff, plant, problem, S: int, segment=None, reps: int
                          f"S | n with n / S >= 2 (n = {n}).")
     K = Go.shape[0]
     Pp, Pxp, Pxx, Rp, Rx = _pass_matrices(Ppp, Poo, Pop, Go, Gp, S)
-    if reps > 1:
-        Pp, Pxp, Pxx, Rp, Rx = (repeat_groups(X, reps, -1) for X in (Pp, Pxp, Pxx, Rp, Rx))
+    Pp, Pxp, Pxx, Rp, Rx = (repeat_groups(X, reps, -1) for X in (Pp, Pxp, Pxx, Rp, Rx))
     if segment is None and n // S - 1 <= PASS_SEGMENT_MAX:
         segment = n // S - 1  # one checkpoint segment (no shorter last one to compile)
     acc, p_end, xi_end = split_recurrence_reduce((Pxx, Pxp, Rx, Rp, xi0, None, ts[: n // S]),

@@ -499,11 +499,11 @@ def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts, reps=1, q_rep=None):
         Aj, w0p, _, _, jumps = free.joint(pk)
         return rows(rows(Aj, 0), 1), rows(w0p, 0), jumps
 
-    _, p0, jumps = jax.vmap(plant_of)(q)  # (b, m)
-    Ap = jax.vmap(plant_of)(q if q_rep is None else q_rep)[0]  # (b / reps, m, m)
+    Ap, p0, jumps = jax.vmap(plant_of)(q)  # (b, m, m), (b, m)
+    if q_rep is not None:  # the representatives' (the samples' Ap is then dead code)
+        Ap = jax.vmap(plant_of)(q_rep)[0]  # (b / reps, m, m)
     expm = lambda M: expm_last(M, max_squarings=_DIFF_MAX_SQUARINGS)  # noqa: E731
     Ppp = expm(jnp.moveaxis(h * Ap, 0, -1))
-    rep = lambda X: X if reps == 1 else repeat_groups(X, reps, -1)  # noqa: E731  group -> samples
     jvp = None
     if jv is not None:
         # the plant part of e^{A (t_k - t_j)} Δw_j, as `_block_kernel` forms the joint one
@@ -511,7 +511,7 @@ def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts, reps=1, q_rep=None):
         b_, J = jt.shape
         valid = (kon.T >= 1) & jnp.isfinite(jt)  # kon: -1 where the jump is off the grid's steps
         tau = jnp.where(valid, ts[jnp.clip(kon.T, 0, ts.shape[0] - 1)] - jnp.where(valid, jt, 0.0), 0.0)
-        Aps = Ap if reps == 1 else jnp.repeat(Ap, reps, axis=0)  # not differentiated
+        Aps = repeat_groups(Ap, reps, 0)  # each sample's copy
         Mj = (tau[:, :, None, None] * Aps[:, None]).reshape((b_ * J,) + Ap.shape[1:])
         Psi = expm(jnp.moveaxis(Mj, 0, -1))  # (m, m, b J)
         dWp = jnp.moveaxis(rows(dW, 2).reshape(b_ * J, -1), 0, -1)  # (m, b J)
@@ -524,9 +524,9 @@ def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts, reps=1, q_rep=None):
     if S > 1:  # the loss without jumps: S steps per pass (static choice, one compiled path)
         acc, p_end, xi_end = pass_recurrence_reduce(diff, (Ppp, p0.T, None), problem, S, reps=reps)
     else:
-        Poo, Pop, Go, Gp = (rep(X) for X in diff[:4])
-        acc, p_end, xi_end = split_recurrence_reduce((Poo, Pop, Go, Gp) + diff[4:], (rep(Ppp), p0.T, jvp), problem,
-                                                     kon)
+        Poo, Pop, Go, Gp = (repeat_groups(X, reps, -1) for X in diff[:4])
+        acc, p_end, xi_end = split_recurrence_reduce((Poo, Pop, Go, Gp) + diff[4:],
+                                                     (repeat_groups(Ppp, reps, -1), p0.T, jvp), problem, kon)
     w_end = jnp.concatenate([p_end[:n], xi_end, p_end[n:]], axis=0)
     return acc, w_end
 
@@ -565,17 +565,15 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
 
     def block(shared, q):
         problem, ts, h = shared
-        if reps == 1:
-            mets, ok = _block_kernel(problem, q, h, ts, None, differentiable=True,
-                                     time_loop=lambda pr, Phi, w0, G, jv, kon, ts: _split_loop(
-                                         pr, q, h, Phi, w0, G, jv, kon, ts))
-        else:  # q: one row per uncertainty sample; its Nf scenarios are the block's samples
+        qs, groups = q, None
+        if reps > 1:  # q: one row per uncertainty sample; its Nf scenarios are the block's samples
             g = q[0].shape[0]
             qs = (jnp.repeat(q[0], reps), jnp.tile(jnp.arange(reps, dtype=q[1].dtype), g),
                   jax.tree.map(lambda a: repeat_groups(a, reps, 0) if eqx.is_inexact_array(a) else jnp.repeat(a, reps, axis=0), q[2]))
-            mets, ok = _block_kernel(problem, qs, h, ts, None, differentiable=True, groups=(q, reps),
-                                     time_loop=lambda pr, Phi, w0, G, jv, kon, ts, r: _split_loop(
-                                         pr, qs, h, Phi, w0, G, jv, kon, ts, r, q))
+            groups = (q, reps)
+        mets, ok = _block_kernel(problem, qs, h, ts, None, differentiable=True, groups=groups,
+                                 time_loop=lambda pr, Phi, w0, G, jv, kon, ts, r: _split_loop(
+                                     pr, qs, h, Phi, w0, G, jv, kon, ts, r, None if groups is None else q))
         mets = mets[None] if mets.ndim == 2 else mets  # LossProblem: (K, b) -> (1, K, b)
         mets = jnp.moveaxis(mets, -1, 0)  # samples first
         if reps > 1:  # (g, Nf, ...): the block's rows are its uncertainty samples
