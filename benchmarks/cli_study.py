@@ -7,6 +7,8 @@ excluded, as in the issue's target), and records:
 - the total wall and process CPU seconds of the command;
 - each phase the command reports (``<message> ...`` then ``done in X s``: designs,
   tuning, Monte Carlo study, report/figures), parsed from its own output;
+- the command's closing lines on the tuning (study IAE total and sum of mean peaks, LMI
+  design -> tuned, on the study's samples) as ``tuning_result``;
 - the trace counts of the compiled study / tuning functions after the run
   (`fojax.tuning._tune.TRACE_COUNTS`, the study engines' counters), which show whether a phase
   compiled its function again;
@@ -114,6 +116,9 @@ def main():
         target=TARGETS.get(args.example, "none stated"),
         command=f"fojax study {args.example or ''} --out <tmp>".replace("  ", " "),
         wall_s=wall, cpu_s=cpu, phases=phases(buf.getvalue()), trace_counts=traces,
+        # the command's own summary of what the tuning changed on the study's samples
+        tuning_result=[line.strip() for line in buf.getvalue().splitlines()
+                       if line.startswith("tuning '") and "study IAE total" in line],
         jax_devices=jax.device_count(), xla_flags=os.environ.get("XLA_FLAGS", ""),
         machine=info, load_average_before=load0, load_average_after=_common.load_average(),
         note="measured once; on a shared 2-core machine under load unless the load averages are < 1",

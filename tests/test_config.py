@@ -104,6 +104,7 @@ def test_example_3_3_7_matches_models_exactly():
     assert [o.name for o in cfg.observers] == ["PO", "FGDO"]
     assert [o.kind for o in cfg.observers] == ["proportional", "generalized"]
     assert cfg.study.samples == 64 and cfg.tuning.steps == 60 and cfg.tuning.learning_rate == 0.1
+    assert cfg.tuning.loss == "ise"
     # the uncertain plant: A + delta dA for a constant delta
     plant = parse_config({**cfg.raw, "uncertainty": {"dA": cfg.raw["uncertainty"]["dA"],
                                                      "profile": {"kind": "constant", "value": [0.2]}}},
@@ -205,6 +206,8 @@ MALFORMED = [
     (("study", "sample"), 3, "study.sample", r"Did you mean 'samples'"),
     (("study", "stepper"), "exponentail", "study.stepper", r"Did you mean 'exponential'"),
     (("tuning", "learning_rate"), -0.1, "tuning.learning_rate", r"positive"),
+    (("tuning", "loss"), "mse", "tuning.loss", r"expected one of 'ise', 'iae', got 'mse'"),
+    (("tuning", "loss"), "IAE", "tuning.loss", r"expected one of 'ise', 'iae', got 'IAE'\. Did you mean 'iae'"),
     (("observers",), [{"kind": "PI"}], "observers", r"unknown key 'observers'\. Did you mean 'observer'"),
     (("faults",), {"Fa": [[1.0]] * 4, "Fs": [[1.0, 0.0]] * 3}, "faults.Fs", r"has 2 columns but faults\.Fa has 1"),
     (("faults",), {"Fs": [[1.0]] * 2}, "faults.Fs", r"expected \(3, nf\)"),

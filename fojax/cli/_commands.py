@@ -487,7 +487,7 @@ def study(
 
     The results folder holds the config (``config.toml``), the effective options
     (``study-options.json``: samples requested and run with their breakdown, horizon,
-    steps, seed, dt, learning rate), the samples themselves (``study-samples.npz`` /
+    steps, seed, dt, learning rate, the tuning's loss), the samples themselves (``study-samples.npz`` /
     ``.json``: per sample fault, onset, magnitude, δ, initial states; the input), the
     per-sample metrics (``metrics.npz`` / ``.json``: IAE, ISE, ITAE, peak |e|, settling
     time) and the report. With
@@ -550,7 +550,7 @@ def study(
                 f"{n_samples}, {T}, {n_steps}."
             )
     options = {"samples": n_samples, "horizon": T, "steps": n_steps, "seed": spec.seed,
-               "dt": spec.dt, "learning_rate": tspec.learning_rate}
+               "dt": spec.dt, "learning_rate": tspec.learning_rate, "loss": tspec.loss}
     from ._study_samples import plan_samples
 
     plan = plan_samples(cfg, n_samples, T, spec.seed)
@@ -730,19 +730,20 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         train = ss.make_training_study(cfg, spec.seed + 1, plan, T, spec.dt)
         heldout_small = ss.make_training_study(cfg, spec.seed + 2, plan, T, spec.dt)
         tunable = [nm for nm, d in designs.items() if _tunable(cfg, d, Disk)]
+        loss_words = _LOSS_WORDS[tspec.loss]
         if not tunable:
             tuning_note = ("Tuning: no generalized or proportional observer to tune." if cfg.is_takagi_sugeno
                            else "Tuning: no generalized observer with a disk region to tune.")
         elif plan.deterministic:
             tuning_note = (
                 f"Tuning: {', '.join(tunable)} tuned for {n_steps} Adam steps (learning rate "
-                f"{tspec.learning_rate}). The model has no random element, so the training run, the "
+                f"{tspec.learning_rate}) to minimise {loss_words}. The model has no random element, so the training run, the "
                 "tuning's held-out curve and the comparison below are the same single simulation: "
                 "the comparison is on the training data, nothing is held out.")
         else:
             tuning_note = (
                 f"Tuning: {', '.join(tunable)} tuned for {n_steps} Adam steps (learning rate "
-                f"{tspec.learning_rate}) on {train.num_samples} training samples ({plan.training_breakdown}) "
+                f"{tspec.learning_rate}) to minimise {loss_words} on {train.num_samples} training samples ({plan.training_breakdown}) "
                 f"drawn with seed {spec.seed + 1} (held-out curve: {heldout_small.num_samples} samples, seed "
                 f"{spec.seed + 2}); the comparison tables use the {st.num_samples} samples of the study, "
                 f"drawn with seed {spec.seed}: other random keys than the training draws.")
@@ -766,7 +767,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                     f"steps {done + 1}..{n_steps} (resumed from the checkpoint at step {done})")
             with out.step(f"tuning '{nm}': {what} on {train.num_samples} training "
                           "samples (compiling the gradient first)"):
-                tr = _tune(tuning, cfg, designs[nm], train, heldout=heldout_small, steps=n_steps,
+                tr = _tune(tuning, cfg, designs[nm], train, heldout=heldout_small, steps=n_steps, loss=tspec.loss,
                            optimizer=tuning.shared_optimizer("adam", learning_rate=tspec.learning_rate),
                            eval_every=max(1, n_steps // 10), callback=_after_step,
                            checkpoint=checkpoint, resume=resumed, quiet=out.quiet,
@@ -781,12 +782,12 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
             held = np.asarray(h["heldout_loss"], dtype=float)
             figures[f"Tuning curve of '{nm}'"] = plot_tuning_curve(
                 folder / f"tuning-{nm}.png", h["step"], h["train_loss"],
-                held if np.isfinite(held).any() else None, ylabel="IAE loss",
+                held if np.isfinite(held).any() else None, ylabel=f"{tspec.loss.upper()} loss",
                 heldout_before=tr.initial_heldout, heldout_after=tr.final_heldout,
                 title=f"Tuning '{nm}': training and held-out loss" if not plan.deterministic else
                 f"Tuning '{nm}' (deterministic model: one run, nothing held out)", overwrite=ow)
             tuning_rows.append([nm, n_steps, float(tr.initial_heldout), float(tr.final_heldout)])
-            out.say(f"  {'training-run' if plan.deterministic else 'held-out training-type'} loss "
+            out.say(f"  {'training-run' if plan.deterministic else 'held-out training-type'} {tspec.loss.upper()} loss "
                     f"{tr.initial_heldout:.4g} -> {tr.final_heldout:.4g}; "
                     f"verification {'PASSED' if tr.design.report.passed else 'FAILED'}; {tr.live_parameters}")
             if tr.robustness is not None:
@@ -883,8 +884,9 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
              else "the single deterministic run" if plan.deterministic
              else f"the {st.num_samples} samples of the study")
     if tuning_rows:
-        tables["Tuning"] = (["observer", "steps", "held-out loss before" if not plan.deterministic else
-                             "training loss before", "after", "study IAE total, LMI", "tuned", "change %",
+        L = tspec.loss.upper()
+        tables["Tuning"] = (["observer", "steps", f"held-out {L} loss before" if not plan.deterministic else
+                             f"training {L} loss before", "after", "study IAE total, LMI", "tuned", "change %",
                              "sum of mean peaks, LMI", "tuned", "change %"], tuning_rows)
     settle_words = (
         f"IAE is ∫|e| dt (trapezoidal rule on the {spec.dt:g} s grid), peak is max_t |e(t)|, and the "
@@ -970,6 +972,11 @@ def _robustness_line(rob: dict) -> str:
 
 #: Barrier weight of the T-S tuning of `fojax study` (tests/test_tuning_ts.py uses the same).
 TS_BARRIER = 1e-3
+
+
+#: What `fojax study` says its tuning minimises (`[tuning] loss`).
+_LOSS_WORDS = {"ise": "the ISE ∫e² dt of the estimated signals' errors (mean over signals and samples)",
+               "iae": "the IAE ∫|e| dt of the estimated signals' errors (mean over signals and samples)"}
 
 
 def _tune(tuning, cfg, design, train, **kw):

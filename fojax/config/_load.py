@@ -81,6 +81,8 @@ examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
     [tuning]                             # optional gradient tuning settings
     steps = 100
     learning_rate = 0.01
+    loss = "ise"                         # training loss: "ise" (mean of the integral of e^2;
+                                         # default) or "iae" (of |e|)
     robustness = { h2 = 0.1 }            # optional: H2Term / HinfTerm weights ("h2", "hinf") for
                                          # objective = "hinf"/"h2" observers (their channels)
 
@@ -137,7 +139,7 @@ _DISK = {"center", "radius"}
 _STUDY = {"samples", "horizon", "dt", "seed", "stepper"}
 #: ``[study] stepper``: the stepper of the Monte Carlo run (`fojax.cli` builds the object).
 STEPPERS = ("auto", "exact", "exponential", "diffrax")
-_TUNING = {"steps", "learning_rate", "robustness"}
+_TUNING = {"steps", "learning_rate", "loss", "robustness"}
 
 
 # --------------------------------------------------------------------------- results
@@ -195,12 +197,21 @@ class StudySpec:
 
 @dataclasses.dataclass(frozen=True)
 class TuningSpec:
-    """``[tuning]``: optimisation `steps`, optax `learning_rate`, and `robustness`: the built-in
-    terms ``(("h2" | "hinf", weight), ...)`` (`fojax.tuning.H2Term` / `HinfTerm`) added when an
-    ``objective = "hinf"``/``"h2"`` design is tuned."""
+    """``[tuning]``: optimisation `steps`, optax `learning_rate`, the training `loss` (``"ise"``,
+    the default, or ``"iae"``: `fojax.tune`'s ``loss``), and `robustness`: the built-in terms
+    ``(("h2" | "hinf", weight), ...)`` (`fojax.tuning.H2Term` / `HinfTerm`) added when an
+    ``objective = "hinf"``/``"h2"`` design is tuned.
+
+    *Why ISE by default* (`fojax study`, measured on its §3.3.7 benchmark, 60 steps, the
+    tuned design evaluated on 512 samples of other seeds, one run each): trained on the
+    mean IAE, the tuned observer's IAE changed by −1.7 % and its mean peak errors rose by
+    +154 % (the fault estimates overshoot: IAE's gradient weighs an error's sign, not its
+    size); trained on the mean ISE, IAE −9.8 % and peaks −30 %. `fojax.tune` itself keeps
+    ``loss="iae"`` as its default."""
 
     steps: int = 100
     learning_rate: float = 0.01
+    loss: str = "ise"
     robustness: tuple = ()
 
 
@@ -400,8 +411,10 @@ class _V:
         if not isinstance(value, str):
             raise self.err(key, f"expected a string, got {value!r} ({_typename(value)}).")
         if choices is not None and value not in choices:
-            close = difflib.get_close_matches(value, choices, n=1, cutoff=0.5)
-            hint = f" Did you mean '{close[0]}'?" if close else ""
+            # the hint ignores case: "IAE" -> "iae"
+            lower = {c.lower(): c for c in choices}
+            close = difflib.get_close_matches(value.lower(), list(lower), n=1, cutoff=0.5)
+            hint = f" Did you mean '{lower[close[0]]}'?" if close else ""
             raise self.err(key, f"expected one of {', '.join(map(repr, choices))}, got {value!r}.{hint}")
         return value
 
@@ -749,6 +762,8 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
             kw["steps"] = v.number("tuning.steps", t["steps"], integer=True, positive=True)
         if "learning_rate" in t:
             kw["learning_rate"] = float(v.number("tuning.learning_rate", t["learning_rate"], positive=True))
+        if "loss" in t:
+            kw["loss"] = v.string("tuning.loss", t["loss"], ("ise", "iae"))
         if "robustness" in t:
             r = v.table("tuning.robustness", t["robustness"], {"h2", "hinf"})
             kw["robustness"] = tuple((k, float(v.number(f"tuning.robustness.{k}", r[k], nonneg=True)))
