@@ -3,6 +3,7 @@
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -586,7 +587,14 @@ def test_resume_refuses_a_folder_of_another_study_with_one_line(runs, tmp_path, 
         (edited / name).write_bytes((first / name).read_bytes())
     with open(edited / "config.toml", "a") as f:
         f.write("# edited\n")
+    older = tmp_path / "older"  # a study of a fojax that recorded no training loss (it tuned on IAE)
+    shutil.copytree(first, older)
+    opts = json.loads((older / "study-options.json").read_text())
+    del opts["loss"]
+    (older / "study-options.json").write_text(json.dumps(opts))
     cases = [
+        (["--resume", older], f"--resume {older}: its config.toml now gives loss = ise but the study was run with "
+                              "no loss recorded (defaults of another fojax version?)"),
         (["--resume", edited], f"--resume {edited}: its config.toml was changed after the study"),
         (["--resume", empty], f"--resume {empty}: the folder has no config.toml, so it is not a `fojax study`"),
         (["--resume", designed], f"--resume {designed}: the folder has no readable study-options.json"),

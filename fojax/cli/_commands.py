@@ -559,7 +559,7 @@ def study(
         if changed:
             raise InputError(
                 f"--resume {folder}: its config.toml now gives {', '.join(f'{k} = {options[k]}' for k in changed)} "
-                f"but the study was run with {', '.join(f'{k} = {opts.get(k)}' for k in changed)} "
+                f"but the study was run with {', '.join(f'{k} = {opts[k]}' if k in opts else f'no {k} recorded' for k in changed)} "
                 "(defaults of another fojax version?); start a new study instead."
             )
         out.say(f"fojax study: resuming {cfg.name} in {folder} (config.toml and options of the first run: "
