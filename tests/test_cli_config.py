@@ -416,6 +416,7 @@ def test_study_tunes_on_the_mean_ise_by_default(runs):
     import fojax.cli._study_samples as ss
     from fojax.studies import study_loss
     from fojax.tuning import initial_parameters
+    from fojax.tuning._tune import _DEFAULT_BARRIER
 
     r = runs["study"]
     assert r.returncode == 0, r.stderr
@@ -429,7 +430,7 @@ def test_study_tunes_on_the_mean_ise_by_default(runs):
     par, p0 = initial_parameters(design)
     losses = {name: float(jax.jit(lambda s, o, name=name: study_loss(s, o, loss=name))(train, design.observer))
               for name in ("ise", "iae")}
-    expected = losses["ise"] + 1e-3 * float(par.barrier(p0))  # tune's default barrier weight for a disk
+    expected = losses["ise"] + _DEFAULT_BARRIER[type(par)] * float(par.barrier(p0))  # tune's default weight
     first = json.loads((folder / "tuning-FGDO.json").read_text())["history"]["train_loss"][0]
     assert abs(first - expected) <= 1e-9 * abs(expected), (first, expected)
     assert abs(losses["iae"] - losses["ise"]) > 1e-3 * abs(expected)
