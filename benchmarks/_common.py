@@ -26,6 +26,7 @@ mark, a hard timeout) and returns the JSON the entry printed.
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import os
@@ -257,7 +258,8 @@ def time_tune_steps(run, k: int) -> tuple[dict, object, object]:
     cold result, last result)``."""
     import fojax.tuning._tune as tune_module
 
-    r0, t_cold, c_cold = clock(lambda: run(1))
+    with compile_events() as events:
+        r0, t_cold, c_cold = clock(lambda: run(1))
     before = tune_module.TRACE_COUNTS["tune_step"]
     _, t1, c1 = clock(lambda: run(1))
     res, tk, ck = clock(lambda: run(1 + k))
@@ -266,8 +268,49 @@ def time_tune_steps(run, k: int) -> tuple[dict, object, object]:
         tune_first_call_cpu_s=c_cold, tune_compile_estimate_s=t_cold - t1, tune_warm_call_steps1_s=t1,
         tune_warm_call_steps1_cpu_s=c1, tune_retraced_on_warm_calls=tune_module.TRACE_COUNTS["tune_step"] - before,
         train_loss=[float(x) for x in res.history["train_loss"]], accepted=[bool(a) for a in res.history["accepted"]],
+        tune_step_program_compile_s=program_compile(events, "_step"),
+        tune_first_call_compile_events_s=program_compile(events),
     )
     return row, r0, res
+
+
+_COMPILE_EVENTS = {"/jax/core/compile/jaxpr_trace_duration": "trace",
+                   "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+                   "/jax/core/compile/backend_compile_duration": "xla"}
+
+
+@contextlib.contextmanager
+def compile_events():
+    """The JAX compile events of the block, as a list of ``(stage, function name, seconds)``
+    (``jax.monitoring``: tracing, lowering to MLIR, XLA compilation; recorded by whatever
+    thread runs them, so a program `tune` compiles on a thread is included)."""
+    import jax.monitoring
+
+    events, on = [], [True]
+
+    def listen(event, duration, **kw):
+        if on[0] and event in _COMPILE_EVENTS:
+            events.append((_COMPILE_EVENTS[event], kw.get("fun_name"), float(duration)))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        yield events
+    finally:
+        on[0] = False  # (JAX has no public way to remove a listener)
+
+
+def program_compile(events, name: str | None = None) -> dict:
+    """Seconds per stage of the program `name`'s compile events and their total; with
+    ``None``, the lowering and XLA seconds of every program and their number (not the
+    tracing: a program traced inside another is counted in the outer one's trace too)."""
+    stages = ("trace", "lower", "xla") if name is not None else ("lower", "xla")
+    names = (name, f"jit({name})")  # (JAX names the trace by the function, the rest by its jit)
+    out = {stage: sum(sec for st, fun, sec in events if st == stage and (name is None or fun in names))
+           for stage in stages}
+    out["total"] = sum(out.values())
+    if name is None:
+        out["programs"] = sum(1 for st, _, _ in events if st == "xla")
+    return out
 
 
 # ------------------------------------------------- the peers' harness of the two studies

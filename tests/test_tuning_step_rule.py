@@ -1,4 +1,4 @@
-"""The step rule of `fojax.tuning.tune` (`fojax.tuning._loop.backtracked_update`) at the region's boundary.
+"""The step rule of `fojax.tuning.tune` (`fojax.tuning._loop.backtracked_update`, on the host) at the region's boundary.
 
 Oracle: closed forms. The admissible set is the unit disk of the parameters,
 ``margin(θ) = 1 − ‖θ‖²`` (gradient ``−2θ``), so which halving of an update stays inside, and
@@ -26,7 +26,23 @@ def margin(theta):
     return 1.0 - jnp.sum(theta["a"] ** 2) - jnp.sum(theta["b"] ** 2)
 
 
-step = jax.jit(lambda p, u: backtracked_update(p, u, margin, MIN_MARGIN, N_BACK))
+margin_host = jax.jit(margin)
+CALLS = {"margin": 0, "grad": 0}
+
+
+def counted_margin(theta):
+    CALLS["margin"] += 1
+    return float(margin_host(theta))
+
+
+def counted_grad(theta):
+    CALLS["grad"] += 1
+    return jax.grad(margin)(theta)
+
+
+def step(p, u):
+    CALLS.update(margin=0, grad=0)
+    return backtracked_update(p, u, counted_margin, MIN_MARGIN, N_BACK, counted_grad)
 
 
 def at_boundary(m0=1e-5):
@@ -52,6 +68,8 @@ def test_regression_outward_update_at_the_boundary_slides_along_it():
     np.testing.assert_allclose(float(m), 1e-5 - 0.0125 * expected_s**2, rtol=1e-9)
     assert int(backtracks) == N_BACK + 1 + 6
     assert float(margin(new)) > MIN_MARGIN
+    # every halving of u, then those of u_t up to the first admissible; one gradient
+    assert CALLS == {"margin": N_BACK + 1 + 7, "grad": 1}
 
 
 @pytest.mark.parametrize("outward", [False, True])
@@ -71,6 +89,8 @@ def test_an_admissible_halving_of_the_update_is_taken_unchanged(outward):
     for k in ("a", "b"):
         np.testing.assert_allclose(np.asarray(new[k]), np.asarray(p[k] + s[first] * u[k]), rtol=0, atol=1e-15)
     np.testing.assert_allclose(float(m), ms[first], rtol=1e-12)
+    # evaluated in turn up to the first admissible candidate; no gradient needed
+    assert CALLS == {"margin": first + 1, "grad": 0}
 
 
 def test_no_admissible_candidate_keeps_the_parameters():

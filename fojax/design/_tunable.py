@@ -249,9 +249,26 @@ class AbstractParameterization(eqx.Module):
         """The observer matrices (`fojax.design.ObserverMatrices`) of `params` (traceable)."""
         return observer_matrices(self.structure, **self.design_params(params))
 
+    def host_matrices(self, params):
+        """`matrices` evaluated on the host by NumPy (float64; only `design_params` runs in JAX):
+        no compilation, and no dispatch of the map's ~100 primitives one by one."""
+        return observer_matrices(self.structure, **{k: np.asarray(v) for k, v in self.design_params(params).items()},
+                                 xp=np)
+
     def observer(self, params):
         """The observer of `params` (traceable)."""
-        return build_observer(self.structure, self.matrices(params), kind=self.kind)
+        return self._observer_of(self.matrices(params))
+
+    def host_observer(self, params):
+        """The observer of `params` from `host_matrices` (host): equal to `observer` to rounding."""
+        return self._observer_of(self.host_matrices(params))
+
+    def host_error_matrices(self, params) -> np.ndarray:
+        r"""The error dynamics $\mathbb A_i$ of every rule, ``(rules, s, s)`` (host, NumPy)."""
+        return np.asarray(error_dynamics(self.host_matrices(params), xp=np))
+
+    def _observer_of(self, mats):
+        return build_observer(self.structure, mats, kind=self.kind)
 
     def _design(self, p, mats, X, report):
         return FunctionalObserverDesign(
@@ -290,13 +307,12 @@ class AbstractParameterization(eqx.Module):
         ~0.1 s each that way, and the first one ~3 s of small compilations (issue 13)."""
         return float(_margin(self, params))
 
-    def host_check(self, params) -> tuple[bool, float, float]:
+    def host_check(self, params, margin: float | None = None) -> tuple[bool, float, float]:
         """``(verified, margin, max real eigenvalue)``: `certify` succeeds and the traced margin is
-        positive (host; used to accept every tuning iterate)."""
-        margin = self.host_margin(params)
-        mats = observer_matrices(self.structure, **{k: np.asarray(v) for k, v in self.design_params(params).items()},
-                                 xp=np)
-        maxre = float(max(np.max(np.linalg.eigvals(A).real) for A in np.asarray(error_dynamics(mats, xp=np))))
+        positive (host; used to accept every tuning iterate). `margin`: ``host_margin(params)``
+        when the caller has it (the step rule computed it for the candidate)."""
+        margin = self.host_margin(params) if margin is None else float(margin)
+        maxre = float(max(np.max(np.linalg.eigvals(A).real) for A in self.host_error_matrices(params)))
         if not margin > 0:
             return False, margin, maxre
         try:
@@ -307,7 +323,7 @@ class AbstractParameterization(eqx.Module):
 
     def live(self, params) -> LiveParameters:
         """How many directions of `params` reach the estimate (module docstring; host)."""
-        return _live(self.observer, params, self.kind)
+        return _live(self.observer, params, self.kind, error_matrices=self.host_error_matrices(params))
 
 
 #: What a failed unit-free check of `AbstractParameterization.certify` tells the user.
@@ -345,12 +361,6 @@ def _stein_margin(structure, region, Z, params):
 
 
 @eqx.filter_jit
-def _error_matrices(observer_fn, params):
-    o = observer_fn(params)
-    return o.error_matrices if hasattr(o, "num_rules") else o.error_matrix
-
-
-@eqx.filter_jit
 def _matrices_and_jacobian(observer_fn, names, flat):
     """`_rule_matrices` of ``observer_fn(params)`` at `flat` and their forward-mode Jacobian."""
     def mats(f):
@@ -376,13 +386,13 @@ def _channel_weights(f0: np.ndarray) -> np.ndarray:
     return np.broadcast_to(r[None, :, None] * c[None, None, :], f0.shape)
 
 
-def _live(observer_fn, params, kind: str = "", error_matrices=None) -> LiveParameters:
+def _live(observer_fn, params, kind: str, error_matrices) -> LiveParameters:
     # the observer's matrices and their Jacobian are compiled (built op by op, the observer
     # compiles ~100 primitives, 30-60 s under load); a parameterization's bound `observer` is a
     # pytree, so a second call with the same shapes reuses the program
     names = tuple(sorted((k, tuple(np.shape(v))) for k, v in params.items()))
     flat0 = jnp.concatenate([jnp.ravel(jnp.asarray(params[k])) for k, _ in names]) if names else jnp.zeros(0)
-    As = np.asarray(_error_matrices(observer_fn, params) if error_matrices is None else error_matrices)
+    As = np.asarray(error_matrices)  # the observer's error dynamics at `params` (they set the frequencies)
     rho = max(float(np.max(np.abs(np.linalg.eigvals(As)))), 1e-300) if As.size else 1.0
     K = 2 * As.shape[-1] + 2
     if flat0.size == 0:
@@ -702,10 +712,9 @@ class CommonCertificate(AbstractParameterization):
     def design_params(self, params) -> dict:
         return _full(self.structure, params, self.Z, rules=self.structure.num_rules)
 
-    def observer(self, params):
+    def _observer_of(self, m):
         from ..observer import TakagiSugenoObserver
 
-        m = self.matrices(params)
         return TakagiSugenoObserver(m.N, m.J, m.F, m.H, m.S, m.G, m.M, m.P, m.Q, self.Wu, self.Wy, m.T,
                                     self.membership, kind=self.kind)
 

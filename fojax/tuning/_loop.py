@@ -40,16 +40,17 @@ def check_extra_loss(extra_loss, observer, design_params) -> None:
 TANGENTIAL_MIN = 1e-6
 
 
-def backtracked_update(params, updates, margin_fn, min_margin, n_back):
-    r"""The optimizer update, halved until the candidate is valid (traceable).
+def backtracked_update(params, updates, margin_fn, min_margin, n_back, margin_grad):
+    r"""The optimizer update, halved until the candidate is valid (host).
 
-    The candidates ``params + 0.5**k · updates``, ``k = 0..n_back``, are evaluated at once
-    (vmap); the first with ``margin_fn(candidate) > min_margin`` is taken. When none is
-    valid the same halvings of the *tangential* update are tried: the update without its
-    component along $-\nabla$ margin, $u_t = u - \min(0, \langle u, g\rangle)\,g/\|g\|^2$ with
-    $g = \nabla_\theta\,\mathrm{margin}$ at `params` (it slides along the region's boundary
-    instead of into it; only when $\|u_t\| > 10^{-6}\|u\|$, `TANGENTIAL_MIN`). When none of those
-    is valid either the parameters stay (scale 0).
+    The candidates ``params + 0.5**k · updates``, ``k = 0..n_back``, are evaluated in turn by
+    `margin_fn` (``params ↦ float``, a compiled program) and the first with
+    ``margin_fn(candidate) > min_margin`` (and finite) is taken. When none is valid the same
+    halvings of the *tangential* update are tried: the update without its component along
+    $-\nabla$ margin, $u_t = u - \min(0, \langle u, g\rangle)\,g/\|g\|^2$ with $g$ =
+    ``margin_grad(params)`` (it slides along the region's boundary instead of into it; only
+    when $\|u_t\| > 10^{-6}\|u\|$, `TANGENTIAL_MIN`). When none of those is valid either the
+    parameters stay (scale 0).
 
     *Why the tangential candidates (issue 14):* at an iterate on the boundary (margin just
     above `min_margin`) whose optimizer update points outside, every halving of it is outside
@@ -57,46 +58,59 @@ def backtracked_update(params, updates, margin_fn, min_margin, n_back):
     run stops moving: on the LC filter of ``benchmarks/tuning_circuit.py`` with ``barrier=0``,
     79 of 100 steps were rejected and the training loss stayed at 0.5313 from step 20 on.
 
+    *Why on the host (issue 13):* the rule used to run inside the jitted step (all
+    ``n_back + 1`` candidates' margins at once, the tangential branch under `jax.lax.cond`);
+    the candidates, the margin's gradient and the second set of candidates made that program
+    ~15 % larger and its compilation ~1.5 s longer (tune step on the default §3.3.7 study,
+    B = 2,048: 11.0 s against 9.4 s, medians of four and six compilations, Intel Xeon at load
+    ~1.3), for a rule that usually takes the first candidate. Evaluated in turn, the first
+    admissible candidate is the same one, and its margin is the one `host_check` needs
+    anyway; `margin_grad` is called (and compiled) only when no halving is admissible. The
+    candidates are the same floating-point numbers as before (``0.5**k`` is a power of two).
+
     **Returns:** ``(new_params, margin, accepted, backtracks)``: the margin of the taken
     candidate (of the full step when none was valid) and the number of halvings (counted on
     from ``n_back + 1`` for a tangential candidate).
     """
-    scales = 0.5 ** jnp.arange(n_back + 1, dtype=jnp.float64)
+    scales = [0.5**k for k in range(n_back + 1)]
 
-    def candidates(upd):
-        def margin_at(sc):
-            return margin_fn(jax.tree.map(lambda p, u: p + sc * u, params, upd))
+    def at(upd, sc):
+        return jax.tree.map(lambda p, u: p + sc * u, params, upd)
 
-        margins = jax.vmap(margin_at)(scales)
-        return margins, (margins > min_margin) & jnp.isfinite(margins)
+    def first_admissible(upd):
+        """``(k, candidate, margin)`` of the first admissible halving of `upd`, or ``(None,
+        None, margin of the full step)``."""
+        m_full = None
+        for k, sc in enumerate(scales):
+            cand = at(upd, sc)
+            m = float(margin_fn(cand))
+            m_full = m if k == 0 else m_full
+            if np.isfinite(m) and m > min_margin:
+                return k, cand, m
+        return None, None, m_full
 
-    margins, ok = candidates(updates)
-    any_ok = jnp.any(ok)
-    first = jnp.argmax(ok)
+    k, cand, m = first_admissible(updates)
+    if k is not None:
+        return cand, m, True, k
+    m_full = m
 
     def leaves_dot(x, y):
-        return sum(jnp.vdot(a, b) for a, b in zip(jax.tree.leaves(x), jax.tree.leaves(y)))
+        return float(sum(jnp.vdot(a, b) for a, b in zip(jax.tree.leaves(x), jax.tree.leaves(y))))
 
-    def slide(_):  # only evaluated when no halving of the update is admissible (lax.cond)
-        g = jax.grad(margin_fn)(params)
-        gu, gg = leaves_dot(g, updates), leaves_dot(g, g)
-        usable = jnp.isfinite(gu) & jnp.isfinite(gg) & (gg > 0) & (gu < 0)
-        coef = jnp.where(usable, gu / jnp.where(usable, gg, 1.0), 0.0)
-        tangential = jax.tree.map(lambda u, gi: u - coef * jnp.where(usable, gi, 0.0), updates, g)
-        # an update (almost) straight outward stays rejected
-        usable = usable & (leaves_dot(tangential, tangential) > TANGENTIAL_MIN**2 * leaves_dot(updates, updates))
-        margins_t, ok_t = candidates(tangential)
-        use_t = jnp.any(ok_t) & usable
-        first_t = jnp.argmax(ok_t)
-        sc = jnp.where(use_t, scales[first_t], 0.0)
-        new = jax.tree.map(lambda p, ut: p + sc * ut, params, tangential)
-        return new, jnp.where(use_t, margins_t[first_t], margins[0]), use_t, jnp.where(use_t, n_back + 1 + first_t, first)
+    g = margin_grad(params)
+    gu, gg = leaves_dot(g, updates), leaves_dot(g, g)
+    if not (np.isfinite(gu) and np.isfinite(gg) and gg > 0 and gu < 0):
+        return params, m_full, False, 0
+    coef = gu / gg
+    tangential = jax.tree.map(lambda u, gi: u - coef * gi, updates, g)
+    # an update (almost) straight outward stays rejected
+    if not leaves_dot(tangential, tangential) > TANGENTIAL_MIN**2 * leaves_dot(updates, updates):
+        return params, m_full, False, 0
+    k, cand, m = first_admissible(tangential)
+    if k is None:
+        return params, m_full, False, 0
+    return cand, m, True, n_back + 1 + k
 
-    def halve(_):
-        new = jax.tree.map(lambda p, u: p + scales[first] * u, params, updates)
-        return new, margins[first], any_ok, first
-
-    return jax.lax.cond(any_ok, halve, slide, None)
 
 HISTORY_KEYS = ("step", "train_loss", "heldout_loss", "margin", "accepted", "backtracks", "max_real_eig")
 
@@ -166,6 +180,7 @@ def run_loop(
     steps: int,
     step: Callable,
     step_args: tuple,
+    backtrack: Callable,
     host_check: Callable,
     heldout_loss: Callable | None,
     eval_every: int,
@@ -181,9 +196,11 @@ def run_loop(
 ):
     """Run steps ``start+1 .. steps`` and return ``(params, history)``.
 
-    `step(params, opt_state, *step_args) -> (value, candidate, new_opt_state, margin, ok,
-    backtracks)` is the jitted step; `host_check(params) -> (inside, margin, max_real_eig)` the
-    float64 check on the host; `to_params` maps the optimizer's coordinates to the
+    `step(params, opt_state, *step_args) -> (value, updates, new_opt_state)` is the jitted
+    step; `backtrack(params, updates) -> (candidate, margin, ok, backtracks)` the step rule
+    (`backtracked_update`, host); `host_check(params, margin) -> (inside, margin,
+    max_real_eig)` the float64 check on the host (`margin`: the candidate's, already
+    computed, or None); `to_params` maps the optimizer's coordinates to the
     parameterization's parameters (passed to `callback` as ``record["params"]``). With `resume` and an existing checkpoint at `path`, the
     run continues from it (the result equals an uninterrupted run).
 
@@ -208,14 +225,14 @@ def run_loop(
                 params, opt_state = place((params, opt_state))
     for i in tqdm(range(start, steps), disable=quiet or not writer, desc=desc, unit="step"):
         key, _ = jax.random.split(key)
-        value, cand, cand_state, _, ok, nback = step(params, opt_state, *step_args)
-        accepted = bool(ok)
+        value, updates, cand_state = step(params, opt_state, *step_args)
+        cand, margin_c, accepted, nback = backtrack(params, updates)
         if accepted:
-            accepted, margin_h, maxre = host_check(cand)
+            accepted, margin_h, maxre = host_check(cand, margin_c)
         if accepted:
             params = cand
         else:
-            _, margin_h, maxre = host_check(params)
+            _, margin_h, maxre = host_check(params, None)
         opt_state = cand_state
         evaluate = heldout_loss is not None and (i + 1) % eval_every == 0
         rec = dict(step=i + 1, train_loss=float(value), heldout_loss=heldout_loss(params) if evaluate else float("nan"),

@@ -7,8 +7,9 @@ parameterization=...)``. The parameterization is an object of
 strings ``"direct"`` (= ``SteinDisk``), ``"disk"`` (= ``FixedCertificateDisk``) and
 ``"common_certificate"`` are accepted. Every value of the parameters satisfies
 conditions a.–d. by construction; a step whose candidate has margin ≤ `min_margin` is
-*backtracked* (the update halved up to `max_backtracks` times, all candidates evaluated
-inside the same jitted step), and if no fraction is admissible the iterate is rejected.
+*backtracked* (the update halved up to `max_backtracks` times, the candidates evaluated
+in turn on the host by the parameterization's compiled margin; then the halvings of the update
+without its outward component), and if no fraction is admissible the iterate is rejected.
 Every accepted iterate is certified on the host in float64 (`certify`: residuals,
 eigenvalues, region LMI at the certificate); an iterate that fails is rejected, never
 returned. The returned design is certified again.
@@ -52,8 +53,8 @@ In every mode the count is reported (`TuneResult.live_parameters`, the design's
 study (`fojax.studies.study_loss`), plus ``barrier · parameterization.barrier(params)``,
 plus the user's `extra_loss`, plus the built-in `robustness` terms (`fojax.tuning.H2Term`,
 `fojax.tuning.HinfTerm`: the H2 norm and a smooth H∞ surrogate of the iterate's error system from
-the disturbance/noise channels, `fojax.tuning._robustness`). Loss, gradient, the optax update and the backtracking
-candidates form one `equinox.filter_jit` function, compiled once
+the disturbance/noise channels, `fojax.tuning._robustness`). Loss, gradient and the optax update
+form one `equinox.filter_jit` function, compiled once
 (``TRACE_COUNTS["tune_step"]``; held-out evaluation ``"evaluate"``).
 
 **Checkpoints.** ``checkpoint=path`` writes, every `checkpoint_every` steps, the
@@ -230,22 +231,21 @@ def _loss_fn(xi, coords, par, study, loss, quantile, weights, cfg, barrier, extr
 
 
 @eqx.filter_jit
-def _step(xi, opt_state, coords, par, study, optimizer, loss, quantile, weights, cfg, min_margin, n_back, barrier,
-          extra_loss, terms=()):
+def _step(xi, opt_state, coords, par, study, optimizer, loss, quantile, weights, cfg, barrier, extra_loss, terms=()):
+    """The loss, its gradient and the optimizer's update (the step rule that turns the update
+    into the next iterate runs on the host, `fojax.tuning._loop.backtracked_update`)."""
     TRACE_COUNTS["tune_step"] += 1
     value, grads = eqx.filter_value_and_grad(_loss_fn)(xi, coords, par, study, loss, quantile, weights, cfg,
                                                        barrier, extra_loss, terms)
     updates, new_state = transformation(optimizer).update(grads, opt_state, xi)
-    new_xi, margin, accepted, backtracks = backtracked_update(
-        xi, updates, lambda cand: par.margin(coords.params(cand)), min_margin, n_back)
-    return value, new_xi, new_state, margin, accepted, backtracks
+    return value, updates, new_state
 
 
 @eqx.filter_jit
-def _observer(par, params):
-    """The observer of `params`, compiled (eagerly, its ~80 primitives compiled one by one:
-    ~1 s of `fojax study`'s tuning start-up, issue 13)."""
-    return par.observer(params)
+def _margin_grad(xi, coords, par):
+    """The gradient of the margin in the optimizer's coordinates: the step rule's tangential
+    candidates (compiled on the first step that needs them)."""
+    return jax.grad(lambda x: par.margin(coords.params(x)))(xi)
 
 
 @eqx.filter_jit
@@ -403,7 +403,7 @@ def tune(
 
     # the engine of each study decided once on its concrete values (a time-varying study: the
     # exponential engine's schedule, so the jitted step, where the study is traced, runs on it)
-    obs0 = _observer(par, params0)
+    obs0 = par.host_observer(params0)  # (NumPy: the traced map, compiled, cost ~0.5 s of start-up)
     if cfg.devices is not None and len(cfg.devices) > 1:
         why = exact_refusal(train_study, (obs0,), cfg.stepper)
         if why is not None:
@@ -416,8 +416,8 @@ def tune(
     cfg_held = resolve_engine(heldout, obs0, cfg) if heldout is not None else cfg
 
     def step_args(coords):
-        return (coords, par, train_study, step_optimizer(optimizer), loss, q_level, w, cfg_train, jnp.asarray(float(min_margin)),
-                int(max_backtracks), jnp.asarray(barrier), extra_loss, terms)
+        return (coords, par, train_study, step_optimizer(optimizer), loss, q_level, w, cfg_train, jnp.asarray(barrier),
+                extra_loss, terms)
 
     def start(coords):  # the optimizer's state at xi = 0, on the mesh (where the step's outputs are)
         xi = {"xi": jnp.zeros(coords.B.shape[1])}
@@ -455,7 +455,10 @@ def tune(
     with distributed_errors("tune"):  # every collective of the run (a dead process: DistributedError)
         xi, history = run_loop(
             xi, opt_state, key, steps=steps, step=_step, step_args=step_args(coords),
-            host_check=lambda x: par.host_check(coords.params(x)),
+            backtrack=lambda x, u: backtracked_update(
+                x, u, lambda c: par.host_margin(coords.params(c)), float(min_margin), int(max_backtracks),
+                lambda c: _margin_grad(c, coords, par)),
+            host_check=lambda x, margin: par.host_check(coords.params(x), margin=margin),
             heldout_loss=(lambda x: heldout_loss(coords.params(x))) if heldout is not None else None,
             eval_every=eval_every, callback=callback, to_params=coords.params, path=path, resume=resume,
             checkpoint_every=checkpoint_every, quiet=quiet, desc="tune",
