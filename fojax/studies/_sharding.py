@@ -92,13 +92,16 @@ def sum_rows(a):
     """``a[0] + a[1] + ...`` in this order (a `jax.lax.scan`): a reduction XLA neither
     reassociates nor fuses into its producer differently in one- and many-device
     programs (``jnp.sum`` did: measured, the §3.3.7 tuning gradient on 4 devices over 2
-    processes differed from one device by up to 5.6e-17)."""
-    acc, _ = lax.scan(lambda acc, row: (acc + row, None), jnp.zeros(a.shape[1:], a.dtype), a)
+    processes differed from one device by up to 5.6e-17). `a` may be a pytree of arrays
+    with the same leading length: one loop sums every leaf (the observers' cotangents: one
+    loop instead of one per matrix, fewer kernels to compile)."""
+    zeros = jax.tree.map(lambda x: jnp.zeros(x.shape[1:], x.dtype), a)
+    acc, _ = lax.scan(lambda acc, row: (jax.tree.map(jnp.add, acc, row), None), zeros, a)
     return acc
 
 
 def _broadcast_bwd(rows, real, mesh, _, cts):
-    return ([sum_rows(_replicated(c, mesh)[:real]) for c in cts],)
+    return (sum_rows([_replicated(c, mesh)[:real] for c in cts]) if cts else [],)
 
 
 _broadcast_rows.defvjp(_broadcast_fwd, _broadcast_bwd)
