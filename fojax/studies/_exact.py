@@ -615,8 +615,11 @@ def scenario_free(problem, observers) -> bool:
     obs = tuple(observers)
     saved = TRACE_COUNTS["StudyProblem.joint"]
     try:
-        jaxpr = jax.make_jaxpr(lambda i, j: tuple(problem.joint((i, j, obs))[k] for k in (0, 2, 3)))(
-            jnp.zeros((), int), jnp.zeros((), int))
+        def matrices(i, j):  # (Aj, G, ok), from one trace of the joint
+            Aj, _, G, ok, _ = problem.joint((i, j, obs))
+            return Aj, G, ok
+
+        jaxpr = jax.make_jaxpr(matrices)(jnp.zeros((), int), jnp.zeros((), int))
     finally:
         TRACE_COUNTS["StudyProblem.joint"] = saved
     dep = {jaxpr.jaxpr.invars[1]}
