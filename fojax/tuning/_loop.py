@@ -61,9 +61,9 @@ def backtracked_update(params, updates, margin_fn, min_margin, n_back, margin_gr
     *Why on the host (issue 13):* the rule used to run inside the jitted step (all
     ``n_back + 1`` candidates' margins at once, the tangential branch under `jax.lax.cond`);
     the candidates, the margin's gradient and the second set of candidates made that program
-    ~15 % larger and its compilation ~1.5 s longer (tune step on the default §3.3.7 study,
-    B = 2,048: 11.0 s against 9.4 s, medians of four and six compilations, Intel Xeon at load
-    ~1.3), for a rule that usually takes the first candidate. Evaluated in turn, the first
+    13 % larger (6,405 against 5,657 lines of MLIR) and its compilation ~1.6 s longer (tune
+    step on the default §3.3.7 study, B = 2,048: 11.0 s against 9.4 s, medians of six and four
+    compilations, Intel Xeon at load ~1.3), for a rule that usually takes the first candidate. Evaluated in turn, the first
     admissible candidate is the same one, and its margin is the one `host_check` needs
     anyway; `margin_grad` is called (and compiled) only when no halving is admissible. The
     candidates are the same floating-point numbers as before (``0.5**k`` is a power of two).
