@@ -63,10 +63,11 @@ def backtracked_update(params, updates, margin_fn, min_margin, n_back, margin_gr
     the candidates, the margin's gradient and the second set of candidates made that program
     13 % larger (6,405 against 5,657 lines of MLIR) and its compilation ~1.6 s longer (tune
     step on the default §3.3.7 study, B = 2,048: 11.0 s against 9.4 s, medians of six and four
-    compilations, Intel Xeon at load ~1.3), for a rule that usually takes the first candidate. Evaluated in turn, the first
-    admissible candidate is the same one, and its margin is the one `host_check` needs
-    anyway; `margin_grad` is called (and compiled) only when no halving is admissible. The
-    candidates are the same floating-point numbers as before (``0.5**k`` is a power of two).
+    compilations, Intel Xeon at load ~1.3), for a rule that usually takes the first
+    candidate. Evaluated in turn, the first admissible candidate is the same one, and its
+    margin is the one `host_check` needs anyway; `margin_grad` is called (and compiled) only
+    when no halving is admissible. The candidates are the same floating-point numbers as
+    before (``0.5**k`` is a power of two).
 
     **Returns:** ``(new_params, margin, accepted, backtracks)``: the margin of the taken
     candidate (of the full step when none was valid) and the number of halvings (counted on
