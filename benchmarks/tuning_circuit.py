@@ -66,6 +66,15 @@ load).** Not the step budget, the barrier, the coordinates or the order; the reg
   (``"tune_barrier_0_tangential_step"``). The default barrier (1e-3) is negligible at the
   start (its gradient 3e-6 against 7e-2 for the loss; a separate check, not in the JSON).
 - *Order.* ``q0 = 5`` fitted in-sample: −23.5 %, like ``q0 = 3`` (−23.7 %, same disk).
+- *Optimizer and loss* (2026-11-27, this tree, two ad-hoc runs of ``fojax.tune`` on these
+  samples, not in the JSON): Adam fitting the 128 held-out samples themselves (500 steps at
+  learning rate 0.05, default barrier, ``Disk(-3, 2)``) reaches −23.5 %, flat from step 350
+  (−23.4 % at step 300): a first-order method, untroubled by the kinks of $|e|$, stops where
+  L-BFGS-B did, so that in-sample figure is not an artifact of the IAE's non-smoothness.
+  Training on the ISE instead of the IAE (``loss="ise"``, the settings of (a)) gives −6.4 %
+  held-out IAE (−6.1 % after 300 steps) against −21.9 %: the ISE, which `fojax study`
+  trains on for §3.3.7 (there it cut the evaluated IAE more than the IAE did), is no route
+  to (a) here.
 
 **The flexible drive (``--model flexible_drive``; ``tuning_flexible_drive_latest.json``, one
 run each, under load).** The first run, with the settings above fixed before it: (a) missed,
