@@ -532,8 +532,7 @@ class SteinDisk(AbstractParameterization):
         return jnp.log(jnp.trace(self._P(params)))
 
     def certificate(self, params) -> np.ndarray:
-        p = {k: np.asarray(v) for k, v in self.design_params(params).items()}
-        A = np.asarray(error_dynamics(observer_matrices(self.structure, **p, xp=np), xp=np))[0]
+        A = self.host_error_matrices(params)[0]
         if not np.all(np.abs(np.linalg.eigvals(A) - self.region.center) < self.region.radius):
             return np.full(A.shape, np.nan)
         return host_stein_certificate(A, self.region.center, self.region.radius)
