@@ -32,6 +32,10 @@ from fojax.simulation import simulate_lti_batch
 from fojax.simulation._batch import TRACE_COUNTS
 
 
+# bit-for-bit equality of different programs (chunks, blocks and device counts): compiled as users get it
+pytestmark = pytest.mark.production_codegen
+
+
 TS = np.linspace(0.0, 4.0, 401)
 B = 7
 

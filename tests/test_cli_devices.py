@@ -33,6 +33,10 @@ from fojax.cli._devices import (
 from fojax.cli._main import main
 
 
+# bit-for-bit equality of different programs (`fojax study` on two devices against one): compiled as users get it
+pytestmark = pytest.mark.production_codegen
+
+
 ARGS = ("study", "example_4_1_3", "--samples", "4", "--horizon", "0.5", "--steps", "1")
 
 

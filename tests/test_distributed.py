@@ -33,6 +33,10 @@ from fojax.design import design_functional_observer, Disk
 from fojax.studies._runner import SimConfig
 
 
+# bit-for-bit equality of different programs (the same results on 1 and several devices and processes): compiled as users get it
+pytestmark = pytest.mark.production_codegen
+
+
 HERE = pathlib.Path(__file__).parent
 # s per loopback run: a worker costs ~12-20 s of CPU, but took 280 s on a 2-core machine at load 19
 # (FOJAX_DISTRIBUTED_TEST_TIMEOUT: more on a busier machine)

@@ -36,6 +36,10 @@ from fojax.simulation._exponential import _ModelSetup, prepare, TRACE_COUNTS
 from fojax.studies import FaultyPlant
 
 
+# bit-for-bit equality of different programs (device counts): compiled as users get it
+pytestmark = pytest.mark.production_codegen
+
+
 FA = np.array([[0.3], [0.0], [-0.2], [0.5]])  # row 4: the fault enters the algebraic equation
 TS = np.linspace(0.0, 2.0, 51)  # grid 0.04 s
 B = 5

@@ -14,6 +14,10 @@ from fojax.design import design_functional_observer, Disk
 from fojax.studies import _runner
 
 
+# bit-for-bit equality of different programs (sharded against unsharded, chunks, compiled samplers against eager draws): compiled as users get it
+pytestmark = pytest.mark.production_codegen
+
+
 SIGNALS = ("z1", "z2", "f1", "f2", "f3")
 TS = jnp.linspace(0.0, 0.5, 6)
 # the vmap(simulate) engine (with "auto" these sinusoidal-δ(t) studies take the exponential one)

@@ -24,6 +24,10 @@ from fojax.simulation import _batch
 from fojax.studies import _exact
 
 
+# bit-for-bit equality of different programs (chunk sizes; compile_only's program against the run's): compiled as users get it
+pytestmark = pytest.mark.production_codegen
+
+
 SIGNALS = ("z1", "z2", "f1", "f2", "f3")
 TS = jnp.linspace(0.0, 1.0, 51)
 METRICS = ("iae", "ise", "itae", "peak", "settling_time")

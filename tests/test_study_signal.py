@@ -35,6 +35,10 @@ import _workload_study as ws  # noqa: E402
 import peers  # noqa: E402
 
 
+# bit-for-bit equality of different programs (blocks sized for the cache against one block): compiled as users get it
+pytestmark = pytest.mark.production_codegen
+
+
 E = np.diag([1.0, 1.0, 0.0])
 A = np.array([[-1.0, 0.5, 0.2], [0.1, -2.0, 0.3], [0.2, 0.1, 1.0]])
 B = np.array([[1.0], [0.0], [0.5]])

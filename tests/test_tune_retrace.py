@@ -22,6 +22,10 @@ from fojax.studies import _exact
 from fojax.tuning import _tune
 
 
+# bit-for-bit equality of different programs (held-out evaluation on several devices against one): compiled as users get it
+pytestmark = pytest.mark.production_codegen
+
+
 @pytest.fixture(scope="module")
 def setup():
     ex = fojax.models.example_3_3_7()

@@ -13,6 +13,10 @@ from fojax.design import design_functional_observer, Disk
 from fojax.tuning import _tune
 
 
+# bit-for-bit equality of different programs (a shared optimizer's step against optax's own object (another program)): compiled as users get it
+pytestmark = pytest.mark.production_codegen
+
+
 SIGNALS = ("z1", "z2", "f1", "f2", "f3")
 
 
