@@ -133,12 +133,10 @@ class Interrupts:
         raise KeyboardInterrupt
 
     def _after_write(self, main_id):
-        import _thread
-
         while self._in_paired_write(sys._current_frames().get(main_id)):
             time.sleep(0.01)
         self._waiting = False
-        _thread.interrupt_main(self.signum)
+        self._interrupt_main(main_id)
 
     def _unraisable(self, unraisable):
         """``sys.unraisablehook``: our KeyboardInterrupt was raised inside a finalizer and
@@ -170,12 +168,28 @@ class Interrupts:
         thread to start) 1 ms later, the KeyboardInterrupt was raised there and swallowed
         ("Exception ignored in sys.unraisablehook"), and the command ran on (measured once
         in a full test run at load ~4)."""
-        import _thread
-
         while _on_stack(sys._current_frames().get(main_id), _is_hook):
             time.sleep(0.001)
         self._reraising = False
-        _thread.interrupt_main(self.signum)
+        self._interrupt_main(main_id)
+
+    def _interrupt_main(self, main_id):
+        """Deliver the recorded signal to the main thread again, now that it may raise there.
+
+        A real signal (``pthread_kill``), not `_thread.interrupt_main`: a simulated signal is
+        only seen when the main thread next runs Python code, so a main thread blocked in a
+        system call (a ``time.sleep``, a read) stayed blocked until the call returned; measured
+        in the test suite: a SIGINT that arrived while a tuning checkpoint was written was
+        deferred and then waited out the 120 s sleep the test had put after that write. Only
+        while this command's handler is installed (after `__exit__` the signal's own
+        disposition would apply: SIGTERM would end the process unannounced); elsewhere, and on
+        platforms without ``pthread_kill``, the simulated signal."""
+        import _thread
+
+        if hasattr(signal, "pthread_kill") and signal.getsignal(self.signum) == self._handler:
+            signal.pthread_kill(main_id, self.signum)
+        else:
+            _thread.interrupt_main(self.signum)
 
 
 def _is_hook(code) -> bool:
