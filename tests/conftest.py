@@ -40,7 +40,8 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 # code XLA generates for them. Measured on an Intel Xeon (2 cores): the XLA part of the tuning
 # step's compilation (benchmarks/tuning_step.py, without the fusion emitters, quiet machine)
 # 1.35 s instead of 3.2 s (the step then runs 0.85 s instead of 0.25 s); the whole suite (clean
-# clone, two workers, `.ci/run`) 12 min 8 s instead of 15 min 13 s the same evening.
+# clone, two workers, `.ci/run`) 10 min 50 s - 12 min 8 s in four runs (three OpenBLAS kernels)
+# instead of 15 min 13 s the same evening.
 # Inherited by the notebook kernels and the CLI subprocesses (``JAX_DISABLE_MOST_OPTIMIZATIONS=0``
 # runs the whole suite with the optimizations users get).
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
