@@ -45,7 +45,7 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 # Inherited by the notebook kernels and the CLI subprocesses (``JAX_DISABLE_MOST_OPTIMIZATIONS=0``
 # runs the whole suite with the optimizations users get).
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
-#: The suite's setting above, restored after each ``production_codegen`` module.
+#: The suite's setting above (for the subprocesses), restored after each ``production_codegen`` module.
 _FAST_CODEGEN = os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"]
 
 
@@ -93,6 +93,9 @@ import pytest  # noqa: E402
 
 
 jax.config.update("jax_enable_x64", True)
+#: The same setting as JAX read it from ``JAX_DISABLE_MOST_OPTIMIZATIONS`` (restored in this
+#: process after each ``production_codegen`` module).
+_FAST_CODEGEN_FLAG = jax.config.read("jax_disable_most_optimizations")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 # in case a plugin imported JAX before the environment variable above was set
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
@@ -148,7 +151,7 @@ def _module_codegen_and_release(request):
         gc.collect()
         if production:
             os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = _FAST_CODEGEN
-            jax.config.update("jax_disable_most_optimizations", _FAST_CODEGEN.lower() in ("1", "true", "yes", "on", "y", "t"))
+            jax.config.update("jax_disable_most_optimizations", _FAST_CODEGEN_FLAG)
 
 
 #: Test modules by the time they take in a CI run, longest first (measured 2026-11-27 with
