@@ -73,9 +73,8 @@ load).** Not the step budget, the barrier, the coordinates or the order; the reg
   observer found is −9.8 % in-sample and the training samples' optimum −5.4 %.
   The same search on the drive (``"multistart"`` of its file, 17 starts): −20.7 % in-sample,
   −15.3 % for the training samples' optimum; on the power model against its best LMI design
-  (H∞ with the initial-state and uncertainty channels, 0.00750): −26.8 % in-sample (16 starts:
-  the H2 design failed its float64 verification in this run; every start
-  ends at 0.0055), −14.1 % for the training samples' optimum from that design (``tune``:
+  (H∞ with the initial-state and uncertainty channels, 0.00750): −26.8 % in-sample (17 starts;
+  every one ends at 0.0055), −14.1 % for the training samples' optimum from that design (``tune``:
   −10.6 %). In-sample figures are optimistic: the 128 held-out samples hold only 8 draws of δ.
 - *Training set.* L-BFGS on the 32 training samples reaches −26.3 % on them but −22.8 %
   held-out (``Disk(-6, 5.9)``); on 16 × 8 samples of seed 0, −23.1 % held-out: over-fitting
