@@ -169,6 +169,9 @@ class LMIInfeasibleError(FojaxError, RuntimeError):
         msg = f"LMI '{problem}' was not solved: solver status '{status}'."
         if "optimal_inaccurate" in status:
             msg += " fojax never accepts 'optimal_inaccurate' results."
+            if "infeasible" not in status:
+                msg += (" That status does not show the LMI infeasible (the solver stopped short of the "
+                        "accuracy fojax requires): another solver, or the model with balance=True, may solve it.")
         if hint:
             msg += " " + hint
         super().__init__(msg)

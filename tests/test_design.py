@@ -985,9 +985,15 @@ def test_optimal_inaccurate_is_refused_with_auto_fallback(sys413, monkeypatch):
 
 
 def test_optimal_inaccurate_message_explains_policy(sys413, monkeypatch):
+    """The message says the status is refused, and that it does not show infeasibility
+    (the hint that follows it is written for an infeasible LMI); with an 'infeasible' status
+    among the attempts it does not say so."""
     _force_status(monkeypatch, cp.OPTIMAL_INACCURATE)
-    with pytest.raises(fojax.LMIInfeasibleError, match="never accepts"):
+    with pytest.raises(fojax.LMIInfeasibleError, match="never accepts") as ei:
         design_functional_observer(sys413, L413, kind="proportional", solver="CLARABEL")
+    assert "does not show the LMI infeasible" in str(ei.value)
+    mixed = fojax.LMIInfeasibleError("x", "optimal_inaccurate (min-gain), infeasible (feasibility)")
+    assert "never accepts" in str(mixed) and "does not show" not in str(mixed)
 
 
 def test_infeasible_status_is_refused(sys413, monkeypatch):
