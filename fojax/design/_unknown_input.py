@@ -579,8 +579,9 @@ def design_unknown_input_observer(
       units) and mapped back exactly (the same observer; $T = T_bD_l$, $R = R_bD_r^{-1}$);
       verified on the model as given and in the unit-free frame. ``False``: on the data as
       given, also verified in the unit-free frame. **Default ``None``**: on the data as
-      given, and the ``balance=True`` design when only the unit-free check fails (the
-      report says so under ``"balance"``). Measured: the §4.1.3 example with rows and states
+      given, and the ``balance=True`` design when that design fails its float64
+      verification (the unit-free check, or a solver solution that misses a strict LMI in
+      float64; the report says why under ``"balance"``; `unit_free_fallback`). Measured: the §4.1.3 example with rows and states
       rescaled by 1e-6…1e6 got, on the data as given, an observer with residual 2e-19 there
       and 0.14 in the unit-free frame (before the unit-free check, it was returned).
 
