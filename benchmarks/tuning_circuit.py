@@ -555,6 +555,18 @@ def delta_share(args):
     _common.write_result(args.out, out)
 
 
+def performance_channels(m: dict, model: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(B_x, B_δ)``: the initial-state channels ``E·diag(x0_bound)`` (the nonzero columns; an
+    impulse through them is a jump of the differential states by one draw's bound) and the
+    uncertainty channel (`fojax.design.hinf_uncertainty_channel`, δ̄ = 1) of the H2/H∞
+    designs of ``--lmi-baselines`` and ``--diagnose-multistart``."""
+    from fojax.design import hinf_uncertainty_channel
+
+    Bx = np.asarray(m["E"]) @ np.diag(np.asarray(MODELS[model]["x0_bound"], dtype=float))
+    Bd, _ = hinf_uncertainty_channel(m["dA"], 1.0)
+    return Bx[:, np.abs(Bx).sum(0) > 0], Bd
+
+
 def lmi_baselines(args):
     """Every LMI design `design_functional_observer` offers in the model's region at its q0,
     their held-out IAE, and tuning from the best of them. Adds ``"lmi_baselines"`` to --out.
@@ -572,16 +584,11 @@ def lmi_baselines(args):
     same file) and this one with the best LMI design. One run, under load."""
     import json
 
-    from fojax.design import hinf_uncertainty_channel
-
     out = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
     load0 = _common.load_average()
-    spec = MODELS[args.model]
     m, sys_, train = build(False, args.nu, args.nx, seed=0, model=args.model)
     _, _, held = build(False, args.heldout_nu, args.heldout_nx, seed=1, model=args.model)
-    Bx = np.asarray(m["E"]) @ np.diag(np.asarray(spec["x0_bound"], dtype=float))
-    Bx = Bx[:, np.abs(Bx).sum(0) > 0]
-    Bd, _ = hinf_uncertainty_channel(m["dA"], 1.0)
+    Bx, Bd = performance_channels(m, args.model)
     variants = {
         "min_gain/balance_true": dict(balance=True),
         "min_gain/balance_default": dict(),
@@ -634,11 +641,10 @@ def multistart(args):
     barrier-free optimum of that basin). Every optimum is certified; its held-out IAE is compared
     with the centred design's and (``in_sample_best_vs_best_lmi``) with the best LMI design's.
     Last, the local optimum of the training samples from the best LMI design
-    (``training_optimum_vs_best_lmi``: held-out, so out of sample as in tuning). Adds ``"multistart"`` to --out (``"multistart_q0_<q0>"`` at another order
-    than the model's); one run, under load."""
+    (``training_optimum_vs_best_lmi``: held-out, so out of sample as in tuning). Adds
+    ``"multistart"`` to --out (``"multistart_q0_<q0>"`` at another order than the model's);
+    one run, under load."""
     import json
-
-    from fojax.design import hinf_uncertainty_channel
 
     out = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
     load0 = _common.load_average()
@@ -667,9 +673,7 @@ def multistart(args):
                                         "iterations", "wall_s")}, flush=True)
         _common.write_result(args.out, out | {key: rows})
 
-    Bx = np.asarray(m["E"]) @ np.diag(np.asarray(spec["x0_bound"], dtype=float))
-    Bx = Bx[:, np.abs(Bx).sum(0) > 0]
-    Bd, _ = hinf_uncertainty_channel(m["dA"], 1.0)
+    Bx, Bd = performance_channels(m, args.model)
     others = {"min_gain": dict(balance=True), "h2/initial_states": dict(objective="h2", Bw=Bx),
               "hinf/initial_states": dict(objective="hinf", Bw=Bx),
               "hinf/initial_states_and_uncertainty": dict(objective="hinf", Bw=np.hstack([Bx, Bd]))}
