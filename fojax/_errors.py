@@ -170,8 +170,10 @@ class LMIInfeasibleError(FojaxError, RuntimeError):
         if "optimal_inaccurate" in status:
             msg += " fojax never accepts 'optimal_inaccurate' results."
             if "infeasible" not in status:
+                both = "clarabel" in status.lower() and "scs" in status.lower()  # solver="auto" tried both
+                remedy = "the model with balance=True" if both else "another solver, or the model with balance=True,"
                 msg += (" That status does not show the LMI infeasible (the solver stopped short of the "
-                        "accuracy fojax requires): another solver, or the model with balance=True, may solve it.")
+                        f"accuracy fojax requires): {remedy} may solve it.")
         if hint:
             msg += " " + hint
         super().__init__(msg)

@@ -991,7 +991,9 @@ def test_optimal_inaccurate_message_explains_policy(sys413, monkeypatch):
     _force_status(monkeypatch, cp.OPTIMAL_INACCURATE)
     with pytest.raises(fojax.LMIInfeasibleError, match="never accepts") as ei:
         design_functional_observer(sys413, L413, kind="proportional", solver="CLARABEL")
-    assert "does not show the LMI infeasible" in str(ei.value)
+    assert "does not show the LMI infeasible" in str(ei.value) and "another solver" in str(ei.value)
+    both = fojax.LMIInfeasibleError("x", "optimal_inaccurate (Clarabel), optimal_inaccurate (SCS)")
+    assert "does not show" in str(both) and "another solver" not in str(both)  # auto tried both
     mixed = fojax.LMIInfeasibleError("x", "optimal_inaccurate (min-gain), infeasible (feasibility)")
     assert "never accepts" in str(mixed) and "does not show" not in str(mixed)
 
