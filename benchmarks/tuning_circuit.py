@@ -655,7 +655,6 @@ def multistart(args):
     par = SteinDisk(d)
     p0 = par.init(d)
     ref = heldout_iae(par, p0, held)
-    lmi = {"centred": (ref, d)}  # every LMI design: (held-out IAE, design)
     rows = dict(load_average_at_start=load0, centred_heldout_iae=ref, region=region.describe(), q0=args.q0,
                 note=("in-sample L-BFGS-B fits of the held-out samples (not tuning): the held-out IAE local searches "
                       "from other starts reach in the region; 'change_vs_centred' against the centred design's "
@@ -687,7 +686,6 @@ def multistart(args):
             continue
         r = lbfgs_optimum(other, held, held, region, barrier=1e-3, maxiter=args.lbfgs_maxiter)
         record(f"from_{label}", r, r["initial_heldout_iae"], other)
-        lmi[label] = (r["initial_heldout_iae"], other)
     rng = np.random.default_rng(2026)
     for i in range(args.multistart_random):
         s = (0.3, 1.0, 3.0, 10.0)[i % 4]
@@ -712,13 +710,15 @@ def multistart(args):
     finals = [v["change_vs_centred"] for v in rows.values() if isinstance(v, dict) and "change_vs_centred" in v]
     # what the training samples give: their local optimum from the best LMI design (the held-out
     # samples are then out of sample, as in tuning)
-    best_lmi = min(lmi, key=lambda k: lmi[k][0])
-    r = lbfgs_optimum(lmi[best_lmi][1], train, held, region, barrier=1e-3, maxiter=args.lbfgs_maxiter)
-    record(f"training_samples_from_{best_lmi}", r, lmi[best_lmi][0], lmi[best_lmi][1])
+    start = min(["from_centred", *(f"from_{label}" for label in others if f"from_{label}" in params)],
+                key=lambda k: rows[k]["start_heldout_iae"])  # the LMI design with the lowest held-out IAE
+    best_lmi, lmi_design, lmi_iae = start.removeprefix("from_"), params[start][0], rows[start]["start_heldout_iae"]
+    r = lbfgs_optimum(lmi_design, train, held, region, barrier=1e-3, maxiter=args.lbfgs_maxiter)
+    record(f"training_samples_from_{best_lmi}", r, lmi_iae, lmi_design)
     best_iae = ref * (1.0 + min(finals))
-    rows.update(best_change_vs_centred=min(finals), best_lmi=best_lmi, best_lmi_heldout_iae=lmi[best_lmi][0],
-                in_sample_best_vs_best_lmi=best_iae / lmi[best_lmi][0] - 1.0,
-                training_optimum_vs_best_lmi=r["final_heldout_iae"] / lmi[best_lmi][0] - 1.0,
+    rows.update(best_change_vs_centred=min(finals), best_lmi=best_lmi, best_lmi_heldout_iae=lmi_iae,
+                in_sample_best_vs_best_lmi=best_iae / lmi_iae - 1.0,
+                training_optimum_vs_best_lmi=r["final_heldout_iae"] / lmi_iae - 1.0,
                 load_average_at_end=_common.load_average())
     out[key] = rows
     _common.write_result(args.out, out)
