@@ -581,8 +581,8 @@ def design_unknown_input_observer(
       given, also verified in the unit-free frame. **Default ``None``**: on the data as
       given, and the ``balance=True`` design when that design fails its float64
       verification (the unit-free check, or a solver solution that misses a strict LMI in
-      float64; the report says why under ``"balance"``; `unit_free_fallback`). Measured: the §4.1.3 example with rows and states
-      rescaled by 1e-6…1e6 got, on the data as given, an observer with residual 2e-19 there
+      float64; the report says why under ``"balance"``; `unit_free_fallback`). Measured:
+      the §4.1.3 example with rows and states rescaled by 1e-6…1e6 got, on the data as given, an observer with residual 2e-19 there
       and 0.14 in the unit-free frame (before the unit-free check, it was returned).
 
     **Returns:** an `UnknownInputObserverDesign`; its `report` lists the residuals of
