@@ -17,6 +17,7 @@ from . import (
     config as config,
     control as control,
     design as design,
+    interop as interop,
     models as models,
     observer as observer,
     plant as plant,

@@ -1,0 +1,2 @@
+"""Models, designs and data from and to other tools: python-control, SciPy, MATLAB files,
+recorded (u, y) logs."""
