@@ -9,7 +9,7 @@
   functionally observable (fojax and an independent NumPy rank test).
 - `benchmarks/tuning_scaling.py`: the batch factorisation.
 - `benchmarks/make_readme.py`: copies numbers from the JSON files, skips unknown schemas,
-  and only rewrites the README between its markers.
+  and writes the whole of benchmarks/README.md (its text, then the tables).
 - `benchmarks/lc_filter.py` (the circuit of `tuning_circuit.py`): index 1 with 4 finite
   poles equal (by matching) to those of the hand-reduced ODE (the divider gives
   $v_3 = v_2/2$, $i_L = v_2/(2R_a)$), and its badly scaled twin has the same finite poles,
@@ -179,26 +179,15 @@ def test_make_readme_copies_numbers_and_skips_unknown_schemas(tmp_path):
     assert "`scaling`" in text and "`design_scaling`" in text  # listed as not measured
 
 
-def test_make_readme_only_touches_the_marked_section(tmp_path):
-    readme = tmp_path / "README.md"
-    before, after = "# title\n\nintro\n\n## Benchmarks\n\n", "\n\n## next\n\ntext\n"
-    readme.write_text(before + make_readme.START + "\nold\n" + make_readme.END + after)
-    make_readme.update_readme(readme, "new section\n")
-    assert readme.read_text() == before + make_readme.START + "\nnew section\n" + make_readme.END + after
-    make_readme.update_readme(readme, "new section\n")  # idempotent
-    assert readme.read_text().count("new section") == 1
-    readme.write_text("no markers\n")
-    with pytest.raises(SystemExit, match="markers"):
-        make_readme.update_readme(readme, "x")
-
-
-def test_repository_readmes_have_the_markers():
-    text = (ROOT / "README.md").read_text()
-    i, j = text.find(make_readme.START), text.find(make_readme.END)
-    assert 0 <= i < j and "## Benchmarks" in text[:i]
+def test_benchmarks_readme_is_the_generated_page():
+    # benchmarks/README.md is written by make_readme.py: its text, then the tables between the markers
     text = (ROOT / "benchmarks" / "README.md").read_text()
+    assert text.startswith(make_readme.INTRO) and make_readme.NARRATIVE in text
     i, j = text.find("\n" + make_readme.START + "\n"), text.find("\n" + make_readme.END + "\n")
     assert 0 <= i < j and "## Results" in text[:i]
+    # the top-level README keeps one sentence and a link, no measurement section
+    readme = (ROOT / "README.md").read_text()
+    assert "benchmarks/README.md" in readme and make_readme.START not in readme
 
 
 def test_readmes_cite_only_shipped_result_files():
@@ -207,8 +196,7 @@ def test_readmes_cite_only_shipped_result_files():
     import re
 
     for readme in (ROOT / "README.md", ROOT / "benchmarks" / "README.md"):
-        section = readme.read_text().split(make_readme.START + "\n", 1)[-1].split(make_readme.END)[0]
-        for name in re.findall(r"results/(\w+_latest\.json)", section):
+        for name in re.findall(r"results/(\w+_latest\.json)", readme.read_text()):
             assert (ROOT / "benchmarks" / "results" / name).exists(), (readme, name)
 
 
@@ -216,7 +204,6 @@ def test_make_readme_renders_what_is_shipped_and_any_new_benchmark(tmp_path):
     empty = tmp_path / "none"
     empty.mkdir()
     assert "No benchmark result is shipped" in make_readme.render(empty)
-    assert "No benchmark result files are shipped" in make_readme.render_summary(empty)
     # a benchmark without a renderer of its own (e.g. a new study_latest.json) gets a table of its rows
     _write(tmp_path, "study", {"status": "complete", "machine": MACHINE,
                                "rows": [{"B": 64, "command": "fojax study", "wall_s": 12.3456},
@@ -231,15 +218,9 @@ def test_make_readme_renders_what_is_shipped_and_any_new_benchmark(tmp_path):
     assert "| 8 | 29.5 | 0.138 | 29.4 | no | ok |" in text
     assert "`reference_workload`" in text.split("No shipped result yet")[1]
     assert "`tuning_scaling`" not in text.split("No shipped result yet")[1]
-    summary = make_readme.render_summary(tmp_path)
-    assert "(benchmarks/results/study_latest.json)" in summary and "2031-01-02" in summary
-    assert "reference_workload" not in summary
-    # the markers quoted in a sentence are not the section
-    readme = tmp_path / "R.md"
-    quoted = f"text `{make_readme.START}` quoted\n"
-    readme.write_text(quoted + make_readme.START + "\nold\n" + make_readme.END + "\n")
-    make_readme.update_readme(readme, "new\n")
-    assert readme.read_text() == quoted + make_readme.START + "\nnew\n" + make_readme.END + "\n"
+    page = make_readme.build(tmp_path)  # the whole page: the text, then these tables
+    assert page.startswith(make_readme.INTRO) and page.count(make_readme.START) == 1
+    assert text in page
 
 
 def test_latest_results_are_tracked_and_the_rest_ignored():

@@ -54,7 +54,7 @@ outside $\operatorname{range}W$, or of a row of $Y_i$ in $\operatorname{range}\S
 float64 the computed projector leaks $\epsilon$ of a dead direction, so a dead component
 of size $\delta$ left $\epsilon\delta$ in the matrices where the conditions need an exact
 zero: condition c., for instance, is $-Y_2P_\Sigma\Sigma = 0$, and its residual was
-$\epsilon\|Y_2\|\|\Sigma\|$ while its terms are $\|Y_2P_\Sigma\|\|\Sigma\|$ — measured on the
+$\epsilon\|Y_2\|\|\Sigma\|$ while its terms are $\|Y_2P_\Sigma\|\|\Sigma\|$ — on the
 thesis's example 3.3.7 with $10^8\times$ a dead direction added to $Y_2$: relative
 residual 1.2e-5 (1e-1 at $10^{12}$); $Z$ and $Y_1, Y_3$ likewise (4e-8 … 4e-7 at $10^8$).
 fojax therefore evaluates the *live parts first*, $\hat Z = (ZW)W$ and $\hat Y_i = Y_iP_\Sigma$,
@@ -63,7 +63,7 @@ $Y_iN_3 = \hat Y_iP_\Sigma[I;0]$). The first product rounds to $ZW + \eta$ with
 $\|\eta\| \lesssim \epsilon\|Z\|$ in any direction; the second leaves of its dead part
 only $\epsilon(\|ZW\| + \|\eta\|)$, so what enters the conditions is of the size of the live
 part (plus $\epsilon^2\|Z\|$), and so is their residual — relative to terms of that size it
-stays at rounding for any size of the parameters (measured up to $10^{13}$ in every
+stays at rounding for any size of the parameters (tested up to $10^{13}$ in every
 block: at the unperturbed design's own level, ≤ 2e-15 on 3.3.7 and on the hand example of
 ``tests/test_tunable.py``, and on the LC filter of ``benchmarks/lc_filter.py``; $Y_i$ needs no second product: $\hat Y_i$ is multiplied by
 $P_\Sigma$ again inside $N_3, F_3$). The observer is that of the projected parameters
@@ -302,8 +302,8 @@ def left_null_projector(xp, M):
     rounding (~1e-16) that a large free parameter multiplies: $Y_1N_3$ with
     $N_3 = (I - \Sigma\Sigma^+)[I;0]$ made the residual of condition a. grow with $\|Y_1\|$
     (1.3e-3 relative at 1e13). *Why not* $U_0U_0^\top$ from the full SVD in general: its
-    trailing singular vectors depend on the LAPACK kernel more than $I - MM^+$ does (under
-    OpenBLAS's Sandybridge kernel the observers of thesis example 4.1.3 then met
+    trailing singular vectors depend on the LAPACK kernel more than $I - MM^+$ does (with some
+    BLAS kernels the observers of thesis example 4.1.3 then met
     conditions a.–d. only to ~1e-7 in simulation), so the rank-deficient case keeps
     $I - MM^+$.
     """
