@@ -338,7 +338,7 @@ def test_model_keys_outside_the_model_table(tmp_path):
         load_config(p)
 
 
-@pytest.mark.parametrize("doc", ["docs/config.md", "README.md"])
+@pytest.mark.parametrize("doc", ["docs/config.md", "docs/getting-started.md"])
 def test_documented_example_config_is_valid(tmp_path, doc):
     import pathlib
     import re
