@@ -62,6 +62,7 @@ from ._certificate import (
     admissibility_certificate as admissibility_certificate,
     AdmissibilityCertificate as AdmissibilityCertificate,
 )
+from ._discrete import is_causal as is_causal
 from ._kronecker import (
     kronecker_structure as kronecker_structure,
     KroneckerStructure as KroneckerStructure,

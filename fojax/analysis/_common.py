@@ -65,6 +65,8 @@ class Pencil:
     pole_scale: float
     has_io: bool
     scaling: Scaling | None = None
+    #: sampling period of a discrete-time system (``None``: continuous time)
+    dt: float | None = None
 
     @property
     def n(self) -> int:
@@ -108,7 +110,9 @@ def as_pencil(sys, A=None, *, fname: str = "this function", balance: bool = True
         B = _host("B", sys.B)
         C = _host("C", sys.C)
         has_io = True
+        dt = sys.dt
     else:
+        dt = None
         if A is None:
             raise InputError(
                 f"{fname} expects a fojax.DescriptorSystem or the two matrices (E, A); "
@@ -132,7 +136,7 @@ def as_pencil(sys, A=None, *, fname: str = "this function", balance: bool = True
     An, a = _unit(Ab)
     Bn, _ = _unit(Bb)
     Cn, _ = _unit(Cb)
-    return Pencil(E, A_, B, C, En, An, Bn, Cn, a / e, has_io, sc)
+    return Pencil(E, A_, B, C, En, An, Bn, Cn, a / e, has_io, sc, dt)
 
 
 def as_system(sys, fname: str, balance: bool = True) -> Pencil:

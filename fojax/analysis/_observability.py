@@ -30,6 +30,7 @@ from .._linalg import clusters, left_null_space, rank
 from ..plant import check_functional, DescriptorSystem
 from ._balance import apply_scaling, scaling_of
 from ._common import _unit, as_system, crank, Pencil, require_regular
+from ._discrete import unstable_mask
 from ._pencil import _poles_normalized, AXIS_TOL
 
 
@@ -54,8 +55,7 @@ def _test_points(poles: np.ndarray) -> list[complex]:
 def _poles_for(p: Pencil, tol, fname, unstable_only=False, axis_tol=AXIS_TOL):
     z = _poles_normalized(p, tol, fname)
     if unstable_only and z.size:
-        zo = z * p.pole_scale
-        z = z[zo.real >= -axis_tol * np.maximum(1.0, np.abs(zo))]
+        z = z[unstable_mask(z * p.pole_scale, axis_tol, p.dt)]
     return z
 
 
@@ -208,7 +208,7 @@ def is_detectable(
     Definition used (Dai 1989, §3): the finite-mode condition
     $\mathrm{rank}\begin{bmatrix}sE-A\\C\end{bmatrix} = n$ at every finite pole with
     $\mathrm{Re}\,s \ge 0$ (poles within `axis_tol` of the axis count as unstable, as in
-    `is_stable`), **and**, when `impulse=True` (default), I-observability. With both,
+    `is_stable`; $|s| \ge 1$ for a discrete-time system), **and**, when `impulse=True` (default), I-observability. With both,
     an output injection $K$ exists such that $(E, A - KC)$ is admissible, which is what a
     state (or full-order) observer with admissible error dynamics needs. With
     ``impulse=False`` only the finite-mode condition (Dai's plain "detectable") is tested.

@@ -15,6 +15,7 @@ from .._linalg import left_null_space
 from ..plant import DescriptorSystem
 from ._balance import apply_scaling, scaling_of
 from ._common import _unit, as_pencil, deflate, Deflation, Pencil, require_regular
+from ._discrete import unstable_mask
 
 
 #: Default tolerance of `is_stable`: a pole counts as on the imaginary axis (hence not
@@ -188,11 +189,10 @@ def is_impulse_free(sys, A=None, *, tol: float | None = None, balance: bool = Tr
     return require_regular(p, "is_impulse_free", tol).index <= 1
 
 
-def _stable_np(poles: np.ndarray, margin: float, axis_tol: float) -> bool:
+def _stable_np(poles: np.ndarray, margin: float, axis_tol: float, dt: float | None = None) -> bool:
     if poles.size == 0:
         return True
-    bound = -margin - axis_tol * np.maximum(1.0, np.abs(poles))
-    return bool(np.all(poles.real < bound))
+    return not bool(np.any(unstable_mask(poles, axis_tol, dt, margin)))
 
 
 def is_stable(
@@ -212,6 +212,10 @@ def is_stable(
     ignored: a stable system may still be impulsive, see `is_admissible`. A system
     without finite poles is stable.
 
+    **Discrete time** (a system with ``dt``): every finite pole satisfies
+    $|\lambda| < 1 - \text{margin} - \text{axis\_tol}$ (the same tolerance rule with the
+    unit circle as the boundary; `fojax.analysis._discrete`).
+
     Host-only (uses `finite_poles`).
 
     **Arguments:**
@@ -228,7 +232,7 @@ def is_stable(
     """
     p = as_pencil(sys, A, fname="is_stable", balance=balance)
     poles = _poles_normalized(p, tol, "is_stable") * p.pole_scale
-    return _stable_np(poles, float(margin), float(axis_tol))
+    return _stable_np(poles, float(margin), float(axis_tol), p.dt)
 
 
 def is_admissible(
@@ -240,7 +244,8 @@ def is_admissible(
     tol: float | None = None,
     balance: bool = True,
 ) -> bool:
-    r"""Whether $(E, A)$ is admissible: regular, impulse-free and stable.
+    r"""Whether $(E, A)$ is admissible: regular, impulse-free and stable (for a
+    discrete-time system: regular, causal and $|\lambda| < 1$, see `is_stable`).
 
     Host-only. For a certificate (Theorem 2.1.3) see `admissibility_certificate`.
 
@@ -253,4 +258,4 @@ def is_admissible(
     if d.failed is not None or d.index > 1:
         return False
     poles = _poles_from(p, d, "is_admissible") * p.pole_scale
-    return _stable_np(poles, float(margin), float(axis_tol))
+    return _stable_np(poles, float(margin), float(axis_tol), p.dt)

@@ -10,6 +10,7 @@ from .._linalg import rank
 from ..plant import DescriptorSystem
 from ._balance import Scaling
 from ._common import as_system, crank, deflate
+from ._discrete import time_domain, unstable_mask
 from ._kronecker import (
     kronecker_structure,
     KroneckerStructure,
@@ -76,6 +77,9 @@ class StructureReport:
     proper: bool | None = None
     #: dynamic / non-dynamic / impulsive / uncontrollable / unobservable mode counts
     modes: ModeCounts | None = None
+    #: sampling period of a discrete-time system (``None``: continuous time); then
+    #: ``impulse_free`` means causal and ``stable`` means every finite pole has |λ| < 1
+    dt: float | None = None
 
     def __str__(self) -> str:
         def yn(v):
@@ -94,18 +98,23 @@ class StructureReport:
                     parts.append(f"{v.real:.6g}{v.imag:+.6g}i")
             return ", ".join(parts)
 
+        disc = self.dt is not None
+        big = (np.max(np.abs(self.finite_poles)) if self.finite_poles is not None and len(self.finite_poles)
+               else None)
         lines = [
             f"Descriptor system: n = {self.n} states, m = {self.m} inputs, p = {self.p} outputs, "
-            f"rank E = {self.rank_E}",
+            f"rank E = {self.rank_E}; {time_domain(self.dt)}",
             f"  regular           {yn(self.regular)}",
             f"  index             {'n/a' if self.index is None else self.index}"
-            + ("" if self.index is None else "  (0: ODE, 1: impulse-free DAE, >=2: impulsive)"),
+            + ("" if self.index is None else ("  (0: explicit, 1: causal, >=2: non-causal)" if disc else
+                                              "  (0: ODE, 1: impulse-free DAE, >=2: impulsive)")),
             f"  finite poles      {poles_str(self.finite_poles)}",
-            f"  impulse-free      {yn(self.impulse_free)}",
+            (f"  causal            {yn(self.impulse_free)}" if disc else
+             f"  impulse-free      {yn(self.impulse_free)}"),
             f"  stable            {yn(self.stable)}"
             + (
-                ""
-                if self.max_real_part is None or not np.isfinite(self.max_real_part)
+                (f"  (max |λ| = {big:.6g})" if big is not None else "") if disc else
+                "" if self.max_real_part is None or not np.isfinite(self.max_real_part)
                 else f"  (max Re = {self.max_real_part:.6g})"
             ),
             f"  admissible        {yn(self.admissible)}",
@@ -161,16 +170,18 @@ def _verdict(r: dict, fd: bool | None, fs: bool | None) -> str:
             s += " " + _functional_sentence(r) + "."
         return s
     parts = []
+    disc = r.get("dt") is not None
     if r["admissible"]:
-        parts.append("admissible (regular, impulse-free, stable)")
+        parts.append("admissible (regular, causal, |λ| < 1)" if disc else "admissible (regular, impulse-free, stable)")
     else:
         why = []
         if not r["impulse_free"]:
-            why.append(f"impulsive (index {r['index']})")
+            why.append(f"non-causal (index {r['index']})" if disc else f"impulsive (index {r['index']})")
         if not r["stable"]:
             z = r["finite_poles"]
-            bad = z[z.real >= -AXIS_TOL * np.maximum(1.0, np.abs(z))]
+            bad = z[unstable_mask(z, AXIS_TOL, r.get("dt"))]
             why.append(
+                f"unstable ({len(bad)} finite pole(s) with |λ| >= 1, max |λ| = {np.max(np.abs(z)):.4g})" if disc else
                 f"unstable ({len(bad)} finite pole(s) with Re >= 0, max Re = {r['max_real_part']:.4g})"
             )
         parts.append("NOT admissible: " + " and ".join(why))
@@ -242,6 +253,11 @@ def structure_report(
     zeros of ``(E, A, B, C, 0)``, properness and the mode counts (`kronecker_structure`,
     `system_zeros`, `properness`, `mode_counts`; SLICOT ``AG08BD``).
 
+    A discrete-time system (``dt`` set) is reported with the discrete-time notions
+    (`fojax.analysis._discrete`): the summary says "discrete-time (dt = h)", causality in
+    place of impulse-freeness, stability and detectability with respect to the unit circle;
+    the rank tests are the same.
+
     **Returns:** a `StructureReport`; ``print(report)`` gives a readable summary.
     """
     pn = as_system(sys, "structure_report", balance)
@@ -272,6 +288,7 @@ def structure_report(
         functionally_observable=None,
         functional_ranks=None,
         scaling=pn.scaling,
+        dt=pn.dt,
     )
     d = deflate(pn, tol)
     r["regular"] = d.failed is None
@@ -294,7 +311,7 @@ def structure_report(
         r["n_finite"], r["index"], r["finite_poles"] = d.n1, d.index, poles
         r["max_real_part"] = float(poles.real.max()) if poles.size else -np.inf
         r["impulse_free"] = d.index <= 1
-        r["stable"] = _stable_np(poles, 0.0, axis_tol)
+        r["stable"] = _stable_np(poles, 0.0, axis_tol, pn.dt)
         r["admissible"] = r["impulse_free"] and r["stable"]
         ro = _r_obs(pn, tol, fname)
         io = _i_obs(pn, tol)

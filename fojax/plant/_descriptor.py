@@ -2,20 +2,26 @@
 
 from __future__ import annotations
 
+import math
 from typing import ClassVar
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._dtype import as_matrix
-from .._errors import ShapeError
+from .._errors import InputError, ShapeError
 from ._base import AbstractPlant
 
 
 class DescriptorSystem(AbstractPlant):
-    r"""A linear descriptor system
+    r"""A linear descriptor system, continuous or discrete in time,
 
     $$E\dot x(t) = A x(t) + B u(t), \qquad y(t) = C x(t),$$
+
+    or, with a sampling period `dt` $= h$,
+
+    $$E x[k+1] = A x[k] + B u[k], \qquad y[k] = C x[k], \qquad t_k = t_0 + kh,$$
 
     with $x \in \mathbb{R}^n$, $u \in \mathbb{R}^m$, $y \in \mathbb{R}^p$ and $E$ possibly
     singular. The matrices are the module's leaves (so a batch of systems is one
@@ -27,11 +33,17 @@ class DescriptorSystem(AbstractPlant):
     - `E`, `A`: ``(n, n)`` matrices.
     - `B`: ``(n, m)``; omit (or ``None``) for an autonomous system (``m = 0``).
     - `C`: ``(p, n)``; omit for full-state output ``C = I``.
+    - `dt`: the sampling period $h > 0$ of a discrete-time model (keyword only); ``None``
+      (default) for continuous time. A static field: analysis answers with the
+      discrete-time notions (causality, $|\lambda| < 1$), observer design places the
+      error eigenvalues inside the unit disk and `fojax.simulate` steps on the grid
+      $t_0 + kh$. `fojax.discretize` turns a continuous model into a discrete one.
 
     Validation happens at construction: shapes must agree (each mismatch raises
     `fojax.ShapeError` naming the matrix, the expected and the actual shape),
     entries must be finite (`fojax.NonFiniteError`) and float64 must be available
-    (`fojax.Float64RequiredError`, see the README on enabling 64-bit JAX).
+    (`fojax.Float64RequiredError`, see the README on enabling 64-bit JAX); a `dt` that
+    is not a finite positive number raises `fojax.InputError`.
 
     There is no feedthrough term: the thesis's outputs are ``y = Cx``; sensor faults
     enter through the fault augmentation (`fojax.augment_faults`).
@@ -49,10 +61,11 @@ class DescriptorSystem(AbstractPlant):
     A: Float[Array, "n n"]
     B: Float[Array, "n m"]
     C: Float[Array, "p n"]
+    dt: float | None = eqx.field(static=True)
 
     linear_in_state: ClassVar[bool] = True
 
-    def __init__(self, E, A, B=None, C=None):
+    def __init__(self, E, A, B=None, C=None, *, dt=None):
         E = as_matrix("E", E)
         n = E.shape[0]
         if E.shape[1] != n:
@@ -69,6 +82,7 @@ class DescriptorSystem(AbstractPlant):
             C = jnp.eye(n)
         C = as_matrix("C", C, cols=n, hint=f"C needs one column per state (n = {n}).")
         self.E, self.A, self.B, self.C = E, A, B, C
+        self.dt = check_dt(dt)
 
     @property
     def m(self) -> int:
@@ -85,22 +99,40 @@ class DescriptorSystem(AbstractPlant):
         return self.C @ x
 
     @classmethod
-    def from_state_space(cls, A, B=None, C=None) -> DescriptorSystem:
-        r"""The standard system $\dot x = Ax + Bu$, $y = Cx$ as a descriptor system with $E = I$."""
+    def from_state_space(cls, A, B=None, C=None, *, dt=None) -> DescriptorSystem:
+        r"""The standard system $\dot x = Ax + Bu$ (or $x[k+1] = Ax[k] + Bu[k]$ with `dt`),
+        $y = Cx$ as a descriptor system with $E = I$."""
         A = as_matrix("A", A)
-        return cls(jnp.eye(A.shape[0]), A, B, C)
+        return cls(jnp.eye(A.shape[0]), A, B, C, dt=dt)
 
     def replace(self, **matrices) -> DescriptorSystem:
-        """A copy with some matrices replaced (validated again)."""
-        kw = dict(E=self.E, A=self.A, B=self.B, C=self.C)
+        """A copy with some matrices (or `dt`) replaced (validated again)."""
+        kw = dict(E=self.E, A=self.A, B=self.B, C=self.C, dt=self.dt)
         unknown = set(matrices) - set(kw)
         if unknown:
-            raise TypeError(f"unknown matrices {sorted(unknown)}; expected some of E, A, B, C")
+            raise TypeError(f"unknown matrices {sorted(unknown)}; expected some of E, A, B, C, dt")
         kw.update(matrices)
         return DescriptorSystem(**kw)
 
     def __repr__(self) -> str:  # short: the matrices are printed by `print(sys.A)`.
-        return f"DescriptorSystem(n={self.n}, m={self.m}, p={self.p}, rank E={_rank_or_q(self.E)})"
+        dt = "" if self.dt is None else f", dt={self.dt:g}"
+        return f"DescriptorSystem(n={self.n}, m={self.m}, p={self.p}, rank E={_rank_or_q(self.E)}{dt})"
+
+
+def check_dt(dt) -> float | None:
+    """`dt` as a Python float (``None`` stays ``None``: continuous time); `fojax.InputError`
+    unless it is a finite number ``> 0``."""
+    if dt is None:
+        return None
+    try:
+        h = float(dt)
+    except (TypeError, ValueError):
+        raise InputError(f"dt must be a positive sampling period (a float) or None for continuous time; "
+                         f"got {dt!r} of type {type(dt).__name__}.") from None
+    if isinstance(dt, bool) or not (math.isfinite(h) and h > 0):
+        raise InputError(f"dt must be a finite sampling period > 0 (or None for continuous time); got dt={dt!r}. "
+                         "Pass e.g. dt=0.01.")
+    return h
 
 
 def _rank_or_q(E) -> str:
@@ -177,7 +209,7 @@ def augment_faults(sys: DescriptorSystem, Fa=None, Fs=None, *, ramp: bool = Fals
         )
         B = jnp.concatenate([sys.B, Z((2 * nf, m))], axis=0)
         C = jnp.concatenate([sys.C, Fs, Z((p, nf))], axis=1)
-    return DescriptorSystem(E, A, B, C)
+    return DescriptorSystem(E, A, B, C, dt=sys.dt)
 
 
 def check_functional(sys: AbstractPlant, L, name: str = "L"):
