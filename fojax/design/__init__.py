@@ -50,6 +50,7 @@ from ._parameterization import (
 from ._regions import (
     AbstractRegion as AbstractRegion,
     as_region as as_region,
+    DiscreteDisk as DiscreteDisk,
     Disk as Disk,
     HalfPlane as HalfPlane,
     Intersection as Intersection,

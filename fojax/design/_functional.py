@@ -46,7 +46,7 @@ from .._errors import (
 from ..analysis._pencil import e_perp as _e_perp  # analysis decides the rank of E (balanced)
 from ..observer._generalized import GeneralizedFunctionalObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
-from . import _ladder, _lmi, _riccati
+from . import _discrete, _ladder, _lmi, _riccati
 from ._base import AbstractDesign
 from ._conditions import (
     check_data_range,
@@ -164,6 +164,11 @@ class FunctionalObserverDesign(StructureDesignMixin, AbstractDesign):
     @property
     def error_matrix(self) -> np.ndarray:
         return np.asarray(self.observer.error_matrix)
+
+    @property
+    def dt(self) -> float | None:
+        """The sampling period of a discrete-time design (``None``: continuous time)."""
+        return self.observer.dt
 
     def verify(self) -> VerificationReport:
         """Re-run the float64 verification (`fojax.design.AbstractDesign.verify`): conditions
@@ -527,7 +532,9 @@ def design_functional_observer(
       ($q_1 = 0$).
     - `region`: where the error-dynamics eigenvalues must lie: a `fojax.Disk`,
       `fojax.HalfPlane`, `fojax.Sector`, an intersection (``&``) or a
-      ``(center, radius)`` tuple. Default: ``Disk(-2, 1)``.
+      ``(center, radius)`` tuple. Default: ``Disk(-2, 1)``. For a discrete-time `sys`
+      (``dt`` set) a region inside the unit disk, e.g. `fojax.design.DiscreteDisk`
+      (default ``DiscreteDisk(0, 0.5)``); the result then has ``dt`` (`fojax.design._discrete`).
     - `R`: ``(q0, n)``; default chosen by `fojax.design.default_R` (documented there).
     - `q0`: observer order when `R` is not given.
     - `q1`: size of the auxiliary state ``v`` (default ``q0`` for generalized/PI, 0
@@ -605,6 +612,7 @@ def design_functional_observer(
         raise InputError("Bw/Dv (disturbance and noise channels) are only used with objective='hinf' or "
                          "'h2'; pass one of them or drop Bw/Dv.")
     sys = _as_system(sys)
+    region = _discrete.time_region(sys, region, objective)  # discrete time: inside the unit disk
     region = as_region(region if region is not None else Disk(-2.0, 1.0))
     if kind == "proportional":
         if q1 not in (None, 0):
@@ -630,7 +638,8 @@ def design_functional_observer(
         def raw():
             return _design_from_structure(s, region, **kw, **perf)
 
-    return unit_free_fallback(raw, lambda: balanced_design(s, region, **kw, **perf), balance, "a.-d.")
+    d = unit_free_fallback(raw, lambda: balanced_design(s, region, **kw, **perf), balance, "a.-d.")
+    return _discrete.with_dt(d, sys.dt)
 
 
 def unit_free_fallback(raw, balanced, balance: bool | None, conditions: str):

@@ -123,6 +123,55 @@ class Disk(AbstractRegion):
         return {"type": "disk", "center": float(self.center), "radius": float(self.radius)}
 
 
+class DiscreteDisk(Disk):
+    r"""A disk of the $z$-plane for discrete-time error dynamics $e[k+1] = \mathbb A e[k]$:
+    centre $(\alpha, 0)$, radius $\tau$, inside the open unit disk ($|\alpha| + \tau < 1$).
+
+    The eigenvalues in $\mathcal Q(\alpha, \tau)$ make the error decay at least like
+    $(|\alpha| + \tau)^k$. The LMI, the pointwise margin, the Riccati/Stein route and the
+    verification are those of `fojax.Disk` (a disk is a disk); only the validation differs:
+    `Disk` must lie in the left half-plane (continuous time), `DiscreteDisk` in the unit
+    disk. The default region of a discrete-time design is ``DiscreteDisk(0.0, 0.5)``.
+
+    **Arguments:** `center` $\alpha$ (real), `radius` $\tau > 0$.
+
+    **Raises:** `fojax.RegionError` when the disk is not inside the open unit disk.
+
+    !!! example
+
+        ```python
+        sys = fojax.DescriptorSystem(E, A, B, C, dt=0.1)
+        d = fojax.design_functional_observer(sys, L, region=fojax.design.DiscreteDisk(0.2, 0.5))
+        ```
+    """
+
+    def __init__(self, center: float, radius: float):
+        center, radius = float(center), float(radius)
+        if not (math.isfinite(center) and math.isfinite(radius)) or radius <= 0:
+            raise RegionError(
+                f"DiscreteDisk needs a finite center and a positive radius; got center={center}, radius={radius}."
+            )
+        if abs(center) + radius >= 1:
+            raise RegionError(
+                f"DiscreteDisk(center={center}, radius={radius}) is not inside the open unit disk "
+                f"(|center| + radius = {abs(center) + radius:g} >= 1); discrete-time error dynamics with "
+                "eigenvalues there would not decay. Choose |center| + radius < 1."
+            )
+        self.center, self.radius = np.float64(center), np.float64(radius)
+
+    def describe(self):
+        return f"z-plane disk centred at {self.center:g} with radius {self.radius:g}"
+
+    def tightened(self, fraction):
+        return DiscreteDisk(self.center, self.radius * (1.0 - fraction))
+
+    def target(self):
+        return complex(self.center)
+
+    def to_dict(self):
+        return {"type": "discrete_disk", "center": float(self.center), "radius": float(self.radius)}
+
+
 class HalfPlane(AbstractRegion):
     r"""$\{\operatorname{Re} s < -\sigma\}$: decay rate at least $\sigma \ge 0$."""
 
@@ -241,13 +290,15 @@ def region_from_dict(d: dict) -> AbstractRegion:
     kind = d.get("type")
     if kind == "disk":
         return Disk(d["center"], d["radius"])
+    if kind == "discrete_disk":
+        return DiscreteDisk(d["center"], d["radius"])
     if kind == "halfplane":
         return HalfPlane(d.get("decay", 0.0))
     if kind == "sector":
         return Sector(d["damping"])
     if kind == "intersection":
         return Intersection(tuple(region_from_dict(p) for p in d["parts"]))
-    raise RegionError(f"unknown region type {kind!r}; expected disk, halfplane, sector or intersection.")
+    raise RegionError(f"unknown region type {kind!r}; expected disk, discrete_disk, halfplane, sector or intersection.")
 
 
 def as_region(region) -> AbstractRegion:

@@ -246,7 +246,7 @@ def riccati_gains(s: FunctionalObserverStructure, region: AbstractRegion, *, kin
         rho = max(rho, abs(acl))
         steps.append(f"G = {g:.6g}·I from the 1×1 Riccati equation of the v-block; J = 0, Y2 = 0")
     route = (f"Riccati (DARE for the gain, Stein equation for the certificate) in "
-             f"{Disk(alpha, tau).describe()}" + ("" if isinstance(region, Disk) else f" inside {region.describe()}"))
+             f"{disk.tightened(TIGHTEN).describe()}" + ("" if isinstance(region, Disk) else f" inside {region.describe()}"))
     info = {"lmi": {"route": route, "method": "riccati", "solver": "scipy.linalg.solve_discrete_are",
                     "disk": disk.to_dict(), "spectral_radius": rho, "steps": steps}}
     return X, Z, [Y], info

@@ -8,6 +8,7 @@ from jaxtyping import Array, Float
 
 from .._dtype import as_matrix
 from .._errors import ShapeError
+from ..plant._descriptor import check_dt
 from ._base import AbstractFunctionalObserver, LinearObserverMatrices, measurement_maps
 
 
@@ -31,6 +32,13 @@ class GeneralizedFunctionalObserver(AbstractFunctionalObserver):
     The estimation error obeys $\hat z - z = P\varepsilon$ with
     $\dot{[\varepsilon; v]} = \mathbb A [\varepsilon; v]$, $\mathbb A = [N\;J;\;S\;G]$,
     whenever the design conditions a.–d. hold (see `fojax.design`).
+
+    **Discrete time** (`dt` $= h$ set, static): the same matrices define the recursion
+    $\zeta[k+1] = N\zeta[k] + Jv[k] + Fw[k] + Hu[k]$, $v[k+1] = S\zeta[k] + Gv[k] + Mw[k]$,
+    $\hat z[k] = P\zeta[k] + Qw[k]$ on the grid $t_k = t_0 + kh$ (`vector_field` then
+    returns the next state $\xi[k+1]$), with the error $[\varepsilon; v][k+1] =
+    \mathbb A[\varepsilon; v][k]$. Designed by `fojax.design_functional_observer` on a
+    discrete-time plant, or obtained from a continuous observer by `fojax.discretize`.
     """
 
     N: Float[Array, "q0 q0"]
@@ -45,8 +53,9 @@ class GeneralizedFunctionalObserver(AbstractFunctionalObserver):
     Wu: Float[Array, "nw m"]
     Wy: Float[Array, "nw p"]
     kind: str = eqx.field(static=True)
+    dt: float | None = eqx.field(static=True)
 
-    def __init__(self, N, J, F, H, S, G, M, P, Q, Wu, Wy, kind: str = "generalized"):
+    def __init__(self, N, J, F, H, S, G, M, P, Q, Wu, Wy, kind: str = "generalized", *, dt=None):
         N = as_matrix("N", N)
         q0 = N.shape[0]
         if N.shape[1] != q0:
@@ -69,6 +78,7 @@ class GeneralizedFunctionalObserver(AbstractFunctionalObserver):
         if kind not in ("generalized", "PI", "proportional"):
             raise ValueError(f"kind must be 'generalized', 'PI' or 'proportional', got {kind!r}")
         self.kind = kind
+        self.dt = check_dt(dt)
 
     @property
     def error_matrix(self) -> Float[Array, "s s"]:
