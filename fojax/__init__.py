@@ -123,6 +123,7 @@ from .design import (
     Sector as Sector,
     VerificationReport as VerificationReport,
 )
+from .interop import discretize as discretize
 from .observer import (
     AbstractObserver as AbstractObserver,
     FiniteTimeObserver as FiniteTimeObserver,
