@@ -3,6 +3,7 @@ objects (`Auto`, `Exact`, `Exponential`, `Diffrax`) and what to save (`Trajector
 `Bands`)."""
 
 from ._batch import simulate_lti_batch as simulate_lti_batch
+from ._discrete import Discrete as Discrete
 from ._exponential import simulate_batch_exponential as simulate_batch_exponential
 from ._reduction import (
     consistent_initial_condition as consistent_initial_condition,

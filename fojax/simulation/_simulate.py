@@ -218,6 +218,11 @@ def simulate(
     observers, xi0s = _check_observers(observers, observer_x0)
     concrete = is_concrete(plant, x0, u)
     host_initial_checks(plant, x0, ts[0], u, strict=strict, tol=consistency_tol)
+    if getattr(plant, "dt", None) is not None:  # discrete time: fojax.simulation._discrete
+        from ._discrete import discrete_stepper, simulate_discrete
+
+        discrete_stepper(plant, stepper).select(plant, observers, ts, u)
+        return simulate_discrete(plant, x0, ts, u, observers, xi0s, throw=throw)
     chosen = stepper.select(plant, observers, ts, u)  # Exact() or a Diffrax (fojax.simulation._steppers)
     opts = chosen.diffrax_options
     solver = default_implicit_solver() if opts.solver is None else opts.solver

@@ -227,6 +227,10 @@ class Auto(AbstractStepper):
         return self.diffrax
 
     def select(self, plant, observers, ts, u) -> AbstractStepper:
+        if getattr(plant, "dt", None) is not None:  # a discrete-time plant (fojax.simulation._discrete)
+            from ._discrete import Discrete
+
+            return Discrete().select(plant, observers, ts, u)
         cap = capabilities(plant, observers, ts, u)
         exact = cap["lti"] and cap["observers_lti"] and cap["uniform"] and cap["on_grid"]
         return Exact() if exact else self.diffrax
