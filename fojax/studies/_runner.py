@@ -66,6 +66,7 @@ from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
 from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, gather_across_processes, run_batched
+from ..simulation._discrete import discrete_stepper
 from ..simulation._save import (
     error_metrics,
     METRIC_NAMES,
@@ -524,6 +525,7 @@ def run_study(
         raise ShapeError("observer_names", len(default_names), len(names),
                          "A signal study (observers=None) has one name." if signal_study else "")
     stepper = resolve_stepper(stepper, method, solver, rtol, atol, max_steps, who="run_study")
+    stepper = discrete_stepper(study.plant, stepper)  # a discrete-time plant: every sample through simulate
     save = resolve_save(save, quantiles, band_points, settle_tol, who="run_study")
     settle_tol = save.settle_tol
     quantiles = save.bands.quantiles if save.bands is not None else ()
