@@ -194,6 +194,13 @@ def test_discrete_design_verified_inside_the_disk(kind, method):
     assert np.max(np.abs(err[-10:])) < 1e-9 * max(1.0, np.max(np.abs(xs)))
 
 
+def test_saved_design_keeps_dt(tmp_path):
+    d = fojax.design_functional_observer(plant(), L4, kind="proportional", method="riccati")
+    fojax.save_design(d, tmp_path / "d")
+    d2 = fojax.load_design(tmp_path / "d")
+    assert d2.dt == H and d2.region == d.region and d2.verify().passed
+
+
 def test_default_region_and_tuple():
     d = fojax.design_functional_observer(plant(), L4, kind="proportional")
     assert d.region == DiscreteDisk(0.0, 0.5) and d.dt == H

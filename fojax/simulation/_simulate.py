@@ -145,7 +145,9 @@ def simulate(
 
     **Arguments:**
 
-    - `plant`: any `fojax.AbstractPlant`.
+    - `plant`: any `fojax.AbstractPlant`. A discrete-time plant (``dt`` set) is stepped on its
+      samples ``ts = t0 + k dt`` by `fojax.simulation.Discrete` (with observers of the same
+      ``dt``).
     - `x0`: ``(n,)`` initial state at ``ts[0]`` (projected onto the constraints
       unless `strict`).
     - `ts`: ``(T,)`` increasing output times, ``T ≥ 2``; ``ts[0]`` is the initial time.

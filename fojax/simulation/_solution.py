@@ -25,7 +25,7 @@ class Solution(eqx.Module):
         - ``"num_steps"``, ``"num_accepted_steps"``, ``"num_rejected_steps"``: steps
           taken (for ``"exact"``: the ``T − 1`` grid steps);
         - ``"success"``: whether the solve succeeded (meaningful with ``throw=False``).
-    - `method`: ``"exact"`` or ``"diffrax"`` (static), the method that was used.
+    - `method`: ``"exact"``, ``"diffrax"`` or ``"discrete"`` (static), the method that was used.
 
     Under `jax.vmap` every array field gains a leading batch axis.
     """

@@ -48,7 +48,8 @@ METHODS = ("auto", "exact", "exponential", "diffrax")
 
 class AbstractStepper(eqx.Module):
     """Base of the steppers (see the module docstring). Final subclasses: `Auto`, `Exact`,
-    `Exponential`, `Diffrax`."""
+    `Exponential`, `Diffrax`, and `Discrete` for discrete-time plants
+    (`fojax.simulation._discrete`)."""
 
     #: the legacy ``method=`` string of this stepper (recorded in ``StudyResult.attrs``)
     method: ClassVar[str]
