@@ -262,6 +262,17 @@ def test_simulate_vmap_and_grad():
     np.testing.assert_allclose(g, fd, rtol=1e-6)
 
 
+def test_new_numbers_do_not_recompile():
+    from fojax.simulation._discrete import TRACE_COUNTS
+
+    ts = H * jnp.arange(20)
+    fojax.simulate(plant(), consistent([1.0, 0.0, 0.0, 0.0], 0.0), ts, U_SIG)
+    before = TRACE_COUNTS["simulate"]
+    p2 = fojax.DescriptorSystem(E4, 0.9 * A4, 2.0 * B4, C4, dt=H)
+    fojax.simulate(p2, jnp.array([0.5, 1.0, -1.0, 0.0]), ts + 1.0, fojax.Sine(np.array([2.0]), 0.5))
+    assert TRACE_COUNTS["simulate"] == before
+
+
 def test_simulate_errors():
     s = plant()
     x0 = consistent([1.0, 0.0, 0.0, 0.0], 0.0)

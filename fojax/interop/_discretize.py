@@ -129,6 +129,8 @@ def discretize(system_or_observer, dt, method: str = "zoh"):
 
     Zero-order hold: the input (and, for an observer, the measurement) is held constant
     over each period $[t_k, t_k + h)$. Derivations in `fojax.interop._discretize`.
+    Host-only (NumPy/SciPy: analysis's rank decision and `scipy.linalg.expm`); call it
+    outside `jax.jit`.
 
     **Arguments:**
 
