@@ -226,6 +226,43 @@ def test_region_errors():
     assert region_from_dict(reg.to_dict()) == reg
 
 
+def test_fault_estimator_on_a_discrete_plant():
+    # constant actuator fault f on row 0: f[k+1] = f[k] (the augmented A has I, not 0, there)
+    Fa = np.array([[1.0], [0.0], [0.0], [0.0]])
+    aug = fojax.augment_faults(plant(), Fa=Fa)
+    assert aug.dt == H
+    np.testing.assert_allclose(aug.A, np.block([[A4, Fa], [np.zeros((1, 4)), np.eye(1)]]))
+    ramp = fojax.augment_faults(plant(), Fa=Fa, ramp=True)
+    np.testing.assert_allclose(ramp.A[4:, 4:], [[1.0, H], [0.0, 1.0]])
+    d = fojax.design_fault_estimator(plant(), L4, Fa=Fa)
+    assert d.design.dt == H and d.design.report.passed
+    # NumPy recursion of the faulty plant and of the observer: the fault estimate converges to f
+    f, ts = 0.7, H * np.arange(150)
+    x = consistent([0.5, 0.0, 0.0, 0.0], 0.0)
+    obs = d.design.observer
+    N, F, Hh, P, Q, Wu, Wy = (np.asarray(getattr(obs, k)) for k in ("N", "F", "H", "P", "Q", "Wu", "Wy"))
+    J, S, G, M = (np.asarray(getattr(obs, k)) for k in ("J", "S", "G", "M"))
+    zeta, v = np.zeros(N.shape[0]), np.zeros(G.shape[0])
+    for k in range(len(ts)):
+        u = u_of(ts[k])
+        w = Wu @ u + Wy @ (C4 @ x)
+        est = P @ zeta + Q @ w
+        zeta, v = N @ zeta + J @ v + F @ w + Hh @ u, S @ zeta + G @ v + M @ w
+        x1 = A4[:3] @ x + B4[:3] @ u + Fa[:3, 0] * f
+        xn = np.r_[x1, 0.0]
+        xn[3] = -(A4[3, :3] @ x1 + B4[3] @ u_of(ts[k + 1] if k + 1 < len(ts) else ts[k])) / A4[3, 3]
+        z_true = np.r_[L4 @ x, f]
+        x = xn
+    np.testing.assert_allclose(est, z_true, atol=1e-8)
+
+
+def test_continuous_only_designs_refuse_discrete_models():
+    with pytest.raises(fojax.InputError, match="design_unknown_input_observer designs for continuous-time"):
+        fojax.design_unknown_input_observer(plant(), np.array([[0.0], [1.0], [0.0], [0.0]]), L4)
+    with pytest.raises(fojax.InputError, match="design_state_feedback designs for continuous-time"):
+        fojax.control.design_state_feedback(plant())
+
+
 # ------------------------------------------------------------------------------ simulation
 
 

@@ -82,6 +82,7 @@ from .._linalg import null_space, rank
 from ..analysis import finite_poles, is_impulse_free, is_regular, is_stabilizable
 from ..design import _ladder, _lmi
 from ..design._base import AbstractDesign
+from ..design._discrete import continuous_only
 from ..design._regions import AbstractRegion, as_region, HalfPlane, Intersection
 from ..design._verify import margin_failure, required_margin
 from ..plant import DescriptorSystem
@@ -499,6 +500,7 @@ def design_state_feedback(
     require_x64("state-feedback design")
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    continuous_only(sys, "design_state_feedback")
     if sys.m == 0:
         raise StabilizabilityError(
             "stabilizability",

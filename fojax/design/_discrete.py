@@ -122,3 +122,15 @@ def check_discrete_observer(observer, dt, name: str = "observer") -> None:
             f"{name} has dt = {odt}, the plant dt = {dt:g}: a discrete-time plant runs observers with the same "
             "sampling period. Design on the discrete model, or use fojax.discretize(observer, dt)."
         )
+
+
+def continuous_only(sys, fname: str) -> None:
+    """`fojax.InputError` when `sys` is a discrete-time model: `fname` designs continuous-time
+    observers or controllers only (its regions and certificates are continuous-time)."""
+    dt = getattr(sys, "dt", None)
+    if dt is not None:
+        raise InputError(
+            f"{fname} designs for continuous-time models; this model is discrete-time (dt = {dt:g}). Discrete-time "
+            "observers come from design_functional_observer (regions inside the unit disk); or design on the "
+            "continuous model and sample the result with fojax.discretize."
+        )

@@ -21,6 +21,7 @@ from ..plant._descriptor import DescriptorSystem
 from . import _lmi
 from ._base import AbstractDesign
 from ._conditions import check_detectability, unobservable_modes
+from ._discrete import continuous_only
 from ._functional import (
     _as_system,
     build_observer,
@@ -275,6 +276,7 @@ def _design_ft(
 ) -> FiniteTimeObserverDesign:
     """Implementation of `design_finite_time_observer` for a given R (or q0)."""
     sys = _as_system(sys)
+    continuous_only(sys, "design_finite_time_observer")
     h = float(h)
     if not (np.isfinite(h) and h > 0):
         raise ValueError(f"h must be a positive number, got {h}")

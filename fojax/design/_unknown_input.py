@@ -116,6 +116,7 @@ from ._conditions import (
     unit_free_structure,
     unobservable_modes,
 )
+from ._discrete import continuous_only
 from ._functional import (
     _as_system,
     carried_extra,
@@ -598,6 +599,7 @@ def design_unknown_input_observer(
     mode), `LMIInfeasibleError`, `DesignVerificationError`.
     """
     sys = _as_system(sys)
+    continuous_only(sys, "design_unknown_input_observer")
     region = as_region(region if region is not None else Disk(-2.0, 1.0))
     E, A, B, C = (np.asarray(x, float) for x in (sys.E, sys.A, sys.B, sys.C))
     n = E.shape[0]

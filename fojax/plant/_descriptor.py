@@ -162,6 +162,10 @@ def augment_faults(sys: DescriptorSystem, Fa=None, Fs=None, *, ramp: bool = Fals
     With `ramp=True` (Remark 9: $\ddot f = 0$) the state is $[x; f; \dot f]$ and
     $\tfrac{d}{dt}f = \dot f$, $\tfrac{d}{dt}\dot f = 0$.
 
+    For a discrete-time `sys` (``dt`` $= h$) the fault rows are the sampled versions:
+    $f[k+1] = f[k]$ (the ``0`` block of $\mathbf A$ becomes $I$), and with `ramp=True`
+    $f[k+1] = f[k] + h\,\dot f[k]$, $\dot f[k+1] = \dot f[k]$ (exact for a ramp).
+
     **Arguments:**
 
     - `sys`: the fault-free system.
@@ -188,9 +192,10 @@ def augment_faults(sys: DescriptorSystem, Fa=None, Fs=None, *, ramp: bool = Fals
             "Fs", (p, Fa.shape[1]), tuple(Fs.shape), "Fa and Fs must have the same number of faults."
         )
     Z = jnp.zeros
+    hold = Z((nf, nf)) if sys.dt is None else jnp.eye(nf)  # ḟ = 0, or f[k+1] = f[k]
     if not ramp:
         E = jnp.block([[sys.E, Z((n, nf))], [Z((nf, n)), jnp.eye(nf)]])
-        A = jnp.block([[sys.A, Fa], [Z((nf, n)), Z((nf, nf))]])
+        A = jnp.block([[sys.A, Fa], [Z((nf, n)), hold]])
         B = jnp.concatenate([sys.B, Z((nf, m))], axis=0)
         C = jnp.concatenate([sys.C, Fs], axis=1)
     else:
@@ -203,8 +208,8 @@ def augment_faults(sys: DescriptorSystem, Fa=None, Fs=None, *, ramp: bool = Fals
         A = jnp.block(
             [
                 [sys.A, Fa, Z((n, nf))],
-                [Z((nf, n)), Z((nf, nf)), jnp.eye(nf)],
-                [Z((nf, n)), Z((nf, nf)), Z((nf, nf))],
+                [Z((nf, n)), hold, (1.0 if sys.dt is None else sys.dt) * jnp.eye(nf)],
+                [Z((nf, n)), Z((nf, nf)), hold],
             ]
         )
         B = jnp.concatenate([sys.B, Z((2 * nf, m))], axis=0)
