@@ -16,6 +16,11 @@ absolute `tol`):
 | C | R and $\mathrm{rank}\begin{bmatrix}E\\C\end{bmatrix}=n$ | R and $\mathrm{rank}[E,\;B]=n$ |
 | S | R and I | R and I |
 
+For a discrete-time system (``dt`` set) the same rank tests decide the same notions with
+$z$ in place of $s$ (they are algebraic statements about the pencil, see
+`fojax.analysis._discrete`); only detectability and stabilizability test the poles with
+$|z| \ge 1$ instead of $\mathrm{Re}\,s \ge 0$.
+
 C ⇒ S ⇒ R. The "at every finite pole" tests are evaluated at the computed poles *and*
 at the mean of every cluster of nearby poles (defective poles are computed only to
 $O(\epsilon^{1/k})$, their cluster mean to $O(\epsilon)$); a rank drop at any of these
