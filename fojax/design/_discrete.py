@@ -113,17 +113,6 @@ def with_dt(design, dt):
     return dataclasses.replace(design, observer=obs, report=report)
 
 
-def check_discrete_observer(observer, dt, name: str = "observer") -> None:
-    """`fojax.InputError` unless `observer` is discrete with sampling period `dt` (used by
-    simulation)."""
-    odt = getattr(observer, "dt", None)
-    if odt is None or abs(float(odt) - float(dt)) > 1e-12 * float(dt):
-        raise InputError(
-            f"{name} has dt = {odt}, the plant dt = {dt:g}: a discrete-time plant runs observers with the same "
-            "sampling period. Design on the discrete model, or use fojax.discretize(observer, dt)."
-        )
-
-
 def continuous_only(sys, fname: str) -> None:
     """`fojax.InputError` when `sys` is a discrete-time model: `fname` designs continuous-time
     observers or controllers only (its regions and certificates are continuous-time)."""
