@@ -334,3 +334,8 @@ def test_run_study_on_a_discrete_plant():
     err = observer_recursion(d.observer, xs, np.asarray(ts))[:, 0] - xs @ L4[0]
     assert res.attrs["engine"] == "vmap-simulate"
     np.testing.assert_allclose(np.asarray(res.metrics["peak"]).ravel()[0], np.max(np.abs(err)), rtol=1e-9)
+    # study_loss takes the same path (trapezoidal IAE on the sample grid)
+    iae = np.sum(0.5 * (np.abs(err[1:]) + np.abs(err[:-1])) * np.diff(np.asarray(ts)))
+    loss = fojax.studies.study_loss(fojax.Study(plant(), x0, ts, L4, u=U_SIG), d.observer, loss="iae")
+    np.testing.assert_allclose(loss, iae, rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(res.metrics["iae"]).ravel()[0], iae, rtol=1e-9)

@@ -686,6 +686,15 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
                    num_devices=layout["num_devices"], engine=engine)
 
 
+def _discrete_cfg(study: Study, cfg: SimConfig) -> SimConfig:
+    """`cfg`, or for a discrete-time plant `cfg` with the `Discrete` stepper (every sample
+    through `fojax.simulate`; `fojax.simulation._discrete`)."""
+    st = discrete_stepper(study.plant, cfg.stepper)
+    if st is cfg.stepper:
+        return cfg
+    return dataclasses.replace(cfg, stepper=st, method=None, rtol=None, atol=None, max_steps=None, solver=None)
+
+
 def resolve_engine(study: Study, observers, cfg: SimConfig = SimConfig()) -> SimConfig:
     r"""Host: the `SimConfig` with which `study_loss` runs the concrete `study` on the same
     engine when the study is later traced (e.g. an argument of a jitted step, as in
@@ -700,6 +709,8 @@ def resolve_engine(study: Study, observers, cfg: SimConfig = SimConfig()) -> Sim
     study: another study needs its own call.
     """
     observers = tuple(observers) if isinstance(observers, (tuple, list)) else (observers,)
+    if _discrete_cfg(study, cfg) is not cfg:
+        return _discrete_cfg(study, cfg)
     stepper = cfg.stepper
     if exact_refusal(study, observers, stepper) is None:
         return cfg
@@ -751,6 +762,7 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
     w = jnp.full((study.num_signals,), 1.0 / study.num_signals) if weights is None else jnp.asarray(weights)
     mesh = sample_mesh(cfg.devices)
+    cfg = _discrete_cfg(study, cfg)
     stepper = cfg.stepper  # its engines, in order (fojax.simulation._steppers)
     if exact_refusal(study, (observer,), stepper) is None:
         # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
