@@ -194,6 +194,21 @@ def test_discrete_design_verified_inside_the_disk(kind, method):
     assert np.max(np.abs(err[-10:])) < 1e-9 * max(1.0, np.max(np.abs(xs)))
 
 
+@pytest.mark.parametrize("options", [dict(objective="centre"), dict(balance=True), dict(kind="PI")])
+def test_other_design_options_keep_the_discrete_region(options):
+    region = DiscreteDisk(0.2, 0.5)
+    d = fojax.design_functional_observer(plant(), L4, region=region, **options)
+    assert d.dt == H and d.report.passed
+    assert np.all(np.abs(np.linalg.eigvals(d.error_matrix) - 0.2) < 0.5)
+
+
+def test_tune_refuses_a_discrete_design():
+    d = fojax.design_functional_observer(plant(), L4, kind="proportional")
+    study = fojax.Study(plant(), consistent([1.0, 0.0, 0.0, 0.0], 0.0), H * jnp.arange(20), L4, u=U_SIG)
+    with pytest.raises(fojax.InputError, match="continuous-time designs"):
+        fojax.tune(d, study, steps=1)
+
+
 def test_saved_design_keeps_dt(tmp_path):
     d = fojax.design_functional_observer(plant(), L4, kind="proportional", method="riccati")
     fojax.save_design(d, tmp_path / "d")

@@ -375,6 +375,9 @@ def tune(
     cannot take); `fojax.DesignVerificationError` if the final design fails its float64
     verification (it cannot, as every accepted iterate passed the same check).
     """
+    if getattr(design, "dt", None) is not None:
+        raise InputError(f"fojax.tune tunes continuous-time designs; this design is discrete-time (dt = {design.dt:g}), "
+                         "and its parameterizations build continuous observers. Use the verified design as it is.")
     if loss not in ("iae", "ise"):
         raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
     q_level = _quantile_level(quantile)  # data of the compiled programs
