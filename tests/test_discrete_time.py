@@ -164,6 +164,11 @@ def test_observability_rank_tests_identical_detectability_on_the_unit_circle():
     assert rd.dt == 0.1 and rc.dt is None
 
 
+def test_continuous_certificate_refused_for_a_discrete_system():
+    with pytest.raises(fojax.InputError, match="continuous-time admissibility"):
+        fojax.analysis.admissibility_certificate(plant())
+
+
 def test_structure_report_says_discrete_time():
     r = structure_report(plant(), L4)
     text = str(r)

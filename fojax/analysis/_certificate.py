@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._errors import DesignVerificationError, LMIInfeasibleError
+from .._errors import DesignVerificationError, InputError, LMIInfeasibleError
 from .._linalg import left_null_space
 from ._common import as_pencil
 
@@ -117,6 +117,11 @@ def admissibility_certificate(
     import cvxpy as cp
 
     p = as_pencil(sys, A, fname="admissibility_certificate", balance=balance)
+    if p.dt is not None:
+        raise InputError(
+            f"admissibility_certificate certifies continuous-time admissibility (Theorem 2.1.3); this system is "
+            f"discrete-time (dt = {p.dt:g}). Use fojax.is_admissible (regular, causal, |λ| < 1) for its verdict."
+        )
     n = p.n
     if n == 0:
         z = np.zeros((0, 0))
