@@ -47,6 +47,7 @@ from ._errors import (
     RankConditionError as RankConditionError,
     RegionError as RegionError,
     ShapeError as ShapeError,
+    SolverStoppedShortError as SolverStoppedShortError,
     StabilizabilityError as StabilizabilityError,
     UnsafePathError as UnsafePathError,
 )

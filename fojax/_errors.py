@@ -154,10 +154,15 @@ class StabilizabilityError(ExistenceConditionError):
 
 
 class LMIInfeasibleError(FojaxError, RuntimeError):
-    """The LMI solver did not return status ``optimal``.
+    """The LMI was shown infeasible: a solver returned status ``"infeasible"`` (a
+    certificate of infeasibility), or a route without a solver proved that no solution
+    exists (e.g. no stabilizing Riccati solution).
+
+    A solver that stops short of the required accuracy raises `SolverStoppedShortError`
+    instead; catch both with ``except LMI_FAILURES``.
 
     Attributes:
-        status: the solver status string (e.g. ``"infeasible"``, ``"optimal_inaccurate"``).
+        status: the solver status string (e.g. ``"infeasible"``).
         problem: a short name of the LMI that was solved.
         info: extra numbers (solver name, iterations, residuals) when available.
     """
@@ -167,16 +172,107 @@ class LMIInfeasibleError(FojaxError, RuntimeError):
         self.status = status
         self.info = dict(info or {})
         msg = f"LMI '{problem}' was not solved: solver status '{status}'."
-        if "optimal_inaccurate" in status:
-            msg += " fojax never accepts 'optimal_inaccurate' results."
-            if "infeasible" not in status:
-                both = "clarabel" in status.lower() and "scs" in status.lower()  # solver="auto" tried both
-                remedy = "the model with balance=True" if both else "another solver, or the model with balance=True,"
-                msg += (" That status does not show the LMI infeasible (the solver stopped short of the "
-                        f"accuracy fojax requires): {remedy} may solve it.")
         if hint:
             msg += " " + hint
         super().__init__(msg)
+
+
+class SolverStoppedShortError(FojaxError, RuntimeError):
+    """The LMI solver stopped short of the accuracy fojax requires (status
+    ``"optimal_inaccurate"``, an iteration limit, a numerical breakdown) without showing
+    the LMI infeasible. fojax never accepts such a solution.
+
+    Attributes:
+        status: the solver status string (for ``solver="auto"``, one per solver).
+        problem: a short name of the LMI that was solved.
+        info: the solver's numbers (iterations, solve time, tolerances; per solver).
+        tried_solvers: the solvers that were run.
+        balanced_error: the error of the design on the unit-free model, when it was tried
+            next (``balance=None``) and failed too.
+    """
+
+    def __init__(self, problem: str, status: str, info: dict | None = None, hint: str = "",
+                 balanced_error: BaseException | None = None):
+        self.problem = problem
+        self.status = status
+        self.info = dict(info or {})
+        self.tried_solvers = _solvers_in(self.info)
+        self.balanced_error = balanced_error
+        runs = "; ".join(_describe_run(k, v) for k, v in _runs_in(self.info))
+        msg = (f"LMI '{problem}' was not solved: the solver stopped short of the accuracy fojax requires "
+               f"(status '{status}'{'; ' + runs if runs else ''}). This does not show that the LMI is "
+               "infeasible. Try: ")
+        tries = []
+        if len(self.tried_solvers) < 2:
+            tries.append("another solver (solver='CLARABEL' or 'SCS')")
+        if balanced_error is None:
+            tries.append("balance=True (the design on the unit-free model)")
+        tries += ["a looser region (a larger disk or sector, a half-plane further right), which gives "
+                  "the solver a better conditioned problem"]
+        msg += ", ".join(tries) + "."
+        if balanced_error is not None:
+            msg += (f" The design on the unit-free model (balance=True) was tried too: "
+                    f"{type(balanced_error).__name__}: {balanced_error}")
+        if hint:
+            msg += " " + hint
+        super().__init__(msg)
+
+
+def _runs_in(info: dict) -> list:
+    """``(solver, info)`` pairs of one solver's info or of ``{"clarabel": ..., "scs": ...}``."""
+    if "solver" in info or "status" in info:
+        return [(str(info.get("solver", "solver")), info)]
+    return [(k, v) for k, v in info.items() if isinstance(v, dict)]
+
+
+def _solvers_in(info: dict) -> list:
+    return [k.upper() for k, _ in _runs_in(info)]
+
+
+def _describe_run(name: str, info: dict) -> str:
+    settings = info.get("settings") or {}
+    tol = settings.get("tol_feas", settings.get("eps_abs"))
+    parts = [f"{name.upper()}: {info.get('status', '?')}"]
+    if info.get("iterations") is not None:
+        parts.append(f"{info['iterations']} iterations")
+    if tol is not None:
+        parts.append(f"tolerance {tol:.0e}")
+    if info.get("solve_time") is not None:
+        parts.append(f"{float(info['solve_time']):.2g} s")
+    if info.get("message"):
+        parts.append(str(info["message"]))
+    if info.get("variables") is not None:
+        parts.append(f"problem of {info['variables']} scalar variables, {info['constraints']} constraints, "
+                     f"largest data entry {float(info['data_magnitude']):.1e}")
+    return ", ".join(parts)
+
+
+#: Every error of an LMI solve that returned no accepted solution (``except LMI_FAILURES``).
+LMI_FAILURES = (LMIInfeasibleError, SolverStoppedShortError)
+
+#: Solver statuses that show infeasibility (a certificate of primal infeasibility).
+INFEASIBLE_STATUSES = ("infeasible",)
+
+
+def solver_failure(problem: str, status: str, info: dict | None = None, hint: str = ""):
+    """The typed error of an LMI solve that ended with `status` (not ``"optimal"``):
+    `LMIInfeasibleError` when the status shows infeasibility (`INFEASIBLE_STATUSES`), else
+    `SolverStoppedShortError`. `hint` (what infeasibility means for the caller's problem and
+    what to change) is given to the first only: a solver that stopped short showed nothing
+    about the problem, and its error says what to try instead."""
+    if str(status) in INFEASIBLE_STATUSES:
+        return LMIInfeasibleError(problem, str(status), info, hint)
+    return SolverStoppedShortError(problem, str(status), info)
+
+
+def combined_failure(problem: str, status: str, errors, info: dict | None = None, hint: str = ""):
+    """The typed error when every attempt of a fallback ladder at one problem failed with
+    `errors` (`LMI_FAILURES`): `LMIInfeasibleError` if one of them showed infeasibility
+    (the attempts differ in objective, preconditioning or solver, not in the feasible set),
+    else `SolverStoppedShortError`."""
+    if any(isinstance(e, LMIInfeasibleError) for e in errors):
+        return LMIInfeasibleError(problem, status, info, hint)
+    return SolverStoppedShortError(problem, status, info)
 
 
 class DesignVerificationError(FojaxError, RuntimeError):

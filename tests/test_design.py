@@ -969,39 +969,68 @@ def _force_status(monkeypatch, status):
 @pytest.mark.parametrize("solver", ["CLARABEL", "SCS"])
 def test_optimal_inaccurate_is_refused(sys413, monkeypatch, solver):
     calls = _force_status(monkeypatch, cp.OPTIMAL_INACCURATE)
-    with pytest.raises(fojax.LMIInfeasibleError, match="optimal_inaccurate") as ei:
+    with pytest.raises(fojax.SolverStoppedShortError, match="optimal_inaccurate") as ei:
         design_functional_observer(sys413, L413, kind="proportional", solver=solver)
-    # every attempt (objectives, retries) reported optimal_inaccurate and none was accepted
+    # every attempt (objectives, retries, then the unit-free model) reported optimal_inaccurate
     assert "optimal_inaccurate" in ei.value.status and "optimal (" not in ei.value.status
+    assert isinstance(ei.value.balanced_error, fojax.SolverStoppedShortError)
+    assert not isinstance(ei.value, fojax.LMIInfeasibleError)
     assert calls and set(calls) == {solver}
 
 
 def test_optimal_inaccurate_is_refused_with_auto_fallback(sys413, monkeypatch):
     calls = _force_status(monkeypatch, cp.OPTIMAL_INACCURATE)
-    with pytest.raises(fojax.LMIInfeasibleError, match="optimal_inaccurate") as ei:
-        design_functional_observer(sys413, L413, kind="proportional")
+    with pytest.raises(fojax.SolverStoppedShortError, match="optimal_inaccurate") as ei:
+        design_functional_observer(sys413, L413, kind="proportional", balance=False)
     assert "CLARABEL" in ei.value.status.upper() and "SCS" in ei.value.status.upper()
     assert calls[0] == "CLARABEL" and set(calls) == {"CLARABEL", "SCS"}
 
 
-def test_optimal_inaccurate_message_explains_policy(sys413, monkeypatch):
-    """The message says the status is refused, and that it does not show infeasibility
-    (the hint that follows it is written for an infeasible LMI); with an 'infeasible' status
-    among the attempts it does not say so."""
+def test_stopped_short_message_says_what_to_try(sys413, monkeypatch):
+    """A solver that stops short raises SolverStoppedShortError, whose message says the LMI is
+    not shown infeasible, gives the solver's numbers and what to try (another solver only when
+    one was tried, balance=True, a looser region) and never the infeasible-LMI hint; an
+    'infeasible' status raises LMIInfeasibleError with that hint."""
     _force_status(monkeypatch, cp.OPTIMAL_INACCURATE)
-    with pytest.raises(fojax.LMIInfeasibleError, match="never accepts") as ei:
+    with pytest.raises(fojax.SolverStoppedShortError) as ei:
+        design_functional_observer(sys413, L413, kind="proportional", solver="CLARABEL", balance=False)
+    msg = str(ei.value)
+    assert "does not show that the LMI is infeasible" in msg and "another solver" in msg
+    assert "balance=True" in msg and "looser region" in msg and "enlarge" not in msg
+    assert "iterations" in msg and "tolerance 1e-08" in msg  # the numbers of the last run
+    both = fojax.SolverStoppedShortError("x", "optimal_inaccurate (Clarabel), optimal_inaccurate (SCS)",
+                                         {"clarabel": {"status": "optimal_inaccurate", "iterations": 40},
+                                          "scs": {"status": "optimal_inaccurate", "iterations": 40000}})
+    assert both.tried_solvers == ["CLARABEL", "SCS"] and "another solver" not in str(both)
+    assert "CLARABEL: optimal_inaccurate, 40 iterations" in str(both)
+
+
+def test_stopped_short_then_unit_free_failure_is_reported(sys413, monkeypatch):
+    _force_status(monkeypatch, cp.OPTIMAL_INACCURATE)
+    with pytest.raises(fojax.SolverStoppedShortError) as ei:
         design_functional_observer(sys413, L413, kind="proportional", solver="CLARABEL")
-    assert "does not show the LMI infeasible" in str(ei.value) and "another solver" in str(ei.value)
-    both = fojax.LMIInfeasibleError("x", "optimal_inaccurate (Clarabel), optimal_inaccurate (SCS)")
-    assert "does not show" in str(both) and "another solver" not in str(both)  # auto tried both
-    mixed = fojax.LMIInfeasibleError("x", "optimal_inaccurate (min-gain), infeasible (feasibility)")
-    assert "never accepts" in str(mixed) and "does not show" not in str(mixed)
+    msg = str(ei.value)
+    assert "unit-free model (balance=True) was tried too: SolverStoppedShortError" in msg
+    outer = msg.split("was tried too")[0]
+    assert "balance=True (the design on the unit-free model)" not in outer  # not suggested again
 
 
 def test_infeasible_status_is_refused(sys413, monkeypatch):
     _force_status(monkeypatch, cp.INFEASIBLE)
-    with pytest.raises(fojax.LMIInfeasibleError, match="solver status 'infeasible"):
+    with pytest.raises(fojax.LMIInfeasibleError, match="solver status 'infeasible") as ei:
         design_functional_observer(sys413, L413, kind="proportional", solver="CLARABEL")
+    assert "enlarge the region" in str(ei.value) and "does not show" not in str(ei.value)
+
+
+def test_one_infeasibility_certificate_decides_the_ladder():
+    """`combined_failure`: a ladder whose rungs all failed is infeasible when one rung showed
+    infeasibility, else it stopped short."""
+    from fojax._errors import combined_failure
+
+    short = fojax.SolverStoppedShortError("x", "optimal_inaccurate", {})
+    infeasible = fojax.LMIInfeasibleError("x", "infeasible", {})
+    assert isinstance(combined_failure("x", "s", [short, infeasible]), fojax.LMIInfeasibleError)
+    assert isinstance(combined_failure("x", "s", [short, short]), fojax.SolverStoppedShortError)
 
 
 def test_scs_solves_an_easy_problem():

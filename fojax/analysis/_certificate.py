@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._errors import DesignVerificationError, InputError, LMIInfeasibleError
+from .._errors import DesignVerificationError, InputError, LMIInfeasibleError, SolverStoppedShortError
 from .._linalg import left_null_space
 from ._common import as_pencil
 
@@ -92,8 +92,9 @@ def admissibility_certificate(
     $(E, A)$ too. Solved with cvxpy + SCS on the host (never inside ``jit``).
 
     **Acceptance.** Only solver status ``"optimal"`` is accepted; anything else
-    (``"infeasible"``, ``"optimal_inaccurate"``, ...) raises `fojax.LMIInfeasibleError`
-    carrying the status. The solution is then re-checked in float64 against the
+    raises with the status: ``"infeasible"`` `fojax.LMIInfeasibleError`, any other
+    (``"optimal_inaccurate"``, an iteration limit, a solver error)
+    `fojax.SolverStoppedShortError`. The solution is then re-checked in float64 against the
     original $E$, $A$: ``symmetry_residual <= verify_rtol``,
     ``psd_min_eig >= -verify_rtol``, ``lyapunov_margin >= verify_rtol`` and
     $\lambda_{\min}(X) > 0$ (definitions in `AdmissibilityCertificate`); a failure
@@ -112,7 +113,8 @@ def admissibility_certificate(
     **Returns:** an `AdmissibilityCertificate`. For ``n = 0`` a trivial certificate
     (empty matrices, status ``"trivial"``) is returned without calling the solver.
 
-    **Raises:** `fojax.LMIInfeasibleError`, `fojax.DesignVerificationError`.
+    **Raises:** `fojax.LMIInfeasibleError`, `fojax.SolverStoppedShortError`,
+    `fojax.DesignVerificationError`.
     """
     import cvxpy as cp
 
@@ -149,8 +151,8 @@ def admissibility_certificate(
         try:
             prob.solve(solver=cp.SCS, eps_abs=eps, eps_rel=eps, max_iters=max_iters)
         except cp.error.SolverError as err:
-            raise LMIInfeasibleError(
-                "admissibility (Xu-Lam)", "solver_error", {"message": str(err)}
+            raise SolverStoppedShortError(
+                "admissibility (Xu-Lam)", "solver_error", {"solver": "SCS", "message": str(err)}
             ) from err
     info = {
         "solve_time": time.perf_counter() - t0,
@@ -161,19 +163,15 @@ def admissibility_certificate(
         info["iterations"] = getattr(stats, "num_iters", None)
     status = str(prob.status)
     if status != "optimal":
-        if status.startswith("infeasible"):
-            hint = (
+        info.update(solver="SCS", settings={"eps_abs": eps})
+        if status == "infeasible":
+            raise LMIInfeasibleError("admissibility (Xu-Lam)", status, info, hint=(
                 "No certificate E^T P = P^T E >= 0, A^T P + P^T A < 0 exists: the pair (E, A) "
                 "is not admissible (irregular, impulsive or unstable). "
-                "Check fojax.structure_report(sys)."
-            )
-        else:
-            hint = (
-                f"SCS stopped without reaching eps = {eps:.0e} (max_iters = {max_iters}); raise "
-                "max_iters, loosen eps, or rescale the model. If the pair is only marginally "
-                "admissible, check fojax.structure_report(sys)."
-            )
-        raise LMIInfeasibleError("admissibility (Xu-Lam)", status, info, hint=hint)
+                "Check fojax.structure_report(sys)."))
+        raise SolverStoppedShortError("admissibility (Xu-Lam)", status, info, hint=(
+            f"Here: raise max_iters (now {max_iters}), loosen eps (now {eps:.0e}), or rescale the "
+            "model. If the pair is only marginally admissible, check fojax.structure_report(sys)."))
     Xv = np.asarray(X.value, dtype=float)
     Xv = _sym(Xv)
     Phiv = np.asarray(Phi.value, dtype=float) if Phi is not None else np.zeros((0, n))

@@ -68,6 +68,40 @@ def e_perp(E, tol: float | None = None, *, balance: bool = True, D=None) -> np.n
     return Q.T.copy()
 
 
+def algebraic_channel(E, W, Eperp=None, tol: float | None = None, *, balance: bool = True) -> np.ndarray:
+    r"""$E^\perp W$, the part of the input matrix `W` that enters the algebraic equations, with
+    its round-off removed by fojax's one rank rule.
+
+    Its rank is $k = \operatorname{rank}[E\;W] - \operatorname{rank}E$, decided as `e_perp`
+    decides with ``D=W``: on ``[D_l E D_r / ‖·‖, D_l W / ‖·‖]`` (the exact power-of-two
+    balancing of `E`, each block divided by its norm), so the decision does not change when
+    the equations are multiplied by a diagonal or an orthogonal matrix or the states by a
+    diagonal one. The result is the best rank-$k$ approximation of $E^\perp W$ (its $k$
+    leading singular triples): exactly zero when `W` lies in the range of `E` (a
+    disturbance on the differential equations only), where the product itself would be
+    round-off of order $10^{-16}\|W\|$ in directions that depend on the coordinates.
+
+    **Arguments:**
+
+    - `E`: ``(n, n)``; `W`: ``(n, m)``.
+    - `Eperp`: the $E^\perp$ to multiply by (default `e_perp` of `E`).
+    - `tol`, `balance`: as for `e_perp`.
+
+    **Returns:** ``(n - rank E, m)``.
+    """
+    E = to_numpy(as_matrix("E", E))
+    W = to_numpy(as_matrix("W", W, rows=E.shape[0]))
+    Ep = e_perp(E, tol, balance=balance) if Eperp is None else np.asarray(Eperp, dtype=float)
+    out = Ep @ W
+    if out.size == 0 or not np.any(out):
+        return out
+    k = Ep.shape[0] - e_perp(E, tol, balance=balance, D=W).shape[0]
+    if k >= min(out.shape):
+        return out
+    U, sv, Vt = np.linalg.svd(out, full_matrices=False)
+    return (U[:, :k] * sv[:k]) @ Vt[:k]
+
+
 def is_regular(sys, A=None, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""Whether the pencil is regular: $\det(sE - A) \not\equiv 0$ (thesis Def. 2.1.1).
 

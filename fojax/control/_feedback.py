@@ -75,6 +75,7 @@ import numpy as np
 from .._dtype import require_x64
 from .._errors import (
     DesignVerificationError,
+    LMI_FAILURES,
     LMIInfeasibleError,
     StabilizabilityError,
 )
@@ -544,7 +545,7 @@ def design_state_feedback(
     try:
         (meth, reg), (L, cert, info, (poles, pmargin, checks)), refused = _ladder.climb(
             rungs,
-            refusals=(LMIInfeasibleError, DesignVerificationError, np.linalg.LinAlgError, ValueError),
+            refusals=(*LMI_FAILURES, DesignVerificationError, np.linalg.LinAlgError, ValueError),
             # a larger penalty does not make an infeasible LMI feasible: next method
             give_up=lambda label, err: isinstance(err, LMIInfeasibleError)
             and str(err.status).startswith("infeasible"),

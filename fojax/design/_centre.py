@@ -46,7 +46,7 @@ needs a `Disk` or an intersection with one.
 
 from __future__ import annotations
 
-from .._errors import InputError, LMIInfeasibleError
+from .._errors import InputError, LMI_FAILURES
 from ._regions import AbstractRegion, Disk, HalfPlane, Intersection
 
 
@@ -80,14 +80,14 @@ def centred_gains(solve, region: AbstractRegion, lo: float):
     try:  # the top of the bracket is often feasible (every eigenvalue assignable)
         best, f_lo = solve(region.tightened(f_hi)), f_hi
         steps.append((f_hi, True))
-    except LMIInfeasibleError:
+    except LMI_FAILURES:
         steps.append((f_hi, False))
     while f_hi - f_lo > CENTRE_TOL and f_lo < CENTRE_MAX:
         f = 0.5 * (f_lo + f_hi)
         try:
             best, f_lo = solve(region.tightened(f)), f
             steps.append((f, True))
-        except LMIInfeasibleError:
+        except LMI_FAILURES:
             f_hi = f
             steps.append((f, False))
     X, Z, Ys, info = best

@@ -12,7 +12,7 @@ from .._errors import (
     DesignVerificationError,
     DetectabilityError,
     ExistenceConditionError,
-    LMIInfeasibleError,
+    LMI_FAILURES,
     RegionError,
 )
 from .._linalg import row_space
@@ -247,7 +247,7 @@ def design_finite_time_observer(
         return _design_ft(sys, L, R=R, q0=q0, **kw)
     try:
         return _design_ft(sys, L, R=None, q0=None, **kw)
-    except (LMIInfeasibleError, DesignVerificationError, ExistenceConditionError) as first:
+    except (*LMI_FAILURES, DesignVerificationError, ExistenceConditionError) as first:
         E, A, C = (np.asarray(x) for x in (sys.E, sys.A, sys.C))
         from ..analysis._pencil import e_perp  # analysis decides the rank of E (balanced)
 
@@ -255,7 +255,7 @@ def design_finite_time_observer(
         R_full = row_space(np.vstack([E, Ep @ A, C]))
         try:
             return _design_ft(sys, L, R=R_full, q0=None, **kw)
-        except (LMIInfeasibleError, DesignVerificationError, ExistenceConditionError):
+        except (*LMI_FAILURES, DesignVerificationError, ExistenceConditionError):
             raise first from None
 
 
@@ -310,7 +310,7 @@ def _design_ft(
                 s, (t1, t2), kind=kind, margin=margin, solver=solver, Z=Z
             )
             info1 = info2 = info
-        except LMIInfeasibleError as err:
+        except LMI_FAILURES as err:
             if method == "lmi":
                 raise
             lmi_error = err

@@ -36,12 +36,15 @@ import numpy as np
 
 from .._dtype import require_x64
 from .._errors import (
+    combined_failure,
     DesignVerificationError,
     FojaxError,
     InputError,
+    LMI_FAILURES,
     LMIInfeasibleError,
     RankConditionError,
     ShapeError,
+    SolverStoppedShortError,
 )
 from ..analysis._pencil import e_perp as _e_perp  # analysis decides the rank of E (balanced)
 from ..observer._generalized import GeneralizedFunctionalObserver
@@ -383,9 +386,10 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
         return f"{err.status} ({label[0]}, {label[1]}{why})"
 
     try:
-        (sv, o), info, refused = _ladder.climb(rungs, refusals=(LMIInfeasibleError,))
+        (sv, o), info, refused = _ladder.climb(rungs, refusals=LMI_FAILURES)
     except _ladder.Refused as every:
-        raise LMIInfeasibleError(name, "; ".join(status(lb, e) for lb, e in every.refused), {}, hint) from None
+        raise combined_failure(name, "; ".join(status(lb, e) for lb, e in every.refused),
+                               [e for _, e in every.refused], {lb[0]: e.info for lb, e in every.refused}, hint) from None
     statuses = [status(lb, e) for lb, e in refused]
     info["objective"] = o
     if statuses:
@@ -659,6 +663,16 @@ def unit_free_fallback(raw, balanced, balance: bool | None, conditions: str):
         return balanced()
     try:
         return raw()
+    except SolverStoppedShortError as err:  # balance=None: a solver that stopped short, again unit-free
+        if balance is False:
+            raise
+        try:
+            d = balanced()
+        except FojaxError as again:
+            raise SolverStoppedShortError(err.problem, err.status, err.info, balanced_error=again) from err
+        note = f"the design on the data as given: {err}; designed on the unit-free model instead (balance=True)"
+        return dataclasses.replace(d, report=dataclasses.replace(d.report, extra={**d.report.extra,
+                                                                                  "balance": note}))
     except DesignVerificationError as err:  # balance=None: redesign unit-free
         if balance is False:
             raise

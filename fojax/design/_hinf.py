@@ -128,9 +128,9 @@ import dataclasses
 
 import numpy as np
 
-from .._errors import DesignVerificationError, InputError, ShapeError
+from .._errors import DesignVerificationError, InputError, ShapeError, SolverStoppedShortError
 from .._linalg import RANK_RTOL
-from . import _lmi
+from . import _ladder, _lmi
 from ._parameterization import observer_matrices, pieces
 
 
@@ -152,8 +152,11 @@ class HinfCertificate:
         tightness: ``gamma / norm`` (≥ 1).
         region_only_norm: $\|T\|_\infty$ of the region-only design (same structure, same Z).
         Bw, Dv: the disturbance and noise channels (``(n, mw)``, ``(p, mv)``).
-        brl_max_eig: largest eigenvalue of the BRL at ``(X, gamma)`` (``< 0``; in the scaled
-            problem, channels divided by `region_only_norm`).
+        brl_max_eig: largest eigenvalue of the BRL at ``(certificate_X, gamma)`` (``< 0``).
+        certificate_X: the BRL certificate of ``gamma`` for the returned observer alone
+            (`observer_gamma`), or the design LMI's own $X$ when that certifies a smaller
+            bound. ``None`` only for certificates saved without it: their BRL is checked at
+            the design's $X$ with the channels divided by `region_only_norm`.
     """
 
     gamma: float
@@ -164,6 +167,7 @@ class HinfCertificate:
     Bw: np.ndarray
     Dv: np.ndarray
     brl_max_eig: float
+    certificate_X: np.ndarray | None = None
 
     def describe(self) -> str:
         return (f"H∞ bound γ = {self.gamma:.6g} ≥ ‖T‖∞ = {self.norm:.6g} (SLICOT AB13DD, peak at "
@@ -176,8 +180,11 @@ class HinfCertificate:
         ``(X, γ)`` in float64 (in the scaled problem of `design_hinf`, channels divided by
         `region_only_norm`) and ``γ ≥ ‖T‖∞`` by SLICOT's AB13DD on the observer of `params`."""
         A, B, C, D = error_system(s, base_mats(s, params), np.asarray(self.Bw), np.asarray(self.Dv))
-        scale = self.region_only_norm if self.region_only_norm > 0 else 1.0
-        M = brl_matrix(np.asarray(X), A, B / scale, C, D / scale, self.gamma / scale)
+        if self.certificate_X is not None:
+            M = brl_matrix(np.asarray(self.certificate_X), A, B, C, D, self.gamma)
+        else:  # a certificate saved without its own X: the design's X, in the scaled problem
+            scale = self.region_only_norm if self.region_only_norm > 0 else 1.0
+            M = brl_matrix(np.asarray(X), A, B / scale, C, D / scale, self.gamma / scale)
         top = float(np.linalg.eigvalsh(M).max())
         norm, freq = hinf_norm(A, B, C, D)
         out = [("H∞", self.describe(), None)]
@@ -273,9 +280,18 @@ def error_system(s, mats, Bw, Dv, xp=np):
 
 
 def _dcal(s, Bw, Dv, xp=np):
+    r"""$\mathcal D = [E^\perp B_w, 0; 0, D_v]$; on the host $E^\perp B_w$ with its round-off
+    removed by the analysis's rank rule (`fojax.analysis.algebraic_channel`), so that a
+    disturbance on the differential equations only has exactly no feedthrough whatever
+    coordinates the equations are written in. Traced (``xp=jax.numpy``): the product."""
     Ep = xp.asarray(s.Eperp)
     r1, p = Ep.shape[0], s.C.shape[0]
-    top = xp.concatenate([Ep @ Bw, xp.zeros((r1, Dv.shape[1]))], axis=1)
+    EpBw = Ep @ Bw
+    if xp is np and EpBw.size:
+        from ..analysis._pencil import algebraic_channel
+
+        EpBw = algebraic_channel(np.asarray(s.E), Bw, Eperp=Ep)
+    top = xp.concatenate([EpBw, xp.zeros((r1, Dv.shape[1]))], axis=1)
     bot = xp.concatenate([xp.zeros((p, Bw.shape[1])), Dv], axis=1)
     return xp.concatenate([top, bot], axis=0)
 
@@ -365,10 +381,18 @@ def feedthrough_free_Y3(ap: _AffinePieces) -> tuple[np.ndarray, np.ndarray, floa
 FEEDTHROUGH_RTOL = 1e-9
 
 
-def solve_performance(s, region, *, kind, Z, Bw, Dv, scale, solver, objective="hinf"):
+#: Weights of the gain penalty added to the bound in `solve_performance`, tried in turn when
+#: the solvers stop short: without measurement noise the infimum of γ may be approached only
+#: with unbounded gains, where no solver reaches "optimal"; a larger weight keeps the gains
+#: bounded (the returned observer's own bound is certified afterwards, `observer_gamma`).
+GAIN_PENALTIES = (1e-6, 1e-4, 1e-2)
+
+
+def solve_performance(s, region, *, kind, Z, Bw, Dv, scale, solver, objective="hinf", penalty=GAIN_PENALTIES[0]):
     r"""The LMI of the module docstring with `Z` fixed; channels divided by `scale`:
     ``objective="hinf"`` (bounded-real lemma, minimise γ) or ``"h2"`` (Lyapunov inequality
-    with $\mathbb D = 0$, minimise $\operatorname{tr}W = \nu^2$).
+    with $\mathbb D = 0$, minimise $\operatorname{tr}W = \nu^2$), plus `penalty` times the
+    gains' and the certificate's size.
 
     Returns ``(X, 𝕐, Y3, γ or ν (scaled), info)``."""
     import cvxpy as cp
@@ -423,9 +447,8 @@ def solve_performance(s, region, *, kind, Z, Bw, Dv, scale, solver, objective="h
     cons.append(Mx << -eps * np.eye(Mx.shape[0]))
     if kind == "PI" and q1:
         cons.append(Wv[q0:, :c] == 0)
-    # the bound, plus a small gain penalty: without measurement noise the infimum may be
-    # approached only with unbounded gains (then no solver reaches "optimal").
-    obj = cp.Minimize(target + 1e-6 * (cp.norm(Wv, "fro") + cp.norm(Y3, "fro") + cp.trace(X)))
+    # the bound, plus a small gain penalty (`GAIN_PENALTIES`)
+    obj = cp.Minimize(target + penalty * (cp.norm(Wv, "fro") + cp.norm(Y3, "fro") + cp.trace(X)))
     info = _lmi.solve(cp.Problem(obj, cons), name, hint=hint, solver=solver)
     Xv = np.asarray(X.value, dtype=float)
     Xv = 0.5 * (Xv + Xv.T)
@@ -539,12 +562,25 @@ def design_hinf(s, region, *, kind, margin, solver, Bw, Dv, tighten, method="lmi
                 f"[E⊥Bw, 0; 0, Dv]: noise Dv, or disturbance Bw on the algebraic rows). Use objective='hinf' "
                 f"(it allows feedthrough), or remove that part of Bw/Dv, or choose R (q0) so that the "
                 f"observer state carries z.")
-    X, Y, Y3, gs, info = solve_performance(s, region.tightened(tighten), kind=kind, Z=Z, Bw=Bw, Dv=Dv,
-                                           scale=scale, solver=solver, objective=objective)
+    rungs = [(w, (lambda w=w: solve_performance(s, region.tightened(tighten), kind=kind, Z=Z, Bw=Bw, Dv=Dv,
+                                                scale=scale, solver=solver, objective=objective, penalty=w)))
+             for w in GAIN_PENALTIES]
+    try:  # an infeasible LMI stays infeasible with another penalty: only a stop short climbs
+        w, (X, Y, Y3, gs, info), refused = _ladder.climb(rungs, refusals=(SolverStoppedShortError,))
+    except _ladder.Refused as every:
+        last = every.refused[-1][1]
+        raise SolverStoppedShortError(
+            last.problem, "; ".join(f"{e.status} (gain penalty {lb:g})" for lb, e in every.refused),
+            {**last.info}) from None
+    info = {**info, "gain_penalty": w}
+    if refused:
+        info["refused_penalties"] = [{"gain_penalty": lb, "status": e.status} for lb, e in refused]
     c = s.q0 + s.nw
     blocks = split_Y(Y, s.q0, c)
     params = {"Z": Z, "Y1": blocks["Y1"], "Y2": blocks["Y2"], "Y3": Y3, "J": blocks["J"], "G": blocks["G"]}
     route = _lmi.describe_route(info, "min-γ" if objective == "hinf" else "min-tr(W)")
+    if refused:
+        route += f"; gain penalty {w:g} after " + ", ".join(f"{e.status} at {lb:g}" for lb, e in refused)
     mats, report = verify_structure_design(s, params, region, X, extra={"LMI route": route}, unit_free=UNIT_FREE_FIX)
     A, B, C, D = error_system(s, mats, Bw, Dv)
     if objective == "h2":
@@ -557,6 +593,9 @@ def design_hinf(s, region, *, kind, margin, solver, Bw, Dv, tighten, method="lmi
         nu, lyap_top = certify_nu(X, A, B / scale, C)
         nu *= scale
         norm = h2_norm(A, B, C)
+        own = observer_nu(A, B, C, norm)  # the returned observer alone (tighter than the shared X)
+        if own is not None and own[0] < nu:
+            nu, _, lyap_top = own
         if not nu >= norm * (1.0 - NORM_RTOL):
             raise DesignVerificationError(
                 f"H2 verification failed: the certified ν = {nu:.8g} is below the H2 norm of the error "
@@ -576,9 +615,16 @@ def design_hinf(s, region, *, kind, margin, solver, Bw, Dv, tighten, method="lmi
             raise DesignVerificationError(
                 f"H∞ verification failed: the certified γ = {gamma:.8g} is below the norm of the "
                 f"error system computed by SLICOT AB13DD, {norm:.8g} (peak at ω = {freq:.4g} rad/s)", report)
+        # the LMI's γ is certified with the X it shares with the region LMI; the returned
+        # observer alone has a tighter certificate (bounded-real Riccati equation, observer fixed)
+        Xc = X / scale
+        own = observer_gamma(A, B, C, D, norm)
+        if own is not None and own[0] < gamma:
+            gamma, Xc, _ = own
+        brl_top = float(np.linalg.eigvalsh(brl_matrix(Xc, A, B, C, D, gamma)).max())
         cert = HinfCertificate(gamma=gamma, norm=norm, peak_frequency=freq,
                                tightness=gamma / norm if norm > 0 else float("inf"),
-                               region_only_norm=g0, Bw=Bw, Dv=Dv, brl_max_eig=brl_top)
+                               region_only_norm=g0, Bw=Bw, Dv=Dv, brl_max_eig=brl_top, certificate_X=Xc)
         report = dataclasses.replace(report, extra={**report.extra, "H∞": cert.describe()})
         extra = {"hinf": cert}
     return FunctionalObserverDesign(
@@ -614,38 +660,84 @@ def error_norms(s, params, Bw, Dv) -> dict:
             "feedthrough": ft}
 
 
-#: Relative gaps between the AB13DD norm and the γ0 at which `riccati_gamma` tries to certify
-#: (the first that passes is returned; `certify_gamma` may add up to 1 % more).
-RICCATI_GAPS = (1e-4, 1e-3, 1e-2)
+#: Relative gaps between the AB13DD norm and the γ0 at which `observer_gamma` tries to certify
+#: (the smallest that passes is returned; `certify_gamma` may add up to 1 % more).
+RICCATI_GAPS = (1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)
 
 
-def riccati_gamma(A, B, C, D, norm) -> float | None:
-    r"""A certified bound γ ≥ ‖T‖∞ for a system without an LMI certificate (a tuned design): the
-    stabilizing solution $Y$ of the bounded-real Riccati equation at $\gamma_0 = $ `norm`
-    ``·(1 + gap)`` (`RICCATI_GAPS`, tried in turn), $A^\top Y + YA + C^\top C + \epsilon I + (YB + C^\top D)
-    (\gamma_0^2I - D^\top D)^{-1}(B^\top Y + D^\top C) = 0$ (SciPy ``solve_continuous_are`` with
-    the negative definite weight $-(\gamma_0^2I - D^\top D)$), gives $X = Y/\gamma_0$ at which the BRL
-    matrix of the designs (`brl_matrix`) is negative definite (Schur complement); `certify_gamma`
-    re-checks it in float64 exactly as for an H∞ design. ``None`` when that fails (reported as
-    "not certified")."""
+def observer_gamma(A, B, C, D, norm):
+    r"""The tightest certified bound γ ≥ ‖T‖∞ of a fixed error system, with its certificate:
+    ``(γ, X, max eig)`` or ``None``.
+
+    The observer is fixed, so the bounded-real lemma needs no region constraint and no
+    shared certificate: the stabilizing solution $Y$ of the bounded-real Riccati equation at
+    $\gamma_0 = $ `norm` ``·(1 + gap)`` (`RICCATI_GAPS`, smallest first),
+    $A^\top Y + YA + C^\top C + \epsilon I + (YB + C^\top D)(\gamma_0^2I - D^\top D)^{-1}
+    (B^\top Y + D^\top C) = 0$ (SciPy ``solve_continuous_are`` with the negative definite
+    weight $-(\gamma_0^2I - D^\top D)$), gives $X = Y/\gamma_0$ at which the BRL matrix
+    (`brl_matrix`) is negative definite (Schur complement); `certify_gamma` re-checks it in
+    float64. The first gap whose certificate passes is used, so γ exceeds the AB13DD norm
+    by at most that gap (plus `certify_gamma`'s bump). ``None`` when no gap certifies."""
     import warnings
 
     import scipy.linalg as sla
 
     if not (np.isfinite(norm) and norm > 0) or A.shape[0] == 0:
         return None
+    # the Riccati data in units where the bound is 1: B, D divided by norm (X is unchanged
+    # by that scaling up to the factor applied below)
+    Bs, Ds = B / norm, D / norm
     Q = C.T @ C
     Q = Q + 1e-9 * max(1.0, float(np.abs(Q).max())) * np.eye(A.shape[0])
     for gap in RICCATI_GAPS:  # the Riccati equation is ill-conditioned as γ0 → ‖T‖∞: widen the gap
-        g0 = norm * (1.0 + gap)
-        Rt = g0 * g0 * np.eye(B.shape[1]) - D.T @ D
+        g0 = 1.0 + gap
+        Rt = g0 * g0 * np.eye(B.shape[1]) - Ds.T @ Ds
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                Y = sla.solve_continuous_are(A, B, Q, -Rt, s=C.T @ D)
+                Y = sla.solve_continuous_are(A, Bs, Q, -Rt, s=C.T @ Ds)
             if np.all(np.isfinite(Y)):
-                gamma, _ = certify_gamma(0.5 * (Y + Y.T) / g0, A, B, C, D, g0)
-                return float(gamma)
+                # BRL of (A, Bs, C, Ds) at (Y/g0, g0) ⇔ BRL of (A, B, C, D) at (Y/(g0·norm), g0·norm)
+                X = 0.5 * (Y + Y.T) / (g0 * norm)
+                gamma, top = certify_gamma(X, A, B, C, D, g0 * norm)
+                return float(gamma), X, top
         except (np.linalg.LinAlgError, ValueError, DesignVerificationError):
             pass
+    return None
+
+
+def riccati_gamma(A, B, C, D, norm) -> float | None:
+    """A certified bound γ ≥ ‖T‖∞ for a system without an LMI certificate (a tuned design):
+    `observer_gamma`'s γ, ``None`` when it fails (reported as "not certified")."""
+    out = observer_gamma(A, B, C, D, norm)
+    return None if out is None else out[0]
+
+
+def observer_nu(A, B, C, norm):
+    r"""The tightest certified bound ν ≥ ‖T‖₂ of a fixed error system without feedthrough:
+    ``(ν, X, max eig)`` or ``None``.
+
+    With the observability Gramian $L_o$ ($A^\top L_o + L_oA + C^\top C = 0$) and $P_1$
+    ($A^\top P_1 + P_1A + I = 0$), $X = L_o + \delta P_1$ satisfies
+    $\operatorname{He}(XA) + C^\top C = -\delta I \prec 0$, and
+    $\nu^2 = \operatorname{tr}(B^\top XB) = \|T\|_2^2 + \delta\operatorname{tr}(B^\top P_1B)$.
+    δ grows from $10^{-10}$ of the data's scale until `certify_nu` passes in float64."""
+    import scipy.linalg as sla
+
+    if A.shape[0] == 0 or not np.isfinite(norm):
+        return None
+    try:
+        Lo = sla.solve_continuous_lyapunov(A.T, -C.T @ C)
+        P1 = sla.solve_continuous_lyapunov(A.T, -np.eye(A.shape[0]))
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    Lo, P1 = 0.5 * (Lo + Lo.T), 0.5 * (P1 + P1.T)
+    size = max(float(np.abs(C.T @ C).max()), float(np.abs(Lo @ A).max()), 1e-300)
+    for rel in (1e-10, 1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4):
+        X = Lo + rel * size * P1
+        try:
+            nu, top = certify_nu(X, A, B, C)
+        except DesignVerificationError:
+            continue
+        return nu, X, top
     return None

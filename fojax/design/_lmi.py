@@ -1,7 +1,9 @@
 """cvxpy on the host: building and solving region LMIs, strictly.
 
-Only solver status ``optimal`` is accepted; ``optimal_inaccurate`` (and every other
-status) raises `fojax.LMIInfeasibleError` with the status and solver statistics.
+Only solver status ``optimal`` is accepted. Status ``infeasible`` (a certificate of
+infeasibility) raises `fojax.LMIInfeasibleError`; every other status (``optimal_inaccurate``,
+an iteration limit, a solver error) raises `fojax.SolverStoppedShortError`, both with the
+status and solver statistics.
 Every solution is re-verified in float64 by the caller, independently of the solver.
 
 **Solvers.** ``solver="auto"`` (default) tries Clarabel and, when its status is not
@@ -31,7 +33,7 @@ settings that produced a solution are in ``info["settings"]``, the refused attem
 
 **Ctrl-C during an SCS solve.** SCS installs its own SIGINT handler while it runs and
 then stops with status "interrupted", which cvxpy reports as a solver failure: the
-interruption would become an `LMIInfeasibleError` (or the next attempt), and Python
+interruption would become a `SolverStoppedShortError` (or the next attempt), and Python
 (the ``fojax`` command, a notebook) would never see it. `solve` therefore runs SCS
 through `_scs_solver`, which re-raises the SIGINT in Python (`signal.raise_signal`)
 when SCS was interrupted: Ctrl-C ends the design as it does everywhere else.
@@ -44,7 +46,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._errors import LMIInfeasibleError
+from .._errors import LMI_FAILURES, LMIInfeasibleError, solver_failure, SolverStoppedShortError
 from ._regions import AbstractRegion
 
 
@@ -110,7 +112,8 @@ def _scs_solver():
 
 
 def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_SOLVER) -> dict:
-    """Solve; raise `LMIInfeasibleError` unless the status is ``optimal``.
+    """Solve; unless the status is ``optimal``, raise `LMIInfeasibleError` (infeasibility
+    shown) or `SolverStoppedShortError` (`fojax._errors.solver_failure`).
 
     Each solver gets a second run with looser settings after ``optimal_inaccurate``
     (`CLARABEL_RETRY`, `SCS_RETRY`; module docstring)."""
@@ -119,18 +122,17 @@ def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_
     if solver == "AUTO":
         try:
             return solve(problem, name, hint, "CLARABEL")
-        except LMIInfeasibleError as first:
+        except LMI_FAILURES as first:
             try:
                 info = solve(problem, name, hint, "SCS")
-            except LMIInfeasibleError as second:
-                why = "; ".join(f"{sv}: {e.info['message']}" for sv, e in (("CLARABEL", first), ("SCS", second))
-                                if e.info.get("message"))
-                raise LMIInfeasibleError(
-                    name,
-                    f"{first.status} (Clarabel), {second.status} (SCS)",
-                    {"clarabel": first.info, "scs": second.info},
-                    (f"Solver failures: {why}. " if why else "") + hint,
-                ) from None
+            except LMI_FAILURES as second:
+                both = {"clarabel": first.info, "scs": second.info}
+                shown = [e for e in (first, second) if isinstance(e, LMIInfeasibleError)]
+                if shown:  # one solver's certificate of infeasibility decides
+                    raise LMIInfeasibleError(name, f"{first.status} (Clarabel), {second.status} (SCS)",
+                                             both, hint) from None
+                raise SolverStoppedShortError(
+                    name, f"{first.status} (Clarabel), {second.status} (SCS)", both) from None
             info["fallback_from"] = {"solver": "CLARABEL", "status": first.status}
             return info
     info: dict = {"solver": solver}
@@ -169,10 +171,7 @@ def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_
         refused.append({"status": status, "settings": dict(settings)})
     if status == "solver_error":
         info.update(problem_size(problem))
-        hint = (f"{solver} failed: {info['message']} (problem: {info['variables']} scalar "
-                f"variables, {info['constraints']} constraints, largest data entry "
-                f"{info['data_magnitude']:.1e}). " + hint).strip()
-    raise LMIInfeasibleError(name, str(status), info, hint)
+    raise solver_failure(name, str(status), info, hint)
 
 
 def problem_size(problem) -> dict:
@@ -215,5 +214,5 @@ def describe_route(info: dict, objective: str | None = None) -> str:
 def value(x) -> np.ndarray:
     v = x.value
     if v is None:
-        raise LMIInfeasibleError("value", "no_solution", {}, "")
+        raise SolverStoppedShortError("value", "no_solution", {})
     return np.asarray(v, dtype=float)

@@ -95,10 +95,11 @@ import numpy as np
 
 from .._dtype import as_matrix
 from .._errors import (
+    combined_failure,
     DetectabilityError,
     ExistenceConditionError,
     FunctionalObservabilityError,
-    LMIInfeasibleError,
+    LMI_FAILURES,
     RankConditionError,
     ShapeError,
 )
@@ -596,7 +597,8 @@ def design_unknown_input_observer(
     **Raises:** `IrregularSystemError` (singular pencil), `DataRangeError`, `ShapeError`,
     `RankConditionError` (rank of D, rank conditions),
     `FunctionalObservabilityError`, `DetectabilityError` (fixed modes, unknown-input
-    mode), `LMIInfeasibleError`, `DesignVerificationError`.
+    mode), `LMIInfeasibleError` (infeasibility shown), `SolverStoppedShortError`,
+    `DesignVerificationError`.
     """
     sys = _as_system(sys)
     continuous_only(sys, "design_unknown_input_observer")
@@ -819,12 +821,12 @@ def _solve_lmi(s, D, Z, region, *, margin, solver):
     rungs = [(nm, (lambda S=S, kappa=kappa, nm=nm: _region_lmi(A1, A2, S, region, margin, solver, nm, hint, kappa)))
              for S, kappa, nm in attempts]
     try:
-        nm, (Xv, Y, info), refused = _ladder.climb(rungs, refusals=(LMIInfeasibleError,))
+        nm, (Xv, Y, info), refused = _ladder.climb(rungs, refusals=LMI_FAILURES)
     except _ladder.Refused as every:
         errors = [e for _, e in every.refused]
-        raise errors[0] if len(errors) == 1 else LMIInfeasibleError(
-            name, "; ".join(f"{e.status} ({e.problem})" for e in errors),
-            {"attempts": [e.info for e in errors]}, hint,
+        raise errors[0] if len(errors) == 1 else combined_failure(
+            name, "; ".join(f"{e.status} ({e.problem})" for e in errors), errors,
+            {f"attempt {i}": e.info for i, e in enumerate(errors)}, hint,
         ) from None
     info["problem"] = nm
     if refused:
