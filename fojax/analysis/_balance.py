@@ -46,9 +46,11 @@ from dataclasses import dataclass
 import numpy as np
 
 
-#: Largest |exponent| applied. Balancing never needs more for float64 data that fojax
-#: accepts (entries within 2^±1000); the cap only guards against overflow.
-_MAX_EXP = 900
+#: Largest |exponent| applied: float64 data span 2^-1074..2^1024, so no balancing of
+#: finite data needs more. Scaled matrices are formed with `numpy.ldexp` of the summed
+#: row and column exponents (no intermediate product can overflow), and the free common
+#: shifts are chosen to keep every block's largest entry near 1 (`_gauge`).
+_MAX_EXP = 2100
 
 
 @dataclass(frozen=True)
@@ -74,6 +76,15 @@ class Scaling:
     def right(self) -> np.ndarray:
         """The diagonal of ``D_r`` (powers of two)."""
         return np.ldexp(1.0, self.col_exponents)
+
+    def rows(self, M) -> np.ndarray:
+        """``D_l M`` (exact; no intermediate overflow)."""
+        M = np.asarray(M, dtype=float)
+        return np.ldexp(M, self.row_exponents.reshape((-1,) + (1,) * (M.ndim - 1)))
+
+    def cols(self, M) -> np.ndarray:
+        """``M D_r`` (exact; no intermediate overflow)."""
+        return np.ldexp(np.asarray(M, dtype=float), self.col_exponents)
 
     @property
     def identity(self) -> bool:
@@ -141,16 +152,71 @@ def scaling_of(E, A, B=None, C=None, *, balance: bool = True) -> Scaling:
         )  # fmt: skip
         e = _exponents(d)
         return Scaling(-e, e, "tb01id")
-    el, er = _ward_exponents(E, A, B, C)
-    return Scaling(el, er, "ward")
+    el, er = _ward_exponents(E, A, B, C, io_weight=IO_WEIGHT)
+    c1, c2 = _gauge(el, er, E, A, B, C)
+    return Scaling(el + c1, er + c2, "ward")
 
 
-def _ward_exponents(E, A, B, C, *, rounded: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def _log2_max(M, rows=None, cols=None) -> float | None:
+    """``max log2 |M_ij| + rows_i + cols_j`` over the non-zero entries (``None``: no entry)."""
+    a = np.abs(np.asarray(M, dtype=float))
+    if not a.size or not np.any(a):
+        return None
+    lg = np.where(a > 0, np.log2(np.where(a > 0, a, 1.0)), -np.inf)
+    if rows is not None:
+        lg = lg + rows[:, None]
+    if cols is not None:
+        lg = lg + cols[None, :]
+    return float(lg.max())
+
+
+def _gauge(el, er, E, A, B, C) -> tuple[int, int]:
+    r"""The common shifts ``(c1, c2)`` of the row and column exponents (Ward's least squares
+    leaves them free: they multiply ``E``, ``A`` by $2^{c_1 + c_2}$, ``B`` by $2^{c_1}$, ``C``
+    by $2^{c_2}$, which the analysis's per-block normalisation removes) that minimise the
+    largest $|\log_2|$ of each block's largest scaled entry, so that no block overflows
+    or drops into subnormal numbers when scaled (a small linear program; integers)."""
+    from scipy.optimize import linprog
+
+    m_ea = [v for v in (_log2_max(E, el, er), _log2_max(A, el, er)) if v is not None]
+    terms = []  # (coefficient of c1, of c2, constant)
+    if m_ea:
+        terms.append((1.0, 1.0, max(m_ea)))
+    mb, mc = _log2_max(B, el), _log2_max(C, None, er)
+    if mb is not None:
+        terms.append((1.0, 0.0, mb))
+    if mc is not None:
+        terms.append((0.0, 1.0, mc))
+    if not terms:
+        return 0, 0
+    # min t  s.t.  ±(a c1 + b c2 + m) <= t
+    A_ub, b_ub = [], []
+    for a, b, m in terms:
+        A_ub += [[a, b, -1.0], [-a, -b, -1.0]]
+        b_ub += [-m, m]
+    res = linprog([0.0, 0.0, 1.0], A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * 3, method="highs")
+    if not res.success:
+        return 0, 0
+    # among optimal shifts prefer the smallest (the min-norm solution's own scaling)
+    c1, c2 = (int(np.rint(v)) for v in res.x[:2])
+    return c1, c2
+
+
+#: Weight of the ``B`` and ``C`` entries in the least squares of `scaling_of` (``E``, ``A``:
+#: 1). The pencil's verdicts (regularity, rank E, index, poles) depend on ``E`` and ``A``
+#: only; with equal weights, rows of ``B`` (columns of ``C``) whose sizes disagree with
+#: those of ``E`` and ``A`` by hundreds of orders of magnitude pulled the balancing of the
+#: pencil off, and a regular pencil was called singular.
+IO_WEIGHT = 1e-3
+
+
+def _ward_exponents(E, A, B, C, *, rounded: bool = True, io_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     r"""Ward's (1981) balancing as an exact least-squares problem, rounded to powers of two.
 
     Minimise $\sum (\ell_i + r_j + o_X + \log_2|x_{ij}|)^2$ over the non-zero entries
     $x_{ij}$ of each block $X$ = ``E``, ``A`` (row ``i``, column ``j``), ``B`` (no $r_j$)
-    and ``C`` (no $\ell_i$), with one free offset $o_X$ per block. The offsets make the
+    and ``C`` (no $\ell_i$), with one free offset $o_X$ per block (the terms of ``B`` and ``C``
+    weighted by `io_weight`; `scaling_of` uses `IO_WEIGHT`). The offsets make the
     exponents independent of the scale of each block, which the analysis removes anyway
     (each block is divided by its norm): so ``C`` in huge units or ``E`` in tiny ones
     does not pull the states' exponents. Exact zeros are left out and so are round-off
@@ -187,6 +253,8 @@ def _ward_exponents(E, A, B, C, *, rounded: bool = True) -> tuple[np.ndarray, np
         if not M.size:
             continue
         k, lg = nz(M)
+        if o >= 2:  # B, C
+            k, lg = io_weight * k, io_weight * lg
         o = l + n + o
         G[o, o] += k.sum()
         rhs[o] -= lg.sum()
@@ -311,8 +379,21 @@ def tg01ad_scaling(E, A, B=None, C=None) -> Scaling:
 
 
 def apply_scaling(s: Scaling, E, A, B=None, C=None):
-    """``(D_l E D_r, D_l A D_r, D_l B, C D_r)`` (exact: powers of two)."""
-    return scale_model(s.left, s.right, E, A, B, C)
+    """``(D_l E D_r, D_l A D_r, D_l B, C D_r)`` (exact: powers of two, each entry scaled by
+    the sum of its row and column exponents, so no intermediate product overflows).
+
+    Raises `fojax.DataRangeError` naming the matrix when a scaled entry would not be a
+    finite float64 (balanced data outside ``2^±1024``)."""
+    from .._errors import DataRangeError
+
+    both = s.row_exponents[:, None] + s.col_exponents[None, :]
+    out = [np.ldexp(np.asarray(E, dtype=float), both), np.ldexp(np.asarray(A, dtype=float), both),
+           None if B is None else s.rows(B), None if C is None else s.cols(C)]
+    for name, M, X in zip("EABC", (E, A, B, C), out):
+        if X is not None and not np.all(np.isfinite(X)) and np.all(np.isfinite(np.asarray(M, dtype=float))):
+            raise DataRangeError(name, float(np.max(np.abs(np.asarray(M, dtype=float)))),
+                                 (2.0**-1074, float(np.finfo(float).max)), "balancing")
+    return tuple(out)
 
 
 def scale_model(dl, dr, E, A, B=None, C=None):
