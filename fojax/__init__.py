@@ -44,6 +44,7 @@ from ._errors import (
     IrregularSystemError as IrregularSystemError,
     LMIInfeasibleError as LMIInfeasibleError,
     NonFiniteError as NonFiniteError,
+    NumericallyUndecidableError as NumericallyUndecidableError,
     RankConditionError as RankConditionError,
     RegionError as RegionError,
     ShapeError as ShapeError,

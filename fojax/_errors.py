@@ -59,6 +59,34 @@ class IrregularSystemError(InputError):
     """The pencil sE - A is singular for every s (no unique solution exists)."""
 
 
+class NumericallyUndecidableError(InputError):
+    """Whether the pencil sE - A is regular cannot be decided at the rank tolerance: a
+    singular value that decides it is within a small factor of the tolerance, and two
+    algorithms (fojax's orthogonal deflation and SLICOT AG08BD) give different verdicts.
+
+    Attributes `tol` (the tolerance), `singular_value` (fojax's decision closest to it),
+    `deflation_regular` and `ag08bd_regular` (the two verdicts), `normal_rank` (AG08BD's).
+    """
+
+    def __init__(self, tol: float, singular_value: float, deflation_regular: bool, ag08bd_regular: bool,
+                 normal_rank: int):
+        self.tol = tol
+        self.singular_value = singular_value
+        self.deflation_regular = deflation_regular
+        self.ag08bd_regular = ag08bd_regular
+        self.normal_rank = normal_rank
+        verdict = {True: "regular", False: "singular"}
+        super().__init__(
+            f"the regularity of the pencil sE - A is numerically undecidable at tolerance {tol:.1e}: "
+            f"a deciding singular value is {singular_value:.2e} (of the balanced pencil with "
+            f"‖E‖ = ‖A‖ = 1), and fojax's deflation calls the pencil {verdict[deflation_regular]} while "
+            f"SLICOT AG08BD calls it {verdict[ag08bd_regular]} (normal rank {normal_rank}). The pencil is "
+            f"within about {singular_value:.0e} of a pencil with the other verdict. Decide with an explicit "
+            "tol= (larger: treat that singular value as zero; smaller: as nonzero), or check the model for "
+            "an equation that is nearly a combination of others."
+        )
+
+
 class ImpulsiveSystemError(InputError):
     """The system is regular but not impulse-free (index > 1)."""
 

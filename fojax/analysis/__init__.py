@@ -89,6 +89,7 @@ from ._observability import (
     is_stabilizable as is_stabilizable,
 )
 from ._pencil import (
+    algebraic_channel as algebraic_channel,
     AXIS_TOL as AXIS_TOL,
     e_perp as e_perp,
     finite_poles as finite_poles,

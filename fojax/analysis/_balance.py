@@ -387,8 +387,9 @@ def apply_scaling(s: Scaling, E, A, B=None, C=None):
     from .._errors import DataRangeError
 
     both = s.row_exponents[:, None] + s.col_exponents[None, :]
-    out = [np.ldexp(np.asarray(E, dtype=float), both), np.ldexp(np.asarray(A, dtype=float), both),
-           None if B is None else s.rows(B), None if C is None else s.cols(C)]
+    with np.errstate(over="ignore"):  # checked below
+        out = [np.ldexp(np.asarray(E, dtype=float), both), np.ldexp(np.asarray(A, dtype=float), both),
+               None if B is None else s.rows(B), None if C is None else s.cols(C)]
     for name, M, X in zip("EABC", (E, A, B, C), out):
         if X is not None and not np.all(np.isfinite(X)) and np.all(np.isfinite(np.asarray(M, dtype=float))):
             raise DataRangeError(name, float(np.max(np.abs(np.asarray(M, dtype=float)))),

@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 from .._dtype import as_matrix, to_numpy
-from .._errors import InputError, IrregularSystemError, ShapeError
+from .._errors import InputError, IrregularSystemError, NumericallyUndecidableError, ShapeError
 from .._linalg import _threshold, RANK_ATOL, RANK_RTOL
 from ..plant import DescriptorSystem
 from ._balance import apply_scaling, Scaling, scaling_of
@@ -173,6 +173,9 @@ class Deflation:
     blocks: tuple
     dropped: float
     failed: str | None = None
+    #: ``(factor, singular value)`` of the rank decision closest to the threshold
+    #: (``factor = max(σ/t, t/σ) ≥ 1``); ``None`` when no decision was taken.
+    nearest: tuple | None = None
 
     @property
     def index(self) -> int:
@@ -194,8 +197,49 @@ def deflate(p: Pencil, tol: float | None) -> Deflation:
 
     Rank decisions: a singular value counts when it exceeds ``tol`` (absolute) or by
     default ``max(RANK_RTOL, RANK_ATOL)`` — the fojax rule relative to
-    ``‖En‖ = ‖An‖ = 1``.
+    ``‖En‖ = ‖An‖ = 1``. When a decision's singular value lies within `UNDECIDED_BAND`
+    of that threshold, the regularity verdict is cross-checked with SLICOT ``AG08BD``
+    (normal rank of the same pencil at the same tolerance); if the two disagree the
+    pencil is numerically undecidable at that tolerance and
+    `fojax.NumericallyUndecidableError` is raised (never a silent guess).
     """
+    d = _deflate(p, tol)
+    if d.nearest is not None and d.nearest[0] < UNDECIDED_BAND:
+        _cross_check(p, d, tol)
+    return d
+
+
+#: A rank decision of `deflate` whose singular value is within this factor of the threshold
+#: (either side) is cross-checked against SLICOT ``AG08BD`` (`_cross_check`).
+UNDECIDED_BAND = 100.0
+
+
+def _cross_check(p: Pencil, d: Deflation, tol: float | None) -> None:
+    """Raise `NumericallyUndecidableError` when SLICOT ``AG08BD`` at the same tolerance, on
+    the balanced, normalised pencil or on the data as given, with or without its own
+    balancing (with ``balance=False`` only on the unbalanced pencil, without), gives the
+    other regularity verdict."""
+    import slycot
+
+    n = p.En.shape[0]
+    thr = float(tol) if tol is not None else max(RANK_RTOL, RANK_ATOL)
+    ours = d.failed is None
+    # on the pencil fojax decided on and on the data as given, each with and without
+    # AG08BD's own balancing ("S")
+    # (``balance=False``: only the data as given, unbalanced, as the caller asked)
+    unbalanced = p.scaling is None or p.scaling.method == "none"
+    for (E, A), equil in ([((p.En, p.An), "N")] if unbalanced else
+                          [(pair, eq) for pair in ((p.En, p.An), (p.E, p.A)) for eq in ("N", "S")]):
+        if not (np.all(np.isfinite(E)) and np.all(np.isfinite(A))):
+            continue
+        nrank = int(slycot.ag08bd(n, n, 0, 0, np.array(A, order="F"), np.array(E, order="F"),
+                                  np.zeros((n, 1), order="F"), np.zeros((1, n), order="F"),
+                                  np.zeros((1, 1), order="F"), equil=equil, tol=thr)[2])
+        if ours != (nrank == n):
+            raise NumericallyUndecidableError(thr, d.nearest[1], ours, nrank == n, nrank)
+
+
+def _deflate(p: Pencil, tol: float | None) -> Deflation:
     En, An = p.En, p.An
     n = En.shape[0]
     thr = float(tol) if tol is not None else max(RANK_RTOL, RANK_ATOL)
@@ -204,15 +248,26 @@ def deflate(p: Pencil, tol: float | None) -> Deflation:
     m = n
     blocks: list[int] = []
     dropped = 0.0
+    nearest = None  # (factor to the threshold, singular value) of the closest rank decision
+
+    def near(values):
+        nonlocal nearest
+        for v in np.asarray(values, dtype=float):
+            f = max(v / thr, thr / v) if v > 0 else np.inf
+            if nearest is None or f < nearest[0]:
+                nearest = (f, float(v))
+
     while m > 0:
         _, s, Vh = np.linalg.svd(Et[:m, :m])
         r = int(np.sum(s > thr))
+        near(s)
         if r == m:
             break
         k = m - r
         Vs = Vh.T
         AV2 = At[:m, :m] @ Vs[:, r:]
         sv = np.linalg.svd(AV2, compute_uv=False)
+        near(sv)
         if sv[-1] <= thr:
             why = (
                 f"A annihilates a direction of ker E (smallest singular value {sv[-1]:.1e} of "
@@ -221,7 +276,7 @@ def deflate(p: Pencil, tol: float | None) -> Deflation:
                 else f"at deflation step {len(blocks) + 1} the reduced pencil has a direction "
                 f"x with E11 x = A11 x = 0 (singular value {sv[-1]:.1e}, threshold {thr:.1e})"
             )
-            return Deflation(W, V, Et, At, m, tuple(blocks), dropped, failed=why)
+            return Deflation(W, V, Et, At, m, tuple(blocks), dropped, failed=why, nearest=nearest)
         Qf, _ = np.linalg.qr(AV2, mode="complete")
         Ws = np.hstack([Qf[:, k:], Qf[:, :k]])
         Et[:, :m] = Et[:, :m] @ Vs
@@ -237,7 +292,7 @@ def deflate(p: Pencil, tol: float | None) -> Deflation:
         At[:r, r:m] = 0.0
         blocks.append(k)
         m = r
-    return Deflation(W, V, Et, At, m, tuple(blocks), dropped)
+    return Deflation(W, V, Et, At, m, tuple(blocks), dropped, nearest=nearest)
 
 
 def irregular_error(fname: str, d: Deflation) -> IrregularSystemError:
