@@ -19,14 +19,14 @@ depends on the units in which the equations and the states are written.
 $\sum (\ell_i + r_j + \log_2|x_{ij}|)^2$ over the non-zero entries of ``E``, ``A``, ``B``,
 ``C``, solved exactly as a least-squares problem in NumPy (`_ward_exponents`) and rounded
 to integers. This is the objective SLICOT ``TG01AD`` targets; fojax does not use
-``TG01AD``'s factors because (measured) they are rounded to powers of **ten** (adding
-rounding) and, on 300 random systems with exactly known structure scaled by 2^k,
-|k| <= 40 (the generator of `tests/test_analysis_scaling.py`, another seed), they left
-1 verdict changed; the exact least-squares exponents left none (without balancing 185
-of 300 changed). The least squares also has one free offset per block (see
+``TG01AD``'s factors because they are rounded to powers of **ten** (adding rounding) and
+decide the structure of scaled systems less reliably than the exact least-squares
+exponents (`tests/test_analysis_scaling.py` compares the two on systems with exactly known
+structure). The least squares also has one free offset per block (see
 `_ward_exponents`), which keeps ``C`` in huge units or ``E`` in tiny ones from pulling
-the exponents (with ``TG01AD``'s factors those two cases of `tests/test_design_refuses.py`
-were still called irregular). `tg01ad_scaling` keeps SLICOT's factors for
+the exponents, and weights ``B`` and ``C`` less than the pencil (`IO_WEIGHT`); the free
+common shifts keep every block's largest entry near 1 (`_gauge`), so that no scaled
+entry overflows. `tg01ad_scaling` keeps SLICOT's factors for
 the cross-check in the tests. When ``E = I`` exactly, SLICOT ``TB01ID`` (balancing of
 the state matrix with ``B``, ``C``: the similarity $D^{-1} A D$, as LAPACK ``gebal``
 does for ``numpy.linalg.eigvals``) is used, its factors rounded to powers of two, so that

@@ -69,12 +69,14 @@ from ._takagi_sugeno import (
 from ._tunable import (
     AbstractParameterization as AbstractParameterization,
     certify as certify,
-    CommonCertificate as CommonCertificate,
-    FixedCertificateDisk as FixedCertificateDisk,
     live_parameters as live_parameters,
     LiveParameters as LiveParameters,
-    SteinDisk as SteinDisk,
     unflatten as unflatten,
+)
+from ._tunable_finals import (
+    CommonCertificate as CommonCertificate,
+    FixedCertificateDisk as FixedCertificateDisk,
+    SteinDisk as SteinDisk,
 )
 from ._unknown_input import (
     check_unknown_input_modes as check_unknown_input_modes,

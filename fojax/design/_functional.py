@@ -69,6 +69,7 @@ from ._parameterization import (
     observer_matrices,
     observer_structure,
     pieces,
+    split_Y,
 )
 from ._regions import AbstractRegion, as_region, Disk
 from ._verify import relative_residual, RESIDUAL_RTOL, VerificationReport, verify
@@ -399,11 +400,6 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
     return info
 
 
-def split_Y(Y: np.ndarray, q0: int, c: int) -> dict:
-    """Split 𝕐 = [[Y1, J], [Y2, G]] into its blocks."""
-    return {"Y1": Y[:q0, :c], "J": Y[:q0, c:], "Y2": Y[q0:, :c], "G": Y[q0:, c:]}
-
-
 def build_observer(s: FunctionalObserverStructure, mats, rule: int = 0, kind: str = "generalized"):
     """A `GeneralizedFunctionalObserver` from parameterized matrices (rule `rule`)."""
     Wu, Wy = s.w_matrices(s.rules_B()[min(rule, s.rules_B().shape[0] - 1)])
@@ -629,13 +625,13 @@ def design_functional_observer(
     s = observer_structure(s.E, s.A, s.B, s.C, s.L, s.R, q1=q1, psi=s.psi, Eperp=s.Eperp)
     kw = dict(kind=kind, margin=margin, solver=solver, method=method)
     if objective in ("hinf", "h2"):
-        from ._hinf import check_channels, design_hinf
+        from ._hinf import check_channels
 
         Bw, Dv = check_channels(s.n, s.p, Bw, Dv, objective=objective)
         perf = dict(objective=objective, Bw=Bw, Dv=Dv)
 
         def raw():
-            return design_hinf(s, region, Bw=Bw, Dv=Dv, tighten=TIGHTEN, objective=objective, **kw)
+            return _performance_design(s, region, Bw=Bw, Dv=Dv, objective=objective, **kw)
     else:
         perf = dict(centre=objective == "centre")
 
@@ -730,10 +726,8 @@ def balanced_design(s, region, *, kind, margin, solver, method="lmi", centre=Fal
     sb = observer_structure(*scale_model(dl, dr, E, A, B, C), L * dr, np.asarray(s.R) * dr, q1=s.q1, psi=s.psi)
     checks = ()
     if objective in ("hinf", "h2"):
-        from ._hinf import design_hinf
-
-        db = design_hinf(sb, region, kind=kind, margin=margin, solver=solver, Bw=dl[:, None] * np.asarray(Bw),
-                         Dv=Dv, tighten=TIGHTEN, method=method, objective=objective)
+        db = _performance_design(sb, region, kind=kind, margin=margin, solver=solver, Bw=dl[:, None] * np.asarray(Bw),
+                                 Dv=Dv, method=method, objective=objective)
         checks = () if db.hinf is None else tuple(db.hinf.checks(sb, db.params, db.X))
     else:
         db = _design_from_structure(sb, region, kind=kind, margin=margin, solver=solver, method=method,
@@ -824,6 +818,18 @@ def _lmi_params(s, Z, Ys) -> dict:
     blocks = split_Y(Ys[0], s.q0, c)
     return {"Z": Z, "Y1": blocks["Y1"], "Y2": blocks["Y2"], "Y3": np.zeros((s.q, c)), "J": blocks["J"],
             "G": blocks["G"]}
+
+
+def _performance_design(s, region, *, kind, margin, solver, Bw, Dv, objective, method="lmi"):
+    """The H∞/H2 design (`fojax.design._hinf.design_hinf`) on the region-only design of `s`."""
+    from ._hinf import design_hinf
+
+    base = _design_from_structure(s, region, kind=kind, margin=margin, solver=solver, method=method)
+    out = design_hinf(s, region, base=base, kind=kind, solver=solver, Bw=Bw, Dv=Dv, tighten=TIGHTEN,
+                      objective=objective, verify=lambda *a, **k: verify_structure_design(*a, **k, unit_free=UNIT_FREE_FIX))
+    mats = out.pop("mats")
+    return FunctionalObserverDesign(observer=build_observer(s, mats, kind=kind), kind=kind, region=region, structure=s,
+                                    T=np.asarray(mats.T), K=np.asarray(mats.K), Z_eff=np.asarray(mats.Z_eff), **out)
 
 
 def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, method="lmi", centre=False):

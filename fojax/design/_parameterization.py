@@ -393,6 +393,11 @@ def _live_part(s: FunctionalObserverStructure, pc: ParameterizationPieces, Z, Y1
     return out
 
 
+def split_Y(Y: np.ndarray, q0: int, c: int) -> dict:
+    """Split 𝕐 = [[Y1, J], [Y2, G]] into its blocks."""
+    return {"Y1": Y[:q0, :c], "J": Y[:q0, c:], "Y2": Y[q0:, :c], "G": Y[q0:, c:]}
+
+
 def project_parameters(s: FunctionalObserverStructure, params: dict, *, xp=jnp) -> dict:
     r"""The parameters with their dead components removed (traceable; ``xp=numpy`` on the host).
 

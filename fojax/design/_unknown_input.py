@@ -257,9 +257,9 @@ def unit_free_check(s: FunctionalObserverStructure, D, params) -> tuple | None:
     $E_b = D_lED_r$, …, $D_b = D_lD$, $E^\perp_b = E^\perp D_l^{-1}$, $T_b = TD_l^{-1}$, the
     other observer matrices unchanged, so $\Delta = T_bD_b$), or ``None`` for models larger
     than `fojax.design._conditions.UNIT_FREE_CHECK_MAX` — the functional observer's
-    `fojax.design._functional.unit_free_check` with the unknown input. Why (measured): the
-    §4.1.3 unknown-input example with rows and states rescaled by 1e-6…1e6 got an observer
-    whose residual on the data as given was 2e-19 relative, and 0.14 in the unit-free frame."""
+    `fojax.design._functional.unit_free_check` with the unknown input. Why: on badly scaled
+    data (rows and states rescaled by 1e-6…1e6) a residual that is round-off relative to
+    the large terms of the data as given can be O(0.1) in the unit-free frame."""
     uf = unit_free_structure(s)
     if uf is None:
         return None
@@ -583,9 +583,9 @@ def design_unknown_input_observer(
       given, also verified in the unit-free frame. **Default ``None``**: on the data as
       given, and the ``balance=True`` design when that design fails its float64
       verification (the unit-free check, or a solver solution that misses a strict LMI in
-      float64; the report says why under ``"balance"``; `unit_free_fallback`). Measured:
-      the §4.1.3 example with rows and states rescaled by 1e-6…1e6 got, on the data as given, an observer with residual 2e-19 there
-      and 0.14 in the unit-free frame (before the unit-free check, it was returned).
+      float64; the report says why under ``"balance"``; `unit_free_fallback`): on badly
+      scaled data a residual that is round-off on the data as given can be O(0.1) in the
+      unit-free frame.
 
     **Returns:** an `UnknownInputObserverDesign`; its `report` lists the residuals of
     a.–f. (≤ 1e-8 relative, each relative to the norms of its own terms), the
