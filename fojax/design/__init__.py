@@ -81,6 +81,8 @@ from ._tunable_finals import (
 from ._unknown_input import (
     check_unknown_input_modes as check_unknown_input_modes,
     design_unknown_input_observer as design_unknown_input_observer,
+)
+from ._unknown_input_matrices import (
     unknown_input_error_dynamics as unknown_input_error_dynamics,
     unknown_input_observer_matrices as unknown_input_observer_matrices,
     unknown_input_residuals as unknown_input_residuals,
