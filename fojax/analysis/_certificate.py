@@ -8,7 +8,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._errors import DesignVerificationError, InputError, LMIInfeasibleError, SolverStoppedShortError
+from .._errors import (
+    DesignVerificationError,
+    InputError,
+    LMIInfeasibleError,
+    SolverStoppedShortError,
+)
 from .._linalg import left_null_space
 from ._common import as_pencil
 
