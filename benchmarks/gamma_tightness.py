@@ -76,7 +76,8 @@ def random_case(seed: int):
 
 
 def true_norms(design, Bw, Dv):
-    """``(‖T‖∞, ‖T‖₂)`` of the returned observer's error system, recomputed here."""
+    """``(‖T‖∞, ‖T‖₂)`` of the returned observer's error system, recomputed here (`Bw`, `Dv` in
+    the frame of ``design.structure``)."""
     import slycot
 
     from fojax.design._hinf import base_mats, error_system
@@ -106,7 +107,10 @@ def run_case(seed: int, objective: str) -> dict:
         row.update(error=type(e).__name__, message=str(e)[:600], seconds=time.perf_counter() - t0)
         return row
     row["seconds"] = time.perf_counter() - t0
-    hinf, h2 = true_norms(d, Bw, np.zeros((sys_.C.shape[0], 0)) if Dv is None else Dv)
+    cert = d.hinf if objective == "hinf" else d.h2
+    # the certificate's channels: those of the unit-free frame when the design was made there
+    hinf, h2 = true_norms(d, np.asarray(cert.Bw), np.asarray(cert.Dv))
+    row["unit_free"] = d.solver.get("balance") is not None
     if objective == "hinf":
         cert = d.hinf
         row.update(bound=cert.gamma, norm=hinf, ratio=cert.gamma / hinf, region_only_norm=cert.region_only_norm,

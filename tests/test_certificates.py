@@ -88,8 +88,8 @@ def test_observer_gamma_on_a_closed_form():
 @pytest.mark.parametrize("seed", [14, 23])
 def test_feasible_hinf_problems_that_stopped_short_now_design(seed):
     """Two feasible H∞ problems of the benchmark family on which both solvers stopped at
-    optimal_inaccurate (raised as LMIInfeasibleError before): the gain-penalty ladder (seed
-    23) and the unit-free model (seed 14) give verified designs with tight γ."""
+    optimal_inaccurate (raised as LMIInfeasibleError before): the gain-penalty ladder
+    (`fojax.design._hinf.GAIN_PENALTIES`) gives verified designs with tight γ."""
     sys_, L, Bw, Dv, region, _ = random_case(seed)
     d = design_functional_observer(sys_, L, region=region, objective="hinf", Bw=Bw, Dv=Dv)
     norm = ab13dd(*error_system(d, Bw, Dv))
