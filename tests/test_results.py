@@ -128,7 +128,8 @@ def test_results_folders_are_never_reused(tmp_path):
 
 
 def test_write_report_links_figures_and_numbers(tmp_path):
-    png = plot_tuning_curve(tmp_path / "tune.png", [0, 1, 2], [3.0, 2.0, 1.0])
+    png = tmp_path / "tune.png"
+    plot_tuning_curve([0, 1, 2], [3.0, 2.0, 1.0], path=png)
     rep = write_report(
         tmp_path,
         title="Study",
@@ -146,6 +147,13 @@ def test_write_report_links_figures_and_numbers(tmp_path):
         write_report(tmp_path, title="again")
 
 
+def _png(plot, path, *args, **kw):
+    """Draw with `plot`, writing `path`; the image read back."""
+    fig = plot(*args, path=path, **kw)
+    assert fig.axes  # the Figure drawn on is returned
+    return _img(path)
+
+
 def _img(path):
     assert path.stat().st_size > 1000
     with open(path, "rb") as f:
@@ -159,46 +167,47 @@ def _img(path):
 def test_plot_poles_all_region_types(design, tmp_path):
     eigs = design.report.eigenvalues
     regions = [Disk(-2.0, 1.0), HalfPlane(1.0), Sector(0.6), Disk(-3.0, 2.0) & HalfPlane(1.5) & Sector(0.7)]
-    imgs = [_img(plot_poles(tmp_path / f"p{i}.png", eigs, r, plant_poles=[1.79, -4.4 + 1.72j, -4.4 - 1.72j]))
+    imgs = [_png(plot_poles, tmp_path / f"p{i}.png", eigs, r, plant_poles=[1.79, -4.4 + 1.72j, -4.4 - 1.72j])
             for i, r in enumerate(regions)]
     for i in range(len(imgs)):
         for j in range(i):
             assert not np.array_equal(imgs[i], imgs[j])
     assert imgs[0].shape[2] in (3, 4)
-    _img(plot_poles(tmp_path / "noregion.png", eigs))
-    p = plot_poles(tmp_path / "sz.png", eigs, regions[0], size=(400, 300))
-    assert mpimg.imread(p).shape[:2] == (300, 400)
+    _png(plot_poles, tmp_path / "noregion.png", eigs)
+    plot_poles(eigs, regions[0], size=(400, 300), path=tmp_path / "sz.png")
+    assert mpimg.imread(tmp_path / "sz.png").shape[:2] == (300, 400)
 
 
 def test_plot_estimates_bands(tmp_path):
     ts = np.linspace(0, 5, 200)
     truth = np.stack([np.sin(ts), np.cos(ts)], axis=1)
     est = {"PO": (truth - 0.3, truth + 0.05, truth + 0.4), "FGDO": (truth - 0.1, truth, truth + 0.1)}
-    a = _img(plot_estimates(tmp_path / "a.png", ts, truth, est))
-    b = _img(plot_estimates(tmp_path / "b.png", ts, truth, {"PO": (truth - 1, truth, truth + 1)}))
+    a = _png(plot_estimates, tmp_path / "a.png", ts, truth, est)
+    b = _png(plot_estimates, tmp_path / "b.png", ts, truth, {"PO": (truth - 1, truth, truth + 1)})
     assert not np.array_equal(a, b)
     with pytest.raises(ValueError, match="truth must have shape"):
-        plot_estimates(tmp_path / "c.png", ts, truth[:10], est)
+        plot_estimates(ts, truth[:10], est, path=tmp_path / "c.png")
+    assert not (tmp_path / "c.png").exists()
 
 
 def test_plot_error_distributions_box_and_violin(tmp_path):
     rng = np.random.default_rng(1)
     errs = {"PO": rng.gamma(2.0, 2.0, 50), "FGDO": rng.gamma(2.0, 0.5, 50)}
-    a = _img(plot_error_distributions(tmp_path / "box.png", errs))
-    b = _img(plot_error_distributions(tmp_path / "violin.png", errs, kind="violin"))
-    c = _img(plot_error_distributions(tmp_path / "box2.png", {"PO": errs["PO"] * 3, "FGDO": errs["FGDO"]}))
+    a = _png(plot_error_distributions, tmp_path / "box.png", errs)
+    b = _png(plot_error_distributions, tmp_path / "violin.png", errs, kind="violin")
+    c = _png(plot_error_distributions, tmp_path / "box2.png", {"PO": errs["PO"] * 3, "FGDO": errs["FGDO"]})
     assert not np.array_equal(a, b) and not np.array_equal(a, c)
     with pytest.raises(ValueError, match="kind must be"):
-        plot_error_distributions(tmp_path / "x.png", errs, kind="pie")
+        plot_error_distributions(errs, kind="pie")
 
 
 def test_plot_tuning_curve(tmp_path):
     steps = np.arange(20)
-    a = _img(plot_tuning_curve(tmp_path / "a.png", steps, np.exp(-steps / 5.0), np.exp(-steps / 6.0) + 0.01))
-    b = _img(plot_tuning_curve(tmp_path / "b.png", steps, np.exp(-steps / 2.0)))
+    a = _png(plot_tuning_curve, tmp_path / "a.png", steps, np.exp(-steps / 5.0), np.exp(-steps / 6.0) + 0.01)
+    b = _png(plot_tuning_curve, tmp_path / "b.png", steps, np.exp(-steps / 2.0))
     assert not np.array_equal(a, b)
     with pytest.raises(FileExistsError):
-        plot_tuning_curve(tmp_path / "a.png", steps, steps + 1.0)
+        plot_tuning_curve(steps, steps + 1.0, path=tmp_path / "a.png")
     assert os.path.getsize(tmp_path / "a.png") > 1000
 
 
@@ -232,7 +241,6 @@ def test_write_metrics_json_and_exact_npz(tmp_path):
 # pixel boxes Matplotlib reports after drawing.
 from matplotlib.path import Path as _MplPath  # noqa: E402
 
-from fojax.results._plots import _estimates_figure, _poles_figure, _tuning_figure  # noqa: E402
 
 
 POLES = np.array([-2.0, -2.0 + 1e-9, -1.5 + 0.5j, -1.5 - 0.5j, -2.5])  # a double pole at -2
@@ -266,7 +274,7 @@ def _legend_checks(fig, axes):
 @pytest.mark.parametrize("kind", list(REGIONS))
 def test_pole_plot_equal_axes_region_drawn_and_everything_in_view(kind):
     region = REGIONS[kind]
-    fig = _poles_figure(POLES, region, plant_poles=PLANT)
+    fig = plot_poles(POLES, region, plant_poles=PLANT)
     labels, fontsize = _legend_checks(fig, fig.axes)
     ax = fig.axes[0]
     (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
@@ -305,7 +313,7 @@ def test_pole_plot_equal_axes_region_drawn_and_everything_in_view(kind):
 
 
 def test_pole_plot_shows_multiplicities():
-    fig = _poles_figure(POLES, Disk(-2.0, 1.0), plant_poles=PLANT)
+    fig = plot_poles(POLES, Disk(-2.0, 1.0), plant_poles=PLANT)
     ax = fig.axes[0]
     [observer] = [ln for ln in ax.lines if ln.get_label().startswith("observer error poles")]
     xs, ys = observer.get_data()
@@ -314,13 +322,13 @@ def test_pole_plot_shows_multiplicities():
     assert [t.get_text() for t in notes] == ["×2"]  # ... and marked ×2 there
     assert notes[0].xy == pytest.approx((-2.0, 0.0), abs=1e-8)
     # a triple pole and distinct poles 0.05 apart (1 % of the scale) stay as they are
-    fig = _poles_figure([-1.0, -1.0, -1.0 + 1e-7, -3.0, -3.05], None)
+    fig = plot_poles([-1.0, -1.0, -1.0 + 1e-7, -3.0, -3.05], None)
     ax = fig.axes[0]
     assert len(ax.lines[-1].get_xdata()) == 3
     assert sorted(t.get_text() for t in ax.texts) == ["×3"]
     assert not ax.patches and ax.get_aspect() == 1.0
     # the tolerance follows the poles' scale: slow poles a factor 2 apart are two markers
-    ax = _poles_figure([-1e-6, -2e-6], Disk(-1.5e-6, 1e-6)).axes[0]
+    ax = plot_poles([-1e-6, -2e-6], Disk(-1.5e-6, 1e-6)).axes[0]
     assert len(ax.lines[-1].get_xdata()) == 2 and not ax.texts
 
 
@@ -328,7 +336,7 @@ def test_error_band_legend_is_readable_below_the_panels():
     ts = np.linspace(0, 5, 100)
     truth = np.zeros((100, 3))
     est = {nm: (truth - k, truth, truth + k) for nm, k in (("PO", 1.0), ("FGDO", 0.5), ("FGDO-tuned", 0.3))}
-    fig = _estimates_figure(ts, truth, est, truth_label="zero error")
+    fig = plot_estimates(ts, truth, est, truth_label="zero error")
     labels, fontsize = _legend_checks(fig, fig.axes)
     assert fontsize >= 10  # Matplotlib's normal size (the legend was 7 pt)
     assert labels == ["zero error"] + [f"{nm}: median and 5–95 % band" for nm in est]
@@ -345,7 +353,7 @@ def test_tuning_curve_marks_the_heldout_loss_before_and_after():
     steps = np.arange(1, 11)
     held = np.full(10, np.nan)
     held[4::5] = [2.0, 1.5]
-    fig = _tuning_figure(steps, 3.0 / steps, held, heldout_before=2.5, heldout_after=1.4)
+    fig = plot_tuning_curve(steps, 3.0 / steps, held, heldout_before=2.5, heldout_after=1.4)
     ax = fig.axes[0]
     by_label = {ln.get_label(): ln for ln in ax.lines}
     before = next(ln for lab, ln in by_label.items() if lab.startswith("held-out before tuning"))
@@ -386,7 +394,7 @@ def test_pole_plot_of_a_region_class_fojax_does_not_know():
         def to_dict(self):
             return {}
 
-    fig = _poles_figure(POLES, Ellipse())
+    fig = plot_poles(POLES, Ellipse())
     labels, _ = _legend_checks(fig, fig.axes)
     ax = fig.axes[0]
     assert "region: ellipse" in labels and ax.get_aspect() == 1.0
@@ -396,6 +404,78 @@ def test_pole_plot_of_a_region_class_fojax_does_not_know():
     verts = np.concatenate([p.vertices for p in outline.get_paths()])
     assert verts[:, 0].min() > -5.01 and verts[:, 0].max() < -0.99 and np.abs(verts[:, 1]).max() < 1.01
     assert x0 < -5.0 and -1.0 < x1 and y0 < -1.0 and 1.0 < y1  # all of it in view
+
+
+# ------------------------------------------------------------------ figures for notebooks
+# Oracles: Matplotlib's own record of what an Axes holds (its lines, patches, collections),
+# the files' signatures as each format's specification fixes them (PNG, PDF, SVG, EPS
+# headers), and the folder's listing (no file without `path=`).
+from matplotlib.figure import Figure  # noqa: E402
+
+
+def _plots(ts, eigs):
+    truth = np.stack([np.sin(ts)], axis=1)
+    return {
+        "poles": (plot_poles, (eigs, Disk(-2.0, 1.0)), {"plant_poles": PLANT}),
+        "estimates": (plot_estimates, (ts, truth, {"PO": (truth - 0.2, truth, truth + 0.2)}), {}),
+        "errors": (plot_error_distributions, ({"PO": np.arange(1.0, 9.0), "FGDO": np.arange(2.0, 10.0)},), {}),
+        "tuning": (plot_tuning_curve, (np.arange(5), 1.0 / (1.0 + np.arange(5.0))), {}),
+    }
+
+
+@pytest.mark.parametrize("which", ["poles", "estimates", "errors", "tuning"])
+def test_plots_draw_into_the_given_axes_and_write_nothing_without_path(which, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    plot, args, kw = _plots(np.linspace(0, 5, 50), POLES)[which]
+    fig = plot(*args, **kw)  # a new figure, no file
+    assert isinstance(fig, Figure) and len(fig.axes) == 1
+    mine = Figure(figsize=(9, 4))
+    left, right = mine.subplots(1, 2)
+    right.plot([0, 1], [0, 1], label="mine")
+    out = plot(*args, ax=left, **kw)
+    assert out is mine  # the Figure of the given Axes
+    assert len(left.lines) + len(left.patches) + len(left.collections) > 0  # drawn into `left` ...
+    assert [ln.get_label() for ln in right.lines] == ["mine"] and not right.patches  # ... only
+    assert not mine.legends  # its legend on the given Axes, not on the user's figure
+    assert tuple(mine.get_size_inches()) == (9.0, 4.0)
+    if which == "poles":  # equal axes in the given Axes too
+        assert left.get_aspect() == 1.0
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("suffix, magic", [(".png", b"\x89PNG"), (".pdf", b"%PDF"), (".svg", b"<?xml"),
+                                           (".eps", b"%!PS-Adobe")])
+def test_plots_write_the_format_of_the_suffix(suffix, magic, tmp_path):
+    for which, (plot, args, kw) in _plots(np.linspace(0, 5, 50), POLES).items():
+        path = tmp_path / f"{which}{suffix}"
+        plot(*args, path=path, **kw)
+        assert path.read_bytes().startswith(magic), which
+    with pytest.raises(ValueError, match=r"suffix '\.xyz'.*\.png"):
+        plot_poles(POLES, path=tmp_path / "poles.xyz")
+    assert not (tmp_path / "poles.xyz").exists()
+
+
+def test_estimates_into_one_axes_per_component_and_bad_axes():
+    ts = np.linspace(0, 1, 20)
+    truth = np.stack([ts, -ts], axis=1)
+    fig = Figure()
+    axes = fig.subplots(2, 1)
+    assert plot_estimates(ts, truth, {"PO": (truth - 1, truth, truth + 1)}, ax=axes) is fig
+    assert all(len(a.lines) == 2 and len(a.collections) == 1 for a in axes)
+    with pytest.raises(TypeError, match="2 matplotlib Axes"):
+        plot_estimates(ts, truth, {"PO": (truth - 1, truth, truth + 1)}, ax=axes[0])
+    with pytest.raises(TypeError, match="a matplotlib Axes"):
+        plot_poles(POLES, ax="left")
+
+
+def test_plots_without_matplotlib_name_the_extra(monkeypatch):
+    import sys
+
+    for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ImportError
+    with pytest.raises(ImportError, match=r"pip install 'fojax\[plot\]'"):
+        plot_poles(POLES)
 
 
 # ---------------------------------------------------------------- files: modes, folder, manifest
@@ -433,7 +513,7 @@ def test_nothing_is_written_outside_a_results_folder(tmp_path, design):
         lambda: atomic_write_text(folder / "../../escaped.txt", "x"),
         lambda: atomic_write_text(folder / "sub" / ".." / ".." / "escaped.txt", "x"),
         lambda: save_design(design, folder / "../escaped.npz"),
-        lambda: plot_tuning_curve(folder / "../escaped.png", [0, 1], [2.0, 1.0]),
+        lambda: plot_tuning_curve([0, 1], [2.0, 1.0], path=folder / "../escaped.png"),
         lambda: write_report(folder, title="t", filename="../escaped.md"),
         lambda: write_metrics(folder, {"a": 1.0}, name="../escaped"),
         lambda: _atomic_write(str(folder / "../escaped"), lambda f: f.write(b"x")),
@@ -464,7 +544,7 @@ def test_manifest_lists_every_file_written_with_its_hash(tmp_path, design):
     folder = new_results_folder(tmp_path)
     written = [
         save_design(design, folder / "obs.npz"),
-        plot_tuning_curve(folder / "tune.png", [0, 1], [2.0, 1.0]),
+        plot_tuning_curve([0, 1], [2.0, 1.0], path=folder / "tune.png") and folder / "tune.png",
         *write_metrics(folder, {"a": np.arange(3.0)}),
         write_report(folder, title="t"),
     ]

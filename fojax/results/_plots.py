@@ -1,9 +1,32 @@
-"""Figures for papers: poles with the design region, estimates with Monte Carlo bands,
-error distributions per observer, and the tuning curve.
+"""Figures for notebooks and papers: poles with the design region, estimates with Monte
+Carlo bands, error distributions per observer, and the tuning curve.
 
-Every function renders with Matplotlib's Agg canvas (no display, no global `pyplot`
-state), writes a PNG of exactly ``size`` pixels (default 800x600) atomically, and
-returns its path. An existing file is never replaced unless ``overwrite=True``.
+Every ``plot_*`` function follows one convention:
+
+- `ax=None` (default): it draws on a new `matplotlib.figure.Figure` of ``size`` pixels
+  (default 800x600). The figure is not registered with `matplotlib.pyplot` (no global
+  state, nothing to close): in a notebook it displays as the cell's value.
+- `ax=` an existing `matplotlib.axes.Axes` (`plot_estimates`: one Axes per component):
+  it draws into it and leaves the rest of that figure (its size, layout and other axes)
+  to you; the legend and title go on that Axes.
+- It **returns the Figure** drawn on (``ax.figure`` when `ax` is given), as
+  `plot_estimates`, which may fill several panels, must; ``fig.axes`` lists its axes.
+- It writes a file only when `path=` is given, in the format of the file's suffix (any
+  format Matplotlib writes: ``.png``, ``.pdf``, ``.svg``, ``.eps``, ...), atomically
+  (`fojax.results.atomic_write_bytes`: never outside a results folder a write is confined
+  to); an existing file is replaced only with ``overwrite=True``.
+
+Plotting needs Matplotlib, an optional dependency: ``pip install 'fojax[plot]'``.
+
+!!! example
+
+    ```python
+    import fojax.results as fr
+
+    fig = fr.plot_poles(design.report.eigenvalues, design.region)   # a new Figure
+    fr.plot_poles(design.report.eigenvalues, design.region, ax=my_ax)  # into my_ax
+    fr.plot_poles(design.report.eigenvalues, design.region, path="poles.pdf")
+    ```
 """
 
 from __future__ import annotations
@@ -21,8 +44,27 @@ from ._io import atomic_write_bytes
 DEFAULT_SIZE = (800, 600)
 _DPI = 100
 
+PLOT_EXTRA = "plotting needs matplotlib, an optional dependency of fojax: pip install 'fojax[plot]'"
+
+
+def matplotlib_available() -> bool:
+    """Whether Matplotlib can be imported (the ``plot`` extra is installed)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _require_matplotlib():
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError as err:
+        raise ImportError(PLOT_EXTRA) from err
+
 
 def _figure(size, *, layout: str | None = None):
+    _require_matplotlib()
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -32,10 +74,56 @@ def _figure(size, *, layout: str | None = None):
     return fig
 
 
+def _check_axes(ax, n: int = 1) -> list:
+    """`ax` as a list of `n` Matplotlib Axes (a clear error for anything else)."""
+    _require_matplotlib()
+    from matplotlib.axes import Axes
+
+    axes = [ax] if isinstance(ax, Axes) else list(ax) if isinstance(ax, Sequence | np.ndarray) else [ax]
+    if len(axes) != n or not all(isinstance(a, Axes) for a in axes):
+        raise TypeError(
+            f"ax must be {'a matplotlib Axes' if n == 1 else f'{n} matplotlib Axes (one per component)'}"
+            f" or None (a new Figure); got {type(ax).__name__}"
+            + (f" of length {len(axes)}" if isinstance(ax, Sequence | np.ndarray) else "")
+        )
+    return axes
+
+
+def _figure_and_axes(ax, size, n: int = 1, *, layout: str | None = "constrained", sharex: bool = False):
+    """``(fig, axes, own)``: a new Figure of ``size`` pixels with `n` stacked axes when `ax`
+    is None (``own``: its legend, title and layout are ours to arrange), else `ax`'s."""
+    if ax is None:
+        fig = _figure(size, layout=layout)
+        axes = list(fig.subplots(n, 1, sharex=sharex, squeeze=False)[:, 0])
+        return fig, axes, True
+    axes = _check_axes(ax, n)
+    return axes[0].figure, axes, False
+
+
 def _save(fig, path, overwrite: bool) -> pathlib.Path:
+    """Write `fig` to `path` in the format of its suffix, atomically."""
+    path = pathlib.Path(path)
+    fmt = path.suffix[1:].lower()
+    if fig.canvas is None or not hasattr(fig.canvas, "get_supported_filetypes"):
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+        FigureCanvasAgg(fig)
+    formats = fig.canvas.get_supported_filetypes()
+    if fmt not in formats:
+        raise ValueError(
+            f"path={str(path)!r}: cannot tell the file format from its suffix {path.suffix!r}; give one "
+            f"Matplotlib writes: {', '.join('.' + f for f in sorted(formats))}"
+        )
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=_DPI)  # no bbox_inches: keeps the pixel size exact
+    # the figure's own dpi and no bbox_inches: a figure made here keeps its exact pixel size
+    fig.savefig(buf, format=fmt, dpi="figure")
     return atomic_write_bytes(path, buf.getvalue(), overwrite=overwrite)
+
+
+def _finish(fig, path, overwrite: bool):
+    if path is not None:
+        _save(fig, path, overwrite)
+    return fig
 
 
 def _as_2d(name, a, T=None):
@@ -67,7 +155,7 @@ def _clip(poly: np.ndarray, a: np.ndarray, b: float) -> np.ndarray:
     """The part of the convex polygon `poly` ((k, 2) vertices) where ``a · p <= b``
     (one Sutherland-Hodgman pass, vectorised: each vertex p is kept where ``a·p <= b``, and
     followed by the crossing point of the edge to the next vertex where that edge crosses
-    the line; a loop over the vertices took ~0.5 s per disk of `_DISK_VERTICES` sides)."""
+    the line)."""
     if len(poly) == 0:
         return poly
     q = np.roll(poly, -1, axis=0)
@@ -132,8 +220,8 @@ def _part_boundary(part, far: float):
     raise TypeError(f"cannot draw a region of type {type(part).__name__}")
 
 
-def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
-                  title: str = "Observer error poles and design region", size=DEFAULT_SIZE):
+def _draw_poles(ax, own: bool, eigenvalues, region=None, *, plant_poles=None,
+                title: str = "Observer error poles and design region"):
     from matplotlib.patches import Polygon
 
     from ..design import Disk, HalfPlane, Intersection, Sector
@@ -183,8 +271,7 @@ def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
     pad = 0.12 * span
     xlim, ylim = (xmin - pad, xmax + pad), (-(ymax + pad), ymax + pad)
 
-    fig = _figure(size, layout="constrained")
-    ax = fig.add_subplot(1, 1, 1)
+    fig = ax.figure
     if region is not None:
         face = (0.17, 0.63, 0.17, 0.25)
         if poly.size:  # the region itself: shaded, with its boundary as a solid line
@@ -233,13 +320,16 @@ def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
     ax.set_title(title)
     ax.grid(alpha=0.3)
     handles, labels = ax.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=1 if len(labels) > 3 else 2, fontsize=9,
-               frameon=False)
+    if own:  # below the axes, outside them (the layout reserves its room)
+        fig.legend(handles, labels, loc="outside lower center", ncol=1 if len(labels) > 3 else 2,
+                   fontsize=9, frameon=False)
+    else:
+        ax.legend(handles, labels, fontsize=9, loc="best")
     # Equal axes (a disk is a circle, a sector's rays have their true angle) without
     # wasting the figure: widen the shorter direction of the window to the shape of the
     # axes box the layout gives, then fix the aspect (the limits only ever grow, so
     # everything chosen above stays visible).
-    fig.canvas.draw()
+    fig.draw_without_rendering()  # runs the layout: the axes box is final
     bbox = ax.get_window_extent()
     (x0, x1), (y0, y1) = xlim, ylim
     want = bbox.width / max(bbox.height, 1.0)  # data width / data height at equal scales
@@ -251,25 +341,24 @@ def _poles_figure(eigenvalues, region=None, *, plant_poles=None,
         half = 0.5 * (x1 - x0) / want
         ax.set_ylim(-half, half)
     ax.set_aspect("equal", adjustable="box")
-    return fig
 
 
 def plot_poles(
-    path,
     eigenvalues,
     region=None,
     *,
     plant_poles=None,
     title: str = "Observer error poles and design region",
+    ax=None,
+    path=None,
     size: tuple[int, int] = DEFAULT_SIZE,
     overwrite: bool = False,
-) -> pathlib.Path:
+):
     """Eigenvalues in the complex plane with the design region shaded, on equal axes (a
     disk is drawn as a circle, a damping sector with its true angle).
 
     **Arguments:**
 
-    - `path`: PNG file to write.
     - `eigenvalues`: error-dynamics eigenvalues (e.g. ``design.report.eigenvalues``).
     - `region`: a `fojax.Disk`, `HalfPlane`, `Sector` or intersection. The region is
       shaded (an intersection: the intersection itself) and the boundary of every part
@@ -278,19 +367,27 @@ def plot_poles(
       unbounded region it shows the poles, the origin and where each boundary meets the
       real axis.
     - `plant_poles`: optional finite poles of the plant (drawn as crosses).
-    - `title`, `size` (pixels), `overwrite`.
+    - `title`: the axes' title.
+    - `ax`: a Matplotlib Axes to draw into (its figure keeps its layout; the legend goes
+      inside the axes), or None for a new Figure of `size` pixels (legend below the axes).
+    - `path`: optional file to write the figure to (format from the suffix: ``.png``,
+      ``.pdf``, ``.svg``, ...); `overwrite`: whether an existing file may be replaced.
 
     Poles closer to each other than `POLE_MULTIPLICITY_RTOL` (1e-3) times the largest
     pole modulus are one marker annotated "×k" (a double pole is not a single dot).
 
-    **Returns:** the PNG path.
+    **Returns:** the `matplotlib.figure.Figure` drawn on.
+
+    **Raises:** `ImportError` without Matplotlib (``pip install 'fojax[plot]'``);
+    `FileExistsError` if `path` exists and not `overwrite`; `ValueError` for a suffix
+    Matplotlib cannot write.
     """
-    fig = _poles_figure(eigenvalues, region, plant_poles=plant_poles, title=title, size=size)
-    return _save(fig, path, overwrite)
+    fig, (ax,), own = _figure_and_axes(ax, size)
+    _draw_poles(ax, own, eigenvalues, region, plant_poles=plant_poles, title=title)
+    return _finish(fig, path, overwrite)
 
 
 def plot_estimates(
-    path,
     ts,
     truth,
     estimates: Mapping[str, Sequence],
@@ -299,37 +396,37 @@ def plot_estimates(
     band_label: str = "5–95 % band",
     truth_label: str = "truth",
     title: str = "Estimates vs truth (Monte Carlo)",
+    ax=None,
+    path=None,
     size: tuple[int, int] = DEFAULT_SIZE,
     overwrite: bool = False,
-) -> pathlib.Path:
+):
     """True functionals and estimates with Monte Carlo confidence bands, one panel per
     component.
 
     **Arguments:**
 
-    - `path`: PNG file to write.
     - `ts`: ``(T,)`` time grid.
     - `truth`: ``(T, q)`` (or ``(T,)``) true values, e.g. of the nominal sample or the median.
     - `estimates`: ``{observer name: (lower, median, upper)}``, each ``(T, q)``: the
       quantiles of the estimate over the Monte Carlo samples.
     - `labels`: names of the ``q`` components (default ``z1``, ``z2``, …).
-    - `band_label`, `truth_label`, `title`, `size` (pixels), `overwrite`.
+    - `band_label`, `truth_label`, `title`.
+    - `ax`: ``q`` Matplotlib Axes (a single Axes when ``q = 1``) to draw the panels into
+      (legend in the first, title on it), or None for a new Figure of `size` pixels (one
+      legend below the panels, title above them).
+    - `path`: optional file to write the figure to (format from the suffix);
+      `overwrite`: whether an existing file may be replaced.
 
-    **Returns:** the PNG path.
+    **Returns:** the `matplotlib.figure.Figure` drawn on.
+
+    **Raises:** `ValueError` for arrays of another shape; as `plot_poles` otherwise.
     """
-    fig = _estimates_figure(ts, truth, estimates, labels=labels, band_label=band_label,
-                            truth_label=truth_label, title=title, size=size)
-    return _save(fig, path, overwrite)
-
-
-def _estimates_figure(ts, truth, estimates, *, labels=None, band_label="5–95 % band", truth_label="truth",
-                      title="Estimates vs truth (Monte Carlo)", size=DEFAULT_SIZE):
     ts = np.asarray(ts, dtype=float)
     truth = _as_2d("truth", truth, len(ts))
     q = truth.shape[1]
+    fig, axes, own = _figure_and_axes(ax, size, q, sharex=True)
     labels = list(labels) if labels is not None else [f"z{i + 1}" for i in range(q)]
-    fig = _figure(size, layout="constrained")
-    axes = fig.subplots(q, 1, sharex=True, squeeze=False)[:, 0]
     colors = ["tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown"]
     handles, names = [], []
     for i, ax in enumerate(axes):
@@ -348,37 +445,45 @@ def _estimates_figure(ts, truth, estimates, *, labels=None, band_label="5–95 %
         ax.set_ylabel(labels[i])
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("t [s]")
-    fig.suptitle(title)
-    # One legend for all panels, in normal type, directly below the panels (the layout
-    # reserves its room): inside a panel it hid the curves it explains, and a tiny legend
-    # under the title was hard to read and far from the data.
-    ncol = min(len(names), 2 if max((len(n) for n in names), default=0) > 24 else 4)
-    fig.legend(handles, names, loc="outside lower center", ncol=max(ncol, 1), frameon=False)
-    return fig
+    if own:
+        fig.suptitle(title)
+        # One legend for all panels, in normal type, directly below the panels (the layout
+        # reserves its room), where it hides no curve.
+        ncol = min(len(names), 2 if max((len(n) for n in names), default=0) > 24 else 4)
+        fig.legend(handles, names, loc="outside lower center", ncol=max(ncol, 1), frameon=False)
+    else:
+        axes[0].set_title(title)
+        axes[0].legend(handles, names, loc="best")
+    return _finish(fig, path, overwrite)
 
 
 def plot_error_distributions(
-    path,
     errors: Mapping[str, Sequence],
     *,
     kind: str = "box",
     ylabel: str = "IAE of the estimation error",
     title: str = "Error distribution per observer",
     log: bool = False,
+    ax=None,
+    path=None,
     size: tuple[int, int] = DEFAULT_SIZE,
     overwrite: bool = False,
-) -> pathlib.Path:
+):
     """Box or violin plot of a per-sample error metric, one box per observer.
 
     **Arguments:**
 
-    - `path`: PNG file to write.
     - `errors`: ``{observer name: (samples,) array}`` of a scalar metric per Monte
       Carlo sample (e.g. IAE); ``(samples, q)`` arrays are summed over components.
     - `kind`: ``"box"`` or ``"violin"``.
-    - `ylabel`, `title`, `log` (logarithmic y axis), `size` (pixels), `overwrite`.
+    - `ylabel`, `title`, `log` (logarithmic y axis).
+    - `ax`: a Matplotlib Axes to draw into, or None for a new Figure of `size` pixels.
+    - `path`: optional file to write the figure to (format from the suffix);
+      `overwrite`: whether an existing file may be replaced.
 
-    **Returns:** the PNG path.
+    **Returns:** the `matplotlib.figure.Figure` drawn on.
+
+    **Raises:** `ValueError` for an unknown `kind`; as `plot_poles` otherwise.
     """
     if kind not in ("box", "violin"):
         raise ValueError(f"kind must be 'box' or 'violin', got {kind!r}")
@@ -387,8 +492,7 @@ def plot_error_distributions(
     for name in names:
         a = np.asarray(errors[name], dtype=float)
         data.append(a.reshape(a.shape[0], -1).sum(axis=1) if a.ndim > 1 else a.ravel())
-    fig = _figure(size)
-    ax = fig.add_subplot(1, 1, 1)
+    fig, (ax,), own = _figure_and_axes(ax, size, layout=None)
     pos = np.arange(1, len(names) + 1)
     if kind == "box":
         ax.boxplot(data, positions=pos, widths=0.6)
@@ -401,12 +505,12 @@ def plot_error_distributions(
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(alpha=0.3, axis="y")
-    fig.tight_layout()
-    return _save(fig, path, overwrite)
+    if own:
+        fig.tight_layout()
+    return _finish(fig, path, overwrite)
 
 
 def plot_tuning_curve(
-    path,
     steps,
     train,
     heldout=None,
@@ -416,14 +520,15 @@ def plot_tuning_curve(
     ylabel: str = "loss",
     title: str = "Tuning curve",
     log: bool = True,
+    ax=None,
+    path=None,
     size: tuple[int, int] = DEFAULT_SIZE,
     overwrite: bool = False,
-) -> pathlib.Path:
+):
     """Training (and held-out) loss against the optimisation step.
 
     **Arguments:**
 
-    - `path`: PNG file to write.
     - `steps`: ``(k,)`` step numbers.
     - `train`: ``(k,)`` training loss; `heldout`: optional ``(k,)`` held-out loss (``nan``
       where it was not evaluated).
@@ -432,22 +537,18 @@ def plot_tuning_curve(
       curve, and a dotted reference line across the plot.
     - `heldout_after`: the held-out loss of the returned design (`TuneResult.final_heldout`):
       a marked point at the last step.
-    - `ylabel`, `title`, `log` (logarithmic y axis when all values are positive),
-      `size` (pixels), `overwrite`.
+    - `ylabel`, `title`, `log` (logarithmic y axis when all values are positive).
+    - `ax`: a Matplotlib Axes to draw into, or None for a new Figure of `size` pixels.
+    - `path`: optional file to write the figure to (format from the suffix);
+      `overwrite`: whether an existing file may be replaced.
 
-    **Returns:** the PNG path.
+    **Returns:** the `matplotlib.figure.Figure` drawn on.
+
+    **Raises:** as `plot_poles`.
     """
-    fig = _tuning_figure(steps, train, heldout, heldout_before=heldout_before,
-                         heldout_after=heldout_after, ylabel=ylabel, title=title, log=log, size=size)
-    return _save(fig, path, overwrite)
-
-
-def _tuning_figure(steps, train, heldout=None, *, heldout_before=None, heldout_after=None, ylabel="loss",
-                   title="Tuning curve", log=True, size=DEFAULT_SIZE):
     steps = np.asarray(steps, dtype=float)
     train = np.asarray(train, dtype=float)
-    fig = _figure(size, layout="constrained")
-    ax = fig.add_subplot(1, 1, 1)
+    fig, (ax,), _ = _figure_and_axes(ax, size)
     ax.plot(steps, train, "-o", ms=3, color="tab:blue", label="training loss")
     vals = [train[np.isfinite(train)]]
     hs, hv = np.zeros(0), np.zeros(0)
@@ -482,4 +583,4 @@ def _tuning_figure(steps, train, heldout=None, *, heldout_before=None, heldout_a
     ax.set_title(title)
     ax.legend(loc="best")
     ax.grid(alpha=0.3)
-    return fig
+    return _finish(fig, path, overwrite)
