@@ -78,7 +78,7 @@ def main(argv=None) -> dict:
                                R=spec.R, q0=spec.q0, q1=spec.q1)
         designs[spec.name] = d
         t1 = time.perf_counter()
-        # the call `fojax study` makes (fojax.cli._commands._tune), with the file's settings
+        # the call `fojax study` makes (fojax.cli._study._tune), with the file's settings
         tr = tune(d, train, heldout=curve, steps=args.steps,
                   optimizer=shared_optimizer("adam", learning_rate=lr),
                   eval_every=max(1, args.steps // 10), solver=solver, barrier=1e-3)

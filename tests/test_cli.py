@@ -144,7 +144,7 @@ def test_saved_design_of_a_finite_time_observer_is_reloaded(tmp_path):
     from helpers import assert_designs_identical
 
     import fojax
-    from fojax.cli._commands import _saved_design
+    from fojax.cli._study import _saved_design
     from fojax.config import ObserverSpec
     from fojax.design import Disk
 
@@ -174,7 +174,7 @@ def test_saved_design_of_the_other_kinds_is_reloaded(tmp_path):
     from helpers import assert_designs_identical
 
     import fojax
-    from fojax.cli._commands import _saved_design
+    from fojax.cli._study import _saved_design
     from fojax.config import ObserverSpec
 
     v2 = pathlib.Path(__file__).parent / "data" / "designs_v2"

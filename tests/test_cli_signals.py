@@ -289,7 +289,7 @@ def test_an_interruption_is_not_raised_inside_the_unraisable_hook(default_handle
 def test_a_command_that_got_a_signal_never_exits_0(default_handlers, monkeypatch, capsys):
     """Even if the command runs on to its end (its interruption swallowed somewhere
     `Interrupts` cannot see), `main` returns 128 + signum with one line."""
-    from fojax.cli import _commands, main
+    from fojax.cli import _check, main
 
     def examples(quiet=False):
         import fojax.cli._signals as sigs
@@ -299,7 +299,7 @@ def test_a_command_that_got_a_signal_never_exits_0(default_handlers, monkeypatch
         time.sleep(0.05)
         return 0
 
-    monkeypatch.setattr(_commands, "examples", examples)
+    monkeypatch.setattr(_check, "examples", examples)
     assert main(["examples"]) == 130
     err = capsys.readouterr().err
     assert err == "fojax: interrupted; no file was written\n"

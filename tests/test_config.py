@@ -260,7 +260,7 @@ def test_balance_key_reaches_the_unknown_input_design(tmp_path):
     """``balance = true`` on an ``unknown-input`` observer reaches
     `design_unknown_input_observer` through the CLI's design step (the design is the unit-free
     one: ``solver["balance"]`` holds the factors)."""
-    from fojax.cli._commands import _design_observer
+    from fojax.cli._design import _design_observer
 
     d = base()
     d["observer"][0].update(kind="unknown-input", D=[[0.0], [0.0], [1.0], [0.0]], balance=True)

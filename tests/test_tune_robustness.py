@@ -197,7 +197,7 @@ def test_config_key_and_the_study_command_helpers(scalar_runs):
     import tomllib
 
     from fojax import ConfigError
-    from fojax.cli._commands import _robustness_line, _robustness_terms
+    from fojax.cli._study import _robustness_line, _robustness_terms
     from fojax.config import parse_config
 
     cfg = parse_config(tomllib.loads(SCALAR_TOML))

@@ -1,4 +1,4 @@
-"""JAX host devices for ``fojax study`` (issue 13): ``--devices N`` / ``FOJAX_DEVICES``.
+"""JAX host devices for ``fojax study``: ``--devices N`` / ``FOJAX_DEVICES``.
 
 XLA exposes a single CPU device unless ``--xla_force_host_platform_device_count=N`` is in
 ``XLA_FLAGS`` when JAX starts; fojax shards its sample batches over every device
@@ -10,13 +10,11 @@ flag with ``N`` from ``--devices N`` on the command line, else the environment v
 ``FOJAX_DEVICES``; ``auto`` is one device per core this process may use
 (``os.sched_getaffinity``).
 
-**Default: one device** (nothing set). Issue 13 asked for one device per core by default;
-measured on the default study (benchmarks/cli_study.py, the shared 2-core machine, one run
-each): at load ~2, 2 devices 27.5 s wall / 44.2 s CPU, 1 device 26.9 s / 42.1 s; at load
-~5, 59.3 s / 46.1 s against 44.9 s / 40.9 s. The sharded tuning step and held-out
-evaluation compile ~30 % longer (jax_log_compiles at load ~5: 22.2 s vs 16.9 s and 13.1 s
-vs 9.6 s), and the default study's batches (128 training samples, 64 study samples) are
-too small for the parallel steps to pay that back; larger studies may (not measured here).
+**Default: one device** (nothing set). Sharding compiles the tuning step and the
+held-out evaluation for several devices, which takes longer, and the default study's
+batches (128 training samples, 64 study samples) are too small for the parallel steps to
+pay that back; larger studies may gain from ``--devices auto``
+(``benchmarks/cli_study.py`` measures both).
 
 Nothing is changed when ``XLA_FLAGS`` already sets a device count (the user's choice
 wins), when ``JAX_PLATFORMS`` names another platform than ``cpu`` first, for the other
@@ -26,20 +24,13 @@ then ``--devices`` must match the devices JAX has, `check_devices`).
 **Compilation** (`configure_compiler`, every command of the ``fojax`` program). The
 program's runs are dominated by XLA:CPU compiling fojax's programs once each; without
 XLA's CPU fusion emitters (``--xla_cpu_use_fusion_emitters=false``, the older loop emitter)
-they compile about a third faster, and some run slower. Measured on an Intel Xeon (2 cores,
-jaxlib 0.10.2, load ~1.5-2): ``fojax study`` (the README's first command, default study)
-37.7-40.3 s wall → 25.8-30.1 s, CPU 58.5-59.9 s → 38.4-42.5 s, every array of every
-``.npz`` it writes bit for bit the same; `fojax.run_study` on the default study at
-B = 10,000 first call 5.9 → 5.2 s, warm 2.09 → 2.23 s; but the differentiable study loss
-runs slower: on ``benchmarks/tuning_step.py``'s study (B = 2,048) its forward 0.097 →
-0.162 s, its value-and-gradient 0.475 → 0.510 s, a `fojax.tune` step 0.40 → 0.52 s,
-while that step compiles in 8.2 s instead of 11.8 s. So the flag pays where compiling
-dominates (the default study's 60 steps on 128 samples) and costs ~0.1 s per tuning
-step at a few thousand training samples (break-even near 35 steps there). Set
-``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true`` for long tuning runs on large batches.
+they compile faster, with the same results bit for bit, and some programs run slower (the
+differentiable study loss on thousands of samples). So the flag pays where compiling
+dominates, as in the default study, and costs time per step in long tuning runs on large
+batches: set ``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true`` for those.
 
 An XLA flag that a jaxlib does not know aborts the process, so the flag is added only for
-the jaxlib versions it was measured on (`COMPILE_FLAG_JAXLIB`; others run with XLA's
+the jaxlib versions it was checked on (`COMPILE_FLAG_JAXLIB`; others run with XLA's
 defaults), and never when ``XLA_FLAGS`` mentions it (the user's choice wins), when
 ``JAX_PLATFORMS`` names another platform first, or once JAX is imported. A Python session
 importing fojax is untouched (a library does not change how XLA compiles the user's other
@@ -60,7 +51,7 @@ COMMANDS = ("study",)
 
 #: What `configure_compiler` adds to ``XLA_FLAGS`` (module docstring).
 COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
-#: ``(major, minor)`` versions of jaxlib on which `COMPILE_FLAG` was measured.
+#: ``(major, minor)`` versions of jaxlib on which `COMPILE_FLAG` is known.
 COMPILE_FLAG_JAXLIB = ((0, 10),)
 
 

@@ -2,11 +2,30 @@
 
 The CLI enables 64-bit JAX for its own process (it is an application, not a library
 import), and says so in ``--help``.
+
+Exit codes (the same in ``--help``):
+
+| code | meaning |
+|---|---|
+| 0 | success |
+| 1 | a result is negative: ``check``: the model is not admissible or a ``--require``d property does not hold; ``design``: an observer could not be designed or failed verification (the others are saved); ``study``/``demo``: a design failed verification |
+| 2 | usage or input error: a bad option, a config that cannot be read, an invalid model (one line on stderr) |
+| 3 | the command is not available in this installation |
+| 130 / 143 | interrupted by SIGINT (Ctrl-C) / SIGTERM |
+| 141 | stdout closed by its reader (e.g. piped into ``head``) |
+
+``--json`` (``check``, ``design``, ``study``) prints exactly one JSON document on stdout,
+``{"command", "exit_code", "results": [...]}`` (``"error"`` on exit code 2 or 3, and
+with no ``results`` on a usage error); every message and progress bar goes to stderr.
+``-q``/``--quiet`` prints nothing but errors; ``-v``/``--verbose`` adds the full Python
+traceback to an error's one-line reason (the exit code stays 2).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import sys
 import time
 
@@ -32,13 +51,20 @@ examples:
   fojax study my_model.toml             Monte Carlo study + tuning (Ctrl-C: stop; continue
                                         with fojax study --resume <its folder>)
 
-exit codes: 0 success; 1 an observer could not be designed or failed verification
-(the others are still designed and saved; each failure is named on stderr and in the
-report); 2 error (one-line reason on stderr; `fojax check a b c` checks every file and
-reports each bad one); 3 command not available in this installation; 130/143
-interrupted by SIGINT (Ctrl-C) / SIGTERM: any command, at any moment, with one line on
-stderr; the files written are complete (each is written atomically), an interrupted
-study is resumable. A signal ignored when fojax starts stays ignored.
+  fojax check --json my_model.toml      one JSON document on stdout (messages on stderr)
+
+exit codes: 0 success; 1 a negative result: `check`: the model is not admissible or a
+--require'd property does not hold; `design`: an observer could not be designed or failed
+verification (the others are still designed and saved; each failure is named on stderr
+and in the report); `study`, `demo`: a design failed verification; 2 usage or input
+error (one-line reason on stderr; `fojax check a b c` checks every file and reports each
+bad one); 3 command not available in this installation; 130/143 interrupted by SIGINT
+(Ctrl-C) / SIGTERM: any command, at any moment, with one line on stderr; the files
+written are complete (each is written atomically), an interrupted study is resumable. A
+signal ignored when fojax starts stays ignored. 141: stdout closed by its reader.
+--json: `check`, `design` and `study` print exactly one JSON document on stdout
+({"command", "exit_code", "results": [...], "error" on exit code 2/3}); messages and
+progress go to stderr. -q: only errors; -v: an error's full traceback too.
 files: fojax writes only inside the results folder (names in a config and --name must
 be plain file names: letters, digits, '.', '_', '-'), atomically, with the permissions
 your umask gives, and lists what it wrote in the folder's fojax-manifest.json.
@@ -139,34 +165,79 @@ def _each_config(configs: list[str], command) -> int:
     a config that fails gets its one-line reason on stderr (naming the file when there are
     several) and the next one still runs; the exit code is the worst of all (2 for a failed
     config)."""
-    from . import _commands
+    from ._common import _Unavailable
 
     status = 0
     for config in configs:
+        done = len(_JSON.doc["results"]) if _JSON.doc is not None else 0
         try:
             status = max(status, command(config))
-        except _commands._Unavailable:
+        except _Unavailable:
             raise
         except Exception as err:
             if _debug():  # full traceback for bug reports
                 raise
+            _traceback(err)
             print(_error_line(err, config if len(configs) > 1 else None), file=sys.stderr, flush=True)
+            if _JSON.doc is not None:
+                del _JSON.doc["results"][done:]  # what the failed config had begun to record
+                _JSON.doc["results"].append({"config": str(config), "ok": False, "error": type(err).__name__,
+                                             "message": str(err)})
             status = 2
     return status
 
 
+class _JsonOut:
+    """The ``--json`` document of the command being run (None without ``--json``) and
+    whether ``-v`` was given."""
+
+    doc: dict | None = None
+    verbose: bool = False
+
+
+_JSON = _JsonOut()
+
+
+def _traceback(err: BaseException) -> None:
+    """With ``-v``: the full traceback of `err` on stderr (before its one-line reason)."""
+    if _JSON.verbose:
+        import traceback
+
+        traceback.print_exception(err, file=sys.stderr)
+
+
+class _UsageError(Exception):
+    """A command line argparse refused (exit code 2)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # with --json the refusal is the JSON document's error too
+        if _JSON.doc is not None:
+            self.print_usage(sys.stderr)
+            raise _UsageError(f"{self.prog}: {message}")
+        super().error(message)
+
+
 def _run(argv: list[str] | None) -> int:
     raw = argparse.RawDescriptionHelpFormatter
-    parser = argparse.ArgumentParser(
-        prog="fojax", description=DESCRIPTION, epilog=EPILOG, formatter_class=raw
-    )
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--json" in argv:  # before parsing: a refused command line is a JSON error document too
+        _JSON.doc = {"command": None, "results": []}
+    parser = _Parser(prog="fojax", description=DESCRIPTION, epilog=EPILOG, formatter_class=raw)
     parser.add_argument("--version", action="version", version=f"fojax {_version()}",
                         help="print the installed fojax version and exit")
-    parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
-    # `--quiet` is accepted after the command too (default SUPPRESS keeps the global value)
+    parser.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="more detail: an error's full Python traceback before its one-line reason")
+    # `-q`/`-v` are accepted after the command too (default SUPPRESS keeps the global value)
     quiet = argparse.ArgumentParser(add_help=False)
-    quiet.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS,
+    quiet.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
                        help="print nothing but errors")
+    quiet.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                       help="an error's full Python traceback too")
+    as_json = argparse.ArgumentParser(add_help=False)
+    as_json.add_argument("--json", action="store_true",
+                         help="print one JSON document with the results on stdout (messages to stderr)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.add_parser(
         "demo",
@@ -180,21 +251,30 @@ def _run(argv: list[str] | None) -> int:
         description="List the shipped example configs (thesis examples) and their paths; "
         "copy one to start your own model file.",
     )
+    from ._check import PROPERTIES
+
     p = sub.add_parser(
         "check",
-        parents=[quiet],
+        parents=[quiet, as_json],
         help="structural analysis report of the model in CONFIG",
         description="Regularity, index, poles, impulse-freeness, admissibility, observability "
         "and controllability notions and functional observability of L (Assumption 1), with a "
-        "plain-language verdict. Exit code 0 when the report could be produced.",
-        epilog="example: fojax check example_3_3_7   (a shipped example; see `fojax examples`)",
+        "plain-language verdict. Exit code 0 when the model is admissible (every Takagi-Sugeno "
+        "rule; the closed loop with model.feedback) and has every --require'd property, 1 when "
+        "not (each failure named on stderr), 2 when a config cannot be read.",
+        epilog="examples: fojax check example_3_3_7   (a shipped example; see `fojax examples`)\n"
+        "          fojax check my.toml --require detectable --require functionally_observable\n"
+        "          fojax check --json example_3_3_7 | python -m json.tool",
         formatter_class=raw,
     )
     p.add_argument("config", metavar="CONFIG", nargs="+",
                    help="TOML model file(s), or shipped example names")
+    p.add_argument("--require", metavar="PROPERTY", action="append", default=[], choices=PROPERTIES,
+                   help="a property the model must have besides admissibility (repeatable): "
+                   + ", ".join(PROPERTIES) + "; one the analysis cannot decide counts as failed")
     p = sub.add_parser(
         "design",
-        parents=[quiet],
+        parents=[quiet, as_json],
         help="design, verify and save the observers requested in CONFIG",
         description="Design every [[observer]] of CONFIG by LMI, verify it in float64, and "
         "save it (fojax.results.load_design reads it back bit-exactly) with a pole plot and a "
@@ -219,7 +299,7 @@ def _run(argv: list[str] | None) -> int:
                    "changed since; files fojax did not write stay untouched")
     p = sub.add_parser(
         "study",
-        parents=[quiet],
+        parents=[quiet, as_json],
         help="Monte Carlo robustness study (default: the built-in §3.3.7 benchmark)",
         description="Design, Monte Carlo study, tuning and comparison of the observers of "
         "CONFIG (default: the §3.3.7 benchmark), in a NEW results folder. Ctrl-C (or SIGTERM) "
@@ -251,19 +331,40 @@ def _run(argv: list[str] | None) -> int:
                    "JAX_PROCESS_ID set (not needed under SLURM); only process 0 writes the results "
                    "folder (see docs/distributed.md)")
     args = parser.parse_args(argv)
+    _JSON.verbose = args.verbose
+    if not getattr(args, "json", False):
+        _JSON.doc = None  # "--json" was an option's value, or given to a command without it
     if args.command is None:  # plain `fojax`: what it can do, not a 20-second demo
         parser.print_help()
         return 0
-    command = args.command
-    from . import _commands
+    if _JSON.doc is not None:
+        _JSON.doc["command"] = args.command
+        with contextlib.redirect_stdout(sys.stderr):  # stdout holds the JSON document only
+            return _command(parser, args)
+    return _command(parser, args)
+
+
+def _command(parser, args) -> int:
+    """Run the parsed command."""
+    from . import _check, _design, _study
+    from ._common import resolve_config
     from ._signals import on_interrupt
+
+    command = args.command
+    results = _JSON.doc["results"] if _JSON.doc is not None else None
+
+    def record() -> dict | None:  # one result of the JSON document
+        if results is None:
+            return None
+        results.append({})
+        return results[-1]
 
     if command == "demo":
         return demo(quiet=args.quiet)
     if command == "examples":
-        return _commands.examples(quiet=args.quiet)
+        return _check.examples(quiet=args.quiet)
     if command == "study":
-        config = None if args.config is None else _commands.resolve_config(args.config)
+        config = None if args.config is None else resolve_config(args.config)
         from ._devices import check_devices
 
         if args.distributed:
@@ -272,24 +373,25 @@ def _run(argv: list[str] | None) -> int:
             _distributed.initialize()
             _enable_x64()
             check_devices(args.devices)
-            return _distributed.run(lambda: _commands.study(
+            return _distributed.run(lambda: _study.study(
                 config, args.out, samples=args.samples, horizon=args.horizon, steps=args.steps,
-                resume=args.resume, quiet=args.quiet, distributed=True))
+                resume=args.resume, quiet=args.quiet, distributed=True, result=record()))
         _enable_x64()
         check_devices(args.devices)
-        return _commands.study(config, args.out, samples=args.samples, horizon=args.horizon,
-                               steps=args.steps, resume=args.resume, quiet=args.quiet)
+        return _study.study(config, args.out, samples=args.samples, horizon=args.horizon,
+                            steps=args.steps, resume=args.resume, quiet=args.quiet, result=record())
     _enable_x64()
     if command == "design":
         on_interrupt("every file written so far is complete (each is written atomically); the "
                      "observers not reached yet are missing from the results folder")
-    configs = [_commands.resolve_config(c) for c in args.config]
+    configs = [resolve_config(c) for c in args.config]
     if command == "check":
-        return _each_config(configs, lambda c: _commands.check(c, quiet=args.quiet))
+        return _each_config(configs, lambda c: _check.check(c, quiet=args.quiet, require=args.require,
+                                                            result=record()))
     if command == "design" and args.name is not None and len(configs) > 1:
         parser.error("--name needs a single CONFIG (each config gets its own folder)")
-    return _each_config(configs, lambda c: _commands.design(
-        c, args.out, name=args.name, overwrite=args.overwrite, quiet=args.quiet))
+    return _each_config(configs, lambda c: _design.design(
+        c, args.out, name=args.name, overwrite=args.overwrite, quiet=args.quiet, result=record()))
 
 
 def _positive(raw: str) -> int:
@@ -313,12 +415,15 @@ def main(argv: list[str] | None = None) -> int:
 
     from ._signals import Interrupts
 
+    _JSON.doc = None
     with Interrupts() as interrupts:
         try:
             try:
                 code = _run(argv)
             except Exception as err:  # one-line reason, non-zero exit
                 code = None if interrupts.signum is not None else _error(err)
+                if _JSON.doc is not None and code is not None:
+                    _JSON.doc["error"] = {"type": type(err).__name__, "message": str(err)}
             interrupts.finish()  # from here on a signal is only recorded
         except KeyboardInterrupt:
             if interrupts.signum is None:  # not a signal of this command
@@ -328,6 +433,13 @@ def main(argv: list[str] | None = None) -> int:
             code = interrupts.exit_code
             what = interrupts.message or "no file was written"
             print(f"fojax: interrupted; {what}", file=sys.stderr, flush=True)
+            if _JSON.doc is not None:
+                _JSON.doc["error"] = {"type": "Interrupted", "message": what}
+    if _JSON.doc is not None:  # --json: the one document on stdout
+        doc, _JSON.doc = _JSON.doc, None
+        with contextlib.suppress(BrokenPipeError):
+            print(json.dumps({"command": doc.pop("command"), "exit_code": code, **doc}, allow_nan=False),
+                  flush=True)
     if argv is None and interrupts.signum is not None:
         sys.stdout.flush()
         sys.stderr.flush()
@@ -337,11 +449,14 @@ def main(argv: list[str] | None = None) -> int:
 
 def _error(err: Exception) -> int:
     """Print the one-line reason of a failed command; its exit code (2, or 3: unavailable)."""
-    from . import _commands
+    from ._common import _Unavailable
 
-    if isinstance(err, _commands._Unavailable):
+    if isinstance(err, _Unavailable):
         print(f"fojax: {err}", file=sys.stderr)
         return 3
+    if isinstance(err, _UsageError):  # argparse's message, as it prints it without --json
+        print(f"{err}", file=sys.stderr)
+        return 2
     if isinstance(err, BrokenPipeError):  # `fojax examples | head -2`: the reader left
         import os
 
@@ -349,6 +464,7 @@ def _error(err: Exception) -> int:
         return 128 + 13  # as a shell reports a process ended by SIGPIPE
     if _debug():  # FOJAX_DEBUG=1: full traceback for bug reports
         raise err
+    _traceback(err)
     print(_error_line(err), file=sys.stderr)
     return 2
 

@@ -164,10 +164,9 @@ class Interrupts:
     def _reraise(self, main_id):
         """Interrupt the main thread once it has left `_unraisable` (a signal simulated with
         `_thread.interrupt_main`). Waiting for that, not for a fixed moment: on a loaded
-        machine the main thread was still inside the hook (``Thread.start`` waits for the
-        thread to start) 1 ms later, the KeyboardInterrupt was raised there and swallowed
-        ("Exception ignored in sys.unraisablehook"), and the command ran on (measured once
-        in a full test run at load ~4)."""
+        machine the main thread can still be inside the hook after any fixed delay, and a
+        KeyboardInterrupt raised there is swallowed ("Exception ignored in
+        sys.unraisablehook") and the command runs on."""
         while _on_stack(sys._current_frames().get(main_id), _is_hook):
             time.sleep(0.001)
         self._reraising = False
@@ -178,9 +177,9 @@ class Interrupts:
 
         A real signal (``pthread_kill``), not `_thread.interrupt_main`: a simulated signal is
         only seen when the main thread next runs Python code, so a main thread blocked in a
-        system call (a ``time.sleep``, a read) stayed blocked until the call returned; measured
-        in the test suite: a SIGINT that arrived while a tuning checkpoint was written was
-        deferred and then waited out the 120 s sleep the test had put after that write. Only
+        system call (a ``time.sleep``, a read) stays blocked until the call returns (a SIGINT
+        that arrives while a tuning checkpoint is written would wait for whatever blocking call
+        follows the write). Only
         while this command's handler is installed (after `__exit__` the signal's own
         disposition would apply: SIGTERM would end the process unannounced); elsewhere, and on
         platforms without ``pthread_kill``, the simulated signal."""

@@ -307,9 +307,8 @@ _READ = None
 
 def _read_back(study, iu, jf):
     """The sampled plants, initial states and input of `study`, in one compiled call. The
-    jitted function is built once per process (it was a new closure per call, so the
-    training and held-out sets, of one structure, compiled it twice: about 11 s of a
-    robot-arm study's 34 s of read-back compilation, measured under load)."""
+    jitted function is built once per process, so the training and held-out sets, of one
+    structure, share one compilation."""
     global _READ
     if _READ is None:
         import equinox as eqx

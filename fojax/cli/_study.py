@@ -1,4 +1,4 @@
-"""``fojax check``, ``fojax design`` and ``fojax study`` (config-file commands)."""
+"""``fojax study``: Monte Carlo study, tuning and comparison of the observers of a config."""
 
 from __future__ import annotations
 
@@ -6,444 +6,12 @@ import concurrent.futures
 import hashlib
 import json
 import pathlib
-import time
 
 import numpy as np
 
 from .._background import in_background
+from ._common import _default_region, _Progress, _region_words, _Unavailable, figures_available
 from ._signals import check as check_interrupted, on_interrupt
-
-
-class _Progress:
-    """Step messages with elapsed times (nothing when quiet)."""
-
-    def __init__(self, quiet: bool):
-        self.quiet = quiet
-
-    def say(self, *args):
-        if not self.quiet:
-            print(*args, flush=True)
-
-    def step(self, message: str):
-        progress = self
-
-        class _Step:
-            def __enter__(self):
-                self.t0 = time.perf_counter()
-                progress.say(f"{message} ...")
-                return self
-
-            def __exit__(self, *exc):
-                if exc[0] is None:
-                    progress.say(f"  done in {time.perf_counter() - self.t0:.1f} s")
-                return False
-
-        return _Step()
-
-
-def resolve_config(path: str) -> str:
-    """A config path, or the shipped example of that name (``fojax check example_3_3_7``)."""
-    from ..config import example_names, example_path
-
-    p = pathlib.Path(path)
-    if not p.exists() and p.suffix in ("", ".toml") and p.parent == pathlib.Path(".") and (
-        p.stem in example_names()
-    ):
-        return str(example_path(p.stem))
-    return path
-
-
-def _load(path):
-    from ..config import load_config
-
-    return load_config(path)
-
-
-def examples(quiet: bool = False) -> int:
-    """List the shipped example configs: name and one-line description (the file's own
-    ``description``), then the folder that holds them."""
-    import tomllib
-
-    from ..config import example_names, example_path
-
-    names = example_names()
-    width = max((len(n) for n in names), default=0)
-    for n in names:
-        path = example_path(n)
-        try:
-            with open(path, "rb") as f:
-                text = str(tomllib.load(f).get("description", "")).strip()
-        except (OSError, tomllib.TOMLDecodeError) as err:  # a broken shipped file is a bug: say so
-            text = f"(cannot read the file: {type(err).__name__})"
-        print(f"{n:<{width}}  {text.splitlines()[0] if text else '(no description)'}")
-    if names:
-        print(f"\nfiles: {example_path(names[0]).parent}/<name>.toml")
-    if not quiet:
-        print("use one by name (`fojax check example_3_3_7`, `fojax design example_4_1_3`) or copy "
-              "its file to start your own model (format: docs/config.md).")
-    return 0
-
-
-def check(config_path: str, quiet: bool = False) -> int:
-    """Print the structural analysis report(s) of the model in `config_path`."""
-    from ..analysis import structure_report
-
-    out = _Progress(quiet)
-    cfg = _load(config_path)
-    out.say(f"fojax check: {cfg.name} ({config_path})")
-    if cfg.description:
-        out.say(f"  {cfg.description}")
-    if cfg.feedback is not None:
-        out.say("  model.feedback is given: the plant analysed is (E, A + B K, B, C).")
-    out.say("")
-    systems = cfg.rule_systems()
-    for i, sys_ in enumerate(systems):
-        if cfg.is_takagi_sugeno:
-            out.say(f"Takagi-Sugeno rule {i + 1} of {len(systems)} (E, A_{i + 1}, B_{i + 1}, C):")
-        out.say(structure_report(sys_, cfg.L))
-        out.say("")
-    if cfg.augments_faults:
-        aug = cfg.design_system()
-        out.say(
-            f"Fault-augmented system (eq. 3.196, {aug.n} states) with the functional of the "
-            "observers (z and the faults):" if cfg.estimate_faults else
-            f"Fault-augmented system (eq. 3.196, {aug.n} states) with the functional [L 0]:"
-        )
-        out.say(structure_report(aug, cfg.design_L()))
-        out.say(
-            "  (the augmented system always has poles at 0, the constant fault states: 'NOT "
-            "admissible' is expected here; what matters for the observers is observability "
-            "and Assumption 1)"
-        )
-        out.say("")
-    elif cfg.has_faults:  # Takagi-Sugeno: faults of the simulated plant only
-        out.say("Faults ([faults]): they act on the simulated plant in `fojax study`; the "
-                "Takagi-Sugeno observers estimate z = L x only (no fault-augmented T-S design).")
-        out.say("")
-    if cfg.dA is not None:
-        out.say(
-            f"Uncertainty: {cfg.dA.shape[0]} direction(s) dA; the reports above are for the "
-            "nominal model (delta = 0)."
-        )
-    return 0
-
-
-def _one_line(err: BaseException) -> str:
-    return " ".join(str(err).split("\n")[0].split())
-
-
-def design(
-    config_path: str,
-    out_dir: str | None = None,
-    *,
-    name: str | None = None,
-    overwrite: bool = False,
-    quiet: bool = False,
-) -> int:
-    """Design, verify and save every ``[[observer]]`` of `config_path` in a new results folder.
-
-    For a Takagi–Sugeno model (``[takagi_sugeno]``) every observer is a Takagi–Sugeno
-    functional observer (`fojax.design.design_ts_observer`: one common $T$, per-rule
-    gains, a common certificate for all rules); otherwise
-    `fojax.design.design_functional_observer` on the (fault-augmented) system.
-
-    Every observer is designed even when another one fails: a design that raises a
-    `fojax.FojaxError` (existence condition, LMI infeasible, verification failed) is
-    reported by name on stderr (``fojax: observer 'po': LMIInfeasibleError: ...``), in
-    ``report.md`` and in ``designs.json`` (``status``, ``error``, ``message``); the others
-    are saved and plotted as usual. Any other exception (a bug) or an interrupt stops the
-    run, after writing a report that says so. ``report.md`` and ``designs.json`` are
-    always written.
-
-    **Returns:** 0 if every observer was designed and verified, 1 otherwise.
-    """
-    import sys
-
-    from .._errors import FojaxError, InputError
-    from .._io import folder_manifest, name_problem, NAME_RULE, suggest_name
-    from ..design import design_functional_observer, design_ts_observer
-    from ..results import (
-        atomic_write_json,
-        new_results_folder,
-        plot_poles,
-        save_design,
-        write_report,
-    )
-    from ..results._io import atomic_write_bytes
-
-    if name is not None and name_problem(name) is not None:  # before any work
-        raise InputError(
-            f"--name {name!r} cannot be used: {name_problem(name)}. The {NAME_RULE}; e.g. "
-            f"--name {suggest_name(name, 'run1')}. (--out may be any path: the results folder "
-            "is created inside it.)"
-        )
-    out = _Progress(quiet)
-    cfg = _load(config_path)
-    from ..config import ObserverSpec
-
-    observers = cfg.observers or (ObserverSpec("generalized", "generalized", _default_region()),)
-    sys_ = cfg.design_system()
-    L = cfg.design_L()
-    folder = new_results_folder(
-        out_dir if out_dir is not None else "fojax-results",
-        prefix=f"design-{cfg.name}",
-        name=name,
-        overwrite=overwrite,
-    )
-    out.say(f"fojax design: {cfg.name} -> results folder {folder}")
-    replaced = (folder_manifest(folder) or {}).get("replaced_previous_run")
-    if replaced:
-        out.say(f"  --overwrite: removed the {len(replaced['removed'])} file(s) of the previous run"
-                + (f"; kept {', '.join(replaced['kept_changed'])} (changed since that run wrote them)"
-                   if replaced["kept_changed"] else ""))
-    atomic_write_bytes(folder / "config.toml", pathlib.Path(config_path).read_bytes(), overwrite=overwrite)
-    if cfg.augments_faults:
-        out.say(f"  designing for the fault-augmented system ({sys_.n} states), functional {L.shape[0]} x {L.shape[1]}")
-    if cfg.is_takagi_sugeno:
-        out.say(f"  Takagi-Sugeno model with {sys_.num_rules} rules: one observer per [[observer]] with "
-                "a common T and per-rule gains, error poles of every rule (and every convex "
-                "combination) in the region")
-    design_fn = design_ts_observer if cfg.is_takagi_sugeno else design_functional_observer
-    rows, figures, files, summary, failed = [], {}, {}, [], {}
-
-    def finish(aborted: BaseException | None = None) -> pathlib.Path:
-        """designs.json and report.md of what was done (also when the run is aborted)."""
-        n_ok = sum(1 for e in summary if e["status"] == "verified")
-        verdict = (f"{n_ok} of {len(observers)} observer(s) designed and verified in float64 "
-                   "(design-condition residuals, eigenvalues in the region, LMI re-check at the "
-                   "certificate)")
-        if failed:
-            verdict += f"; {len(failed)} could not be designed: {', '.join(failed)} (see 'Failed designs')"
-        if aborted is not None:
-            verdict += (f". The run was ABORTED by {type(aborted).__name__}: {_one_line(aborted)}; "
-                        f"observers not listed below were not designed")
-        atomic_write_json(folder / "designs.json", {
-            "config": str(config_path), "status": "aborted" if aborted is not None else "complete",
-            **({"aborted": {"error": type(aborted).__name__, "message": str(aborted)}} if aborted is not None else {}),
-            "designs": summary,
-        }, overwrite=overwrite)
-        files["verification summary"] = folder / "designs.json"
-        files["the config file used"] = folder / "config.toml"
-        headers = ["observer", "kind", "q0", "q1", "region", "route", "max Re(eig)", "relative residual", "verified"]
-        sections = {"Failed designs": "\n\n".join(
-            f"- **{nm}**: `{err_type}`: {msg}" for nm, (err_type, msg) in failed.items())} if failed else {}
-        return write_report(
-            folder,
-            title=f"fojax design: {cfg.name}",
-            summary=(cfg.description or "") + f"\n\nConfig: `{config_path}`. {verdict}.",
-            tables={"Designs": (headers, rows), **_hinf_table(summary), **_h2_table(summary)},
-            figures=figures,
-            files=files,
-            sections=sections,
-            overwrite=overwrite,
-        )
-
-    try:
-        for spec in observers:
-            try:
-                with out.step(
-                    f"designing observer '{spec.name}' ({spec.kind}, error poles in "
-                    f"{_region_words(spec)}): structure checks, design {spec.route_words()}, float64 verification"
-                ):
-                    d = _design_observer(design_fn, sys_, L, spec)
-            except FojaxError as err:  # this observer failed; design the others
-                kind = type(err).__name__
-                print(f"fojax: observer '{spec.name}': {kind}: {_one_line(err)}", file=sys.stderr, flush=True)
-                failed[spec.name] = (kind, " ".join(str(err).split()))
-                rows.append([spec.name, spec.kind, "-", "-", _region_words(spec), "-", float("nan"),
-                             float("nan"), f"FAILED ({kind})"])
-                summary.append({"name": spec.name, "kind": spec.kind, "status": "failed",
-                                "region": _region_words(spec), "error": kind, "message": str(err)})
-                continue
-            out.say(f"  {d}")
-            live = _live_parameters(d)
-            if live is not None:
-                out.say(f"  {live}")
-            path = save_design(
-                d,
-                folder / f"{spec.name}.npz",
-                overwrite=overwrite,
-                metadata={"config": str(config_path), "config_name": cfg.name, "observer": spec.name},
-            )
-            view = _DesignView.of(d)
-            png = plot_poles(
-                folder / f"poles-{spec.name}.png",
-                view.eigenvalues,
-                view.region,
-                title=f"{cfg.name}: error poles of '{spec.name}' ({spec.kind})" + view.title_note,
-                overwrite=overwrite,
-            )
-            eig = np.asarray(view.eigenvalues)
-            rows.append(
-                [spec.name, spec.kind, view.q0, view.q1, view.region_words, _route(d),
-                 float(np.max(eig.real)) if eig.size else float("nan"),
-                 view.relative_residual, view.passed]
-            )
-            figures[f"Error poles of '{spec.name}'"] = png
-            files[f"design of '{spec.name}' (fojax.results.load_design)"] = path
-            summary.append({"name": spec.name, "file": path.name,
-                            "status": "verified" if view.passed else "not verified",
-                            **view.report, "kind": spec.kind, "route": _route(d), "q0": view.q0, "q1": view.q1,
-                            **{k: _certificate_dict(getattr(d, k)) for k in ("hinf", "h2")
-                               if getattr(d, k, None) is not None},
-                            **({"live_parameters": {"live": live.live, "free": live.total,
-                                                    "live_blocks": list(live.live_blocks()),
-                                                    "void_generalized": live.void_generalized}}
-                               if live is not None else {})})
-            out.say(f"  saved {path}")
-    except BaseException as err:  # a bug or an interrupt: say so in the folder, then stop
-        import contextlib
-
-        with contextlib.suppress(Exception):
-            finish(aborted=err)
-        raise
-    report = finish()
-    width = max([len("observer")] + [len(r[0]) for r in rows])
-    out.say("")
-    out.say(f"{'observer':<{width}}  kind          q0  q1  route     max Re(eig)  verified")
-    for r in rows:
-        verified = r[8] if isinstance(r[8], str) else ("yes" if r[8] else "NO")
-        out.say(f"{r[0]:<{width}}  {r[1]:<12}  {r[2]:>2}  {r[3]:>2}  {r[5]:<8}  {r[6]:>11.4g}  {verified}")
-    for name, row in zip(*_hinf_rows(summary)):
-        out.say(f"{name}: H∞ bound gamma = {row[1]:.6g} >= ||T||inf = {row[2]:.6g} (SLICOT AB13DD, peak at "
-                f"{row[3]:.4g} rad/s, tightness {row[4]:.4f}; region-only design {row[5]:.6g})")
-    for row in _h2_rows(summary):
-        out.say(f"{row[0]}: H2 bound nu = {row[1]:.6g} >= ||T||2 = {row[2]:.6g} (SciPy Lyapunov, tightness "
-                f"{row[3]:.4f}; region-only design {row[4]:.6g})")
-    out.say(f"\nresults: {folder} (report: {report.name})")
-    if failed:
-        print(f"fojax: {len(failed)} of {len(observers)} observer(s) of {config_path} could not be designed "
-              f"({', '.join(failed)}); the others are saved in {folder}, the reasons are in its report.md.",
-              file=sys.stderr, flush=True)
-    all_ok = not failed and all(e["status"] == "verified" for e in summary)
-    return 0 if all_ok else 1
-
-
-def _live_parameters(d):
-    """`fojax.design.live_parameters` of a generalized/PI/proportional or T-S design, else ``None``."""
-    from ..design import FunctionalObserverDesign, live_parameters, TakagiSugenoObserverDesign
-
-    return live_parameters(d) if isinstance(d, FunctionalObserverDesign | TakagiSugenoObserverDesign) else None
-
-
-def _certificate_dict(cert) -> dict:
-    """An H∞/H2 certificate (a dataclass) as designs.json stores it: every field, arrays as lists
-    of rows, a non-finite float as ``None`` (`fojax._serialize.json_safe` otherwise)."""
-    import dataclasses
-
-    from .._serialize import json_safe
-
-    return {k: None if isinstance(v, float) and not np.isfinite(v) else json_safe(v)
-            for k, v in dataclasses.asdict(cert).items()}
-
-
-def _hinf_rows(summary) -> tuple[list, list]:
-    """Names and rows of the ``objective = "hinf"`` designs of a `design` summary."""
-    names, rows = [], []
-    for e in summary:
-        h = e.get("hinf")
-        if h:
-            names.append(e["name"])
-            rows.append([e["name"], h["gamma"], h["norm"], h["peak_frequency"], h["tightness"],
-                         h["region_only_norm"]])
-    return names, rows
-
-
-def _hinf_table(summary) -> dict:
-    """The report's "H∞ bounds" table (empty dict if no design has one)."""
-    _, rows = _hinf_rows(summary)
-    if not rows:
-        return {}
-    headers = ["observer", "γ (certified bound)", "‖T‖∞ (SLICOT AB13DD)", "peak ω [rad/s]",
-               "tightness γ/‖T‖∞", "‖T‖∞ of the region-only design"]
-    return {"H∞ bounds (d = [w; ν] → ẑ − z)": (headers, rows)}
-
-
-def _h2_rows(summary) -> list:
-    """Rows of the ``objective = "h2"`` designs of a `design` summary (``inf``: the region-only
-    design has a feedthrough, so an infinite H2 norm)."""
-    inf = (lambda x: float("inf") if x is None else x)
-    return [[e["name"], e["h2"]["nu"], e["h2"]["norm"], inf(e["h2"]["tightness"]), inf(e["h2"]["region_only_norm"])]
-            for e in summary if e.get("h2")]
-
-
-def _h2_table(summary) -> dict:
-    """The report's "H2 bounds" table (empty dict if no design has one)."""
-    rows = _h2_rows(summary)
-    if not rows:
-        return {}
-    headers = ["observer", "ν (certified bound)", "‖T‖₂ (SciPy Lyapunov)", "tightness ν/‖T‖₂",
-               "‖T‖₂ of the region-only design"]
-    return {"H2 bounds (d = [w; ν] → ẑ − z)": (headers, rows)}
-
-
-def _region_words(spec) -> str:
-    if spec.kind == "finite-time":
-        return " and ".join(r.describe() for r in spec.regions)
-    return spec.region.describe()
-
-
-def _design_observer(design_fn, sys_, L, spec):
-    """Design one ``[[observer]]``: `design_fn` (LTI or T-S) for the generalized, PI and
-    proportional kinds; the unknown-input (§3.2) and finite-time (§3.1.2) routines for theirs."""
-    from ..design import design_finite_time_observer, design_unknown_input_observer
-
-    if spec.kind == "unknown-input":
-        return design_unknown_input_observer(sys_, spec.D, L, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1,
-                                             **({} if spec.balance is None else {"balance": spec.balance}))
-    if spec.kind == "finite-time":
-        return design_finite_time_observer(sys_, L, h=spec.delay, regions=spec.regions, R=spec.R, q0=spec.q0,
-                                           q1=spec.q1, method=spec.method)
-    return design_fn(sys_, L, kind=spec.kind, region=spec.region, R=spec.R, q0=spec.q0, q1=spec.q1,
-                     **spec.design_kwargs())
-
-
-class _DesignView:
-    """What `fojax design` prints, plots and records of a design: one verification report,
-    or, for a finite-time observer, its two designs' together (both must pass)."""
-
-    def __init__(self, eigenvalues, region, region_words, q0, q1, relative_residual, passed, report,
-                 title_note=""):
-        self.eigenvalues, self.region, self.region_words = eigenvalues, region, region_words
-        self.q0, self.q1, self.relative_residual, self.passed = q0, q1, relative_residual, passed
-        self.report, self.title_note = report, title_note
-
-    @classmethod
-    def of(cls, d):
-        from ..design import FiniteTimeObserverDesign
-
-        if isinstance(d, FiniteTimeObserverDesign):
-            d1, d2 = d.designs
-            eig = np.concatenate([np.asarray(d1.report.eigenvalues), np.asarray(d2.report.eigenvalues)])
-            return cls(eig, None, f"{d1.region.describe()} and {d2.region.describe()}", d1.observer.q0,
-                       d1.observer.q1, max(float(d1.report.relative_residual), float(d2.report.relative_residual)),
-                       bool(d1.report.passed and d2.report.passed),
-                       {"observer_1": d1.report.to_dict(), "observer_2": d2.report.to_dict(), "h": float(d.h),
-                        "reconstruction_rcond": float(d.reconstruction_rcond),
-                        "reconstruction_residual": float(d.reconstruction_residual)},
-                       title_note=f"\nboth observers, in {d1.region.describe()} and {d2.region.describe()}; h = {d.h:g}")
-        return cls(d.report.eigenvalues, d.region, d.region.describe(), d.observer.q0, d.observer.q1,
-                   float(d.report.relative_residual), bool(d.report.passed), d.report.to_dict())
-
-
-def _route(d) -> str:
-    """``"Riccati"`` or ``"LMI"``: how the gain of design `d` was computed (its
-    ``solver["lmi"]["method"]``); for a finite-time pair, its two routes."""
-    designs = getattr(d, "designs", None) or (d,)
-    names = []
-    for di in designs:
-        lmi = (getattr(di, "solver", None) or {}).get("lmi")
-        if lmi is None:  # no solver record of the gain: the finite-time observers' pole placement
-            names.append("pole placement")
-        else:
-            names.append("Riccati" if lmi.get("method") == "riccati" else "LMI")
-    return " / ".join(dict.fromkeys(names))
-
-
-def _default_region():
-    from ..design import Disk
-
-    return Disk(-2.0, 1.0)
 
 
 def _studies_available() -> bool:
@@ -475,6 +43,7 @@ def study(
     resume: str | None = None,
     quiet: bool = False,
     distributed: bool = False,
+    result: dict | None = None,
 ) -> int:
     """``fojax study``: structure check, LMI designs, Monte Carlo study, figures and report.
 
@@ -503,13 +72,17 @@ def study(
 
     With `distributed` (``--distributed``, after `fojax.cli._distributed.initialize`) the
     samples are spread over every process's devices; only process 0 writes the folder.
+
+    **Returns:** 0 if every design (and tuned design) passed its verification, else 1.
+    `result` (for ``--json``), if given, is filled with the folder, the report, the
+    sample plan, the verifications and the mean metrics per observer.
     """
     if distributed:
         from ._distributed import process_folders
 
         with process_folders(out_dir, resume) as (out_dir, resume, worker):
             return study(config_path, out_dir, samples=samples, horizon=horizon, steps=steps, resume=resume,
-                         quiet=quiet or bool(worker))
+                         quiet=quiet or bool(worker), result=None if worker else result)
     if not _studies_available():
         raise _Unavailable(
             "fojax study is not available yet: the Monte Carlo study runner (fojax.studies) is "
@@ -582,7 +155,8 @@ def study(
     out.say(f"devices: {_devices_line()}")
     on_interrupt(f"every file in {folder} is complete (tuning checkpoints included). Continue "
                  f"with: fojax study --resume {folder}")
-    return _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, resumed=resume is not None)
+    return _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, resumed=resume is not None,
+                  result=result)
 
 
 def _devices_line() -> str:
@@ -651,7 +225,7 @@ def _resume_folder(folder, config_path, out_dir, given: dict):
     return folder, opts["config"], cfg
 
 
-def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bool) -> int:
+def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bool, result=None) -> int:
     """The body of `study` (after the results folder is set up); `plan` is the
     `fojax.cli._study_samples.SamplePlan` announced and recorded by `study`."""
     import dataclasses
@@ -663,6 +237,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         plot_error_distributions,
         plot_estimates,
         plot_poles,
+        plot_tuning_curve,
         save_design,
         write_metrics,
         write_report,
@@ -671,6 +246,14 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
     from . import _study_samples as ss
 
     ow = resumed  # a resumed run replaces the files it regenerates
+    draw = figures_available(out)
+
+    def figure(caption: str, filename: str, plot, *args, **kw):
+        """Draw `plot` into ``<folder>/<filename>`` and list it in the report (with Matplotlib)."""
+        if draw:
+            plot(*args, path=folder / filename, overwrite=ow, **kw)
+            figures[caption] = folder / filename
+
     reports = [structure_report(sys_, cfg.L) for sys_ in cfg.rule_systems()]
     report = reports[0]
     if cfg.is_takagi_sugeno:  # one verdict per rule
@@ -697,20 +280,16 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                                                          metadata={"config": path, "observer": o.name})
         check_interrupted()
         designs[o.name] = d
-        figures[f"Error poles of '{o.name}'"] = plot_poles(folder / f"poles-{o.name}.png",
-                                                           d.report.eigenvalues, d.region, overwrite=ow)
+        figure(f"Error poles of '{o.name}'", f"poles-{o.name}.png", plot_poles, d.report.eigenvalues, d.region)
         out.say(f"  verification {'PASSED' if d.report.passed else 'FAILED'}")
 
     # the Monte Carlo study (and separately drawn training studies for the tuning)
     st = ss.make_study(cfg, spec.seed, plan.run, T, spec.dt)
     assert st.num_samples == plan.run, (st.num_samples, plan.run)
     ts = st.ts
-    # Explicit Tsit5: the benchmark loops are not stiff (error poles in the designed disks)
-    # and the implicit default (Kvaerno5; works in studies since the issue-5 fix) is much
-    # slower here. Measured with `fojax study --samples 16 --horizon 2 --steps 0` on the
-    # 2 shared cores: first run_study call (compile + run) ~33 s vs ~12 s CPU time
-    # (49-80 s vs 17-21 s wall), a second call 0.2-0.5 s vs 0.06-0.13 s; mean IAEs
-    # agree to ~1e-6.
+    # Explicit Tsit5: the benchmark loops are not stiff (error poles in the designed disks),
+    # so an implicit solver (Kvaerno5) would only cost compile and run time for the same
+    # metrics.
     import diffrax
 
     from ..simulation import Auto, Bands, Diffrax, Exact, Exponential, Metrics
@@ -725,7 +304,6 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
     tuning = _tuning_module()
     if tuning is not None and n_steps > 0:
         from ..design import Disk
-        from ..results import plot_tuning_curve
 
         train = ss.make_training_study(cfg, spec.seed + 1, plan, T, spec.dt)
         heldout_small = ss.make_training_study(cfg, spec.seed + 2, plan, T, spec.dt)
@@ -752,7 +330,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
             sample_sets["training_heldout_curve"] = heldout_small
             # the study runs the designs and then the tuned ones (same structures as the designs
             # they are tuned from): its program compiles on a thread while the tuning runs (XLA
-            # compiles without the GIL; issue 13). Not across processes (its collectives).
+            # compiles without the GIL). Not across processes (its collectives).
             import jax
 
             if jax.process_count() == 1:
@@ -780,12 +358,12 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                 metadata={"config": path, "observer": tuned_name})
             h = tr.history
             held = np.asarray(h["heldout_loss"], dtype=float)
-            figures[f"Tuning curve of '{nm}'"] = plot_tuning_curve(
-                folder / f"tuning-{nm}.png", h["step"], h["train_loss"],
+            figure(
+                f"Tuning curve of '{nm}'", f"tuning-{nm}.png", plot_tuning_curve, h["step"], h["train_loss"],
                 held if np.isfinite(held).any() else None, ylabel=f"{tspec.loss.upper()} loss",
                 heldout_before=tr.initial_heldout, heldout_after=tr.final_heldout,
                 title=f"Tuning '{nm}': training and held-out loss" if not plan.deterministic else
-                f"Tuning '{nm}' (deterministic model: one run, nothing held out)", overwrite=ow)
+                f"Tuning '{nm}' (deterministic model: one run, nothing held out)")
             tuning_rows.append([nm, n_steps, float(tr.initial_heldout), float(tr.final_heldout)])
             out.say(f"  {'training-run' if plan.deterministic else 'held-out training-type'} {tspec.loss.upper()} loss "
                     f"{tr.initial_heldout:.4g} -> {tr.final_heldout:.4g}; "
@@ -866,14 +444,14 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         "success": flat["success"],
     }, overwrite=ow)
     q = np.asarray(res.metrics["quantiles"])  # (observer, quantile, time, signal)
-    figures["Estimation error, Monte Carlo 5-95 % band and median"] = plot_estimates(
-        folder / "error-bands.png", np.asarray(res.coords["time"]), np.zeros((len(res.coords["time"]), len(signals))),
+    figure(
+        "Estimation error, Monte Carlo 5-95 % band and median", "error-bands.png", plot_estimates,
+        np.asarray(res.coords["time"]), np.zeros((len(res.coords["time"]), len(signals))),
         {nm: (q[k, 0], q[k, 1], q[k, 2]) for k, nm in enumerate(names)},
         labels=[f"e({s})" for s in signals], truth_label="zero error", title="Estimation error over the Monte Carlo samples",
-        overwrite=ow,
     )
-    figures["IAE per sample (sum over signals)"] = plot_error_distributions(
-        folder / "iae.png", per_sample, ylabel="IAE (sum over signals)", overwrite=ow)
+    figure("IAE per sample (sum over signals)", "iae.png", plot_error_distributions, per_sample,
+           ylabel="IAE (sum over signals)")
     tables = ss.metric_tables(flat, names, signals, T, tuned_pairs)
     for row in tuning_rows:  # LMI vs tuned on the study's samples
         base, tuned = names.index(row[0]), names.index(f"{row[0]}-tuned")
@@ -939,7 +517,26 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         out.say(f"tuning '{row[0]}': study IAE total {row[4]:.4g} (LMI) -> {row[5]:.4g} (tuned), "
                 f"{row[6]:+.1f} %; sum of mean peaks {row[7]:.4g} -> {row[8]:.4g}, {row[9]:+.1f} %")
     out.say(f"\nresults: {folder} (report: {rep.name})")
-    return 0 if all(d.report.passed for d in designs.values()) else 1
+    ok = all(d.report.passed for d in designs.values())
+    if result is not None:
+        from .._serialize import json_safe
+
+        result.update(json_safe({
+            "config": str(path), "name": cfg.name, "ok": ok, "folder": str(folder), "report": str(rep),
+            "samples": plan.to_dict(), "horizon": T, "steps": n_steps, "signals": signals,
+            "simulation_failures": failed,
+            "observers": {nm: {"verified": bool(designs[nm].report.passed),
+                               "tuned_from": tuned_pairs.get(nm),
+                               "mean_iae": flat["iae"][k].mean(axis=0),
+                               "mean_peak": flat["peak"][k].mean(axis=0),
+                               "mean_settling_time": mean_settle[nm][0],
+                               "never_settled": mean_settle[nm][1]}
+                          for k, nm in enumerate(names)},
+            "tuning": [dict(zip(["observer", "steps", "loss_before", "loss_after", "iae_lmi", "iae_tuned",
+                                 "iae_change_percent", "peak_lmi", "peak_tuned", "peak_change_percent"], row))
+                       for row in tuning_rows],
+        }))
+    return 0 if ok else 1
 
 
 def _tunable(cfg, design, Disk) -> bool:
@@ -1042,7 +639,3 @@ def _checkpoint_step(checkpoint) -> int | None:
         return int(json.loads(pathlib.Path(f"{checkpoint}.json").read_text())["step"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
-
-
-class _Unavailable(Exception):
-    """A command that is not available in this installation (exit code 3)."""
