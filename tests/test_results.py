@@ -242,7 +242,6 @@ def test_write_metrics_json_and_exact_npz(tmp_path):
 from matplotlib.path import Path as _MplPath  # noqa: E402
 
 
-
 POLES = np.array([-2.0, -2.0 + 1e-9, -1.5 + 0.5j, -1.5 - 0.5j, -2.5])  # a double pole at -2
 PLANT = np.array([1.79, -4.4 + 1.72j, -4.4 - 1.72j])
 REGIONS = {
