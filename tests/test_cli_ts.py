@@ -212,8 +212,12 @@ def test_check_and_design_of_a_ts_file_with_faults(tmp_path, capsys):
     d["observer"] = [o for o in d["observer"] if o["kind"] == "proportional"]
     path = tmp_path / "arm.toml"
     path.write_text(dumps(d))
-    assert main(["check", str(path)]) == 0
-    assert "the Takagi-Sugeno observers estimate z = L x only" in capsys.readouterr().out
+    # rule 1 of the arm is open-loop unstable (not admissible: exit code 1); its observers
+    # need detectability only, and are designed below
+    assert main(["check", str(path)]) == 1
+    out, err = capsys.readouterr()
+    assert "the Takagi-Sugeno observers estimate z = L x only" in out
+    assert "required but not established: rule 1: admissible (exit code 1)" in err
     assert main(["--quiet", "design", str(path), "--out", str(tmp_path / "out")]) == 0
     (folder,) = (tmp_path / "out").iterdir()
     design = load_design(folder / "proportional.npz")
