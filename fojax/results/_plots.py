@@ -10,7 +10,9 @@ Every ``plot_*`` function follows one convention:
   it draws into it and leaves the rest of that figure (its size, layout and other axes)
   to you; the legend and title go on that Axes.
 - It **returns the Figure** drawn on (``ax.figure`` when `ax` is given), as
-  `plot_estimates`, which may fill several panels, must; ``fig.axes`` lists its axes.
+  `plot_estimates`, which may fill several panels, must; ``fig.axes`` lists its axes. (A
+  figure made with `matplotlib.pyplot` shows itself in a notebook already: end the line
+  with ``;`` not to see it twice.)
 - It writes a file only when `path=` is given, in the format of the file's suffix (any
   format Matplotlib writes: ``.png``, ``.pdf``, ``.svg``, ``.eps``, ...), atomically
   (`fojax.results.atomic_write_bytes`: never outside a results folder a write is confined
