@@ -90,7 +90,8 @@ def disk_gain(X, A1, A2, center, radius, Lc, Yperp=None, rank: int | None = None
     if rank is None:
         import numpy as np
 
-        rank = int(np.linalg.matrix_rank(np.asarray(A2)))
+        a2 = np.asarray(A2)
+        rank = int(np.linalg.matrix_rank(a2)) if a2.size else 0  # NumPy < 2.4.5 raises on empty
     Lx = jnp.linalg.cholesky(0.5 * (X + X.T))
     LxinvT = jsl.solve_triangular(Lx.T, jnp.eye(d), lower=False)  # Lx^{-T}
     M0 = Lx.T @ (A1 - center * jnp.eye(d)) @ LxinvT

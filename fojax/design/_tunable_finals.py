@@ -147,7 +147,7 @@ class FixedCertificateDisk(AbstractParameterization):
         self.X, self.N1, self.N2, self.A2 = (jnp.asarray(a) for a in (X, N1, N2, A2))
         self.Z = jnp.asarray(np.asarray(p["Z"]))
         self.Yperp = jnp.asarray(Lx.T @ Y)
-        self.rank = int(np.linalg.matrix_rank(A2))
+        self.rank = int(np.linalg.matrix_rank(A2)) if np.size(A2) else 0  # NumPy < 2.4.5 raises on empty
 
     def _A1(self, Z):
         s = self.structure
