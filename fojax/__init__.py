@@ -155,6 +155,7 @@ from .plant import (
     UncertainDescriptorSystem as UncertainDescriptorSystem,
     Zero as Zero,
 )
+from .interop import estimate as estimate
 from .results import load_design as load_design, save_design as save_design
 from .simulation import (
     AbstractStepper as AbstractStepper,

@@ -25,6 +25,9 @@ stored as its ``str`` — the one lossy case, recorded as ``{"$": "str"}``. Outs
 unstorable value is an error at save time (`NotStorable`), except under a field named in
 `encode`'s ``optional`` (the T-S membership), which is recorded as unstored.
 
+A field a class gained after a file was written (e.g. a plant's feedthrough ``D``)
+takes its default (``D = 0``) when that file is read.
+
 Every problem found while decoding (a missing array, a wrong shape or dtype, an unknown
 class) raises `fojax.InputError` naming the entry, what was expected and what was found.
 """
@@ -170,7 +173,8 @@ def decode(node, arrays: dict, *, source: str = "the file", overrides: dict | No
         obj = object.__new__(cls)
         names = {f.name for f in dataclasses.fields(cls)}
         saved = set(node["fields"])
-        if names != saved:
+        added = {f.name: f for f in dataclasses.fields(cls) if f.name not in saved and _has_default(cls, f)}
+        if names != saved | set(added) or not saved <= names:
             raise InputError(
                 f"{source}: {node['class']} at {_key or 'the root'!r} has fields {sorted(saved)} in the file "
                 f"but {sorted(names)} in this fojax version; load it with the fojax version that wrote it "
@@ -190,11 +194,21 @@ def decode(node, arrays: dict, *, source: str = "the file", overrides: dict | No
                         raise
                     raise _Missing(name, f.get("class", "?"), str(err)) from None
             object.__setattr__(obj, name, value)
+        for name, f in added.items():  # a field added after the file was written: its default
+            value = (getattr(cls, "_file_defaults", {}).get(name) or (lambda o, f=f: f.default))(obj)
+            object.__setattr__(obj, name, value)
         return obj
     if tag == "unstored":
         raise _Missing(_key.rsplit("/", 1)[-1], node["class"], f"it was not stored ({node['reason']})")
     raise InputError(f"{source}: unknown entry type {tag!r} at {_key or 'the root'!r}; the file was "
                      "written by a newer fojax, or damaged. Upgrade fojax or re-create the design.")
+
+
+def _has_default(cls, f) -> bool:
+    """A field a file written before it existed may omit: it has a dataclass default, or
+    the class names how to compute it (``_file_defaults``: name -> function of the object
+    with the saved fields set)."""
+    return f.default is not dataclasses.MISSING or f.name in getattr(cls, "_file_defaults", {})
 
 
 class _Missing(NotStorable):

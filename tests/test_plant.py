@@ -19,7 +19,7 @@ def test_dimensions_are_derived_and_matrices_are_leaves():
     s = fojax.DescriptorSystem(E2, A2, [[1.0], [0.0]], [[1.0, 0.0]])
     assert (s.n, s.m, s.p) == (2, 1, 1)
     leaves = jax.tree_util.tree_leaves(s)
-    assert len(leaves) == 4 and all(leaf.dtype == jnp.float64 for leaf in leaves)
+    assert len(leaves) == 5 and all(leaf.dtype == jnp.float64 for leaf in leaves)
     # defaults: autonomous (m = 0) and full-state output
     s0 = fojax.DescriptorSystem(E2, A2)
     assert s0.m == 0 and s0.p == 2 and np.array_equal(np.asarray(s0.C), np.eye(2))

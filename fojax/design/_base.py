@@ -291,3 +291,31 @@ def load(path, *, membership=None, verify: bool = True):
     if verify:
         design.verify()
     return design
+
+
+def with_feedthrough(design, D):
+    r"""The design for a plant with feedthrough $y = Cx + Du$ (the one rule of every
+    ``design_*`` entry point): its observer(s) take $y - Du$
+    (`fojax.observer._base.fold_feedthrough`: $W_u \leftarrow W_u - W_y D$) and its
+    structure records ``D``, so an observer rebuilt from the parameters (tuning) folds it
+    too. The conditions, certificate and error dynamics do not depend on ``D``. A zero
+    ``D`` returns `design` itself."""
+    D = np.asarray(D, dtype=float)
+    if not np.any(D):
+        return design
+    from ..observer._base import AbstractObserver, fold_feedthrough
+    from ._parameterization import FunctionalObserverStructure
+
+    def fold(v):
+        if isinstance(v, AbstractObserver):
+            return fold_feedthrough(v, D)
+        if isinstance(v, FunctionalObserverStructure):
+            return dataclasses.replace(v, D=D)
+        if isinstance(v, AbstractDesign):
+            return with_feedthrough(v, D)
+        if isinstance(v, tuple):
+            return tuple(fold(x) for x in v)
+        return v
+
+    return dataclasses.replace(design, **{f.name: fold(getattr(design, f.name)) for f in dataclasses.fields(design)
+                                          if f.init})

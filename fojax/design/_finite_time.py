@@ -19,7 +19,7 @@ from .._linalg import row_space
 from ..observer._finite_time import FiniteTimeObserver
 from ..plant._descriptor import DescriptorSystem
 from . import _lmi
-from ._base import AbstractDesign
+from ._base import AbstractDesign, with_feedthrough
 from ._conditions import check_detectability, unobservable_modes
 from ._discrete import continuous_only
 from ._functional import (
@@ -244,9 +244,9 @@ def design_finite_time_observer(
     kw = dict(h=h, regions=regions, kind=kind, q1=q1, margin=margin, solver=solver,
               method=method, seed=seed)
     if R is not None or q0 is not None:
-        return _design_ft(sys, L, R=R, q0=q0, **kw)
+        return with_feedthrough(_design_ft(sys, L, R=R, q0=q0, **kw), sys.D)
     try:
-        return _design_ft(sys, L, R=None, q0=None, **kw)
+        return with_feedthrough(_design_ft(sys, L, R=None, q0=None, **kw), sys.D)
     except (*LMI_FAILURES, DesignVerificationError, ExistenceConditionError) as first:
         E, A, C = (np.asarray(x) for x in (sys.E, sys.A, sys.C))
         from ..analysis._pencil import e_perp  # analysis decides the rank of E (balanced)
@@ -254,7 +254,7 @@ def design_finite_time_observer(
         Ep = e_perp(E)
         R_full = row_space(np.vstack([E, Ep @ A, C]))
         try:
-            return _design_ft(sys, L, R=R_full, q0=None, **kw)
+            return with_feedthrough(_design_ft(sys, L, R=R_full, q0=None, **kw), sys.D)
         except (*LMI_FAILURES, DesignVerificationError, ExistenceConditionError):
             raise first from None
 

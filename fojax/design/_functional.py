@@ -50,7 +50,7 @@ from ..analysis._pencil import e_perp as _e_perp  # analysis decides the rank of
 from ..observer._generalized import GeneralizedFunctionalObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
 from . import _discrete, _ladder, _lmi, _riccati
-from ._base import AbstractDesign
+from ._base import AbstractDesign, with_feedthrough
 from ._conditions import (
     check_data_range,
     check_detectability,
@@ -639,7 +639,7 @@ def design_functional_observer(
             return _design_from_structure(s, region, **kw, **perf)
 
     d = unit_free_fallback(raw, lambda: balanced_design(s, region, **kw, **perf), balance, "a.-d.")
-    return _discrete.with_dt(d, sys.dt)
+    return with_feedthrough(_discrete.with_dt(d, sys.dt), sys.D)
 
 
 def unit_free_fallback(raw, balanced, balance: bool | None, conditions: str):

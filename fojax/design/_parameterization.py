@@ -117,6 +117,7 @@ class FunctionalObserverStructure(eqx.Module):
     solvability_residual: float = eqx.field(static=True)
     q1: int = eqx.field(static=True)
     psi: str = eqx.field(static=True)
+    D: Float[Array, "p m"] | None = None
 
     @property
     def n(self):
@@ -161,9 +162,12 @@ class FunctionalObserverStructure(eqx.Module):
         return jnp.concatenate([self.Eperp @ A, self.C], axis=0)
 
     def w_matrices(self, B):
-        """``(Wu, Wy)`` with ``w = Wu u + Wy y`` (``w = [-E⊥B u; y]``)."""
+        """``(Wu, Wy)`` with ``w = Wu u + Wy y`` (``w = [-E⊥B u; y]``); for a plant with
+        feedthrough ``D`` the observer takes ``y - D u``: ``Wu - Wy D``."""
         Wu = jnp.concatenate([-self.Eperp @ B, jnp.zeros((self.p, B.shape[-1]))], axis=0)
         Wy = jnp.concatenate([jnp.zeros((self.r1, self.p)), jnp.eye(self.p)], axis=0)
+        if self.D is not None:
+            Wu = Wu - Wy @ self.D
         return Wu, Wy
 
     def param_shapes(self) -> dict[str, tuple[int, ...]]:

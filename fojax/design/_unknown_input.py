@@ -105,6 +105,7 @@ from .._linalg import canonical_row_space, rank
 from ..observer._unknown_input import UnknownInputObserver
 from ..plant._descriptor import check_functional, DescriptorSystem
 from . import _ladder, _lmi
+from ._base import with_feedthrough
 from ._conditions import (
     check_data_range,
     check_detectability,
@@ -428,8 +429,9 @@ def design_unknown_input_observer(
     if R is not None:
         R = np.asarray(as_matrix("R", R, cols=n, hint=f"R needs one column per state (n = {n})."))
     kw = dict(region=region, q0=q0, q1=q1, margin=margin, solver=solver)
-    return unit_free_fallback(lambda: _design(E, A, B, C, D, L, R, **kw),
-                              lambda: _balanced_design(E, A, B, C, D, L, R, **kw), balance, "a.-f.")
+    return with_feedthrough(unit_free_fallback(lambda: _design(E, A, B, C, D, L, R, **kw),
+                                               lambda: _balanced_design(E, A, B, C, D, L, R, **kw), balance,
+                                               "a.-f."), sys.D)
 
 
 def _balanced_design(E, A, B, C, D, L, R, **kw) -> UnknownInputObserverDesign:

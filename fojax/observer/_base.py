@@ -100,3 +100,33 @@ def measurement_maps(Wu, Wy) -> tuple[Array, Array]:
     (a `ShapeError` naming `Wu` otherwise)."""
     Wy = as_matrix("Wy", Wy)
     return as_matrix("Wu", Wu, rows=Wy.shape[0]), Wy
+
+
+def fold_feedthrough(observer: AbstractObserver, D) -> AbstractObserver:
+    r"""The observer for a plant with feedthrough $y = Cx + Du$.
+
+    An observer designed for $y = Cx$ must be driven by $y - Du$. For the functional
+    observers the measured vector is $w = W_u u + W_y y$, so substituting $y - Du$ gives
+
+    $$w = (W_u - W_y D)\,u + W_y\,y,$$
+
+    i.e. the same observer with $W_u \leftarrow W_u - W_y D$ (equivalently, in the
+    thesis's form, $H \leftarrow H - F W_y D$ and the estimate's $Q W_u \leftarrow
+    Q(W_u - W_y D)$). The error dynamics are unchanged; simulation and export need no
+    special case. A finite-time observer folds both of its observers.
+
+    **Arguments:**
+
+    - `observer`: a functional observer (generalized, unknown-input, Takagi–Sugeno) or a
+      `fojax.FiniteTimeObserver`.
+    - `D`: the plant's ``(p, m)`` feedthrough.
+
+    **Returns:** the observer that takes the measured ``y = Cx + Du``.
+    """
+    D = jnp.asarray(D, dtype=float)
+    if isinstance(observer, AbstractFunctionalObserver):
+        return eqx.tree_at(lambda o: o.Wu, observer, observer.Wu - observer.Wy @ D)
+    if hasattr(observer, "obs1") and hasattr(observer, "obs2"):
+        return eqx.tree_at(lambda o: (o.obs1, o.obs2), observer,
+                           (fold_feedthrough(observer.obs1, D), fold_feedthrough(observer.obs2, D)))
+    raise TypeError(f"fold_feedthrough: no rule for {type(observer).__name__}")

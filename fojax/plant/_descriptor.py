@@ -17,11 +17,11 @@ from ._base import AbstractPlant
 class DescriptorSystem(AbstractPlant):
     r"""A linear descriptor system, continuous or discrete in time,
 
-    $$E\dot x(t) = A x(t) + B u(t), \qquad y(t) = C x(t),$$
+    $$E\dot x(t) = A x(t) + B u(t), \qquad y(t) = C x(t) + D u(t),$$
 
     or, with a sampling period `dt` $= h$,
 
-    $$E x[k+1] = A x[k] + B u[k], \qquad y[k] = C x[k], \qquad t_k = t_0 + kh,$$
+    $$E x[k+1] = A x[k] + B u[k], \qquad y[k] = C x[k] + D u[k], \qquad t_k = t_0 + kh,$$
 
     with $x \in \mathbb{R}^n$, $u \in \mathbb{R}^m$, $y \in \mathbb{R}^p$ and $E$ possibly
     singular. The matrices are the module's leaves (so a batch of systems is one
@@ -33,6 +33,11 @@ class DescriptorSystem(AbstractPlant):
     - `E`, `A`: ``(n, n)`` matrices.
     - `B`: ``(n, m)``; omit (or ``None``) for an autonomous system (``m = 0``).
     - `C`: ``(p, n)``; omit for full-state output ``C = I``.
+    - `D`: ``(p, m)`` feedthrough; omit (or ``None``) for ``D = 0``, the thesis's
+      ``y = Cx``. The ``design_*`` functions fold it into the observer's input matrix
+      (the observer uses ``y - D u``: $W_u \leftarrow W_u - W_y D$,
+      `fojax.observer._base.fold_feedthrough`), so the error dynamics and the design
+      conditions do not depend on it.
     - `dt`: the sampling period $h > 0$ of a discrete-time model (keyword only); ``None``
       (default) for continuous time. A static field: analysis answers with the
       discrete-time notions (causality, $|\lambda| < 1$), observer design places the
@@ -45,8 +50,9 @@ class DescriptorSystem(AbstractPlant):
     (`fojax.Float64RequiredError`, see the README on enabling 64-bit JAX); a `dt` that
     is not a finite positive number raises `fojax.InputError`.
 
-    There is no feedthrough term: the thesis's outputs are ``y = Cx``; sensor faults
-    enter through the fault augmentation (`fojax.augment_faults`).
+    A model from python-control or SciPy converts with `fojax.interop.from_control` /
+    `fojax.interop.from_scipy`. Sensor faults enter through the fault augmentation
+    (`fojax.augment_faults`).
 
     !!! example
 
@@ -61,11 +67,18 @@ class DescriptorSystem(AbstractPlant):
     A: Float[Array, "n n"]
     B: Float[Array, "n m"]
     C: Float[Array, "p n"]
+    D: Float[Array, "p m"]
     dt: float | None = eqx.field(static=True)
 
     linear_in_state: ClassVar[bool] = True
+    #: design files written before `D` existed load with ``D = 0`` (`fojax._serialize`).
+    _file_defaults: ClassVar[dict] = {"D": lambda s: jnp.zeros((s.C.shape[-2], s.B.shape[-1]))}
 
-    def __init__(self, E, A, B=None, C=None, *, dt=None):
+    def __init__(self, E, A=None, B=None, C=None, D=None, *, dt=None):
+        _refuse_foreign("DescriptorSystem", E)
+        if A is None:
+            raise InputError("DescriptorSystem needs E and A (then B, C, D); got E only. For the standard "
+                             "system x' = Ax + Bu use DescriptorSystem.from_state_space(A, B, C, D).")
         E = as_matrix("E", E)
         n = E.shape[0]
         if E.shape[1] != n:
@@ -81,7 +94,11 @@ class DescriptorSystem(AbstractPlant):
         if C is None:
             C = jnp.eye(n)
         C = as_matrix("C", C, cols=n, hint=f"C needs one column per state (n = {n}).")
-        self.E, self.A, self.B, self.C = E, A, B, C
+        p, m = C.shape[0], B.shape[1]
+        if D is None:
+            D = jnp.zeros((p, m))
+        D = as_matrix("D", D, rows=p, cols=m, hint=f"D maps the {m} inputs to the {p} outputs (p, m).")
+        self.E, self.A, self.B, self.C, self.D = E, A, B, C, D
         self.dt = check_dt(dt)
 
     @property
@@ -96,21 +113,27 @@ class DescriptorSystem(AbstractPlant):
         return self.A @ x + self.B @ u
 
     def output(self, t, x, u):
-        return self.C @ x
+        return self.C @ x + self.D @ u
 
     @classmethod
-    def from_state_space(cls, A, B=None, C=None, *, dt=None) -> DescriptorSystem:
+    def from_state_space(cls, A, B=None, C=None, D=None, *, dt=None) -> DescriptorSystem:
         r"""The standard system $\dot x = Ax + Bu$ (or $x[k+1] = Ax[k] + Bu[k]$ with `dt`),
-        $y = Cx$ as a descriptor system with $E = I$."""
+        $y = Cx + Du$ as a descriptor system with $E = I$. (A python-control or SciPy
+        model: `fojax.interop.from_control`, `fojax.interop.from_scipy`.)"""
+        _refuse_foreign("DescriptorSystem.from_state_space", A)
         A = as_matrix("A", A)
-        return cls(jnp.eye(A.shape[0]), A, B, C, dt=dt)
+        return cls(jnp.eye(A.shape[0]), A, B, C, D, dt=dt)
 
     def replace(self, **matrices) -> DescriptorSystem:
-        """A copy with some matrices (or `dt`) replaced (validated again)."""
-        kw = dict(E=self.E, A=self.A, B=self.B, C=self.C, dt=self.dt)
+        """A copy with some matrices (or `dt`) replaced (validated again). Replacing `B` or
+        `C` with a different number of columns/rows without a new `D` resets ``D`` to zeros."""
+        kw = dict(E=self.E, A=self.A, B=self.B, C=self.C, D=self.D, dt=self.dt)
         unknown = set(matrices) - set(kw)
         if unknown:
-            raise TypeError(f"unknown matrices {sorted(unknown)}; expected some of E, A, B, C, dt")
+            raise TypeError(f"unknown matrices {sorted(unknown)}; expected some of E, A, B, C, D, dt")
+        if "D" not in matrices and (("B" in matrices and jnp.shape(matrices["B"])[-1:] != (self.m,))
+                                    or ("C" in matrices and jnp.shape(matrices["C"])[:1] != (self.p,))):
+            matrices["D"] = None
         kw.update(matrices)
         return DescriptorSystem(**kw)
 
@@ -135,6 +158,15 @@ def check_dt(dt) -> float | None:
     return h
 
 
+def _refuse_foreign(where: str, first) -> None:
+    """A python-control / SciPy model passed where matrices are expected: a clear error."""
+    mod = type(first).__module__ or ""
+    if mod.split(".")[0] == "control" or mod.startswith("scipy.signal"):
+        name, lib = type(first).__name__, mod.split(".")[0]
+        fix = "fojax.interop.from_control(sys, E=None)" if lib == "control" else "fojax.interop.from_scipy(sys, E=None)"
+        raise InputError(f"{where} takes matrices (E, A, B, C, D), got a {lib} {name}; convert the model with {fix}.")
+
+
 def _rank_or_q(E) -> str:
     try:
         from .._linalg import rank
@@ -150,14 +182,14 @@ def augment_faults(sys: DescriptorSystem, Fa=None, Fs=None, *, ramp: bool = Fals
 
     For
 
-    $$E\dot x = Ax + Bu + F_a f, \qquad y = Cx + F_s f,$$
+    $$E\dot x = Ax + Bu + F_a f, \qquad y = Cx + Du + F_s f,$$
 
     with constant faults ($\dot f = 0$) the augmented state is $\chi = [x; f]$ and
 
     $$\mathbf E = \begin{bmatrix}E&0\\0&I\end{bmatrix},\;
       \mathbf A = \begin{bmatrix}A&F_a\\0&0\end{bmatrix},\;
       \mathbf B = \begin{bmatrix}B\\0\end{bmatrix},\;
-      \mathbf C = [C\;\;F_s].$$
+      \mathbf C = [C\;\;F_s],\; \mathbf D = D.$$
 
     With `ramp=True` (Remark 9: $\ddot f = 0$) the state is $[x; f; \dot f]$ and
     $\tfrac{d}{dt}f = \dot f$, $\tfrac{d}{dt}\dot f = 0$.
@@ -214,7 +246,7 @@ def augment_faults(sys: DescriptorSystem, Fa=None, Fs=None, *, ramp: bool = Fals
         )
         B = jnp.concatenate([sys.B, Z((2 * nf, m))], axis=0)
         C = jnp.concatenate([sys.C, Fs, Z((p, nf))], axis=1)
-    return DescriptorSystem(E, A, B, C, dt=sys.dt)
+    return DescriptorSystem(E, A, B, C, sys.D, dt=sys.dt)
 
 
 def check_functional(sys: AbstractPlant, L, name: str = "L"):

@@ -98,9 +98,9 @@ class UncertainDescriptorSystem(AbstractPlant):
 
     def output(self, t, x, u):
         _, _, C = self.matrices(t)
-        return C @ x
+        return C @ x + self.nominal.D @ u
 
     def nominal_at(self, t=0.0) -> DescriptorSystem:
         """The frozen-time `DescriptorSystem` at time ``t`` (exact when ``δ`` is constant)."""
         A, B, C = self.matrices(t)
-        return DescriptorSystem(self.nominal.E, A, B, C)
+        return DescriptorSystem(self.nominal.E, A, B, C, self.nominal.D)

@@ -332,12 +332,12 @@ class Index1Reduction(eqx.Module):
       y = C_s x_1 + D_s u,$$
 
     with $x_1 = V_1^\top x$, $x_2 = K x_1 + K_u u$, $T_x = V_1 + V_2 K$,
-    $T_u = V_2 K_u$, $C_s = C T_x$, $D_s = C T_u$ (see the module docstring for
+    $T_u = V_2 K_u$, $C_s = C T_x$, $D_s = C T_u + D$ (see the module docstring for
     $A_s$, $B_s$, $K = -\tilde A_{22}^{-1}\tilde A_{21}$,
     $K_u = -\tilde A_{22}^{-1}\tilde B_2$). Built by `fojax.reduce_index1`.
 
-    The output has a direct feedthrough $D_s$ whenever the algebraic states depend
-    on $u$, even though the descriptor system's own output $y = Cx$ has none.
+    The output has a direct feedthrough $D_s = C T_u + D$: the plant's own $D$ plus
+    the part through the algebraic states when they depend on $u$.
     """
 
     As: Float[Array, "r r"]
@@ -374,6 +374,12 @@ def lti_matrices(plant: AbstractPlant):
     if isinstance(plant, UncertainDescriptorSystem) and isinstance(plant.delta, Constant | Zero):
         return plant.matrices(0.0)
     return None
+
+
+def lti_feedthrough(plant: AbstractPlant):
+    """The ``(p, m)`` feedthrough ``D`` of a plant `lti_matrices` accepts (``y = Cx + Du``)."""
+    base = plant.nominal if isinstance(plant, UncertainDescriptorSystem) else plant
+    return base.D
 
 
 def reduce_index1(sys: AbstractPlant, *, rank_E: int | None = None) -> Index1Reduction:
@@ -423,7 +429,7 @@ def reduce_index1(sys: AbstractPlant, *, rank_E: int | None = None) -> Index1Red
         As=red.As[:r, :r],
         Bs=red.Bs[:r],
         Cs=C @ red.Tx[:, :r],
-        Ds=C @ red.Tu,
+        Ds=C @ red.Tu + lti_feedthrough(sys),
         state_map=red.Tx[:, :r],
         input_map=red.Tu,
         V1=V[:, :r],

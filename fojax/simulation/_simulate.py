@@ -75,6 +75,7 @@ from ._reduction import (
     constraint_residual_norm,
     host_initial_checks,
     is_concrete,
+    lti_feedthrough,
     lti_matrices,
     project_initial_state,
     reduce_linear_masked,
@@ -417,8 +418,8 @@ def _exact(plant, split: SVDSplit, x0, ts, u, observers, xi0s, cfg: _Config):
     n, m = A.shape[0], B.shape[1]
     T = ts.shape[0]
     w_plant0 = red.split.slow * (red.split.V.T @ x0)  # slow coordinates (fast ones: 0)
-    # Joint slow system w = (z, ξ_1, ..., ξ_k) driven by u, with y = C(Tx z + Tu u).
-    Cs, Ds = C @ red.Tx, C @ red.Tu
+    # Joint slow system w = (z, ξ_1, ..., ξ_k) driven by u, with y = C(Tx z + Tu u) + D u.
+    Cs, Ds = C @ red.Tx, C @ red.Tu + lti_feedthrough(plant)
     blocks_A = [[red.As] + [jnp.zeros((n, o.state_size)) for o in observers]]
     blocks_B = [red.Bs]
     for i, o in enumerate(observers):

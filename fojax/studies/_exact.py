@@ -45,6 +45,7 @@ from ..simulation._batch import (
 from ..simulation._reduction import (
     check_index1_host,
     is_concrete,
+    lti_feedthrough,
     lti_matrices,
     svd_split,
     SVDSplit,
@@ -203,7 +204,7 @@ class StudyProblem(eqx.Module):
             S=_blkdiag(Su, Sf),
             Hin=_blkdiag(Hu, Hf),
             Hu=jnp.concatenate([Hu, jnp.zeros((m, nf_))], axis=1),
-            Dy=jnp.concatenate([jnp.zeros((p_, nu_)), Fs @ Hf], axis=1),
+            Dy=jnp.concatenate([lti_feedthrough(base) @ Hu, Fs @ Hf], axis=1),  # y = Cx + Du + Fs f
             v0=jnp.concatenate([vu0, vf0]),
             jt=jnp.concatenate([jtu, jtf]),
             jdv=_blkdiag(jdvu, jdvf),
