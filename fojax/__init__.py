@@ -125,7 +125,7 @@ from .design import (
     Sector as Sector,
     VerificationReport as VerificationReport,
 )
-from .interop import discretize as discretize
+from .interop import discretize as discretize, estimate as estimate
 from .observer import (
     AbstractObserver as AbstractObserver,
     FiniteTimeObserver as FiniteTimeObserver,
@@ -155,7 +155,6 @@ from .plant import (
     UncertainDescriptorSystem as UncertainDescriptorSystem,
     Zero as Zero,
 )
-from .interop import estimate as estimate
 from .results import load_design as load_design, save_design as save_design
 from .simulation import (
     AbstractStepper as AbstractStepper,
