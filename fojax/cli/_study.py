@@ -103,7 +103,7 @@ def study(
     else:
         path = config_path if config_path is not None else str(example_path("example_3_3_7"))
         cfg = load_config(path)
-    from ..config._load import SPECIAL_KINDS
+    from ..config._spec import SPECIAL_KINDS
 
     special = [(i, o.kind) for i, o in enumerate(cfg.observers) if o.kind in SPECIAL_KINDS]
     if special:

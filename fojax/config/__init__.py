@@ -1,12 +1,14 @@
 """TOML model and study files (format: `fojax.config.load_config` and ``docs/config.md``)."""
 
 from ._load import (
-    Config as Config,
     example_names as example_names,
     example_path as example_path,
     load_config as load_config,
+)
+from ._parse import parse_config as parse_config
+from ._spec import (
+    Config as Config,
     ObserverSpec as ObserverSpec,
-    parse_config as parse_config,
     StudySpec as StudySpec,
     TuningSpec as TuningSpec,
 )
