@@ -297,3 +297,10 @@ def test_saved_design_with_D_round_trips_and_tunes_with_the_fold(tmp_path):
     del tree["fields"]["D"]
     old = _serialize.decode(tree, arrays)
     assert np.array_equal(np.asarray(old.D), np.zeros((3, 1)))
+
+
+def test_closed_loops_refuse_a_plant_with_feedthrough():
+    sys0, L, _, _ = random_descriptor(3)
+    design = fojax.design_functional_observer(sys0, np.ones((1, 5)))
+    with pytest.raises(fojax.InputError, match="feedthrough"):
+        fojax.closed_loop(sys0.replace(D=np.ones((3, 1))), design)

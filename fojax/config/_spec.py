@@ -109,12 +109,10 @@ class TuningSpec:
     ``(("h2" | "hinf", weight), ...)`` (`fojax.tuning.H2Term` / `HinfTerm`) added when an
     ``objective = "hinf"``/``"h2"`` design is tuned.
 
-    *Why ISE by default* (`fojax study`, measured on its §3.3.7 benchmark, 60 steps, the
-    tuned design evaluated on 512 samples of other seeds, one run each): trained on the
-    mean IAE, the tuned observer's IAE changed by −1.7 % and its mean peak errors rose by
-    +154 % (the fault estimates overshoot: IAE's gradient weighs an error's sign, not its
-    size); trained on the mean ISE, IAE −9.8 % and peaks −30 %. `fojax.tune` itself keeps
-    ``loss="iae"`` as its default."""
+    ISE is the default of config files because IAE's gradient weighs an error's sign, not
+    its size: trained on IAE, a tuned observer may trade a lower mean for larger peaks (fault
+    estimates that overshoot), while ISE penalises large errors most. `fojax.tune` itself
+    keeps ``loss="iae"`` as its default."""
 
     steps: int = 100
     learning_rate: float = 0.01

@@ -62,7 +62,7 @@ from .._errors import AlgebraicLoopError, InputError, ShapeError
 from ..observer import FiniteTimeObserver
 from ..plant import AbstractSignal, DescriptorSystem, Zero
 from ..plant._signals import as_signal
-from ._loop import assemble, linear_matrices, LOOP_RCOND
+from ._loop import assemble, linear_matrices, LOOP_RCOND, refuse_feedthrough
 from ._stepping import discretize_host, gauss_nodes, grid_step, reduce_host
 
 
@@ -251,6 +251,7 @@ def finite_time_loop(sys: DescriptorSystem, observer, *, u_r=None) -> FiniteTime
     **Raises:** `fojax.AlgebraicLoopError` ($I - Q_1W_u$ singular), `fojax.ShapeError`.
     """
     require_x64("finite-time loop")
+    refuse_feedthrough(sys)
     if hasattr(observer, "observer") and not isinstance(observer, FiniteTimeObserver):
         observer = observer.observer
     if not isinstance(observer, FiniteTimeObserver):

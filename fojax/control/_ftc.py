@@ -51,7 +51,7 @@ from ..observer import AbstractObserver
 from ..plant import AbstractSignal, augment_faults, DescriptorSystem, Stack, Zero
 from ..plant._signals import as_signal
 from ._feedback import design_state_feedback, StateFeedbackDesign
-from ._loop import assemble, LoopMaps
+from ._loop import assemble, LoopMaps, refuse_feedthrough
 from ._stepping import simulate_lti
 
 
@@ -302,6 +302,7 @@ def _check(sys):
     if not isinstance(sys, DescriptorSystem):
         raise TypeError(f"sys must be a fojax.DescriptorSystem, got {type(sys).__name__}.")
     require_x64("fault-tolerant control design")
+    refuse_feedthrough(sys)
 
 
 _COMMON_ARGS = r"""

@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._dtype import as_matrix, require_x64
-from .._errors import AlgebraicLoopError, ShapeError
+from .._errors import AlgebraicLoopError, InputError, ShapeError
 from ..design import FunctionalObserverDesign
 from ..observer import AbstractObserver, GeneralizedFunctionalObserver
 from ..plant import DescriptorSystem
@@ -118,6 +118,13 @@ def _namespace(*arrays):
         if isinstance(a, jax.core.Tracer):
             return jnp
     return np
+
+
+def refuse_feedthrough(sys) -> None:
+    """The loops here are built for ``y = Cx``: a plant with a nonzero feedthrough ``D`` is refused."""
+    if np.any(np.asarray(getattr(sys, "D", 0.0))):
+        raise InputError("the observer-based loops are built for plants without feedthrough (y = C x); this "
+                         "plant has D != 0. Simulate the plant and its observer with fojax.simulate instead.")
 
 
 def _observer_of(observer):
@@ -259,6 +266,7 @@ def closed_loop(
         raise TypeError(f"sys must be a fojax.DescriptorSystem, got {type(sys).__name__}.")
     if L is None and isinstance(observer, FunctionalObserverDesign):
         L = observer.L
+    refuse_feedthrough(sys)
     obs = _observer_of(observer)
     m = sys.m
     if obs.output_size != m:
@@ -305,6 +313,7 @@ def loop_maps(sys: DescriptorSystem, observer, *, u_r=None) -> LoopMaps:
     ``X = sol.xs`` and ``R = sol.us`` of a `fojax.simulate` run of the loop,
     ``u = X @ maps.K_X.T + R @ maps.K_r.T``.
     """
+    refuse_feedthrough(sys)
     obs = _observer_of(observer)
     Br = None if u_r is None else as_matrix("u_r", u_r, rows=sys.m)
     _, maps = assemble(sys.E, sys.A, sys.B, sys.C, obs, Br=Br)
