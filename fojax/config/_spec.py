@@ -173,7 +173,7 @@ class Config:
         """Whether observers are designed for the fault-augmented system (eq. 3.196): LTI
         models with ``[faults]``. A Takagi–Sugeno model's faults act on the simulated plant
         only; its observers estimate ``z = L x`` of the nominal T–S model (the T–S design
-        has no fault augmentation, so ``estimate_faults = true`` is refused at load)."""
+        has no fault augmentation, so ``estimate_faults = true`` is refused when the file is read)."""
         return self.has_faults and not self.is_takagi_sugeno
 
     def closed_loop_A(self) -> np.ndarray:
@@ -251,7 +251,7 @@ class Config:
 
     def plant(self):
         """The simulated plant. For a Takagi–Sugeno model with ``[takagi_sugeno] plant``,
-        that nonlinear model (`nonlinear_model`; the file's rules are checked at load to be
+        that nonlinear model (`nonlinear_model`; the file's rules are checked when it is read to be
         its exact sector form), else the `fojax.TakagiSugenoSystem`. Otherwise `system`, wrapped in a `fojax.UncertainDescriptorSystem`
         when ``[uncertainty]`` is given (constant profiles use ``value``, sine profiles
         the `fojax.Sine` signal, uniform profiles the nominal ``δ = 0``)."""
