@@ -323,3 +323,12 @@ def test_study_of_a_plant_with_feedthrough():
         e = np.abs(np.asarray(sol.estimates[k] - sol.xs @ L.T))
         np.testing.assert_allclose(np.asarray(exact)[k].ravel(), np.trapezoid(e, np.asarray(ts), axis=0), rtol=2e-3)
     assert np.asarray(exact)[0].sum() < 0.5 * np.asarray(exact)[1].sum()  # the unfolded observer is worse
+
+
+def test_system_zeros_use_the_feedthrough():
+    """Invariant zeros of a model with D: python-control's `control.zeros` as oracle."""
+    P, _ = _plant(seed=9, m=1, p=1)
+    zeros = fojax.system_zeros(from_control(P)).invariant_zeros
+    want = control.zeros(P)
+    assert len(want) == 4 and len(zeros) == 4  # D != 0: n finite zeros
+    assert_eigenvalues_match(zeros, want, rtol=1e-8)

@@ -182,8 +182,8 @@ def _system(sys, D, fname):
         )
     E, A, B, C = (_host(k, getattr(sys, k)) for k in "EABC")
     p, m = C.shape[0], B.shape[1]
-    if D is None:
-        D = np.zeros((p, m))
+    if D is None:  # the system's own feedthrough
+        D = _host("D", sys.D)
     else:
         D = to_numpy(as_matrix("D", D, rows=p, cols=m,
                                hint=f"D maps the {m} inputs to the {p} outputs."))  # fmt: skip
@@ -202,7 +202,7 @@ def system_zeros(sys: DescriptorSystem, D=None, *, tol: float | None = None,
     **Arguments:**
 
     - `sys`: a `fojax.DescriptorSystem` (``B`` ``(n, m)``, ``C`` ``(p, n)``).
-    - `D`: the ``(p, m)`` feedthrough (default zero).
+    - `D`: the ``(p, m)`` feedthrough (default: the system's own, ``sys.D``).
     - `tol`, `balance`: as `kronecker_structure`.
 
     **Returns:** a `SystemZeros`.
