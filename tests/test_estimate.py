@@ -141,3 +141,25 @@ def test_errors_are_typed_and_clear():
         jax.jit(fojax.estimate)(design.observer, t2, u, y)
     with pytest.raises(Exception, match="NaN or infinite"):
         jax.jit(fojax.estimate)(design.observer, ts, u, bad)
+
+
+def test_discrete_time_observer_runs_its_recursion():
+    """A discretized observer (fojax.discretize, ZOH) on samples dt apart: the estimate is
+    its own recursion, written out in NumPy; samples at another spacing are refused."""
+    design, ts, u, y, _ = _record(T=101, horizon=2.0)
+    h = float(ts[1] - ts[0])
+    obs = fojax.discretize(design.observer, h)
+    lm = obs.linear_matrices()
+    A, Bo = np.asarray(lm.A), np.hstack([lm.Bu, lm.By])
+    Co, Do = np.asarray(lm.C), np.hstack([lm.Du, lm.Dy])
+    v = np.hstack([u, y])
+    xi, want = np.zeros(A.shape[0]), []
+    for k in range(len(ts)):
+        want.append(Co @ xi + Do @ v[k])
+        xi = A @ xi + Bo @ v[k]
+    np.testing.assert_allclose(fojax.estimate(obs, ts, u, y), np.array(want), rtol=1e-10, atol=1e-12)
+    # the same as the continuous observer with a zero-order hold on the same grid
+    np.testing.assert_allclose(fojax.estimate(obs, ts, u, y),
+                               fojax.estimate(design, ts, u, y, interpolation="zoh"), rtol=1e-9, atol=1e-10)
+    with pytest.raises(fojax.InputError, match="dt apart"):
+        fojax.estimate(obs, ts[::2], u[::2], y[::2])

@@ -346,3 +346,17 @@ def test_finite_time_observer_for_a_plant_with_feedthrough():
     ft = design.observer.finite_time_estimates(ts, sol.observer_states[0], sol.us, sol.ys)
     z = np.asarray(sol.xs @ np.asarray(ex.L).T)
     assert np.abs(np.asarray(ft) - z)[60:].max() < 1e-7 * np.abs(z).max()
+
+
+def test_discrete_time_models_keep_dt():
+    P, _ = _plant(seed=3)
+    Pd = control.c2d(P, 0.1)
+    plant = from_control(Pd)
+    assert plant.dt == 0.1
+    back = to_control(plant)
+    assert back.dt == 0.1
+    for k in "ABCD":
+        np.testing.assert_array_equal(getattr(back, k), getattr(Pd, k))
+    S = to_scipy(plant)
+    assert isinstance(S, sig.dlti) and S.dt == 0.1
+    assert from_scipy(S).dt == 0.1

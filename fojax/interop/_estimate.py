@@ -17,6 +17,10 @@ layer's `discretize`, exact for polynomial inputs: degree 1 here, so with linear
 interpolation the step is the exact first-order-hold discretisation, the rule
 python-control's `forced_response` and `scipy.signal.lsim` use). The estimate is
 $\hat z_k = C_o\xi_k + D_o v_k$ at every sample time.
+
+A discrete-time observer (``dt`` $= h$ set, e.g. from `fojax.discretize` or a design on
+a discrete-time plant) is its own recursion $\xi_{k+1} = A_o\xi_k + B_o v_k$ on samples
+$h$ apart; there is nothing to interpolate, and ``ts`` must have that spacing.
 """
 
 from __future__ import annotations
@@ -78,7 +82,8 @@ def estimate(observer, ts, u, y, *, xi0=None, interpolation: str = "linear"):
     - `u`: ``(T, m)`` input samples (``(T,)`` when ``m = 1``; ``None`` when ``m = 0``).
     - `y`: ``(T, p)`` measured output samples (``(T,)`` when ``p = 1``).
     - `xi0`: the observer's state at ``ts[0]`` (default `observer.initial_state()`, zero).
-    - `interpolation`: ``"linear"`` (first-order hold, default) or ``"zoh"``.
+    - `interpolation`: ``"linear"`` (first-order hold, default) or ``"zoh"``; unused for
+      a discrete-time observer (its samples must be ``dt`` apart).
 
     **Returns:** ``(T, q)`` estimates $\hat z(t_k)$.
 
@@ -110,6 +115,9 @@ def estimate(observer, ts, u, y, *, xi0=None, interpolation: str = "linear"):
     if xi.shape != (obs.state_size,):
         raise ShapeError("xi0", (obs.state_size,), tuple(xi.shape), "One entry per observer state.")
     h = jnp.diff(ts)
+    dt = getattr(obs, "dt", None)
+    if dt is not None:
+        return _run_discrete(lm, ts, h, u, y, xi, dt)
     if _is_concrete(ts, u, y):  # (NaNs in concrete data were refused by as_float_array)
         hs = np.asarray(h)
         if (hs <= 0).any():
@@ -122,6 +130,29 @@ def estimate(observer, ts, u, y, *, xi0=None, interpolation: str = "linear"):
         ts = eqx.error_if(ts, jnp.any(h <= 0), "estimate: ts must be strictly increasing")
         h = jnp.diff(ts)
     return _run(lm, ts, h, u, y, xi, interpolation)
+
+
+def _run_discrete(lm, ts, h, u, y, xi0, dt: float):
+    """The recursion of a discrete-time observer on samples ``dt`` apart."""
+    tol = 1e-9 * max(1.0, dt)
+    if _is_concrete(ts):
+        off = np.abs(np.asarray(h) - dt)
+        if (off > tol).any():
+            k = int(np.argmax(off > tol))
+            raise InputError(f"the observer is discrete-time with dt = {dt:g}, so the samples must be dt apart; "
+                             f"ts[{k + 1}] - ts[{k}] = {float(h[k])!r}. Resample the record or discretize the "
+                             "continuous design with that period (fojax.discretize).")
+    else:
+        ts = eqx.error_if(ts, jnp.any(jnp.abs(h - dt) > tol), "estimate: the samples must be dt apart")
+    v = jnp.concatenate([u, y], axis=1)
+    Bo = jnp.concatenate([lm.Bu, lm.By], axis=1)
+    Do = jnp.concatenate([lm.Du, lm.Dy], axis=1)
+
+    def step(xi, vk):
+        return lm.A @ xi + Bo @ vk, xi
+
+    _, xis = jax.lax.scan(step, xi0, v)
+    return xis @ lm.C.T + v @ Do.T
 
 
 def _run(lm, ts, h, u, y, xi0, interpolation):
