@@ -98,7 +98,7 @@ def test_dt_is_static_and_kept():
     assert s.replace(A=2 * A4).dt == H
     assert "dt=0.1" in repr(s)
     assert fojax.DescriptorSystem.from_state_space(A4[:3, :3], dt=0.5).dt == 0.5
-    assert jax.tree_util.tree_leaves(s).__len__() == 4  # dt is not a leaf
+    assert jax.tree_util.tree_leaves(s).__len__() == 5  # E, A, B, C, D; dt is not a leaf
 
 
 # ------------------------------------------------------------------------------ analysis
