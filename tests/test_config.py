@@ -449,3 +449,95 @@ def test_design_method_key_reaches_the_design(tmp_path):
     bad = {**ts, "observer": [{**ts["observer"][0], "method": "auto"}]}
     with pytest.raises(fojax.ConfigError, match=r"one certificate common to all rules"):
         parse_config(bad, "ts.toml")
+
+
+# ------------------------------------------------------------ [model] dt: discrete-time models
+# Oracles: SciPy's generalized eigenvalues of (A, E) (finite ones inside the unit circle, as
+# many as rank E: causal and stable) for the file's model, and the rules of the key
+# (a finite number > 0; z-plane disks with |c| + r < 1) for the refusals.
+
+DISCRETE = {
+    "name": "sampled",
+    "model": {
+        "dt": 0.05,
+        "E": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 0]],
+        "A": [[0.96, 0.024, 0.0, 0.0], [0.0, 0.93, 0.02, 0.0], [0.01, 0.015, 1.02, 0.05], [0.6, 0.0, 1.0, 1.5]],
+        "B": [[0.05], [0.0], [0.025], [1.0]],
+        "C": [[1, 0, 0, 0], [0, 0, 0, 1]],
+        "L": [[0, 1, 1, 0]],
+    },
+    "observer": [{"name": "fast", "region": {"disk": {"center": 0.2, "radius": 0.3}}}, {"kind": "proportional"}],
+}
+
+
+def test_discrete_model_file_loads_and_checks(tmp_path, capsys):
+    import scipy.linalg as sla
+
+    from fojax.cli import main
+    from fojax.design import DiscreteDisk
+
+    cfg = load_config(write(tmp_path, DISCRETE, "sampled.toml"))
+    assert cfg.dt == 0.05
+    sys_ = cfg.system()
+    assert sys_.dt == 0.05 and cfg.design_system().dt == 0.05
+    np.testing.assert_array_equal(np.asarray(sys_.A), np.asarray(DISCRETE["model"]["A"], dtype=float))
+    fast, default = (o.region for o in cfg.observers)
+    assert isinstance(fast, DiscreteDisk) and (float(fast.center), float(fast.radius)) == (0.2, 0.3)
+    assert isinstance(default, DiscreteDisk) and (float(default.center), float(default.radius)) == (0.0, 0.5)
+    # the oracle: causal (finite eigenvalues = rank E) and stable in discrete time (|λ| < 1)
+    ev = sla.eigvals(np.asarray(DISCRETE["model"]["A"], float), np.asarray(DISCRETE["model"]["E"], float))
+    finite = ev[np.isfinite(ev)]
+    assert finite.size == 3 and np.abs(finite).max() < 1
+    assert main(["check", str(tmp_path / "sampled.toml")]) == 0
+    out = capsys.readouterr().out
+    assert "discrete-time (dt = 0.05)" in out and "causal            yes" in out
+    # without dt the same matrices are continuous-time and not stable (eigenvalues near 1 > 0)
+    cont = {**DISCRETE, "model": {k: v for k, v in DISCRETE["model"].items() if k != "dt"},
+            "observer": [{"name": "o"}]}
+    assert load_config(write(tmp_path, cont, "cont.toml")).system().dt is None
+    assert main(["check", str(tmp_path / "cont.toml")]) == 1
+
+
+def _discrete(**changes):
+    d = {**DISCRETE, "model": dict(DISCRETE["model"]), "observer": [dict(DISCRETE["observer"][0])]}
+    for path, value in changes.items():
+        *head, last = path.split("__")
+        t = d
+        for k in head:
+            t = t[int(k)] if isinstance(t, list) else t[k]
+        t[last] = value
+    return d
+
+
+DT_REFUSED = [
+    (dict(model__dt=0), "model.dt", r"expected a positive number, got 0"),
+    (dict(model__dt=-0.1), "model.dt", r"expected a positive number, got -0\.1"),
+    (dict(model__dt="0.1"), "model.dt", r"expected a number, got '0\.1' \(string\)"),
+    (dict(model__dt=True), "model.dt", r"expected a number, got True"),
+    (dict(model__dt=float("inf")), "model.dt", r"expected a finite number"),
+    (dict(uncertainty={"dA": [[[0.0] * 4] * 4]}), "model.dt", r"an uncertain model \(\[uncertainty\]\) is continuous-time"),
+    (dict(observer__0__region={"disk": {"center": -0.5, "radius": 0.6}}), "observer[0].region.disk",
+     r"not inside the open unit disk \(\|center\| \+ radius = 1\.1\)"),
+    (dict(observer__0__region={"disk": {"center": 0.0, "radius": 0.5}, "decay": 1.0}), "observer[0].region.decay",
+     r"s-plane region"),
+    (dict(observer__0__kind="finite-time"), "observer[0].kind", r"continuous-time models only"),
+    (dict(observer__0__objective="hinf", observer__0__Bw=[[1.0]] * 4), "observer[0].objective",
+     r"'hinf', a continuous-time norm"),
+]
+
+
+@pytest.mark.parametrize("changes,key,what", DT_REFUSED, ids=[d[1] + ":" + d[2][:16] for d in DT_REFUSED])
+def test_discrete_model_keys_are_checked(tmp_path, changes, key, what):
+    p = write(tmp_path, _discrete(**changes))
+    with pytest.raises(fojax.ConfigError, match=what) as info:
+        load_config(p)
+    assert info.value.key == key
+
+
+def test_study_refuses_a_discrete_model(tmp_path, capsys):
+    from fojax.cli import main
+
+    p = write(tmp_path, DISCRETE, "sampled.toml")
+    assert main(["study", str(p), "--out", str(tmp_path)]) == 2
+    assert "[model.dt] is 0.05: fojax study runs continuous-time models only" in capsys.readouterr().err
+    assert not any(tmp_path.glob("study-*"))

@@ -111,6 +111,10 @@ def study(
         raise ConfigError(path, f"observer[{i}].kind", f"'{kind}' observers have no Monte Carlo study yet "
                           "(the study compares z estimates of generalized/PI/proportional observers); "
                           f"use `fojax design {path}` to design and verify it.")
+    if getattr(cfg, "dt", None) is not None:
+        raise ConfigError(path, "model.dt", f"is {cfg.dt:g}: fojax study runs continuous-time models only; "
+                          f"a discrete-time model is checked and designed with `fojax check {path}` and "
+                          f"`fojax design {path}`, and simulated in Python (fojax.simulate).")
     spec = cfg.study or StudySpec()
     tspec = cfg.tuning or TuningSpec()
     if resume is None:

@@ -21,9 +21,12 @@ from ._spec import (
 from ._validate import check_observer_names, join, typename, V
 
 
-def parse_observers(v: V, data: dict, *, n: int, n_design: int, p: int, ts: dict | None, faults: bool) -> tuple:
+def parse_observers(v: V, data: dict, *, n: int, n_design: int, p: int, ts: dict | None, faults: bool,
+                    dt: float | None = None) -> tuple:
     """The ``[[observer]]`` entries as `ObserverSpec` s (``n_design``: the states of the
-    designed, possibly fault-augmented, system; ``ts``: the parsed ``[takagi_sugeno]``)."""
+    designed, possibly fault-augmented, system; ``ts``: the parsed ``[takagi_sugeno]``; ``dt``:
+    the sampling period of a discrete-time model, whose regions are z-plane disks inside the unit
+    disk, default ``DiscreteDisk(0, 0.5)`` as in `fojax.design_functional_observer`)."""
     observers = []
     raw_obs = data.get("observer", [])
     if isinstance(raw_obs, dict):
@@ -34,9 +37,13 @@ def parse_observers(v: V, data: dict, *, n: int, n_design: int, p: int, ts: dict
         key = f"observer[{i}]"
         o = v.table(key, o, _OBSERVER)
         kind = v.string(join(key, "kind"), o["kind"], KINDS) if "kind" in o else "generalized"
-        from ..design import Disk
+        from ..design import DiscreteDisk, Disk
 
-        region = _region(v, join(key, "region"), o["region"]) if "region" in o else Disk(-2.0, 1.0)
+        if dt is not None:
+            _discrete_kind(v, key, o, kind, dt)
+            region = _discrete_region(v, join(key, "region"), o["region"]) if "region" in o else DiscreteDisk(0.0, 0.5)
+        else:
+            region = _region(v, join(key, "region"), o["region"]) if "region" in o else Disk(-2.0, 1.0)
         R = q0 = q1 = None
         if "R" in o and "q0" in o:
             raise v.err(join(key, "q0"), "give either R or q0, not both (q0 is the number of rows of R).")
@@ -107,6 +114,42 @@ def _balance(v: V, key: str, o: dict, kind: str, takagi_sugeno: bool) -> bool | 
         raise v.err(k, f"is for the generalized, PI, proportional and unknown-input kinds, not {kind!r}: remove "
                     "the key.")
     return value
+
+
+def _discrete_kind(v: V, key: str, o: dict, kind: str, dt: float) -> None:
+    """The observers a discrete-time model (``[model] dt``) can have: generalized, PI and
+    proportional, with ``objective = "region"`` or ``"centre"``."""
+    if kind in SPECIAL_KINDS:
+        raise v.err(join(key, "kind"), f"is '{kind}', which is designed for continuous-time models only; this "
+                    f"model is discrete-time (model.dt = {dt:g}): use 'generalized', 'PI' or 'proportional'.")
+    objective = o.get("objective")
+    if objective in ("hinf", "h2"):
+        raise v.err(join(key, "objective"), f"is '{objective}', a continuous-time norm; this model is "
+                    f"discrete-time (model.dt = {dt:g}): use objective = 'region' or 'centre'.")
+
+
+def _discrete_region(v: V, key: str, value):
+    """``region`` of an observer of a discrete-time model: ``disk = { center, radius }`` is a
+    `fojax.design.DiscreteDisk`, a disk of the z-plane inside the unit disk
+    (``|center| + radius < 1``); ``decay`` and ``damping`` (s-plane regions) are refused."""
+    from ..design import DiscreteDisk
+
+    value = v.table(key, value, _REGION)
+    for part in ("decay", "damping"):
+        if part in value:
+            raise v.err(join(key, part), "is an s-plane region (continuous time); a discrete-time model "
+                        "(model.dt) takes region = { disk = { center = c, radius = r } } with |c| + r < 1.")
+    if "disk" not in value:
+        raise v.err(key, "is empty; give disk = { center = c, radius = r } with |c| + r < 1.")
+    dkey = join(key, "disk")
+    d = v.table(dkey, value["disk"], _DISK, required=("center", "radius"))
+    c = v.number(join(dkey, "center"), d["center"])
+    r = v.number(join(dkey, "radius"), d["radius"], positive=True)
+    if abs(c) + r >= 1:
+        raise v.err(dkey, f"disk(center={c}, radius={r}) is not inside the open unit disk (|center| + radius = "
+                    f"{abs(c) + r:g}); the error e[k+1] = N e[k] of a discrete-time model decays only for "
+                    "eigenvalues inside it. Expected |center| + radius < 1.")
+    return DiscreteDisk(c, r)
 
 
 def _region(v: V, key: str, value):

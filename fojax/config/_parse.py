@@ -91,6 +91,7 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
             raise v.err("model.D", "a Takagi-Sugeno model has no feedthrough (y = C x); remove the key.")
         D = v.array("model.D", model["D"], 2, "a p x m matrix")
         v.shape("model.D", D, (p, m), f"y = C x + D u with p = {p} from C, m = {m} from B")
+    dt = _sampling_period(v, model, ts_raw, data)
     if L.shape[1] != n:
         raise v.err("model.L", f"has shape {L.shape}, expected (q, {n}) (one column per state, n = {n} from {src('L')}).")
     feedback = None
@@ -185,7 +186,7 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
         nf = (Fa if Fa is not None else Fs).shape[1]
         n_design = n + (2 * nf if ramp else nf)
     observers = parse_observers(v, data, n=n, n_design=n_design, p=p, ts=ts,
-                                faults=Fa is not None or Fs is not None)
+                                faults=Fa is not None or Fs is not None, dt=dt)
 
     study = None
     if "study" in data:
@@ -224,8 +225,23 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
         path=file, name=name, description=description, E=E, A=A, B=B, C=C, L=L,
         feedback=feedback, x0=x0, Fa=Fa, Fs=Fs, ramp=ramp, estimate_faults=estimate_faults,
         dA=dA, profile=profile, takagi_sugeno=ts, observers=observers, study=study,
-        tuning=tuning, raw=data, parameter_spread=parameter_spread, x0_spread=x0_spread, D=D,
+        tuning=tuning, raw=data, parameter_spread=parameter_spread, x0_spread=x0_spread, D=D, dt=dt,
     )
+
+def _sampling_period(v: V, model: dict, ts_raw, data: dict) -> float | None:
+    """``[model] dt``: the sampling period ``h > 0`` of a discrete-time model
+    ``E x[k+1] = A x[k] + B u[k]`` (`fojax.DescriptorSystem`'s ``dt``), or None. Refused with
+    the parts of a file that describe continuous-time models only: ``[takagi_sugeno]`` and
+    ``[uncertainty]`` (their plants and designs have no sampling period)."""
+    if "dt" not in model:
+        return None
+    dt = float(v.number("model.dt", model["dt"], positive=True))
+    for table, what in (("takagi_sugeno", "a Takagi-Sugeno model"), ("uncertainty", "an uncertain model")):
+        if table in data and (table != "takagi_sugeno" or ts_raw is not None):
+            raise v.err("model.dt", f"is {dt}: {what} ([{table}]) is continuous-time in fojax; remove dt, "
+                        f"or remove [{table}] for a discrete-time model.")
+    return dt
+
 
 def _ts_faults(v: V, f: dict, ramp: bool, estimate_faults: bool) -> None:
     """``[faults]`` of a Takagi–Sugeno model: the faults act on the simulated plant (through

@@ -22,7 +22,7 @@ PREMISES = ("sinc", "output")
 
 _TOP = {"name", "description", "model", "faults", "uncertainty", "initial_state", "takagi_sugeno", "observer",
         "study", "tuning"}
-_MODEL = {"E", "A", "B", "C", "D", "L", "feedback", "x0", "mat"}
+_MODEL = {"E", "A", "B", "C", "D", "L", "feedback", "x0", "mat", "dt"}
 #: The matrices a ``mat = "file.mat"`` reference may hold (`fojax.interop.load_mat`).
 _MAT_MATRICES = ("E", "A", "B", "C", "D", "L")
 _MODEL_REQUIRED = ("E", "A", "B", "C", "L")
@@ -125,7 +125,8 @@ class Config:
     """A validated config file (all matrices float64 `numpy.ndarray`).
 
     **Fields:** `path`, `name`, `description`, `E`, `A` (``(n, n)`` or ``(k, n, n)``),
-    `B`, `C`, `L`, `D` (the ``(p, m)`` feedthrough, or None), `feedback` (or None), `x0` (or None), `Fa`, `Fs` (or None),
+    `B`, `C`, `L`, `D` (the ``(p, m)`` feedthrough, or None), `dt` (the sampling period of a
+    discrete-time model, or None), `feedback` (or None), `x0` (or None), `Fa`, `Fs` (or None),
     `ramp`, `estimate_faults`, `dA` (``(k, n, n)`` or None), `profile` (dict or None),
     `takagi_sugeno` (dict or None), `observers` (tuple of `ObserverSpec`), `study`
     (`StudySpec` or None), `tuning` (`TuningSpec` or None), `raw` (the parsed TOML).
@@ -155,6 +156,7 @@ class Config:
     parameter_spread: dict | None = None
     x0_spread: np.ndarray | None = None
     D: np.ndarray | None = None
+    dt: float | None = None
 
     @property
     def n(self) -> int:
@@ -183,7 +185,8 @@ class Config:
         return self.A + self.B @ self.feedback
 
     def system(self):
-        """The nominal (fault-free) `fojax.DescriptorSystem` ``(E, A + BK, B, C + DK, D)``.
+        """The nominal (fault-free) `fojax.DescriptorSystem` ``(E, A + BK, B, C + DK, D)``,
+        discrete-time with the file's `dt` when it has one.
 
         For a Takagi–Sugeno model, the `fojax.TakagiSugenoSystem`.
         """
@@ -195,7 +198,7 @@ class Config:
             premise = (SincPremise if ts["premise"] == "sinc" else OutputPremise)(int(ts["index"]))
             membership = SectorMembership(premise, ts["lower"], ts["upper"])
             return TakagiSugenoSystem(self.E, self.closed_loop_A(), self.B, self.C, membership)
-        return DescriptorSystem(self.E, self.closed_loop_A(), self.B, self.closed_loop_C(), self.D)
+        return DescriptorSystem(self.E, self.closed_loop_A(), self.B, self.closed_loop_C(), self.D, dt=self.dt)
 
     def closed_loop_C(self) -> np.ndarray:
         """``C + D K`` with the `feedback` K and a feedthrough `D` (``y = Cx + D(Kx + u)``), else `C`."""
