@@ -541,3 +541,17 @@ def test_study_refuses_a_discrete_model(tmp_path, capsys):
     assert main(["study", str(p), "--out", str(tmp_path)]) == 2
     assert "[model.dt] is 0.05: fojax study runs continuous-time models only" in capsys.readouterr().err
     assert not any(tmp_path.glob("study-*"))
+
+
+def test_discrete_model_file_designs(tmp_path, capsys):
+    # `fojax design` of a discrete model file without [[observer]]: the default z-plane disk
+    # (0, 0.5); oracle: NumPy's eigenvalues of the saved observer's error matrix.
+    from fojax.cli import main
+    from fojax.results import load_design
+
+    p = write(tmp_path, {k: v for k, v in DISCRETE.items() if k != "observer"}, "sampled.toml")
+    assert main(["design", str(p), "--out", str(tmp_path), "--name", "run"]) == 0
+    assert "max |eig|" in capsys.readouterr().out
+    d = load_design(tmp_path / "run" / "generalized.npz")
+    assert d.dt == 0.05 and d.observer.dt == 0.05
+    assert np.abs(np.linalg.eigvals(np.asarray(d.error_matrix))).max() < 0.5

@@ -63,10 +63,12 @@ def _region_words(spec) -> str:
     return spec.region.describe()
 
 
-def _default_region():
-    from ..design import Disk
+def _default_region(dt=None):
+    """The region of a file without ``[[observer]]``: the disk (-2, 1), or for a discrete-time
+    model (``dt`` set) the z-plane disk (0, 0.5), as for an ``[[observer]]`` without ``region``."""
+    from ..design import DiscreteDisk, Disk
 
-    return Disk(-2.0, 1.0)
+    return Disk(-2.0, 1.0) if dt is None else DiscreteDisk(0.0, 0.5)
 
 
 

@@ -62,7 +62,9 @@ def design(
     draw = figures_available(out)
     from ..config import ObserverSpec
 
-    observers = cfg.observers or (ObserverSpec("generalized", "generalized", _default_region()),)
+    observers = cfg.observers or (ObserverSpec("generalized", "generalized", _default_region(cfg.dt)),)
+    discrete = cfg.dt is not None
+    eig_head = "max |eig|" if discrete else "max Re(eig)"  # the error decays iff |eig| < 1 / Re(eig) < 0
     sys_ = cfg.design_system()
     L = cfg.design_L()
     folder = new_results_folder(
@@ -105,7 +107,7 @@ def design(
         }, overwrite=overwrite)
         files["verification summary"] = folder / "designs.json"
         files["the config file used"] = folder / "config.toml"
-        headers = ["observer", "kind", "q0", "q1", "region", "route", "max Re(eig)", "relative residual", "verified"]
+        headers = ["observer", "kind", "q0", "q1", "region", "route", eig_head, "relative residual", "verified"]
         sections = {"Failed designs": "\n\n".join(
             f"- **{nm}**: `{err_type}`: {msg}" for nm, (err_type, msg) in failed.items())} if failed else {}
         return write_report(
@@ -160,7 +162,7 @@ def design(
             eig = np.asarray(view.eigenvalues)
             rows.append(
                 [spec.name, spec.kind, view.q0, view.q1, view.region_words, _route(d),
-                 float(np.max(eig.real)) if eig.size else float("nan"),
+                 float(np.max(np.abs(eig) if discrete else eig.real)) if eig.size else float("nan"),
                  view.relative_residual, view.passed]
             )
             files[f"design of '{spec.name}' (fojax.results.load_design)"] = path
@@ -183,7 +185,7 @@ def design(
     report = finish()
     width = max([len("observer")] + [len(r[0]) for r in rows])
     out.say("")
-    out.say(f"{'observer':<{width}}  kind          q0  q1  route     max Re(eig)  verified")
+    out.say(f"{'observer':<{width}}  kind          q0  q1  route     {eig_head:>11}  verified")
     for r in rows:
         verified = r[8] if isinstance(r[8], str) else ("yes" if r[8] else "NO")
         out.say(f"{r[0]:<{width}}  {r[1]:<12}  {r[2]:>2}  {r[3]:>2}  {r[5]:<8}  {r[6]:>11.4g}  {verified}")
