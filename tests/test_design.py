@@ -1113,7 +1113,7 @@ def test_min_gain_design_is_verified_whatever_route(monkeypatch):
     lmi = d.solver["lmi"]
     assert d.report.extra["LMI route"] == lmi["route"] and lmi["route"].startswith(lmi["objective"])
     assert "LMI route: " + lmi["route"] in str(d)
-    monkeypatch.setattr(fojax.design._functional, "OBJECTIVES", ("feasibility",))
+    monkeypatch.setattr(fojax.design._region_lmi, "OBJECTIVES", ("feasibility",))
     f = design_functional_observer(sysm, L_REP, **kw)
     assert_verified_design(f, sysm, L_REP, [("disk", -3.0, 2.5)], "proportional")
     assert f.solver["lmi"]["objective"] == "feasibility"

@@ -58,12 +58,14 @@ def inside(region, eigs):
     return -eigs.real * math.sin(th) - np.abs(eigs.imag) * math.cos(th)
 
 
-def assert_riccati_design(d, sysm, L, region):
-    """Everything a Riccati design promises, checked independently."""
+def assert_riccati_design(d, sysm, L, region, method="riccati"):
+    """Everything a Riccati design promises, checked independently (with ``method="lmi"``:
+    a disk design of the LMI route whose certificate is a Stein certificate)."""
     assert d.report.passed and not d.report.failures
-    assert d.solver["lmi"]["method"] == "riccati"
-    assert d.solver["lmi"]["route"].startswith("Riccati")
-    assert "design route: Riccati" in str(d)
+    assert d.solver["lmi"]["method"] == method
+    if method == "riccati":
+        assert d.solver["lmi"]["route"].startswith("Riccati")
+        assert "design route: Riccati" in str(d)
     b = blocks(d)
     E, A, B, C = (np.asarray(x) for x in (sysm.E, sysm.A, sysm.B, sysm.C))
     Ep = np.asarray(d.structure.Eperp)
@@ -82,7 +84,7 @@ def assert_riccati_design(d, sysm, L, region):
     X = 0.5 * (d.X + d.X.T)
     assert np.linalg.eigvalsh(X).min() > 0
     dim = Aerr.shape[0]
-    disk = d.solver["lmi"]["disk"]
+    disk = d.solver["lmi"]["disk"] if method == "riccati" else region.to_dict()
     M = (Aerr - disk["center"] * np.eye(dim)) / disk["radius"]
     stein = M.T @ X @ M - X
     assert np.linalg.eigvalsh(0.5 * (stein + stein.T)).max() < 0  # Stein inequality
@@ -100,7 +102,7 @@ def assert_riccati_design(d, sysm, L, region):
 
 
 @pytest.mark.parametrize("n,seed,q0", [(4, 0, None), (8, 1, None), (16, 2, 8)])
-@pytest.mark.parametrize("kind", ["generalized", "proportional"])
+@pytest.mark.parametrize("kind", ["generalized", "PI", "proportional"])
 def test_random_systems_verify(n, seed, q0, kind):
     sysm, L = random_system(n, seed)
     region = Disk(-2.0, 1.0)
@@ -109,14 +111,21 @@ def test_random_systems_verify(n, seed, q0, kind):
     # the gain does the work: without it some modes of N1' are outside the disk
     from fojax.design import pieces
 
-    N1 = np.asarray(pieces(d.structure).N1)[0]
+    pc = pieces(d.structure)
+    N1 = np.asarray(pc.N1)[0]
     assert np.any(inside(region, sla.eigvals(N1)) <= 0)
-    if kind == "generalized":
-        # the documented decoupling of the Riccati route: J = 0, S = -Y2 N3 = 0, G = g I
-        b = blocks(d)
+    b = blocks(d)
+    if kind == "PI":
+        # the decoupled Riccati design: J = 0, S = -Y2 N3 = 0, G = g I
         assert d.observer.q1 == d.observer.q0
         assert not np.any(b["J"]) and not np.any(b["S"]) and not np.any(d.params["Y2"])
         np.testing.assert_array_equal(b["G"], b["G"][0, 0] * np.eye(d.observer.q1))
+    if kind == "generalized":
+        # the coupled design: the integral state drives ε (J ≠ 0) and is driven by the
+        # measured residual (S ≠ 0 whenever N3 ≠ 0)
+        assert np.any(b["J"])
+        if np.any(np.asarray(pc.N3)) and np.any(d.params["Y1"]):
+            assert np.any(b["S"])
 
 
 @pytest.mark.parametrize("region", [HalfPlane(1.0), Sector(0.7)], ids=["halfplane", "sector"])
@@ -161,14 +170,15 @@ def test_thesis_413_generalized():
     assert_riccati_design(d, ex.system, ex.L, region)
 
 
-def test_generalized_gain_is_the_full_riccati_solution():
-    """The blocks fojax solves separately equal SciPy's DARE of the whole pair (𝔸1(Z), 𝔸2)
-    in the disk's Möbius coordinates (oracle: scipy.linalg.solve_discrete_are)."""
+def test_pi_gain_is_the_full_riccati_solution():
+    """The blocks of the PI (decoupled) design that fojax solves separately equal SciPy's
+    DARE of the whole pair (𝔸1(Z), 𝔸2) in the disk's Möbius coordinates (oracle:
+    scipy.linalg.solve_discrete_are)."""
     from fojax.design import pieces
 
     ex = models.example_4_1_3()
     region = Disk(ex.alpha, ex.tau)
-    d = design_functional_observer(ex.system, ex.L, kind="generalized", region=region, method="riccati")
+    d = design_functional_observer(ex.system, ex.L, kind="PI", region=region, method="riccati")
     pc = pieces(d.structure)
     N1, N2, N3 = np.asarray(pc.N1)[0], np.asarray(pc.N2)[0], np.asarray(pc.N3)
     q0, q1, c = d.observer.q0, d.observer.q1, N3.shape[0]
@@ -223,8 +233,8 @@ def test_auto_dispatch():
     assert inter.solver["lmi"]["method"] == "lmi" and inter.report.passed
     with pytest.raises(fojax.InputError, match="method='riccati' does not apply.*not a single disk"):
         design_functional_observer(ex.system, ex.L, kind="proportional", region=both, method="riccati")
-    with pytest.raises(fojax.InputError, match="method='riccati' does not apply.*S = 0"):
-        design_functional_observer(ex.system, ex.L, kind="PI", method="riccati")
+    pi = design_functional_observer(ex.system, ex.L, kind="PI", method="riccati")
+    assert pi.report.passed and not np.any(np.asarray(pi.observer.S))
     with pytest.raises(fojax.InputError, match="method must be one of"):
         design_functional_observer(ex.system, ex.L, method="ricatti")
 
@@ -256,3 +266,113 @@ def test_output_injection_failure_is_typed():
     Ad, Cd = np.array([[1.5, 1.0], [0.0, 0.5]]), np.array([[1.0, 0.0]])
     Y = output_injection_gain(Ad, Cd)
     assert np.max(np.abs(sla.eigvals(Ad - Y @ Cd))) < 1.0
+
+
+# ============================================================== the default route at size
+
+
+def index1_system(n, p, q, n_alg, seed):
+    """A random stable index-1 plant of a shape the benchmarks do not use (m = 3 inputs)."""
+    rng = np.random.default_rng([seed, n, p, q])
+    r = n - n_alg
+    A0 = rng.standard_normal((n, n)) / np.sqrt(n)
+    A0[:r, :r] -= 2.0 * np.eye(r)
+    A0[r:, r:] -= 2.0 * np.eye(n_alg)
+    U, V = ortho_group.rvs(n, random_state=rng), ortho_group.rvs(n, random_state=rng)
+    E = U @ np.diag([1.0] * r + [0.0] * n_alg) @ V
+    return (fojax.DescriptorSystem(E, U @ A0 @ V, rng.standard_normal((n, 3)), rng.standard_normal((p, n))),
+            rng.standard_normal((q, n)))
+
+
+def test_choose_route_rule():
+    """The documented rule of `choose_route` (its docstring), case by case."""
+    from fojax.design._functional import AUTO_LMI_MAX_ORDER, choose_route, SMALL_ORDER
+
+    assert AUTO_LMI_MAX_ORDER > SMALL_ORDER
+    big, small = SMALL_ORDER + 1, SMALL_ORDER
+    for method in ("lmi", "riccati", "auto"):
+        assert choose_route(method, objective="region", solver=None, order=big) == method
+    assert choose_route(None, objective="region", solver=None, order=big) == "auto"
+    assert choose_route(None, objective="region", solver=None, order=small) == "lmi"
+    assert choose_route(None, objective="region", solver="SCS", order=big) == "lmi"
+    for objective in ("hinf", "h2", "centre"):
+        assert choose_route(None, objective=objective, solver=None, order=big) == "lmi"
+    with pytest.raises(fojax.InputError, match="method must be one of"):
+        choose_route("fast", objective="region", solver=None, order=big)
+
+
+@pytest.mark.parametrize("kind", ["generalized", "PI", "proportional"])
+def test_default_call_at_moderate_n_verifies(kind):
+    """n = 48, 4 outputs, 3 functionals, 14 algebraic equations, default R: the default call
+    takes the Riccati route (observer order above `SMALL_ORDER`) and its design passes the
+    independent checks (a.–d. with NumPy, error eigenvalues by SciPy inside the disk, the
+    Stein inequality at the certificate)."""
+    sysm, L = index1_system(48, 4, 3, 14, 0)
+    region = Disk(-3.0, 2.0)
+    d = design_functional_observer(sysm, L, kind=kind, region=region)
+    assert d.observer.q0 + d.observer.q1 > 12
+    eigs = assert_riccati_design(d, sysm, L, region)
+    assert len(eigs) == d.observer.q0 + d.observer.q1
+    b = blocks(d)
+    if kind == "generalized":  # coupled: J ≠ 0, and S = -Y2 N3 ≠ 0 wherever N3 and Y1 are not zero
+        from fojax.design import pieces
+
+        assert np.any(b["J"])
+        if np.any(np.asarray(pieces(d.structure).N3)) and np.any(d.params["Y1"]):
+            assert np.any(b["S"])
+    if kind == "PI":
+        assert not np.any(b["S"])
+
+
+def test_auto_falls_back_to_the_lmi_route(monkeypatch):
+    """method='auto': a refused Riccati route (forced) gives the LMI route's verified design,
+    and the report says the Riccati route was refused."""
+    from fojax.design import _riccati
+
+    def refuse(*a, **k):
+        raise fojax.LMIInfeasibleError("output-injection Riccati equation", "no_stabilizing_solution", {},
+                                       "forced by the test")
+
+    monkeypatch.setattr(_riccati, "riccati_gains", refuse)
+    ex = models.example_4_1_3()
+    d = design_functional_observer(ex.system, ex.L, kind="generalized", region=Disk(ex.alpha, ex.tau),
+                                   method="auto")
+    assert d.report.passed and d.solver["lmi"]["method"] == "lmi"
+    assert "forced by the test" in d.report.extra["Riccati route refused"]
+    with pytest.raises(fojax.LMIInfeasibleError, match="forced by the test"):
+        design_functional_observer(ex.system, ex.L, kind="generalized", region=Disk(ex.alpha, ex.tau),
+                                   method="riccati")
+
+
+def test_unobservable_modes_staircase_agrees_with_the_pbh_loop():
+    """Above `PBH_SCREEN_MIN` the candidates come from SLICOT's staircase form; oracle: hidden
+    modes placed by construction (an orthogonally hidden block the output never sees) and
+    the PBH rank test of every eigenvalue with NumPy's matrix_rank."""
+    from fojax.design import _conditions
+
+    n, k = _conditions.PBH_SCREEN_MIN + 12, 5
+    for seed in range(2):
+        r = np.random.default_rng([seed, 11])
+        A0 = r.standard_normal((n, n)) / np.sqrt(n)
+        A0[: n - k, n - k:] = 0.0  # the last k states never reach the first n - k
+        A0[n - k:, n - k:] = np.diag(r.uniform(-3.0, 3.0, k))
+        C0 = np.hstack([r.standard_normal((6, n - k)), np.zeros((6, k))])
+        Q = sla.qr(r.standard_normal((n, n)))[0]
+        A, Cm = Q @ A0 @ Q.T, C0 @ Q.T
+        got = _conditions.unobservable_modes(A, Cm)
+        want = [lam for lam in np.linalg.eigvals(A0)
+                if np.linalg.matrix_rank(np.vstack([lam * np.eye(n) - A0, C0]), tol=1e-8) < n]
+        assert len(want) == k
+        assert_eigenvalues_match(got, want, atol=1e-8)
+
+
+@pytest.mark.parametrize("kind", ["generalized", "proportional"])
+def test_lmi_route_with_the_gain_eliminated(kind):
+    """method='lmi' on a disk with observer order above `SMALL_ORDER`: the LMI in X alone
+    (gain eliminated, closed-form gain) gives a design that passes the independent checks
+    (a.–d. with NumPy, eigenvalues by SciPy inside the disk, the Stein inequality at X)."""
+    sysm, L = index1_system(20, 3, 2, 5, 1)
+    region = Disk(-3.0, 2.0)
+    d = design_functional_observer(sysm, L, kind=kind, region=region, q0=13, method="lmi")
+    assert "gain eliminated" in d.solver["lmi"]["route"]
+    assert_riccati_design(d, sysm, L, region, method="lmi")

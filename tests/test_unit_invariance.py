@@ -281,7 +281,7 @@ def test_certify_checks_the_unit_free_frame_as_verify_does(monkeypatch):
     to what its ``verify()`` computes; and when that check fails (made to, here: the
     parameterization keeps a.–d. exact by construction, so no honest parameter set fails
     it on this model), certify raises `DesignVerificationError` naming it and the fix."""
-    from fojax.design import _functional, certify, SteinDisk
+    from fojax.design import _observer_design, certify, SteinDisk
 
     m0 = lc_filter.lc_filter(False)
     d0 = design_functional_observer(fojax.DescriptorSystem(m0["E"], m0["A"], m0["B"], m0["C"]), m0["L"],
@@ -297,9 +297,9 @@ def test_certify_checks_the_unit_free_frame_as_verify_does(monkeypatch):
 
     def failing(s, p, fix):
         checked.append(fix)
-        return ("unit-free relative residual", 2.5e-3, _functional.unit_free_failure(2.5e-3, "a.-d.", fix))
+        return ("unit-free relative residual", 2.5e-3, _observer_design.unit_free_failure(2.5e-3, "a.-d.", fix))
 
-    monkeypatch.setattr(_functional, "unit_free_check", failing)
+    monkeypatch.setattr(_observer_design, "unit_free_check", failing)
     with pytest.raises(fojax.DesignVerificationError, match="unit-free frame") as err:
         certify(par, params)
     assert "balance=True" in str(err.value) and err.value.report.extra["unit-free relative residual"] == 2.5e-3

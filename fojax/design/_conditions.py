@@ -62,10 +62,8 @@ def check_regular(E, A, *, fname: str, what: str = "the plant") -> None:
 #: ``[DATA_RANGE[0], DATA_RANGE[1]] = [2^-100, 2^100]`` (about 8e-31 to 1.3e30).
 #: Outside it, the region LMIs (whose coefficients are products of two or three such
 #: entries) leave the range where double precision with the solvers' absolute tolerances
-#: (~1e-9) means anything. Measured before this check on thesis example 4.1.3: E, A, B
-#: times 1e300 "verified" (relative residual 1e-299), C times 1e300 gave a wrong
-#: FunctionalObservabilityError, L times 1e-300 a raw ValueError of the default-R search;
-#: issue 15 reports "ScsWork allocation error!" from SCS. Inside the range, mixed units can
+#: (~1e-9) means anything: relative residuals of 1e-299 "verify", rank decisions go wrong
+#: and the solvers fail to allocate. Inside the range, mixed units can
 #: still make a design fail (a typed RankConditionError/DesignVerificationError), but the
 #: per-condition verification never returns a wrong observer.
 DATA_RANGE = (2.0**-100, 2.0**100)
@@ -146,8 +144,7 @@ def check_functional_observability(E, A, C, L, Eperp=None, *, what: str = "L", D
 
 #: Largest ``l + n`` for which the structure's rank decisions and a design made on the data as
 #: given are also taken in the unit-free frame (`unit_free_structure`;
-#: `fojax.analysis.unit_scaling` costs a least-squares solve of size ``l + n``: ~0.8 s at
-#: n = 100 on a loaded 2-core CPU, ~19 s at n = 500).
+#: `fojax.analysis.unit_scaling` costs a least-squares solve of size ``l + n`` per model).
 UNIT_FREE_CHECK_MAX = 200
 
 
@@ -156,10 +153,9 @@ def unit_free_structure(s: FunctionalObserverStructure, *, orthonormal: bool = F
     `fojax.analysis.unit_scaling` ($E_b = D_lED_r$, $A_b = D_lAD_r$, $B_b = D_lB$,
     $C_b = CD_r$, $L_b = LD_r$, $R_b = RD_r$, $E^\perp_b = E^\perp D_l^{-1}$: still
     $E^\perp_bE_b = 0$, and the same measured signal $w$), or ``None`` when the model is
-    larger than `UNIT_FREE_CHECK_MAX` or has rules (Takagi–Sugeno: not checked; measured on the
-    LC filter's twin of ``benchmarks/lc_filter.py`` with its load as two rules, the designs on
-    the raw data estimate $z$ to 8e-11 against every frozen rule's plant,
-    ``tests/test_unit_invariance.py``). With `orthonormal` $E^\perp_b$ is
+    larger than `UNIT_FREE_CHECK_MAX` or has rules (Takagi–Sugeno: not checked;
+    ``tests/test_unit_invariance.py`` checks such designs against every frozen rule's
+    plant). With `orthonormal` $E^\perp_b$ is
     replaced by an orthonormal basis of its rows (the same row space, so the same rank
     conditions; for rank decisions, not for mapping parameters)."""
     from ..analysis._balance import scale_model, unit_scaling
@@ -182,9 +178,8 @@ def check_structure(s: FunctionalObserverStructure) -> None:
     The rank decisions are taken in the unit-free frame (`unit_free_structure`, models with
     ``l + n ≤ UNIT_FREE_CHECK_MAX``): the conditions are statements about row spaces, which
     diagonal changes of units leave unchanged, but fojax's relative rank rule on the data as
-    given is not. Measured (issue 14): on the flexible drive of `fojax.models.flexible_drive`
-    with rows and states rescaled by 1e-3…1e3, the unit-free default ``R`` failed
-    "rank [R; Γ] = rank Γ" on the raw data (rank Γ decided as 7 instead of 8)."""
+    given is not (on a model with rows and states rescaled by 1e-3…1e3 it can decide
+    rank Γ one too low)."""
     uf = unit_free_structure(s, orthonormal=True)
     if uf is not None:
         s = uf[0]
@@ -235,8 +230,21 @@ def check_structure(s: FunctionalObserverStructure) -> None:
         )
 
 
+#: Above this size `unobservable_modes` runs the per-eigenvalue test only on the eigenvalues of
+#: the unobservable part of SLICOT's orthogonal staircase form (``AB01ND``).
+PBH_SCREEN_MIN = 48
+
+
 def unobservable_modes(A: np.ndarray, Cm: np.ndarray, tol: float = 1e-8) -> np.ndarray:
-    """Eigenvalues λ of `A` with rank [λI - A; Cm] < dim A (PBH test, relative tolerance)."""
+    r"""Eigenvalues λ of `A` with rank [λI - A; Cm] < dim A (PBH test, relative tolerance).
+
+    The test is $\sigma_{\min}([\lambda I - A; C_m]) \le$ `tol` $\cdot\max(1, \|A\|, \|C_m\|)$
+    for each eigenvalue: one SVD per eigenvalue, $O(n^4)$ in all. For ``dim A >``
+    `PBH_SCREEN_MIN` the candidates are first narrowed in $O(n^3)$ to the eigenvalues of the
+    unobservable block of the observability staircase form of $(A, C_m)$ (SLICOT
+    ``AB01ND`` on the dual pair, orthogonal similarities, its rank decisions at the same
+    absolute threshold), and only those get the SVD test.
+    """
     A, Cm = np.asarray(A, float), np.asarray(Cm, float)
     n = A.shape[0]
     if n == 0:
@@ -250,7 +258,13 @@ def unobservable_modes(A: np.ndarray, Cm: np.ndarray, tol: float = 1e-8) -> np.n
     # [λI - A; Cm] and [λI - A; R] (Cm = QR) have the same singular values (an orthogonal
     # transformation of the rows): the per-eigenvalue SVDs get at most 2n rows.
     Rc = np.linalg.qr(Cm, mode="r") if Cm.shape[0] > n else Cm
-    eigs = np.linalg.eigvals(A)
+    if n > PBH_SCREEN_MIN and Cm.size:
+        import slycot
+
+        Ac, _, ncont, *_ = slycot.ab01nd(n, Rc.shape[0], A.T.copy(), Rc.T.copy(), jobz="N", tol=tol * scale)
+        eigs = np.linalg.eigvals(Ac[ncont:, ncont:]) if ncont < n else np.zeros(0, complex)
+    else:
+        eigs = np.linalg.eigvals(A)
     out = []
     for lam in eigs:
         Mx = np.vstack([lam * np.eye(n) - A, Rc]) if Cm.size else lam * np.eye(n) - A
@@ -299,10 +313,9 @@ def _order_candidates(Gam, Psi, L, q0):
     Every basis here is `canonical_row_space`: a candidate takes only the first rows of a
     complement (``rows[:j]``), and the complement of a subspace of Γ's row space is, in
     G_rows coordinates, an orthogonal projector whose singular values are all 1, so the
-    SVD's basis of it is a rotation decided by rounding. Before (issue: default R depends on
-    rounding), rotating that basis changed the default R's row space on
-    `fojax.models.flexible_drive` (order 2: projector distance 0.30-0.38), and a model and
-    its power-of-two rescaled twin could get different default designs."""
+    SVD's basis of it is a rotation decided by rounding: taking its first rows would make
+    the default R's row space depend on rounding, and a model and its power-of-two rescaled
+    twin could get different default designs."""
     base = L if rank(L) == L.shape[0] else canonical_row_space(L)
     G_rows = canonical_row_space(Gam)
 
@@ -316,7 +329,7 @@ def _order_candidates(Gam, Psi, L, q0):
     rows = np.vstack([extra, more]) if extra.size else more
     max_order = base.shape[0] + rows.shape[0]
     if q0 is None:
-        return [np.vstack([base, rows[:j]]) for j in range(extra.shape[0] + 1)], G_rows
+        return _Candidates(base, rows, extra.shape[0] + 1), G_rows
     if q0 < 1:
         raise RankConditionError("observer order", f"q0 = {q0}", "q0 must be at least 1.", lhs=q0, rhs=1)
     if q0 <= base.shape[0]:
@@ -331,6 +344,20 @@ def _order_candidates(Gam, Psi, L, q0):
             rhs=max_order,
         )
     return [np.vstack([base, rows[: q0 - base.shape[0]]])], G_rows
+
+
+class _Candidates:
+    """The candidate R's of increasing order ``[base; rows[:j]]``, ``j < count``, built on
+    demand (a list of all of them would take O(n³) memory)."""
+
+    def __init__(self, base, rows, count):
+        self.base, self.rows, self.count = base, rows, count
+
+    def __len__(self):
+        return self.count
+
+    def __getitem__(self, j):
+        return np.vstack([self.base, self.rows[:j]])
 
 
 class _HostStructure:
@@ -353,7 +380,11 @@ class _HostStructure:
 
 
 def _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R):
+    """``(penalty, fixed modes)`` of `R` (host); ``(inf, None)`` when condition a. is not
+    solvable with `R` (then the fixed modes mean nothing)."""
     s = _HostStructure(E, A, C, R, Ep)
+    if s.solvability_residual > SOLVABILITY_RTOL:
+        return np.inf, None
     modes = np.concatenate(fixed_modes(s)) if s.q0 else np.zeros(0)
     if modes.size == 0:
         return 0.0, modes
@@ -361,18 +392,58 @@ def _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R):
     return float(np.sum(np.abs(modes - target) ** 2)) / scale**2, modes
 
 
+#: The Nelder–Mead search of `default_R` runs only for ``q0 · rank Γ`` up to this many free
+#: entries (beyond it the search makes no progress within `max_iter` and its simplex alone
+#: takes O((q0 n)²) memory): larger problems take the next order instead.
+SEARCH_MAX_ENTRIES = 150
+#: With up to this many candidate orders `default_R` tries each in turn; with more it tries
+#: the orders 0, 1, 2, 4, … above the smallest and bisects back to the smallest that passes.
+LINEAR_ORDERS = 16
+
+
+def _passes_rank(E, A, B, C, L, R, q1, psi, Ep) -> bool:
+    try:
+        check_structure(observer_structure(E, A, B, C, L, R, q1=q1, psi=psi, Eperp=Ep))
+        return True
+    except RankConditionError:
+        return False
+
+
+def _nelder_mead_R(E, A, B, C, L, q1, psi, Ep, region, target, R0, G_rows, max_iter):
+    """``R = R0 + D G_rows`` (rows stay in the row space of Γ) with ``D`` from a Nelder–Mead
+    search that drives the fixed modes to ``region.target()``, with a small penalty on
+    ``‖D‖``. `G_rows` is canonical, so the start simplex does not depend on SVD signs."""
+    import scipy.optimize
+
+    nR = np.linalg.norm(R0)
+
+    def f(d):
+        R = R0 + d.reshape(R0.shape[0], G_rows.shape[0]) @ G_rows
+        try:
+            val, _ = _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R)
+        except Exception:
+            return 1e12
+        if not np.isfinite(val):
+            return 1e12
+        return val + 1e-4 * float(np.sum(d**2)) / max(nR, 1.0) ** 2
+
+    d0 = np.zeros(R0.shape[0] * G_rows.shape[0])
+    res = scipy.optimize.minimize(f, d0, method="Nelder-Mead",
+                                  options=dict(maxiter=max_iter, xatol=1e-8, fatol=1e-12, initial_simplex=None))
+    return R0 + res.x.reshape(R0.shape[0], G_rows.shape[0]) @ G_rows
+
+
 def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int | None = None,
               q1: int = 0, max_iter: int = 3000, balance: bool = True) -> np.ndarray:
     r"""fojax's default choice of R (documented; the thesis leaves R to the user).
 
-    **Unit-free** (issue 14 item 3; ``balance=True``, the default): the search below runs on
+    **Unit-free** (``balance=True``, the default): the search below runs on
     the model rescaled by `fojax.analysis.unit_scaling` ($E_b = D_lED_r$, $A_b = D_lAD_r$,
     $B_b = D_lB$, $C_b = CD_r$, $L_b = LD_r$, $E^\perp_b$ an orthonormal basis of the rows
     of $E^\perp D_l^{-1}$), and the result is returned as $R = R_bD_r^{-1}$, so that
     $Rx = R_bx_b$: the same functional of the physical state whatever units the equations
-    and states are written in (before, the orthonormal bases below and the search's
-    penalty depended on them: the LC filter of ``benchmarks/lc_filter.py`` and its twin
-    rescaled by 1e-3…1e3 got different observers). ``balance=False`` searches on the
+    and states are written in (the orthonormal bases below and the search's penalty would
+    otherwise depend on them). ``balance=False`` searches on the
     data as given.
 
     1. Orders: start from a row basis of ``L`` (``q0 = rank L``, the smallest order)
@@ -381,7 +452,7 @@ def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int
        are `fojax._linalg.canonical_row_space` (pivoted on the states of the unit-free
        frame): the rows taken first are decided by the subspaces, not by the rotation or
        the signs an SVD returns, so neither LAPACK's rounding nor a power-of-two rescaling
-       of the model changes the default R (before, both could: see `_order_candidates`).
+       of the model changes the default R (see `_order_candidates`).
     2. For each order, R must satisfy the rank conditions; the modes that no gain can
        move (`fixed_modes`, Lemma 8) must lie in the region. When they do not, R is
        moved inside the row space of Γ, starting from the candidate, by a
@@ -391,8 +462,6 @@ def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int
 
     Raises the last existence error when no order works.
     """
-    import scipy.optimize
-
     E, A, C, L = (np.asarray(x, float) for x in (E, A, C, L))
     B = np.asarray(B, float)
     As = A if A.ndim == 3 else A[None]
@@ -415,42 +484,54 @@ def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int
     candidates, G_rows = _order_candidates(Gam, Psi, L, q0)
     inner = region.tightened(0.05)
     target = region.target()
-    last_err = None
-    for R0 in candidates:
-        s = observer_structure(E, A, B, C, L, R0, q1=q1, psi=psi, Eperp=Ep)
+    errors: list = []
+
+    def accept(R):
+        """`R` if it passes the rank conditions and its fixed modes lie in `inner`, else None.
+        The fixed modes are checked first, on the host structure (the cheaper test)."""
         try:
-            check_structure(s)
-        except RankConditionError as err:
-            last_err = err
-            continue
-        _, modes = _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R0)
-        if all(inner.contains([m]) for m in modes):
-            return R0
-        # Search R = R0 + D @ G_rows (rows stay in the row space of Γ). G_rows is canonical,
-        # so the Nelder–Mead start simplex (steps along its rows) does not depend on SVD signs.
-        nR = np.linalg.norm(R0)
+            _, modes = _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R)
+            if modes is None or not all(inner.contains([m]) for m in modes):
+                return None
+        except (np.linalg.LinAlgError, ValueError):
+            pass  # the full check below names the failure
+        return confirmed(R)
 
-        def f(d, R0=R0):
-            R = R0 + d.reshape(R0.shape[0], G_rows.shape[0]) @ G_rows
-            try:
-                val, _ = _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R)
-            except Exception:
-                return 1e12
-            return val + 1e-4 * float(np.sum(d**2)) / max(nR, 1.0) ** 2
-
-        d0 = np.zeros(R0.shape[0] * G_rows.shape[0])
-        res = scipy.optimize.minimize(
-            f, d0, method="Nelder-Mead",
-            options=dict(maxiter=max_iter, xatol=1e-8, fatol=1e-12, initial_simplex=None),
-        )
-        R = R0 + res.x.reshape(R0.shape[0], G_rows.shape[0]) @ G_rows
+    def confirmed(R):
         s = observer_structure(E, A, B, C, L, R, q1=q1, psi=psi, Eperp=Ep)
         try:
             check_structure(s)
             check_detectability(s, inner, reported=region)
             return R
         except (RankConditionError, DetectabilityError) as err:
-            last_err = err
+            errors.append(err)
+            return None
+
+    def searched(R0):
+        """`R0` moved by the Nelder–Mead search of step 2 (``None``: too many free entries,
+        or the search found no R that passes)."""
+        if R0.shape[0] * G_rows.shape[0] > SEARCH_MAX_ENTRIES or not _passes_rank(E, A, B, C, L, R0, q1, psi, Ep):
+            return None
+        return confirmed(_nelder_mead_R(E, A, B, C, L, q1, psi, Ep, region, target, R0, G_rows, max_iter))
+
+    count = len(candidates)
+    if count <= LINEAR_ORDERS:  # every order in turn, each with the search
+        for j in range(count):
+            R = accept(candidates[j])
+            R = R if R is not None else searched(candidates[j])
+            if R is not None:
+                return R
+    else:  # the smallest order, else the largest (module constant LINEAR_ORDERS)
+        for j in (0, count - 1):
+            R = accept(candidates[j])
+            if R is not None:
+                return R
+        R = searched(candidates[count - 1])
+        if R is not None:
+            return R
+    if not errors:  # the last candidate failed the cheap test: its full check names why
+        confirmed(candidates[len(candidates) - 1])
+    last_err = errors[-1] if errors else None
     if last_err is None:  # every candidate passed the rank checks but none the modes
         raise RankConditionError("default R", "no candidate R was found", "Pass R explicitly.")
     raise last_err

@@ -9,10 +9,10 @@ Every solution is re-verified in float64 by the caller, independently of the sol
 **Solvers.** ``solver="auto"`` (default) tries Clarabel and, when its status is not
 ``optimal``, SCS; ``"CLARABEL"`` or ``"SCS"`` use one solver. Both are installed with
 cvxpy. Clarabel (an interior-point method) goes first because observer LMIs
-are small but often need ill-conditioned certificates: on the thesis example 4.1.3
-(disk(-2, 1)) SCS's first-order method ran 100,000 iterations (8 s) and stopped at
-``optimal_inaccurate`` with eps = 1e-7, and a bound X ⪯ 100·I makes the problem
-infeasible, while Clarabel reached ``optimal`` in 19 iterations (0.04 s). SCS is run
+are small but often need ill-conditioned certificates, which a first-order method such as
+SCS reaches only after very many iterations (if at all: on the thesis example 4.1.3 with
+disk(-2, 1) it stops at ``optimal_inaccurate`` with eps = 1e-7, and a bound X ⪯ 100·I makes
+the problem infeasible), while Clarabel reaches ``optimal`` in about 20 iterations. SCS is run
 with eps_abs = eps_rel = 1e-7 (SCS's own default, 1e-4, is too loose for
 verification at 1e-8) and retried once with more iterations. Neither solver wins
 everywhere: on §3.1.3's structure Clarabel stopped at ``optimal_inaccurate`` where SCS
@@ -21,11 +21,9 @@ reached ``optimal`` — hence "auto".
 **Retries.** Clarabel runs with tolerances 1e-9; when it stops at ``optimal_inaccurate``
 it is retried once with its own documented defaults (1e-8), as SCS is retried with more
 iterations. Whether the tighter run meets 1e-9 depends on the last digits of the BLAS
-kernel: on the minimum-gain LMI of ``tests/test_design.py`` (``A_REP``) Clarabel's
-primal residual stalls at ~2e-9 after reaching 1.7e-10 one iteration earlier; with
-relative perturbations of 1e-15 of the data it ended at ``optimal_inaccurate`` (or a
-solver error) in 11 of 30 runs (issue 17: on a user's machine every time), at 1e-8 in
-none. A solver error (numerical breakdown) is retried the same way. 1e-8 is ample: the
+kernel (on the minimum-gain LMI ``A_REP`` of ``tests/test_design.py`` Clarabel's primal
+residual can stall just above 1e-9 under relative perturbations of 1e-15 of the data,
+never at 1e-8). A solver error (numerical breakdown) is retried the same way. 1e-8 is ample: the
 LMIs are strict by ``margin`` (1e-3) and every solution is re-verified in float64
 (`fojax.design.verify`), so the solver's tolerance never decides what is returned. The
 settings that produced a solution are in ``info["settings"]``, the refused attempts in
@@ -50,7 +48,7 @@ from .._errors import LMI_FAILURES, LMIInfeasibleError, solver_failure, SolverSt
 from ._regions import AbstractRegion
 
 
-if TYPE_CHECKING:  # cvxpy is imported where a problem is built: it takes ~1.3 s
+if TYPE_CHECKING:  # cvxpy is imported where a problem is built: its import is slow
     import cvxpy as cp
 
 

@@ -1,4 +1,4 @@
-r"""Riccati design route: functional-observer gains without an SDP (issue 16).
+r"""Riccati design route: functional-observer gains without an SDP.
 
 **The problem.** With the free parameter $Z$ fixed, the error dynamics of the
 generalized/proportional functional observer are (`fojax.design.observer_matrices`)
@@ -7,7 +7,7 @@ $$\mathbb A = \mathbb A_1(Z) - \mathbb Y\mathbb A_2,\qquad
   \mathbb A_1 = \operatorname{diag}(N_1' - ZN_2', 0),\quad
   \mathbb A_2 = \operatorname{diag}(N_3, -I_{q_1}),$$
 
-with every entry of $\mathbb Y = [[Y_1, J], [Y_2, G]]$ free (generalized), or
+with every entry of $\mathbb Y = [[Y_1, J], [Y_2, G]]$ free (generalized), $Y_2 = 0$ (PI), or
 $q_1 = 0$, $\mathbb Y = Y_1$ (proportional). The LMI route (`fojax.design._functional`)
 linearises the bilinear region condition with $\mathcal W = X\mathbb Y$.
 
@@ -51,17 +51,26 @@ block-diagonal assembly of the two blocks' stabilizing solutions is a stabilizin
 solution of the full DARE, hence *the* solution, and its gain is block diagonal:
 $J = 0$, $Y_2 = 0$ ($S = 0$) and $G = gI$ with $g$ from the $1\times1$ DARE of
 $(-\alpha/\tau', -1/\tau')$. fojax computes these blocks directly (a test checks them
-against SciPy's DARE of the full pair), so a generalized design costs one DARE of size
-$q_0$, not $q_0 + q_1$. *Consequence, stated plainly:* the Riccati route's generalized
-observer does not use the coupling freedom ($J$, $Y_2$) of eq. 3.5 — it is the proportional
-design plus an undriven, stable integral state. The coupled generalized designs come from
-the LMI route (minimum-gain objective) or from tuning (`fojax.tuning`), which moves
-$J, Y_2, G$ freely from this starting point. Fixing $Z = 0$ instead of taking it from the
-DARE also gives valid observers when $(N_1', N_3)$ is detectable, but on thesis example
-3.1.3 (one independent row of $N_3$, three modes to move) that gain had norm 1.4e4 and a
-certificate with condition number 4e9 that failed verification; with $Z$ from the DARE
-the largest gain entries are of the LMI route's size (3.1.2: 39 vs 40, 3.1.3: 2.2 vs 2.7,
-4.1.3: 10.8 vs 9.9).
+against SciPy's DARE of the full pair), so the design costs one DARE of size $q_0$, not
+$q_0 + q_1$. This decoupled gain is the route's **PI** observer ($S = 0$ exactly). Fixing
+$Z = 0$ instead of taking it from the DARE also gives valid observers when $(N_1', N_3)$ is
+detectable, but with large gains and badly conditioned certificates when $N_3$ has few
+independent rows (thesis example 3.1.3); with $Z$ from the DARE the largest gain entries
+are of the LMI route's size on the thesis examples.
+
+**Coupled generalized design (`_couple`).** A **generalized** observer is meant to use
+the coupling freedom of eq. 3.5: the integral state drives $\varepsilon$ ($J \ne 0$) and is
+driven by the measured residual ($S = -Y_2N_3 \ne 0$). Starting from the decoupled loop
+$\bar A_0$ (disk coordinates) and its Stein certificate $X_0$, the route adds
+$J = \kappa\Pi$ and $Y_2 = \kappa\Pi^\top Y_1/\|Y_1\|$ ($\Pi = I$ padded to $q_0\times q_1$,
+the thesis's coupling of $\varepsilon$ and $v$), which changes the loop by $\kappa D$. Since
+$\bar A_0^\top X_0\bar A_0 = X_0 - I$, the loop's norm induced by $X_0$ is
+$\sqrt{1 - 1/\lambda_{\max}(X_0)} < 1$; choosing $\kappa$ as half the room left below 1
+divided by $\|D\|_{X_0}$ keeps the coupled loop a contraction in that norm, so its
+eigenvalues stay in the disk, and its own Stein certificate is computed and verified. The
+cost is $O(q_0^3)$ (one Cholesky factor and one Stein equation of size $q_0 + q_1$).
+Larger couplings, or couplings chosen for a performance objective, come from the LMI route
+or from tuning (`fojax.tuning`), which moves $J, Y_2, G$ freely from this starting point.
 
 **Half-planes and sectors (mapped into a disk; sound).** If $X$ certifies the disk
 $\mathcal Q(\alpha, \tau)$, then $\|X^{1/2}(\mathbb A - \alpha I)X^{-1/2}\| < \tau$, so the
@@ -113,6 +122,7 @@ METHODS = ("auto", "riccati", "lmi")
 
 
 def check_method(method) -> str:
+    """`method` if it is one of `METHODS`, else `fojax.InputError` listing them."""
     if method in METHODS:
         return method
     raise InputError(
@@ -126,8 +136,8 @@ def riccati_applies(region: AbstractRegion, kind: str, num_rules: int = 1) -> st
     """``None`` if the Riccati route applies, else the reason it does not."""
     if num_rules != 1:
         return "several rules need a common certificate (LMI route)"
-    if kind not in ("generalized", "proportional"):
-        return f"kind {kind!r} constrains the gain (S = 0) (LMI route)"
+    if kind not in ("generalized", "PI", "proportional"):
+        return f"kind {kind!r} is not an observer kind of this route"
     if not isinstance(region, Disk | HalfPlane | Sector):
         return f"the region {region.describe()} is not a single disk, half-plane or sector (LMI route)"
     return None
@@ -173,7 +183,10 @@ def output_injection_gain(Ad: np.ndarray, Cd: np.ndarray) -> np.ndarray:
     if Cd.size == 0:
         return np.zeros((d, Cd.shape[0]))
     U, sv, Vt = np.linalg.svd(Cd, full_matrices=False)
-    k = int(np.sum(sv > max(Cd.shape) * np.finfo(float).eps * (sv[0] if sv.size else 0.0)))
+    # rank of Cd relative to the data (Ad and Cd): directions of Cd at round-off of Ad's
+    # size are no output (the DARE of a pair with such a Cd has no numerical solution)
+    scale = max(sv[0] if sv.size else 0.0, float(np.linalg.norm(Ad, 2)) if Ad.size else 0.0)
+    k = int(np.sum(sv > max(Cd.shape) * np.finfo(float).eps * scale))
     if k == 0:
         return np.zeros((d, Cd.shape[0]))
     Ct = sv[:k, None] * Vt[:k]  # k × d, Cd = U_k Ct
@@ -205,6 +218,61 @@ def _spectral_radius(M: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(M)))) if M.size else 0.0
 
 
+#: The coupling of a generalized Riccati design uses this fraction of the room its decoupled
+#: certificate leaves (`_couple`).
+COUPLING_SHARE = 0.5
+
+
+def _couple(Y, X0, Acl0, N3, q0, c, tau, steps):
+    r"""Couple the decoupled generalized design in place: ``Y`` gets $J = \kappa\Pi$ and
+    $Y_2 = \kappa\Pi^\top Y_1/\|Y_1\|$ (module docstring, *Coupled generalized design*);
+    returns the certificate of the coupled loop and its spectral radius (disk coordinates).
+
+    With the decoupled loop $\bar A_0$ (disk coordinates) and its Stein certificate $X_0$
+    ($\bar A_0^\top X_0\bar A_0 = X_0 - I$), $\|\bar A_0\|_{X_0} = \sqrt{1 - 1/\lambda_{\max}(X_0)}$
+    in the norm $\|M\|_{X_0} = \|X_0^{1/2}MX_0^{-1/2}\|_2$. The coupling changes the loop by
+    $\kappa D$, $D = [[0, \Pi], [-\Pi^\top\hat Y_1N_3, 0]]/\tau$; with
+    $\kappa = s\,(1 - \|\bar A_0\|_{X_0})/\|D\|_{X_0}$ (share $s$ = `COUPLING_SHARE`)
+    the coupled loop has $X_0$-norm below 1, hence is Schur: its eigenvalues stay in the disk."""
+    d, q1 = X0.shape[0], X0.shape[0] - q0
+    Pi = np.eye(q0, q1)
+    Y1 = Y[:q0, :c]
+    nY1 = float(np.linalg.norm(Y1, 2)) if Y1.size else 0.0
+    Y2 = Pi.T @ Y1 / nY1 if nY1 > 0 else np.zeros((q1, c))
+    D = np.zeros((d, d))
+    D[:q0, q0:] = Pi
+    D[q0:, :q0] = -Y2 @ N3
+    D /= tau
+    try:
+        Lc = np.linalg.cholesky(X0)  # X0 = Lc Lcᵀ: ‖M‖_X0 = ‖Lcᵀ M Lc⁻ᵀ‖
+    except np.linalg.LinAlgError:  # no certificate of the decoupled loop: no room to couple
+        Lc = None
+    nD = 0.0 if Lc is None else float(np.linalg.norm(
+        Lc.T @ scipy.linalg.solve_triangular(Lc, D.T, lower=True).T, 2))
+    lam = float(np.linalg.eigvalsh(X0)[-1])
+    room = 1.0 - math.sqrt(max(0.0, 1.0 - 1.0 / lam)) if lam > 1.0 else 0.0
+    kappa = COUPLING_SHARE * room / nD if nD > 0 and np.isfinite(nD) else 0.0
+    Y[:q0, c:] = kappa * Pi  # J
+    Y[q0:, :c] = kappa * Y2
+    Acl = Acl0 + kappa * D
+    X = host_stein_certificate(Acl, notes=steps)
+    rho = _spectral_radius(Acl)
+    steps.append(f"coupled: J = {kappa:.3g}·Π, Y2 = {kappa:.3g}·Πᵀ Y1/‖Y1‖ (share {COUPLING_SHARE} of the "
+                 f"certified room {room:.3g}); spectral radius {rho:.3g}")
+    return X, rho
+
+
+def epsilon_block_gain(N1, N2, N3, alpha: float, tau: float):
+    """``(Z, Y1, closed loop)`` of the ε-block: the DARE gain ``[Z, Y1]`` of the output-injection
+    pair ``(N1', [N2'; N3])`` in the coordinates of the disk ``Q(alpha, tau)`` (module
+    docstring); the closed loop ``(N1' - Z N2' - Y1 N3 - αI)/τ`` is Schur."""
+    q0, nZ = N1.shape[0], N2.shape[0]
+    Ad = (N1 - alpha * np.eye(q0)) / tau
+    Cd = np.vstack([N2, N3]) / tau
+    K = output_injection_gain(Ad, Cd)
+    return K[:, :nZ], K[:, nZ:], Ad - K @ Cd
+
+
 def riccati_gains(s: FunctionalObserverStructure, region: AbstractRegion, *, kind: str):
     """Gains by the Riccati route for one rule (module docstring).
 
@@ -216,19 +284,14 @@ def riccati_gains(s: FunctionalObserverStructure, region: AbstractRegion, *, kin
     N1 = np.asarray(pc.N1)[0]
     N2 = np.asarray(pc.N2)[0]
     N3 = np.asarray(pc.N3)
-    q0, q1 = s.q0, (s.q1 if kind == "generalized" else 0)
-    c, nZ = N3.shape[0], N2.shape[0]
+    q0, q1 = s.q0, (0 if kind == "proportional" else s.q1)
+    c = N3.shape[0]
     d = q0 + q1
     fixed = _fixed_modes_eps(s) if not isinstance(region, Disk) else np.zeros(0)
     disk = region_disk(region, fixed)
     alpha, tau = disk.center, disk.radius * (1.0 - TIGHTEN)
     steps = []
-    # ε-block: gain [Z, Y1] of the output-injection pair (N1', [N2'; N3])
-    Ad = (N1 - alpha * np.eye(q0)) / tau
-    Cd = np.vstack([N2, N3]) / tau
-    K = output_injection_gain(Ad, Cd)
-    Z, Y1 = K[:, :nZ], K[:, nZ:]
-    Acl1 = Ad - K @ Cd
+    Z, Y1, Acl1 = epsilon_block_gain(N1, N2, N3, alpha, tau)
     rho = _spectral_radius(Acl1)
     steps.append(f"[Z, Y1] from the Riccati equation of (N1', [N2'; N3]): spectral radius {rho:.3g}")
     X1 = host_stein_certificate(Acl1, notes=steps)  # the one Stein certificate (disk coordinates)
@@ -244,7 +307,13 @@ def riccati_gains(s: FunctionalObserverStructure, region: AbstractRegion, *, kin
         Y[q0:, c:] = g * np.eye(q1)  # G = g I (the v-block of 𝔸 is G)
         X[q0:, q0:] = np.eye(q1) / (1.0 - acl * acl)  # 1×1 Stein: acl² x - x + 1 = 0
         rho = max(rho, abs(acl))
-        steps.append(f"G = {g:.6g}·I from the 1×1 Riccati equation of the v-block; J = 0, Y2 = 0")
+        steps.append(f"G = {g:.6g}·I from the 1×1 Riccati equation of the v-block")
+        if kind == "generalized":
+            Acl = np.zeros((d, d))
+            Acl[:q0, :q0], Acl[q0:, q0:] = Acl1, acl * np.eye(q1)
+            X, rho = _couple(Y, X, Acl, N3, q0, c, tau, steps)
+        else:
+            steps.append("J = 0, Y2 = 0 (S = 0)")
     route = (f"Riccati (DARE for the gain, Stein equation for the certificate) in "
              f"{disk.tightened(TIGHTEN).describe()}" + ("" if isinstance(region, Disk) else f" inside {region.describe()}"))
     info = {"lmi": {"route": route, "method": "riccati", "solver": "scipy.linalg.solve_discrete_are",
