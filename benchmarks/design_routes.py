@@ -152,9 +152,23 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=DEFAULT_SEED)
     ap.add_argument("--out", type=Path, default=_common.RESULTS)
     ap.add_argument("--name", default="design_routes", help="result file name")
+    ap.add_argument("--merge", nargs="+", type=Path,
+                    help="combine these result JSONs (rows with status ok, stops, each run's machine record) "
+                         "into results/<--name>_latest instead of measuring")
+    ap.add_argument("--stopped", nargs="*", default=[], help="with --merge: 'key=reason' stops to record")
     args = ap.parse_args(argv)
     if args.worker:
         _common.emit_worker_result(worker(json.loads(args.worker)))
+        return 0
+    if args.merge:
+        runs = [json.loads(Path(f).read_text()) for f in args.merge]
+        rows = sorted((r for run in runs for r in run["rows"] if r.get("status") == "ok"),
+                      key=lambda r: (r["n"], SHAPES.index(r["shape"]), METHODS.index(r["method"])))
+        stopped = {k: v for run in runs for k, v in run["stopped"].items()}
+        stopped.update(dict(kv.split("=", 1) for kv in args.stopped))
+        payload = dict(runs[0], status="merged", rows=rows, stopped=stopped,
+                       runs=[{"settings": run["settings"], "machine": run["machine"]} for run in runs])
+        _common.write_results(args.out, args.name, payload, render_markdown(payload), echo=True)
         return 0
     info = _common.machine_info()
     print(f"# design routes ({info['date']}, {info['cpu']}, {info['cores_available']} cores)", flush=True)
