@@ -379,11 +379,11 @@ class _HostStructure:
         return self._A
 
 
-def _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R):
-    """``(penalty, fixed modes)`` of `R` (host); ``(inf, None)`` when condition a. is not
-    solvable with `R` (then the fixed modes mean nothing)."""
+def _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R, *, require_solvable: bool = False):
+    """``(penalty, fixed modes)`` of `R` (host); with `require_solvable`, ``(inf, None)`` when
+    condition a. is not solvable with `R` (then the fixed modes mean nothing)."""
     s = _HostStructure(E, A, C, R, Ep)
-    if s.solvability_residual > SOLVABILITY_RTOL:
+    if require_solvable and s.solvability_residual > SOLVABILITY_RTOL:
         return np.inf, None
     modes = np.concatenate(fixed_modes(s)) if s.q0 else np.zeros(0)
     if modes.size == 0:
@@ -422,8 +422,6 @@ def _nelder_mead_R(E, A, B, C, L, q1, psi, Ep, region, target, R0, G_rows, max_i
         try:
             val, _ = _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R)
         except Exception:
-            return 1e12
-        if not np.isfinite(val):
             return 1e12
         return val + 1e-4 * float(np.sum(d**2)) / max(nR, 1.0) ** 2
 
@@ -490,7 +488,7 @@ def default_R(E, A, B, C, L, *, psi: str, Eperp, region: AbstractRegion, q0: int
         """`R` if it passes the rank conditions and its fixed modes lie in `inner`, else None.
         The fixed modes are checked first, on the host structure (the cheaper test)."""
         try:
-            _, modes = _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R)
+            _, modes = _modes_objective(E, A, B, C, L, q1, psi, Ep, region, target, R, require_solvable=True)
             if modes is None or not all(inner.contains([m]) for m in modes):
                 return None
         except (np.linalg.LinAlgError, ValueError):

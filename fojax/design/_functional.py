@@ -60,6 +60,7 @@ from ._region_lmi import (  # noqa: F401
     choose_Z,
     eliminated_disk_gains,
     OBJECTIVES,
+    SMALL_ORDER,
     solve_gains,
     solve_with_fallbacks,
 )
@@ -145,8 +146,6 @@ def prepare_structure(sys: DescriptorSystem, L, *, R=None, q0=None, q1=0, region
 #: With ``method=None`` or ``"auto"``, the LMI route is tried after a failed Riccati route only
 #: for observers of at most this order ``q0 + q1`` (the LMI's cost grows like its sixth power).
 AUTO_LMI_MAX_ORDER = 60
-#: With ``method=None``, observers of at most this order ``q0 + q1`` take the LMI route.
-SMALL_ORDER = 12
 
 
 def choose_route(method: str | None, *, objective: str, solver: str | None, order: int) -> str:

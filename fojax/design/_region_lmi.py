@@ -119,8 +119,13 @@ def solve_gains(
     # orthonormal bases U_Z, U_3 of the column spaces of [N2_1 … N2_k] and N3 lose no
     # feasible error dynamics and no part of the minimum-gain objective (the dropped
     # components change no constraint and only add to the norms), with fewer variables.
-    UZ = row_space(np.hstack(list(N2)).T).T if N2.size else np.zeros((N2.shape[1], 0))
-    U3 = row_space(N3.T).T if N3.size else np.zeros((c, 0))
+    # (Observers of order at most SMALL_ORDER keep the full variables: their LMIs are cheap.)
+    reduce = d > SMALL_ORDER
+    if reduce:
+        UZ = row_space(np.hstack(list(N2)).T).T if N2.size else np.zeros((N2.shape[1], 0))
+        U3 = row_space(N3.T).T if N3.size else np.zeros((c, 0))
+    else:
+        UZ, U3 = np.eye(N2.shape[1]), np.eye(c)
     r3 = U3.shape[1]
     N2r = [UZ.T @ N2i for N2i in N2]
     A2 = np.block([[U3.T @ N3, np.zeros((r3, q1))], [np.zeros((q1, q0)), -np.eye(q1)]])
@@ -158,8 +163,10 @@ def solve_gains(
             Phi = XA1 - Ws[i] @ A2
             Mx = region_lmi(reg, X, Phi)
             cons.append(Mx << -eps * np.eye(Mx.shape[0]))
-            if kind == "PI" and q1 and r3:
+            if kind == "PI" and q1 and reduce and r3:
                 cons.append(Ws[i][q0:, :r3] == 0)  # S = -Y2 N3 = 0 (U_3ᵀ N3 has full row rank)
+            elif kind == "PI" and q1:
+                cons.append(Ws[i][q0:, :c] @ N3 == 0)
         Xs.append(X)
         Wss.append(Ws)
     # Minimum gain, plus tr X: without it the infimum of the gain norms is approached only
@@ -185,7 +192,8 @@ def solve_gains(
         Xv = 0.5 * (Xv + Xv.T)
         # 𝕐 in the range of 𝔸2 by construction (components outside it would not change 𝔸
         # but enlarge F and M)
-        Ys = [np.linalg.solve(Xv, value(w)) @ back for w in Ws]
+        # (the full variables: components outside the range of 𝔸2 projected away)
+        Ys = [np.linalg.solve(Xv, value(w)) @ (back if reduce else A2 @ np.linalg.pinv(A2)) for w in Ws]
         if kind == "PI" and q1:
             for Y in Ys:
                 Y[q0:, :c] = 0.0  # exactly zero already up to the solver's round-off
@@ -196,6 +204,9 @@ def solve_gains(
     return Xvs[0], Zv, Yss[0], {"lmi": info}
 
 
+#: Observers of at most this order ``q0 + q1`` take the LMI route by default
+#: (`fojax.design._functional.choose_route`) and keep the LMI's full gain variables.
+SMALL_ORDER = 12
 #: The objectives `solve_with_fallbacks` tries, in order, with each solver.
 OBJECTIVES = ("min-gain", "feasibility")
 
