@@ -166,7 +166,7 @@ def main(argv=None) -> int:
                       key=lambda r: (r["n"], SHAPES.index(r["shape"]), METHODS.index(r["method"])))
         stopped = {k: v for run in runs for k, v in run["stopped"].items()}
         stopped.update(dict(kv.split("=", 1) for kv in args.stopped))
-        payload = dict(runs[0], status="merged", rows=rows, stopped=stopped,
+        payload = dict(runs[0], study=args.name, status="merged", rows=rows, stopped=stopped,
                        runs=[{"settings": run["settings"], "machine": run["machine"]} for run in runs])
         _common.write_results(args.out, args.name, payload, render_markdown(payload), echo=True)
         return 0
