@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import collections
 import functools
-import math
 from collections.abc import Callable, Mapping
 
 import equinox as eqx
@@ -49,6 +48,16 @@ from .._errors import InputError, ShapeError
 from .._small_linalg import solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant
+from ._expm import (
+    block_mm,
+    block_mv,
+    block_row_mm,
+    DIFF_MAX_SQUARINGS,
+    expm_first,
+    expm_last,
+    matvec_last,
+    mm_last,
+)
 from ._reduction import (
     check_index1_host,
     is_concrete,
@@ -182,17 +191,6 @@ def _joint_system(plant, observers, x0, split=None, r=None):
     return joint_matrices(plant.E, A, B, C, observers, x0, split, r)
 
 
-def _matvec_last(M, v):
-    """``Σ_j M[:, j, :] * v[j, :]`` written as elementwise FMAs over the batch axis.
-
-    Unrolled over ``j`` on purpose: ``N`` (not ``N²``) operations on ``(N, b)`` arrays, so
-    the graph grows only linearly and compiles in 0.1-0.2 s at ``N = 22``, and it is the
-    fastest time step measured (``N = 22``, 256 samples, per sample and step: this 100 ns,
-    a `jax.lax.fori_loop` 160 ns, ``jnp.sum(M * v, axis=1)`` 280 ns, einsum 970 ns)."""
-    acc = M[:, 0, :] * v[0][None, :]
-    for j in range(1, v.shape[0]):
-        acc = acc + M[:, j, :] * v[j][None, :]
-    return acc
 
 
 def _integrand(o, kinds):
@@ -213,209 +211,6 @@ def _integrand(o, kinds):
     return jnp.concatenate(parts, axis=0)
 
 
-#: Taylor degree and scaling threshold of `expm_last`: for ‖X‖₁ ≤ θ the remainder of the
-#: degree-m Taylor polynomial is ≤ θ^(m+1)/(m+1)! · e^θ ≈ 2e-17 (θ = 1, m = 18).
-_TAYLOR_DEGREE, _TAYLOR_THETA, _PS_BLOCK = 18, 1.0, 4
-
-
-#: `_mm_last` by inner size ``K``: unrolled column FMAs for ``K ≤ _MM_UNROLL_MAX``, a
-#: `jax.lax.fori_loop` of rank-1 updates for ``K ≤ _MM_LOOP_MAX``, the batched einsum
-#: above. Measured on `expm_last` of 256 samples (XLA CPU, loaded 2-core machine),
-#: compile / run per sample: N = 4 unrolled 1.3 s / 0.15 µs, loop 0.9 s / 0.41 µs;
-#: N = 7 unrolled 2.7 s / 0.75 µs, loop 0.8 s / 0.91 µs, einsum 0.7 s / 2.6 µs;
-#: N = 10 unrolled 6.3 s / 3.0 µs, loop 1.1 s / 2.9 µs, einsum 0.9 s / 3.2 µs;
-#: N = 13 unrolled 9.8 s / 7.2 µs, loop 1.0 s / 6.2 µs, einsum 1.0 s / 4.8 µs;
-#: N = 22 unrolled 18.7 s, einsum 0.9 s / 20 µs. The unrolled graph has ``N²`` FMAs per
-#: product (its compile grows with ``N²``); the loop's and the einsum's do not grow.
-_MM_UNROLL_MAX = 4
-_MM_LOOP_MAX = 11
-
-
-def _mm_last(A, B):
-    """Batch-last matrix product ``(N, K, b) × (K, M, b) → (N, M, b)``.
-
-    For tiny matrices (``K, M ≤ _MM_UNROLL_MAX``): column by column as fused
-    multiply–adds over the batch axis, fenced with `jax.lax.optimization_barrier`
-    (without the fence XLA fuses each product into its consumers and recomputes it per
-    use). Up to ``_MM_LOOP_MAX``: the same FMAs as ``K`` rank-1 updates
-    ``A[:, j] ⊗ B[j]`` in a `jax.lax.fori_loop` (a graph of constant size). Larger:
-    the batched ``einsum`` (a dot with ``b`` small matrices, slower per product for
-    small ``K`` but fastest above). See `_MM_LOOP_MAX` for the measurements.
-    """
-    K = max(A.shape[1], B.shape[1])
-    if K > _MM_LOOP_MAX:
-        return jnp.einsum("ijb,jkb->ikb", A, B)
-    if K > _MM_UNROLL_MAX:
-        def rank1(j, acc):
-            a = lax.dynamic_index_in_dim(A, j, 1, keepdims=False)  # (N, b)
-            bj = lax.dynamic_index_in_dim(B, j, 0, keepdims=False)  # (M, b)
-            return acc + a[:, None, :] * bj[None, :, :]
-
-        return lax.fori_loop(0, A.shape[1], rank1, jnp.zeros((A.shape[0], B.shape[1], A.shape[2]), A.dtype))
-    cols = []
-    for k in range(B.shape[1]):
-        acc = A[:, 0, :] * B[0, k][None, :]
-        for j in range(1, A.shape[1]):
-            acc = acc + A[:, j, :] * B[j, k][None, :]
-        cols.append(acc)
-    return lax.optimization_barrier(jnp.stack(cols, axis=1))
-
-
-def _expm_parts(M):
-    """The scaled Taylor part of `expm_last`: ``(s, X, powers, horner, E)`` with ``powers``
-    ``[I, X, X², X³, X⁴]``, ``horner`` the Horner intermediates (the factor multiplied by
-    ``X⁴`` at each Horner step) and ``E`` the polynomial before squaring."""
-    N = M.shape[0]
-    norm = jnp.max(jnp.sum(jnp.abs(M), axis=0), axis=0)  # (b,) induced 1-norm
-    s = jnp.where(norm > _TAYLOR_THETA, jnp.ceil(jnp.log2(norm / _TAYLOR_THETA)), 0.0)
-    s = jnp.clip(jnp.where(jnp.isfinite(s), s, 0.0), 0, 1000).astype(jnp.int32)
-    X = M * jnp.exp2(-s.astype(M.dtype))[None, None, :]
-    powers = [jnp.broadcast_to(jnp.eye(N, dtype=M.dtype)[:, :, None], M.shape), X]
-    for _ in range(2, _PS_BLOCK + 1):
-        powers.append(_mm_last(powers[-1], X))
-    nblk = _TAYLOR_DEGREE // _PS_BLOCK + 1
-    E = _taylor_chunk(powers, nblk - 1)
-    horner = []
-    for j in range(nblk - 2, -1, -1):
-        horner.append(E)
-        E = _mm_last(E, powers[_PS_BLOCK]) + _taylor_chunk(powers, j)
-    return s, X, powers, horner, E
-
-
-def _taylor_coefficient(k: int) -> float:
-    return 1.0 / math.factorial(k)
-
-
-def _taylor_chunk(powers, j):
-    """``Σ_i c[j·blk + i] X^i`` (the Paterson–Stockmeyer block ``j``)."""
-    terms = [_taylor_coefficient(j * _PS_BLOCK + i) * powers[i] for i in range(_PS_BLOCK)
-             if j * _PS_BLOCK + i <= _TAYLOR_DEGREE]
-    return sum(terms[1:], terms[0])
-
-
-def expm_last(M, max_squarings: int | None = None):
-    r"""Matrix exponentials of a batch stored batch-last: ``M`` ``(N, N, b)`` → ``(N, N, b)``.
-
-    With `max_squarings` (an int) the function is reverse-differentiable (a custom VJP,
-    `_expm_last_diff`); samples needing more than `max_squarings` squarings give NaN.
-
-    Scaling and squaring with the degree-18 Taylor polynomial, evaluated by the
-    Paterson–Stockmeyer scheme (powers up to $X^4$, then Horner in $X^4$: 7 products
-    instead of 17), per sample: $s_k = \max(0, \lceil\log_2\|M_k\|_1\rceil)$ squarings
-    (truncation error $\le e/19! \approx 2\cdot 10^{-17}$ relative before squaring). All
-    products run over the batch axis (no LAPACK); each sample's result depends only on its
-    own matrix, so it does not change with how samples are grouped into blocks. Agrees
-    with `scipy.linalg.expm` to rounding (tested).
-    """
-    if max_squarings is not None:
-        return _expm_last_diff(M, int(max_squarings))
-    s, _, _, _, E = _expm_parts(M)
-    return lax.fori_loop(0, jnp.max(s), _squaring(s), E)
-
-
-def _squaring(s):
-    """The ``i``-th squaring of `expm_last`, applied to the samples with ``i < s``."""
-
-    def square(i, E):
-        return jnp.where((i < s)[None, None, :], _mm_last(E, E), E)
-
-    return square
-
-
-def _mm_t(A, B):
-    """``A Bᵀ`` batch-last."""
-    return _mm_last(A, jnp.swapaxes(B, 0, 1))
-
-
-def _mm_tl(A, B):
-    """``Aᵀ B`` batch-last."""
-    return _mm_last(jnp.swapaxes(A, 0, 1), B)
-
-
-def _expm_diff_forward(M, max_squarings: int, keep: bool = False):
-    """`expm_last` with at most `max_squarings` squarings (NaN beyond); with `keep` also
-    ``(s, X, powers, horner, stack, smax)``: the parts of `_expm_parts` and the squarings'
-    inputs ``stack`` ``(max_squarings, N, N, b)`` (from index ``smax`` on unused)."""
-    s, X, powers, horner, E = _expm_parts(M)
-    smax = jnp.minimum(jnp.max(s), max_squarings)
-    square = _squaring(s)
-    if keep:
-        def square_keep(i, c):
-            E, stack = c
-            return square(i, E), lax.dynamic_update_index_in_dim(stack, E, i, 0)
-
-        stack = jnp.zeros((max(max_squarings, 1),) + E.shape, E.dtype)
-        E, stack = lax.fori_loop(0, smax, square_keep, (E, stack))
-    else:
-        E = lax.fori_loop(0, smax, square, E)
-    E = jnp.where((s > max_squarings)[None, None, :], jnp.nan, E)
-    return (E, (s, X, powers, horner, stack, smax)) if keep else E
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
-def _expm_last_diff(M, max_squarings):
-    r"""`expm_last` with a fixed squaring budget and a hand-written reverse mode.
-
-    The forward pass is `expm_last`'s (the same products in the same order; the squarings
-    in a `jax.lax.fori_loop` up to the block's largest count). The reverse pass recomputes
-    it (only `M` is kept) and walks the
-    same products backwards, each product $P = AB$ giving $\bar A \mathrel{+}= \bar P B^\top$,
-    $\bar B \mathrel{+}= A^\top \bar P$ (batch-last, `_mm_last`), through the squarings
-    (only where the sample squared: $\bar E_i = \bar E_{i+1}E_i^\top + E_i^\top\bar E_{i+1}$),
-    the Horner steps in $X^4$, the powers, and the scaling $\bar M = 2^{-s}\bar X$ ($s$ is
-    piecewise constant in $M$, as in `jax.grad` of the plain code). This is exactly the
-    derivative `jax.grad` takes of the plain code, without its costs: differentiating the
-    previous fixed-length scan of 24 `jax.lax.cond` squarings stored and walked all 24 steps
-    and transposed every batch-last einsum generically (value-and-gradient of 2,048
-    exponentials of 19 × 19 matrices: 0.28 s, the forward 0.018 s; measured under load).
-    Where a sample needs more than `max_squarings` squarings its value is NaN and its
-    cotangent zero (as `jax.grad` of ``jnp.where``). Tested against `jax.grad` of the plain
-    code and against SciPy's `expm_frechet`.
-    """
-    return _expm_diff_forward(M, max_squarings)
-
-
-def _expm_diff_fwd(M, max_squarings):
-    return _expm_diff_forward(M, max_squarings), M
-
-
-def _expm_diff_bwd(max_squarings, M, Ebar):
-    # the parts are recomputed from M (one more forward pass, 0.02 s for 2,048 samples of
-    # N = 19) instead of saved: as residuals of `blocked`'s `jax.lax.map` over blocks they
-    # were stacked for every block (2 MB per block of 32 samples), and writing them cost
-    # more than the whole reverse pass (0.33 s against 0.023 s for the forward, under load)
-    _, (s, X, powers, horner, stack, smax) = _expm_diff_forward(M, max_squarings, keep=True)
-    Ebar = jnp.where((s > max_squarings)[None, None, :], 0.0, Ebar)
-
-    def unsquare(t, Eb):
-        i = smax - 1 - t
-        Ei = lax.dynamic_index_in_dim(stack, i, 0, keepdims=False)
-        return jnp.where((i < s)[None, None, :], _mm_t(Eb, Ei) + _mm_tl(Ei, Eb), Eb)
-
-    Eb = lax.fori_loop(0, smax, unsquare, Ebar)
-    nblk = _TAYLOR_DEGREE // _PS_BLOCK + 1
-    Pb = [jnp.zeros_like(X) for _ in range(_PS_BLOCK + 1)]
-
-    def chunk_bar(j, Eb):
-        for i in range(_PS_BLOCK):
-            if j * _PS_BLOCK + i <= _TAYLOR_DEGREE and i > 0:
-                Pb[i] = Pb[i] + _taylor_coefficient(j * _PS_BLOCK + i) * Eb
-
-    # forward: E_(j) = E_(j+1) X⁴ + chunk(j), j = nblk-2 .. 0; horner[t] = E_(nblk-1-t)
-    for j in range(0, nblk - 1):
-        chunk_bar(j, Eb)
-        prev = horner[nblk - 2 - j]
-        Pb[_PS_BLOCK] = Pb[_PS_BLOCK] + _mm_tl(prev, Eb)
-        Eb = _mm_t(Eb, powers[_PS_BLOCK])
-    chunk_bar(nblk - 1, Eb)
-    for k in range(_PS_BLOCK, 1, -1):  # powers[k] = powers[k-1] X
-        Pb[k - 1] = Pb[k - 1] + _mm_t(Pb[k], X)
-        Pb[1] = Pb[1] + _mm_tl(powers[k - 1], Pb[k])
-    Mbar = Pb[1] * jnp.exp2(-s.astype(X.dtype))[None, None, :]
-    return (Mbar,)
-
-
-_expm_last_diff.defvjp(_expm_diff_fwd, _expm_diff_bwd)
 
 
 #: Largest accepted ``‖S‖₁‖S⁻¹‖₁`` of the output-coordinate transform (per sample).
@@ -490,9 +285,6 @@ class _ModelProblem(eqx.Module):
         return jnp.where(ok[None, :], out, jnp.nan)
 
 
-#: Squarings of the reverse-differentiable `expm_last` (``‖h A‖₁ ≤ 2^24`` per sample;
-#: larger gives NaN, never a silently wrong result).
-_DIFF_MAX_SQUARINGS = 24
 
 
 def repeat_groups(a, reps: int, axis: int):
@@ -540,7 +332,7 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     Jumps of the exogenous state at ``t_j`` (between grid points ``t_{k-1} < t_j ≤ t_k``)
     enter exactly: ``w_k = Φ w_{k-1} + e^{\mathcal A (t_k - t_j)} Δw_j``.
 
-    With `differentiable` `expm_last` gets a squaring budget (``_DIFF_MAX_SQUARINGS``) and
+    With `differentiable` `expm_last` gets a squaring budget (``DIFF_MAX_SQUARINGS``) and
     its hand-written reverse mode (`_expm_last_diff`; it was a fixed-length scan of
     `jax.lax.cond` squarings), so the whole block is reverse-differentiable
     (``jax.grad``); the time loop is the same `jax.lax.scan`. (This replaced `expm_small` under `jax.vmap`:
@@ -569,13 +361,13 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         shapes = eqx.filter_eval_shape(problem.joint, jax.tree.map(lambda a: a[0], p))
         if shapes[4] is None and shapes[0].shape[0] >= MULTISTEP_MIN_N:
             return _multistep_block(problem, p, h, ts)
-    expm = (lambda M: expm_last(M, max_squarings=_DIFF_MAX_SQUARINGS)) if differentiable else expm_last  # noqa: E731
+    expm = (lambda M: expm_last(M, max_squarings=DIFF_MAX_SQUARINGS)) if differentiable else expm_last  # noqa: E731
     # the unrolled FMA matvec (N column FMAs) is the fastest forward step (N = 22, 256
     # samples: 100 ns per sample and step, einsum 970 ns, a fori_loop 160 ns; compile
     # 0.1-0.2 s for each), but its reverse mode scatters N column cotangents into Φ̄ at
     # every step: value_and_grad of 1,000 steps × 1,000 samples takes 4.4 s against 2.0 s
     # with the einsum, so the differentiable path uses the einsum
-    matvec = (lambda M, v: jnp.einsum("ijb,jb->ib", M, v)) if differentiable else _matvec_last  # noqa: E731
+    matvec = (lambda M, v: jnp.einsum("ijb,jb->ib", M, v)) if differentiable else matvec_last  # noqa: E731
     T = ts.shape[0]
 
     def per_sample(pk):
@@ -611,9 +403,9 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     Aj = jnp.moveaxis(Aj, 0, -1)  # (N, N, b), or (N, N, b / reps)
     if sim is not None:
         # the joint matrix in the output coordinates, S A S⁻¹, as two batch-last products
-        # (`_mm_last`): as batched dots under `jax.vmap` they took ~9 ms of the ~40 ms
+        # (`mm_last`): as batched dots under `jax.vmap` they took ~9 ms of the ~40 ms
         # set-up of the §4.1.3 workload at B = 10,000 (7 × 7, measured under load)
-        Aj = _mm_last(_mm_last(jnp.moveaxis(sim[0], 0, -1), Aj), jnp.moveaxis(sim[1], 0, -1))
+        Aj = mm_last(mm_last(jnp.moveaxis(sim[0], 0, -1), Aj), jnp.moveaxis(sim[1], 0, -1))
     K = scale.shape[1] if basis is None else len(basis[0]) + G.shape[1]
     Phi = expm(h * Aj)  # (N, N, b), or (N, N, b / reps)
     grouped_loop = reps > 1 and time_loop is not None and not problem.keep
@@ -735,99 +527,6 @@ def block_for(N: int | None, block: int) -> int:
     return max(1, min(block, max(4, BLOCK_BYTES // (8 * N * N))))
 
 
-#: Taylor degree, Paterson–Stockmeyer block and scaling threshold of `expm_first`: for
-#: ‖X‖₁ ≤ θ the remainder of the degree-15 Taylor polynomial is
-#: ≤ θ¹⁶/16! · e^θ ≈ 2.4e-17 (θ = 0.6); evaluated with 6 products (X², X³, X⁴, then 3
-#: Horner steps in X⁴), one fewer than `expm_last`'s degree 18 (θ = 1, 7 products).
-_FIRST_DEGREE, _FIRST_BLOCK, _FIRST_THETA = 15, 4, 0.6
-
-
-# Batch-first matrices of `_multistep_block`, either full (a 1-tuple ``(M,)``) or block
-# lower-triangular (``(M11, M21, M22)`` = [[M11, 0], [M21, M22]]: the joint loop with the
-# plant first, whose rows do not involve the observers). The same few operations serve both.
-def _mm(P, Q):
-    if len(P) == 1:
-        return (jnp.matmul(P[0], Q[0]),)
-    return (jnp.matmul(P[0], Q[0]), jnp.matmul(P[1], Q[0]) + jnp.matmul(P[2], Q[1]), jnp.matmul(P[2], Q[2]))
-
-
-def _row_mm(R, P):
-    """Rows times a matrix: ``R`` ``(R,)`` or its column blocks ``(R1, R2)``."""
-    if len(P) == 1:
-        return (jnp.matmul(R[0], P[0]),)
-    return (jnp.matmul(R[0], P[0]) + jnp.matmul(R[1], P[1]), jnp.matmul(R[1], P[2]))
-
-
-def _mv(P, w):
-    """Matrix times vectors ``(b, N)`` given as ``(w,)`` or ``(w1, w2)``."""
-    mv = lambda M, v: jnp.einsum("bij,bj->bi", M, v)  # noqa: E731
-    if len(P) == 1:
-        return (mv(P[0], w[0]),)
-    return (mv(P[0], w[0]), mv(P[1], w[0]) + mv(P[2], w[1]))
-
-
-def _eye_like(M):
-    eye = lambda X: jnp.broadcast_to(jnp.eye(X.shape[-1], dtype=X.dtype), X.shape)  # noqa: E731
-    return (eye(M[0]),) if len(M) == 1 else (eye(M[0]), jnp.zeros_like(M[1]), eye(M[2]))
-
-
-def _norm1(M):
-    """Induced 1-norm (largest column sum) per sample ``(b,)``."""
-    col = lambda X: jnp.max(jnp.sum(jnp.abs(X), axis=1), axis=1)  # noqa: E731
-    if len(M) == 1:
-        return col(M[0])
-    return jnp.maximum(jnp.max(jnp.sum(jnp.abs(M[0]), axis=1) + jnp.sum(jnp.abs(M[1]), axis=1), axis=1), col(M[2]))
-
-
-def expm_first(M):
-    r"""Matrix exponentials of a batch stored batch-first: ``M`` ``(b, N, N)`` → ``(b, N, N)``,
-    or a block lower-triangular batch ``(M11, M21, M22)`` → the blocks of its exponential.
-
-    The forward discretisation of `_multistep_block` (large ``N``): scaling and squaring
-    of the degree-15 Taylor polynomial (Paterson–Stockmeyer, 6 batched GEMMs
-    ``jnp.matmul``), $s_k = \max(0, \lceil\log_2(\|M_k\|_1/0.6)\rceil)$ squarings per
-    sample (a loop to the block's largest $s$, each sample squared only ``s_k`` times).
-    Truncation ≤ 2.4e-17 relative before squaring. Batch-first products are XLA's
-    batched GEMM (26–35 GFLOP/s per CPU second at ``N = 160`` measured under load,
-    against 16–21 for `expm_last`'s batch-last einsum), and the graph does not grow
-    with ``N``. In block-triangular form a product costs ``(r + q)(r² + q²)`` instead of
-    ``(r + q)³`` multiply–adds (about half at ``r = 96``, ``q = 64``), and the zero block
-    stays exactly zero. Not reverse-differentiable (data-dependent loop); agrees with
-    `scipy.linalg.expm` to rounding (tested through the study metrics).
-    """
-    import math
-
-    full = not isinstance(M, tuple)
-    M = (M,) if full else tuple(M)
-    norm = _norm1(M)
-    s = jnp.where(norm > _FIRST_THETA, jnp.ceil(jnp.log2(norm / _FIRST_THETA)), 0.0)
-    s = jnp.clip(jnp.where(jnp.isfinite(s), s, 0.0), 0, 1000).astype(jnp.int32)
-    X = tuple(B * jnp.exp2(-s.astype(B.dtype))[:, None, None] for B in M)
-    powers = [_eye_like(M), X]
-    for _ in range(2, _FIRST_BLOCK + 1):
-        powers.append(_mm(powers[-1], X))
-    coef = [1.0 / math.factorial(k) for k in range(_FIRST_DEGREE + 1)]
-    nblk = _FIRST_DEGREE // _FIRST_BLOCK + 1
-    add = lambda P, Q: tuple(a + b for a, b in zip(P, Q))  # noqa: E731
-
-    def chunk(j):  # Σ_i c[j·blk + i] X^i
-        terms = [tuple(coef[j * _FIRST_BLOCK + i] * B for B in powers[i]) for i in range(_FIRST_BLOCK)
-                 if j * _FIRST_BLOCK + i <= _FIRST_DEGREE]
-        out = terms[0]
-        for t in terms[1:]:
-            out = add(out, t)
-        return out
-
-    E = chunk(nblk - 1)
-    for j in range(nblk - 2, -1, -1):
-        E = add(_mm(E, powers[_FIRST_BLOCK]), chunk(j))
-
-    def square(i, E):
-        E2 = _mm(E, E)
-        return tuple(jnp.where((i < s)[:, None, None], a, b) for a, b in zip(E2, E))
-
-    E = lax.fori_loop(0, jnp.max(s), square, E)
-    return E[0] if full else E
 
 
 def _output_rows(Phi, G, m: int):
@@ -839,18 +538,18 @@ def _output_rows(Phi, G, m: int):
     by one squaring; $\Phi^m$ is the product of the squares of ``m``'s binary digits
     (``m`` static: ``⌊log₂ m⌋`` squarings, plus one product per further digit)."""
     K = G[0].shape[1]
-    R, sq, i = _row_mm(G, Phi), [Phi], 0  # sq[i] = Φ^(2^i)
+    R, sq, i = block_row_mm(G, Phi), [Phi], 0  # sq[i] = Φ^(2^i)
     while R[0].shape[1] < m * K or (1 << (i + 1)) <= m:
         if R[0].shape[1] < m * K:
-            more = _row_mm(tuple(x[:, : m * K - R[0].shape[1]] for x in R), sq[i])
+            more = block_row_mm(tuple(x[:, : m * K - R[0].shape[1]] for x in R), sq[i])
             R = tuple(jnp.concatenate([a, b], axis=1) for a, b in zip(R, more))
         if (1 << (i + 1)) <= m:
-            sq.append(_mm(sq[i], sq[i]))
+            sq.append(block_mm(sq[i], sq[i]))
         i += 1
     Pm = None
     for i, P in enumerate(sq):
         if m >> i & 1:
-            Pm = P if Pm is None else _mm(Pm, P)
+            Pm = P if Pm is None else block_mm(Pm, P)
     return R, Pm
 
 
@@ -918,7 +617,7 @@ def _multistep_block(problem, p, h, ts):
         w, acc, _ = carry
         O = outputs(w)
         acc = _update_block(problem, acc, O, 1 + q * m + jnp.arange(m), ts)
-        w = _mv(Pm, w)
+        w = block_mv(Pm, w)
         # the kept outputs turned batch-last here, on the pass's few columns in cache:
         # the stacked (n_pass, len(kept), K, b) is then the bands' layout as it is
         return (w, acc, O[:, :, -1].T), (jnp.transpose(O[:, :, kept], (2, 1, 0)) if stride else None)

@@ -49,8 +49,8 @@ with $N_n = g(t_n, w_n)$, $N_a = g(t_n + h/2, a)$, $N_b = g(t_n + h/2, b)$,
 $N_c = g(t_n + h, c)$. The $\varphi$-functions come from one exponential of the
 augmented matrix $\begin{bsmallmatrix} hA_0 & I & & \\ & 0 & I & \\ & & 0 & I\\ &&&0
 \end{bsmallmatrix}$ (its first block row is $[\varphi_0, \varphi_1, \varphi_2,
-\varphi_3]$), computed once per call by scaling and squaring with a Taylor polynomial
-(matrix products only: LAPACK-free, quick to compile).
+\varphi_3]$), computed once per call by `fojax.simulation._expm.expm_stack` (scaling and squaring of a Taylor polynomial,
+matrix products only: LAPACK-free, reverse-differentiable).
 
 **Speed.** The stages only need what $g$ reads from a state and writes: the
 perturbation's non-zero rows and columns. Terms identical for every sample of a chunk
@@ -93,12 +93,12 @@ from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal, Constant
 from ._batch import (
     _check_metrics,
-    _matvec_last,
     _ModelProblem,
     _step_size,
     METRIC_KINDS,
     run_batched,
 )
+from ._expm import expm_stack, matvec_last
 from ._reduction import (
     host_initial_checks,
     is_concrete,
@@ -619,39 +619,6 @@ def check_affine(model, first, data, A0, outputs, t0, t1, ns, m, who="simulate_b
 # --------------------------------------------------------------------------- the kernel
 
 
-_TAYLOR_DEGREE = 18
-_TAYLOR_THETA = 0.5
-
-
-def _expm_taylor(Z, max_squarings: int = 24):
-    r"""$e^Z$ by scaling and squaring with a degree-18 Taylor polynomial (matrix products only),
-    for a stack ``Z`` ``(..., n, n)`` (each matrix its own scaling).
-
-    ``s = ceil(log2(‖Z‖₁ / 0.5))`` squarings; the truncation error of the polynomial at
-    $\|Z/2^s\|_1 \le 1/2$ is below $0.5^{19}/19! \approx 10^{-23}$. No linear solve, and
-    both the Horner evaluation of the polynomial and the squarings are loops (one body in
-    the compiled graph each, not 18 + 24 unrolled products), so it compiles in a fraction
-    of a second for the ``4N × 4N`` augmented matrices of the φ-functions and is
-    reverse-differentiable (fixed trip counts). Computed once per call, not per sample.
-    """
-    n = Z.shape[-1]
-    norm1 = jnp.max(jnp.sum(jnp.abs(Z), axis=-2), axis=-1)  # (...,)
-    s = jnp.maximum(0.0, jnp.ceil(jnp.log2(jnp.maximum(norm1, 1e-300) / _TAYLOR_THETA)))
-    X = Z / (2.0**s)[..., None, None]
-    eye = jnp.broadcast_to(jnp.eye(n, dtype=Z.dtype), Z.shape)
-
-    def horner(i, R):  # R <- I + X R / k for k = 18, ..., 1
-        return eye + (X @ R) / (_TAYLOR_DEGREE - i).astype(Z.dtype)
-
-    R = lax.fori_loop(0, _TAYLOR_DEGREE, horner, eye)
-
-    def square(R, k):
-        return jnp.where((k < s)[..., None, None], R @ R, R), None
-
-    R, _ = lax.scan(square, R, jnp.arange(max_squarings, dtype=Z.dtype))
-    return jnp.where((s > max_squarings)[..., None, None], jnp.nan, R)
-
-
 def _phi_augmented(M, xp):
     r"""The augmented matrix $\begin{bmatrix}M & I & & \\ & 0 & I & \\ & & 0 & I\\ & & & 0\end{bmatrix}$
     ``(..., 4N, 4N)`` of a stack ``M`` ``(..., N, N)``, in `xp` (NumPy on the host,
@@ -672,7 +639,7 @@ def _phi_blocks(F, N: int, xp):
 def _phi(M):
     """``[φ0(M), φ1(M), φ2(M), φ3(M)]`` ``(..., 4, N, N)`` of a stack ``M`` ``(..., N, N)``
     from one exponential of the augmented matrix each (traceable)."""
-    return _phi_blocks(_expm_taylor(_phi_augmented(M, jnp)), M.shape[-1], jnp)
+    return _phi_blocks(expm_stack(_phi_augmented(M, jnp)), M.shape[-1], jnp)
 
 
 def phi_functions(A0, h):
@@ -932,10 +899,10 @@ class ExponentialProblem(eqx.Module):
 
 @jax.custom_jvp
 def _matvec_batch(M, v):
-    r"""``Σ_j M[:, j, :] * v[j, :]`` (`_matvec_last`, batch last) with a tangent rule whose
+    r"""``Σ_j M[:, j, :] * v[j, :]`` (`matvec_last`, batch last) with a tangent rule whose
     transpose is cheap.
 
-    The primal is `_matvec_last` (unrolled over ``j``: the fastest forward step). Its
+    The primal is `matvec_last` (unrolled over ``j``: the fastest forward step). Its
     automatic reverse mode transposes each slice ``M[:, j, :]`` into a zero-padded copy of
     the whole ``(N, N, b)`` array, ``N`` of them per product, and in a time loop they are
     accumulated at every step: measured on the §3.3.7 study (N ≈ 20, 100 samples, 1,140
@@ -943,14 +910,14 @@ def _matvec_batch(M, v):
     tangent is written as broadcast products instead, ``Σ_j dM[:, j] v[j] + M[:, j] dv[j]``,
     whose transposes are one outer product ``ct[:, None] v[None]`` and one reduction: the
     same numbers (to round-off), the same linear map."""
-    return _matvec_last(M, v)
+    return matvec_last(M, v)
 
 
 def _matvec_batch_jvp(primals, tangents):
     M, v = primals
     dM, dv = tangents
     zero = jax.custom_derivatives.SymbolicZero
-    out = _matvec_last(M, v)
+    out = matvec_last(M, v)
     parts = ([] if isinstance(dM, zero) else [jnp.sum(dM * v[None], axis=1)]) + (
         [] if isinstance(dv, zero) else [jnp.sum(M * dv[None], axis=1)])
     return out, sum(parts[1:], parts[0]) if parts else jnp.zeros_like(out)

@@ -66,9 +66,10 @@ from jax import lax
 
 from .._dtype import as_float_array
 from .._errors import InputError, ShapeError
-from .._small_linalg import expm_small, solve_small
+from .._small_linalg import solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
+from ._expm import expm_small
 from ._implicit import default_implicit_solver
 from ._reduction import (
     check_x0,

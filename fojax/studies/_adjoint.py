@@ -91,12 +91,13 @@ import jax.numpy as jnp
 from jax import lax
 
 from .._errors import InputError
-from ..simulation._batch import _matvec_last, repeat_groups
+from ..simulation._batch import repeat_groups
+from ..simulation._expm import matvec_last
 
 
 def _rmatvec_last(M, v):
     """``Σ_i M[i, :, :] * v[i, :]`` = ``Mᵀ v`` per sample (``M`` ``(K, N, b)``, ``v`` ``(K, b)``),
-    as FMAs over the contiguous rows of ``M`` (through ``swapaxes`` and `_matvec_last`, XLA
+    as FMAs over the contiguous rows of ``M`` (through ``swapaxes`` and `matvec_last`, XLA
     CPU re-laid out the transposed matrix at every step: 5x slower backward)."""
     acc = M[0] * v[0][None, :]
     for i in range(1, v.shape[0]):
@@ -128,9 +129,9 @@ def _split_outputs(plant, diff, kon, p, xi, k):
     """Step ``k`` (``1 ≤ k ≤ n``) of the split loop without the reduction: ``(p_k, ξ_k, o_k)``."""
     Ppp, _, jvp = plant
     Poo, Pop, Go, Gp, _, jvo, ts = diff
-    pn = _jump(_matvec_last(Ppp, p), jvp, kon, k)
-    xn = _jump(_matvec_last(Poo, xi) + _matvec_last(Pop, p), jvo, kon, k)
-    return pn, xn, _matvec_last(Go, xn) + _matvec_last(Gp, pn)
+    pn = _jump(matvec_last(Ppp, p), jvp, kon, k)
+    xn = _jump(matvec_last(Poo, xi) + matvec_last(Pop, p), jvo, kon, k)
+    return pn, xn, matvec_last(Go, xn) + matvec_last(Gp, pn)
 
 
 def _split_step(problem, plant, diff, kon, p, xi, acc, k):
@@ -153,7 +154,7 @@ def _split_forward(problem, plant, diff, kon, segment, checkpoints: bool):
     Go, Gp, xi0, ts = diff[2], diff[3], diff[4], diff[6]
     p0 = plant[1]
     n, S, full, tail = _split_layout(ts.shape[0], segment)
-    acc0 = problem.init(_matvec_last(Go, xi0) + _matvec_last(Gp, p0))
+    acc0 = problem.init(matvec_last(Go, xi0) + matvec_last(Gp, p0))
 
     def run(carry, ks):
         out, _ = lax.scan(lambda c, k: (_split_step(problem, plant, diff, kon, *c, k), None), carry, ks)
@@ -266,7 +267,7 @@ def pass_recurrence_reduce(diff, plant, problem, S: int, segment=None, reps: int
         segment = n // S - 1  # one checkpoint segment (no shorter last one to compile)
     acc, p_end, xi_end = split_recurrence_reduce((Pxx, Pxp, Rx, Rp, xi0, None, ts[: n // S]),
                                                  (Pp, p0, None), problem, None, segment)
-    # differentiated by jax: einsums (the transpose of the unrolled `_matvec_last` pads a
+    # differentiated by jax: einsums (the transpose of the unrolled `matvec_last` pads a
     # cotangent per column: +2 s of compile)
     mv = lambda M, v: jnp.einsum("ijb,jb->ib", M, v)  # noqa: E731
     acc = problem.update(acc, mv(Rx, xi0) + mv(Rp, p0), 0, ts)  # steps 1 … S
@@ -349,7 +350,7 @@ def _split_bwd(saved, grad_obj, perturbed, args, problem, kon, segment=None):
     n, S, full, tail = _split_layout(ts.shape[0], segment)
     (ps_ck, xs_ck, accs_ck), tail_ck = saved
     acc_bar, _, xi_bar = grad_obj  # p_end does not depend on `diff`: its cotangent is not needed
-    acc_f0, _ = _float_part(problem.init(_matvec_last(Go, xi0) + _matvec_last(Gp, p0)))
+    acc_f0, _ = _float_part(problem.init(matvec_last(Go, xi0) + matvec_last(Gp, p0)))
     given = (acc_f0 if acc_bar is None else _float_part(acc_bar)[0])
     acc_bar = jax.tree.map(
         lambda z, g: None if z is None else (jnp.zeros_like(z) if g is None or acc_bar is None else g),
@@ -436,7 +437,7 @@ def _split_bwd(saved, grad_obj, perturbed, args, problem, kon, segment=None):
         carry, _ = lax.scan(segment_back, carry, jnp.arange(full), reverse=True)
     mu, acc_bar, Po_b, G_b, jb, tb = carry
     Poo_b, Pop_b, Go_b, Gp_b = Po_b[:, :q], Po_b[:, q:], G_b[:, :q], G_b[:, q:]
-    o0 = _matvec_last(Go, xi0) + _matvec_last(Gp, p0)
+    o0 = matvec_last(Go, xi0) + matvec_last(Gp, p0)
     _, vjp0 = jax.vjp(lambda o: _float_part(problem.init(o))[0], o0)
     (o0_bar,) = vjp0(acc_bar)
     lam0 = mu + (jnp.einsum("kib,kb->ib", Go, o0_bar) if Go.shape[0] > _RMATVEC_MAX else _rmatvec_last(Go, o0_bar))

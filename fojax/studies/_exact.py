@@ -34,14 +34,13 @@ from jaxtyping import Array
 from ..plant import Constant, PiecewiseConstant, Ramp, Sine, Stack, Step, SumSignal, Zero
 from ..simulation._batch import (
     _block_kernel,
-    _DIFF_MAX_SQUARINGS,
     _output_basis,
     eval_shape_cached,
     Exogenous,
-    expm_last,
     joint_matrices,
     repeat_groups,
 )
+from ..simulation._expm import DIFF_MAX_SQUARINGS, expm_last
 from ..simulation._reduction import (
     check_index1_host,
     is_concrete,
@@ -503,7 +502,7 @@ def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts, reps=1, q_rep=None):
     Ap, p0, jumps = jax.vmap(plant_of)(q)  # (b, m, m), (b, m)
     if q_rep is not None:  # the representatives' (the samples' Ap is then dead code)
         Ap = jax.vmap(plant_of)(q_rep)[0]  # (b / reps, m, m)
-    expm = lambda M: expm_last(M, max_squarings=_DIFF_MAX_SQUARINGS)  # noqa: E731
+    expm = lambda M: expm_last(M, max_squarings=DIFF_MAX_SQUARINGS)  # noqa: E731
     Ppp = expm(jnp.moveaxis(h * Ap, 0, -1))
     jvp = None
     if jv is not None:
