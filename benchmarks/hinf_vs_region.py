@@ -81,7 +81,7 @@ region-only 1.99 / 1.23 / 0.312; from H∞ with HinfTerm weight 0: 1.82 / 1.32 /
 1.86 / 1.33 / 0.248, weight 10: 2.57 / 1.36 / 0.174; H2 (q0 = 4) 1.48 / 1.30 / 0.155. The term
 trades IAE for ‖T‖∞ at weight 10 and is negligible at weight 1.
 
-``--solver tsit5`` passes ``diffrax.Tsit5()`` to `fojax.run_study` and `fojax.tune` (the
+``--solver tsit5`` passes ``stepper=fojax.Auto(diffrax=fojax.Diffrax(diffrax.Tsit5()))`` to `fojax.run_study` and `fojax.tune` (the
 studies with output noise run on the ``vmap-simulate`` engine); default: `fojax.simulate`'s
 own solver (the recorded §3.3.7 runs).
 
@@ -196,7 +196,7 @@ def tuned(ds, ex, case, args, sigma):
             t = time.perf_counter()
             try:
                 res = fojax.tune(ds[f"{start} {kind}"], train, steps=args.tune_steps, optimizer=opt, quiet=True,
-                                 solver=solver(args), robustness=term)
+                                 stepper=stepper(args), robustness=term)
             except fojax.DesignVerificationError as err:  # recorded, not hidden
                 info[f"{label} {kind}"] = {"failed": f"{type(err).__name__}: {err}", "start": start}
                 continue
@@ -211,13 +211,14 @@ def tuned(ds, ex, case, args, sigma):
     return out, info
 
 
-def solver(args):
-    """The diffrax solver of ``--solver`` (None: `fojax.simulate`'s default)."""
+def stepper(args):
+    """The stepper of ``--solver``: `fojax.Auto` whose diffrax fallback uses that solver
+    (``None``: `fojax.simulate`'s default)."""
     if args.solver == "tsit5":
         import diffrax
 
-        return diffrax.Tsit5()
-    return None
+        return fojax.Auto(diffrax=fojax.Diffrax(diffrax.Tsit5()))
+    return fojax.Auto()
 
 
 def study(ex, case, n_delta, n_fault, sigma, noise_dt, seed):
@@ -301,7 +302,7 @@ def main(argv=None) -> int:
             names = list(ds)
             t = time.perf_counter()
             res = fojax.run_study(st, [d.observer for d in ds.values()], observer_names=names, quantiles=(),
-                                  quiet=True, solver=solver(args))
+                                  quiet=True, stepper=stepper(args))
             t_study = time.perf_counter() - t
             iae, peak = np.asarray(res.metrics["iae"]), np.asarray(res.metrics["peak"])  # (obs, u, f, signal)
             ok = np.asarray(res.metrics["success"])

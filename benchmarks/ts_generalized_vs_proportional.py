@@ -51,6 +51,7 @@ import numpy as np  # noqa: E402
 from fojax.cli._study_samples import make_study  # noqa: E402
 from fojax.config import example_path, load_config, ObserverSpec  # noqa: E402
 from fojax.design import design_ts_observer  # noqa: E402
+from fojax.simulation import Auto, Diffrax  # noqa: E402
 from fojax.studies import run_study  # noqa: E402
 from fojax.tuning import shared_optimizer, tune  # noqa: E402
 
@@ -69,7 +70,7 @@ def main(argv=None) -> dict:
     train = make_study(cfg, seed + 1, args.train, T, dt)
     curve = make_study(cfg, seed + 2, max(1, args.train // 2), T, dt)
     evaluation = make_study(cfg, seed, args.eval, T, dt)
-    solver = diffrax.Tsit5()
+    stepper = Auto(diffrax=Diffrax(diffrax.Tsit5()))
     designs, tuned, timings, curves = {}, {}, {}, {}
     specs = list(cfg.observers) + [ObserverSpec("proportional-q2", "proportional", cfg.observers[0].region)]
     for spec in specs:
@@ -81,7 +82,7 @@ def main(argv=None) -> dict:
         # the call `fojax study` makes (fojax.cli._study._tune), with the file's settings
         tr = tune(d, train, heldout=curve, steps=args.steps,
                   optimizer=shared_optimizer("adam", learning_rate=lr),
-                  eval_every=max(1, args.steps // 10), solver=solver, barrier=1e-3)
+                  eval_every=max(1, args.steps // 10), stepper=stepper, barrier=1e-3)
         tuned[spec.name] = tr.design
         timings[spec.name] = {"design_s": t1 - t0, "tune_s": time.perf_counter() - t1}
         curves[spec.name] = {"heldout_curve_before": float(tr.initial_heldout),
@@ -92,7 +93,7 @@ def main(argv=None) -> dict:
     names = list(designs) + [f"{n}-tuned" for n in tuned]
     obs = [d.observer for d in designs.values()] + [d.observer for d in tuned.values()]
     t0 = time.perf_counter()
-    res = run_study(evaluation, obs, observer_names=names, solver=solver, quiet=True)
+    res = run_study(evaluation, obs, observer_names=names, stepper=stepper, quiet=True)
     t_eval = time.perf_counter() - t0
     iae = np.asarray(res.metrics["iae"]).reshape(len(names), -1, evaluation.num_signals)
     peak = np.asarray(res.metrics["peak"]).reshape(len(names), -1, evaluation.num_signals)

@@ -324,7 +324,7 @@ def _evaluate(par, params, study):
 def run_tune(design, train, heldout, steps, lr, precondition):
     """fojax.tune with a warm-up call (compiles the step), then the timed run."""
     opt = fojax.tuning.shared_optimizer("adam", learning_rate=lr)
-    kw = dict(heldout=heldout, optimizer=opt, precondition=precondition, eval_every=max(steps, 1), method="exact")
+    kw = dict(heldout=heldout, optimizer=opt, precondition=precondition, eval_every=max(steps, 1), stepper=fojax.Exact())
     fojax.tune(design, train, steps=1, **kw)
     before = fojax.tuning._tune.TRACE_COUNTS["tune_step"]
     res, wall = clock(lambda: fojax.tune(design, train, steps=steps, **kw))
@@ -418,7 +418,7 @@ def long_run(args):
     d = centred_design(sys_, m, args)
     opt = fojax.tuning.shared_optimizer("adam", learning_rate=args.lr)
     res, wall = clock(lambda: fojax.tune(d, train, heldout=held, optimizer=opt, steps=args.long_steps,
-                                         eval_every=100, method="exact"))
+                                         eval_every=100, stepper=fojax.Exact()))
     h = res.history
     every = [(int(s), float(t), float(v)) for s, t, v in zip(h["step"], h["train_loss"], h["heldout_loss"])
              if np.isfinite(v)]
@@ -743,7 +743,7 @@ def diagnose(args):
 
     def tuned(label, **kw):
         res, wall = clock(lambda: fojax.tune(d3, train, heldout=held, optimizer=opt, steps=args.steps,
-                                             eval_every=args.steps, method="exact", **kw))
+                                             eval_every=args.steps, stepper=fojax.Exact(), **kw))
         h = res.history
         ev = np.asarray(res.design.report.eigenvalues)
         diag[label] = r = dict(

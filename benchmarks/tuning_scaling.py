@@ -20,7 +20,7 @@ compile time ≈ ``t_cold − per-step`` (it also holds the one-off host work of
 the warm fixed overhead per call ``t_1 − per-step``, samples·steps/s, whether the warm calls
 retraced the step (``fojax.tuning._tune.TRACE_COUNTS``), the training losses (finite) and the peak
 RSS. With ``--repeats r`` the warm pair (2, 3) is repeated and the medians are used.
-Options as in the notebook: ``optax.adam(0.3)``, ``method="exact"`` (``--method``),
+Options as in the notebook: ``optax.adam(0.3)``, ``stepper=fojax.Exact()`` (``--method exact``),
 ``quiet=True``; only the public `tune` API is used.
 
 Results: ``results/tuning_scaling_<date>.{md,json}`` and ``..._latest.{md,json}``.
@@ -91,6 +91,7 @@ def worker(spec: dict) -> dict:
     jax.config.update("jax_enable_x64", True)
     import optax
 
+    import fojax
     from fojax import tuning
 
     B, k = spec["B"], spec["extra_steps"]
@@ -107,7 +108,9 @@ def worker(spec: dict) -> dict:
     def run(steps):
         before = sum(tuning._tune.TRACE_COUNTS.values())
         t0 = time.perf_counter()
-        out = tuning.tune(design, study, steps=steps, optimizer=opt, method=spec["method"], quiet=True)
+        stepper = {"auto": fojax.Auto(), "exact": fojax.Exact(), "exponential": fojax.Exponential(),
+                   "diffrax": fojax.Diffrax()}[spec["method"]]
+        out = tuning.tune(design, study, steps=steps, optimizer=opt, stepper=stepper, quiet=True)
         t = time.perf_counter() - t0
         return t, sum(tuning._tune.TRACE_COUNTS.values()) - before, out
 
@@ -149,7 +152,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="training batch sizes B")
     ap.add_argument("--extra-steps", type=int, default=5, help="k: per-step time = (t(1+k) - t(1)) / k")
     ap.add_argument("--repeats", type=int, default=1, help="repetitions of the warm pair t(1), t(1+k)")
-    ap.add_argument("--method", default="exact", help="tune's simulation method (notebook: exact)")
+    ap.add_argument("--method", default="exact", choices=("auto", "exact", "exponential", "diffrax"),
+                    help="tune's stepper: fojax.Auto/Exact/Exponential/Diffrax() (notebook: exact)")
     ap.add_argument("--hard-timeout", type=float, default=1800.0, help="kill one B's process after this many s")
     ap.add_argument("--out", type=Path, default=_common.RESULTS)
     args = ap.parse_args(argv)
@@ -199,7 +203,7 @@ def render_markdown(d: dict) -> str:
         "",
         f"- status: {d['status']}",
         *_common.machine_lines(d["machine"]),
-        f"- `fojax.tuning.tune(design, study, steps, optimizer=optax.adam(0.3), method={s['method']!r}, quiet=True)` "
+        f"- `fojax.tuning.tune(design, study, steps, optimizer=optax.adam(0.3), stepper=<{s['method']}>, quiet=True)` "
         "on the §3.3.7 setup of notebooks/monte_carlo_and_tuning.ipynb (9 states, 81 grid points, 5 signals); "
         f"per step = (t(1+k) − t(1)) / k with k = {s['extra_steps']}; compile ≈ first call − per step; "
         "one fresh process per B",

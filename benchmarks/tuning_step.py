@@ -124,7 +124,7 @@ def main():
 
     # the public tuning step
     steps, _, _ = _common.time_tune_steps(
-        lambda s: fojax.tune(design, study, steps=s, method="exact", quiet=True), args.extra_steps)
+        lambda s: fojax.tune(design, study, steps=s, stepper=fojax.Exact(), quiet=True), args.extra_steps)
     row = dict(
         B=args.B, grid_steps=int(study.ts.shape[0]) - 1, **steps,
         host_check_s=host_check_s, host_check_cpu_s=host_check_cpu_s,

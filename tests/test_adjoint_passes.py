@@ -120,7 +120,7 @@ def test_study_loss_in_passes_equals_step_by_step_run_study_and_central_differen
     f, dyn = _vg(st, observer, "ise")
     v, g = f(dyn)
     assert calls == [4]  # the loss took the passes, 4 steps each
-    res = S.run_study(st, (observer,), method="exact", quantiles=(), quiet=True, devices=jax.devices()[:1])
+    res = S.run_study(st, (observer,), stepper=fojax.Exact(), quantiles=(), quiet=True, devices=jax.devices()[:1])
     assert np.isclose(float(v), float(np.mean(np.asarray(res.metrics["ise"])[0])), rtol=1e-12)
     monkeypatch.setattr(_exact, "pass_length", lambda n: 1)  # step by step: the loop before the passes
     f1, _ = _vg(st, observer, "ise")

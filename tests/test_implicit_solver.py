@@ -95,7 +95,7 @@ def test_faulty_plant_study_with_default_implicit_solver_matches_single_runs(fau
     # The regression of issue 5: the default solver inside run_study's shard_map + vmap.
     study, obs = faulty_study
     # method="diffrax": the exact batch kernel would take this LTI study otherwise
-    res = S.run_study(study, obs, devices=jax.devices()[:2], quiet=True, method="diffrax")
+    res = S.run_study(study, obs, devices=jax.devices()[:2], quiet=True, stepper=fojax.Diffrax())
     assert res.metrics["iae"].shape == (1, 2, 2, 5) and res.metrics["success"].all()
     worst = 0.0
     for i in range(2):

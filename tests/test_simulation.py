@@ -56,7 +56,9 @@ ROBOT = dict(Jm=0.01, Jl=0.08, m=0.15, lc=0.25, k=0.3, beta=0.05, Ktau=0.2, l=0.
 ROBOT_TS = np.linspace(0.0, 5.0, 251)
 ROBOT_X0 = np.array([0.2, 0.0, 0.5, 0.0, 0.3])  # x5 inconsistent (should be l sin x3)
 ROBOT_U_AMP, ROBOT_U_OMEGA = 0.5, 2.0
-ROBOT_TOL = dict(rtol=1e-10, atol=1e-12)
+ROBOT_TOL = dict(stepper=fojax.Auto(diffrax=fojax.Diffrax(rtol=1e-10, atol=1e-12)))
+#: what `simulate` runs for each method name of the parametrized tests
+STEPPERS = {"exact": fojax.Exact(), "diffrax": fojax.Diffrax()}
 
 
 def robot_f(x, u, th):
@@ -232,7 +234,7 @@ def test_thesis_413_against_scipy(plant413, refs413, method, with_input):
     u = input413(with_input)
     if method == "diffrax" and not with_input:
         u = zero_input413()
-    sol = fojax.simulate(plant413, X0_413, TS, u, method=method)
+    sol = fojax.simulate(plant413, X0_413, TS, u, stepper=STEPPERS[method])
     assert sol.method == method
     assert rel_err(sol.xs, refs413[with_input]) <= 1e-6
     assert float(sol.stats["constraint_residual"]) <= 1e-8
@@ -259,7 +261,7 @@ def test_auto_picks_exact_then_falls_back(plant413, refs413):
     ref = np.stack([full(x, np.zeros(2)) for x in xd])
     assert rel_err(sol.xs, ref) <= 1e-6
     with pytest.raises(fojax.InputError, match="uniform grid"):
-        fojax.simulate(plant413, X0_413, ts, method="exact")
+        fojax.simulate(plant413, X0_413, ts, stepper=fojax.Exact())
 
 
 @pytest.fixture(scope="module")
@@ -278,7 +280,7 @@ def test_stiff_thesis_31_against_scipy(method, ref31):
     # sine's structure): the compiled simulations of test_thesis_413_against_scipy are reused.
     u = zero_input413() if method == "diffrax" else None
     plant = fojax.DescriptorSystem(E31, ACL31, B31, C31)
-    sol = fojax.simulate(plant, X0_31, TS, u, method=method)
+    sol = fojax.simulate(plant, X0_31, TS, u, stepper=STEPPERS[method])
     assert rel_err(sol.xs, ref31) <= 1e-6
     assert float(sol.stats["constraint_residual"]) <= 1e-8
 
@@ -409,7 +411,8 @@ def test_grad_diffrax_path_matches_finite_differences():
 
     def cost(k):
         plant = eqx.tree_at(lambda p: p.theta["k"], robot_plant(), k)
-        sol = fojax.simulate(plant, ROBOT_X0, ts, u, solver=diffrax.Tsit5(), **ROBOT_TOL)
+        sol = fojax.simulate(plant, ROBOT_X0, ts, u,
+                             stepper=fojax.Auto(diffrax=fojax.Diffrax(diffrax.Tsit5(), rtol=1e-10, atol=1e-12)))
         return jnp.sum(sol.xs**2) * dt
 
     k0 = ROBOT["k"]
@@ -480,7 +483,7 @@ def test_observer_estimates_equal_joint_system(plant413):
     Bj = np.vstack([B413, np.asarray(obs.Bu)])
     Cj = np.hstack([np.asarray(obs.Dy) @ C413, np.asarray(obs.Co)])
     joint = fojax.DescriptorSystem(Ej, Aj, Bj, Cj)
-    ref = fojax.simulate(joint, np.concatenate([X0_413, xi0]), TS, u, method="exact")
+    ref = fojax.simulate(joint, np.concatenate([X0_413, xi0]), TS, u, stepper=fojax.Exact())
     ref_z = ref.ys + ref.us @ np.asarray(obs.Du).T
     sol = fojax.simulate(plant413, X0_413, TS, u, observers=(obs,), observer_x0=(xi0,))
     assert sol.method == "exact"
@@ -551,8 +554,8 @@ def test_bad_shapes_and_arguments(plant413):
         fojax.simulate(plant413, X0_413, TS, observers=(_filter(True),), observer_x0=(jnp.ones(3),))
     with pytest.raises(fojax.InputError, match="strictly increasing"):
         fojax.simulate(plant413, X0_413, TS[::-1])
-    with pytest.raises(fojax.InputError, match="method='exact' needs a linear time-invariant"):
-        fojax.simulate(robot_plant(), ROBOT_X0, ROBOT_TS, robot_input(), method="exact")
+    with pytest.raises(fojax.InputError, match=r"stepper Exact\(\) needs a linear time-invariant"):
+        fojax.simulate(robot_plant(), ROBOT_X0, ROBOT_TS, robot_input(), stepper=fojax.Exact())
 
 
 def test_batch_of_plants_with_different_E_inside_jit():

@@ -1,9 +1,10 @@
-"""Stepper and save objects: `stepper=` / `save=` against the legacy keywords, `Auto`'s choice,
-refused combinations, compile reuse, and the one metric vocabulary.
+"""Stepper and save objects: `stepper=` / `save=`, the removed keywords (``method=``, ``solver=``,
+``rtol=``, ...: a `TypeError` naming the stepper), `Auto`'s choice, refused combinations, compile
+reuse, and the one metric vocabulary.
 
 Oracles:
-- the legacy spelling (``method=``, ``solver=``, ``rtol=``, ``quantiles=``, ...) of the same
-  call: the same code path, so the results must be equal bit for bit;
+- the same call spelled another way (`Auto` where it picks `Exact`, ``quantiles=`` for
+  ``save=Metrics(bands=...)``): the same code path, so the results must be equal bit for bit;
 - for the metric vocabulary, the trapezoid rule written again in NumPy on the errors of one
   `fojax.simulate` trajectory (checked against `error_metrics`, `simulate_lti_batch`'s
   kinds and `run_study`'s ``Metrics(reduce="sum")``);
@@ -28,7 +29,6 @@ from fojax import studies as S
 from fojax.plant import as_signal
 from fojax.simulation import _batch, _simulate, simulate_lti_batch
 from fojax.simulation._save import error_metrics, METRIC_NAMES
-from fojax.simulation._steppers import as_stepper
 from fojax.studies._runner import SimConfig
 
 
@@ -85,19 +85,15 @@ def assert_results_equal(a, b):
 # --------------------------------------------------------------------------- objects
 
 
-def test_steppers_are_hashable_equal_by_value_and_the_legacy_map():
+def test_steppers_are_hashable_and_equal_by_value():
     assert Auto_() == fojax.Auto() and hash(Auto_()) == hash(fojax.Auto())
     assert fojax.Diffrax(diffrax.Tsit5(), rtol=1e-6) == fojax.Diffrax(diffrax.Tsit5(), rtol=1e-6)
     assert fojax.Exponential(substeps=2) != fojax.Exponential()
-    assert as_stepper() == fojax.Auto()
-    assert as_stepper("exact") == fojax.Exact()
-    assert as_stepper("exponential") == fojax.Exponential()
-    assert as_stepper("diffrax", diffrax.Tsit5(), 1e-6, 1e-9, 50) == fojax.Diffrax(diffrax.Tsit5(), 1e-6, 1e-9, 50)
-    assert as_stepper("auto", None, 1e-7) == fojax.Auto(diffrax=fojax.Diffrax(rtol=1e-7))
-    # SimConfig: both spellings give one (hashable) config, and replace() keeps it
-    a = SimConfig(method="diffrax", rtol=1e-6)
+    # SimConfig: equal steppers give one (hashable) config, its attrs read the stepper back,
+    # and replace() keeps it
+    a = SimConfig(stepper=fojax.Diffrax(rtol=1e-6))
     b = SimConfig(stepper=fojax.Diffrax(rtol=1e-6))
-    assert a == b and hash(a) == hash(b) and (b.method, b.rtol) == ("diffrax", 1e-6)
+    assert a == b and hash(a) == hash(b) and (b.attrs()["method"], b.attrs()["rtol"]) == ("diffrax", 1e-6)
     assert dataclasses.replace(b, settle_tol=0.1).stepper == b.stepper
     assert SimConfig() == SimConfig(stepper=fojax.Auto())
     assert fojax.Metrics() == fojax.Metrics(bands=fojax.Bands())
@@ -107,9 +103,23 @@ def Auto_():
     return fojax.Auto(diffrax=fojax.Diffrax())
 
 
+def test_removed_keywords_raise_type_error_naming_the_stepper():
+    # method=, solver=, rtol=, atol=, max_steps= were replaced by the stepper object: each entry
+    # point rejects them with a TypeError that names what to pass instead.
+    with pytest.raises(TypeError, match=r"simulate\(\) got the removed keyword\(s\) rtol=.*fojax.Diffrax\(rtol="):
+        fojax.simulate(lti_plant(), X0, TS, stepper=fojax.Exact(), rtol=1e-6)
+    with pytest.raises(TypeError, match=r"simulate\(\) got the removed keyword\(s\) method=, solver=.*"
+                                        r"stepper=fojax.Auto\(\) \| fojax.Exact\(\)"):
+        fojax.simulate(lti_plant(), X0, TS, method="exact", solver=diffrax.Tsit5())
+    with pytest.raises(TypeError, match=r"run_study\(\) got the removed keyword\(s\) method="):
+        fojax.run_study(lti_study(), OBS, method="exact")
+    with pytest.raises(TypeError, match=r"tune\(\) got the removed keyword\(s\) max_steps=.*Diffrax\(max_steps="):
+        fojax.tune(None, None, max_steps=10)
+    with pytest.raises(TypeError, match=r"SimConfig\(\) got the removed keyword\(s\) atol="):
+        SimConfig(atol=1e-9)
+
+
 def test_bad_objects_and_mixed_spellings_raise_input_error():
-    with pytest.raises(fojax.InputError, match="method must be one of"):
-        as_stepper("rk4")
     with pytest.raises(fojax.InputError, match=r"Diffrax\(rtol=...\) must be a positive float"):
         fojax.Diffrax(rtol=-1.0)
     with pytest.raises(fojax.InputError, match=r"Exponential\(substeps=...\)"):
@@ -120,10 +130,8 @@ def test_bad_objects_and_mixed_spellings_raise_input_error():
         fojax.Metrics(kinds=("iae", "l2"))
     with pytest.raises(fojax.InputError, match=r"Bands\(points=...\)"):
         fojax.Bands(points=1)
-    with pytest.raises(fojax.InputError, match=r"simulate: pass either stepper= or the legacy keywords \['rtol'\]"):
-        fojax.simulate(lti_plant(), X0, TS, stepper=fojax.Exact(), rtol=1e-6)
-    with pytest.raises(fojax.InputError, match=r"SimConfig: pass either stepper="):
-        SimConfig(stepper=fojax.Exact(), method="diffrax")
+    with pytest.raises(fojax.InputError, match=r"simulate\(stepper=...\) must be fojax.Auto\(\)"):
+        fojax.simulate(lti_plant(), X0, TS, stepper="exact")
     with pytest.raises(fojax.InputError, match=r"run_study: pass either save= or the legacy keywords \['quantiles'\]"):
         fojax.run_study(lti_study(), OBS, save=fojax.Metrics(), quantiles=(0.5,))
     with pytest.raises(fojax.InputError, match=r"run_study\(save=...\) must be fojax.Metrics"):
@@ -160,11 +168,11 @@ def test_auto_picks_exact_for_lti_and_diffrax_otherwise_and_exact_refuses_nonlin
 # --------------------------------------------------------------------------- simulate
 
 
-def test_simulate_stepper_equals_legacy_bit_for_bit_without_recompiling():
+def test_simulate_exact_and_auto_bit_for_bit_without_recompiling():
     plant, u = lti_plant(), fojax.Step(jnp.array([1.0, -0.5]), 0.5)
     before = _simulate.TRACE_COUNTS["simulate"]
     new = fojax.simulate(plant, X0, TS, u, observers=(OBS,), stepper=fojax.Exact(), save=fojax.Trajectory())
-    old = fojax.simulate(plant, X0, TS, u, observers=(OBS,), method="exact")
+    old = fojax.simulate(plant, X0, TS, u, observers=(OBS,), stepper=fojax.Auto())  # Auto → Exact
     auto = fojax.simulate(plant, 2.0 * X0, TS, u, observers=(OBS,))  # Auto → Exact; new numbers
     assert _simulate.TRACE_COUNTS["simulate"] == before + 1  # one compilation for all three
     assert new.method == old.method == auto.method == "exact"
@@ -172,8 +180,8 @@ def test_simulate_stepper_equals_legacy_bit_for_bit_without_recompiling():
     np.testing.assert_array_equal(new.estimates[0], old.estimates[0])
     d_new = fojax.simulate(plant, X0, TS, u, observers=(OBS,),
                            stepper=fojax.Diffrax(diffrax.Tsit5(), rtol=1e-6, atol=1e-9))
-    d_old = fojax.simulate(plant, X0, TS, u, observers=(OBS,), method="diffrax", solver=diffrax.Tsit5(),
-                           rtol=1e-6, atol=1e-9)
+    d_old = fojax.simulate(plant, X0, TS, u, observers=(OBS,),
+                           stepper=fojax.Diffrax(diffrax.Tsit5(), rtol=1e-6, atol=1e-9))
     assert d_new.method == "diffrax"
     np.testing.assert_array_equal(d_new.xs, d_old.xs)
 
@@ -186,7 +194,7 @@ def lti_results():
     st = lti_study()
     new = fojax.run_study(st, OBS, stepper=fojax.Exact(), save=fojax.Metrics(bands=fojax.Bands((0.1, 0.9), 11)),
                           quiet=True)
-    old = fojax.run_study(st, OBS, method="exact", quantiles=(0.1, 0.9), band_points=11, quiet=True)
+    old = fojax.run_study(st, OBS, stepper=fojax.Exact(), quantiles=(0.1, 0.9), band_points=11, quiet=True)
     return st, new, old
 
 
@@ -214,7 +222,7 @@ def test_run_study_exponential_and_auto_on_a_time_varying_delta():
     st = sine_study()
     save = fojax.Metrics(bands=None)
     new = fojax.run_study(st, OBS, stepper=fojax.Exponential(), save=save, quiet=True)
-    old = fojax.run_study(st, OBS, method="exponential", quantiles=(), quiet=True)
+    old = fojax.run_study(st, OBS, stepper=fojax.Exponential(), quantiles=(), quiet=True)
     auto = fojax.run_study(st, OBS, save=save, quiet=True)
     assert new.attrs["engine"] == auto.attrs["engine"] == "exponential-batch"
     assert_results_equal(new, old)
@@ -229,7 +237,7 @@ def test_explicit_stepper_that_is_not_exact_for_the_study_names_itself():
     plant = nonlinear_plant()
     st = fojax.Study(plant, jnp.array([0.5, 0.25]), TS, jnp.eye(2))
     obs = LTIObserver(-jnp.eye(2), jnp.zeros((2, 2)), jnp.zeros(2))
-    with pytest.raises(fojax.InputError, match=r"stepper Exponential\(\) \(method='exponential'\) cannot run"):
+    with pytest.raises(fojax.InputError, match=r"stepper Exponential\(\) cannot run"):
         fojax.run_study(st, obs, stepper=fojax.Exponential(), quiet=True)
     with pytest.raises(fojax.InputError, match=r"stepper Exact\(\).*needs a linear time-invariant plant"):
         fojax.run_study(st, obs, stepper=fojax.Exact(), quiet=True)

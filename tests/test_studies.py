@@ -21,7 +21,7 @@ pytestmark = pytest.mark.production_codegen
 SIGNALS = ("z1", "z2", "f1", "f2", "f3")
 TS = jnp.linspace(0.0, 0.5, 6)
 # the vmap(simulate) engine (with "auto" these sinusoidal-δ(t) studies take the exponential one)
-OPTS = dict(method="diffrax", solver=diffrax.Tsit5(), rtol=1e-6, atol=1e-8)
+OPTS = dict(stepper=fojax.Diffrax(diffrax.Tsit5(), rtol=1e-6, atol=1e-8))
 
 
 @pytest.fixture(scope="module")
@@ -264,7 +264,7 @@ def test_study_loss_gradient_matches_finite_differences(bench):
     from fojax.tuning import initial_parameters, observer_from_parameters
 
     fx, params = initial_parameters(d, parameterization="disk")
-    cfg = S.SimConfig(method="exact")
+    cfg = S.SimConfig(stepper=fojax.Exact())
 
     def f(p, st):
         obs, _ = observer_from_parameters(fx, p)

@@ -121,7 +121,7 @@ def test_default_337_study_runs_exact_and_matches_simulate_and_scipy(ex337):
     all_errs = []
     for i in range(3):
         for j in range(2):
-            refs, errs = reference(study, observers, i, j, method="exact")
+            refs, errs = reference(study, observers, i, j, stepper=fojax.Exact())
             assert_metrics_close(res, refs, i, j, rtol=1e-8)
             all_errs.append(errs)
     # quantile bands over all samples, from the former path's error trajectories
@@ -161,7 +161,7 @@ def test_quantile_bands_on_the_coarse_grid_are_np_quantile_of_the_full_errors(ex
     all_errs = []
     for i in range(3):
         for j in range(2):
-            refs, errs = reference(study, observers, i, j, method="exact")
+            refs, errs = reference(study, observers, i, j, stepper=fojax.Exact())
             assert_metrics_close(res, refs, i, j, rtol=1e-8)  # the metrics still use every step
             all_errs.append(errs)
     for o in range(2):
@@ -191,7 +191,7 @@ def test_faulty_plant_steps_ramps_and_sine_input_match_tight_diffrax(ex337):
     rises = np.asarray(study.scenarios[0].values.rise)
     assert np.any(rises > 0)
     for i, j in [(0, 0), (1, 2)]:
-        refs, _ = reference(study, (obs,), i, j, method="diffrax", solver=diffrax.Tsit5(), rtol=1e-12, atol=1e-14)
+        refs, _ = reference(study, (obs,), i, j, stepper=fojax.Diffrax(diffrax.Tsit5(), rtol=1e-12, atol=1e-14))
         assert_metrics_close(res, refs, i, j, rtol=1e-8)
 
 
@@ -209,7 +209,7 @@ def test_413_loop_matches_simulate():
     assert "quantiles" not in res.metrics
     assert res.metrics["success"].all()
     for i in range(5):
-        refs, _ = reference(study, (obs,), i, 0, method="exact")
+        refs, _ = reference(study, (obs,), i, 0, stepper=fojax.Exact())
         assert_metrics_close(res, refs, i, 0, rtol=1e-8)
 
 
@@ -236,7 +236,7 @@ def test_study_loss_runs_exact_kernel_and_its_gradient_matches_finite_difference
                     uncertainty=(S.constant_delta(k1, 2, 1, bounds=(-0.3, 0.3)),),
                     scenarios=(S.constant_faults(k2, 2, x0, 3),), signal_names=SIGNALS)
     fx, params = initial_parameters(d, parameterization="disk")
-    cfg = S.SimConfig(method="exact")
+    cfg = S.SimConfig(stepper=fojax.Exact())
 
     def f(p, st):
         obs, _ = observer_from_parameters(fx, p)
@@ -248,7 +248,7 @@ def test_study_loss_runs_exact_kernel_and_its_gradient_matches_finite_difference
     assert _exact.TRACE_COUNTS["study_loss_exact"] == before + 1
     # the value equals the mean over samples of the former path's per-sample IAE
     obs0, _ = observer_from_parameters(fx, params)
-    per = [np.mean(reference(study, (obs0,), i, j, method="exact")[0][0]["iae"]) for i in range(2) for j in range(2)]
+    per = [np.mean(reference(study, (obs0,), i, j, stepper=fojax.Exact())[0][0]["iae"]) for i in range(2) for j in range(2)]
     assert np.isclose(float(value), np.mean(per), rtol=1e-10)
     eps = 1e-5
     for name in ("Theta", "Y3"):

@@ -179,7 +179,7 @@ def test_quantile_bands_on_a_coarse_grid_agree_with_scipy(study, result, referen
 
 def test_padded_chunks_do_not_change_results(study, result):
     # B = 9 in chunks of 4 (3 chunks, the last one padded) on every device
-    res = fojax.run_study(study, OBSERVER, quiet=True, settle_tol=SETTLE_TOL, chunk_size=4, method="exponential")
+    res = fojax.run_study(study, OBSERVER, quiet=True, settle_tol=SETTLE_TOL, chunk_size=4, stepper=fojax.Exponential())
     assert res.attrs["num_chunks"] == 3 and res.attrs["engine"] == "exponential-batch"
     np.testing.assert_allclose(as_array(res), as_array(result), rtol=1e-12)
 
@@ -199,4 +199,4 @@ def test_off_grid_breakpoints_are_refused(study):
     prepared, reason = exponential_problem(off, (OBSERVER,), SETTLE_TOL, False, strict=False)
     assert prepared is None and "t = 0.535" in reason
     with pytest.raises(InputError, match="not on the step grid"):
-        fojax.run_study(off, OBSERVER, quiet=True, method="exponential")
+        fojax.run_study(off, OBSERVER, quiet=True, stepper=fojax.Exponential())

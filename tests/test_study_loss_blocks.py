@@ -24,7 +24,7 @@ from tests.helpers import small_step_input_study
 def case():
     # 3 δ × 2 faults = 6 samples; blocks of 4 below: one full block and one padded with 2 copies
     study, d = small_step_input_study(5, 3, 2)
-    res = S.run_study(study, (d.observer,), method="exact", quantiles=(), quiet=True, devices=jax.devices()[:1])
+    res = S.run_study(study, (d.observer,), stepper=fojax.Exact(), quantiles=(), quiet=True, devices=jax.devices()[:1])
     assert res.attrs["engine"] == "exact-batch"
     return study, d.observer, res
 

@@ -77,7 +77,7 @@ def test_grouped_loss_and_gradient_equal_per_sample(which, monkeypatch):
     # fault_onsets: jumps that differ by scenario (the step-by-step loop)
     study, observer = _passes_study() if which == "passes" else _faulty_study(False)
     assert _exact.scenario_free(_problem(study, observer), (observer,))  # the grouped path is taken
-    res = S.run_study(study, (observer,), method="exact", quantiles=(), quiet=True, devices=jax.devices()[:1])
+    res = S.run_study(study, (observer,), stepper=fojax.Exact(), quantiles=(), quiet=True, devices=jax.devices()[:1])
     assert res.attrs["engine"] == "exact-batch" and res.metrics["success"].all()
     want = float(np.mean(np.asarray(res.metrics["iae"])[0]))
     before = _exact.TRACE_COUNTS["study_loss_exact"]

@@ -219,7 +219,7 @@ def uncertain_arm_runs(arm_ts, ts_designs):
     # about half the time of the default Kvaerno5.
     sol = fojax.simulate(
         arm.system, arm_ts.x0, ARM_TS, fojax.Sine(jnp.array([ARM_U_AMP]), ARM_U_OMEGA),
-        observers=obs, solver=diffrax.Tsit5(), rtol=1e-10, atol=1e-12,
+        observers=obs, stepper=fojax.Auto(diffrax=fojax.Diffrax(diffrax.Tsit5(), rtol=1e-10, atol=1e-12)),
     )
     ref_x, ref_zh, _ = _arm_reference(arm_ts, obs, arm.delta_k)
     return sol, ref_x, ref_zh

@@ -84,7 +84,7 @@ def test_tune_moves_only_live_directions_and_reports_them(hand_designs):
     # the training study, optimizer and (square) coordinates of the whitened-tuning test below with
     # precondition="none": one compiled tuning step serves both tests
     st = S.Study(sysm, jnp.array([1.0, -1.0, 0.5]), jnp.linspace(0.0, 3.0, 31), L, fojax.Sine(jnp.array([1.0]), 1.0))
-    res = tuning.tune(d, st, steps=3, optimizer=tuning.shared_optimizer("adam", learning_rate=0.1), method="exact")
+    res = tuning.tune(d, st, steps=3, optimizer=tuning.shared_optimizer("adam", learning_rate=0.1), stepper=fojax.Exact())
     assert res.live_parameters.live == 1
     assert res.design.solver["tuning"]["live_parameters"] == 1
     assert res.design.solver["tuning"]["free_parameters"] == res.live_parameters.total
@@ -122,7 +122,7 @@ def test_whitened_tuning_is_invariant_to_rescaling_rows_and_states():
         train = S.Study(sysm, jnp.asarray(np.array([1.0, -1.0, 0.5]) / Dx), ts, L, u)
         held = S.Study(sysm, jnp.asarray(np.array([-0.5, 1.0, 1.0]) / Dx), ts, L, u)
         for pre in ("whiten", "none"):
-            r = tuning.tune(d, train, heldout=held, steps=10, optimizer=opt, method="exact", precondition=pre,
+            r = tuning.tune(d, train, heldout=held, steps=10, optimizer=opt, stepper=fojax.Exact(), precondition=pre,
                             eval_every=100)
             out[name, pre] = (r.initial_heldout, r.final_heldout)
     print(out)

@@ -63,7 +63,7 @@ def test_tune_with_new_region_delta_range_key_and_gains_does_not_retrace(setup):
     d1 = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
     d2 = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.5, 1.2))
     assert not np.allclose(d1.params["Y1"], d2.params["Y1"])  # other gains
-    tuning.tune(d1, study(0, (-0.3, 0.3)), steps=1, method="exact")  # compiles the step once
+    tuning.tune(d1, study(0, (-0.3, 0.3)), steps=1, stepper=fojax.Exact())  # compiles the step once
     steps, losses = _tune.TRACE_COUNTS["tune_step"], _exact.TRACE_COUNTS["study_loss_exact"]
     runs = [
         dict(design=d1, train_study=study(0, (-0.3, 0.3)), region=Disk(-2.1, 1.5)),  # new region numbers
@@ -72,7 +72,7 @@ def test_tune_with_new_region_delta_range_key_and_gains_does_not_retrace(setup):
         dict(design=d2, train_study=study(0, (-0.3, 0.3))),  # new gains, new region (the design's)
     ]
     for kw in runs:
-        res = tuning.tune(steps=1, method="exact", **kw)
+        res = tuning.tune(steps=1, stepper=fojax.Exact(), **kw)
         assert np.isfinite(res.history["train_loss"][0])
         assert res.design.report.passed
     assert _tune.TRACE_COUNTS["tune_step"] == steps
@@ -88,7 +88,7 @@ def test_heldout_evaluation_on_several_devices_compiles_once(setup):
     ex, study = setup
     d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
     kw = dict(train_study=study(0, (-0.3, 0.3)), heldout=study(3, (-0.3, 0.3)), steps=2, eval_every=1,
-              method="exact")
+              stepper=fojax.Exact())
     before = _tune.TRACE_COUNTS["evaluate"]
     two = tuning.tune(d, devices=jax.devices()[:2], **kw)
     assert _tune.TRACE_COUNTS["evaluate"] - before == 1

@@ -86,7 +86,7 @@ NO_PENALTY = WeightedPenalty(0.0, _gain_size)  # the module's tunings: one compi
 def test_tuning_improves_heldout_iae_and_stays_certified(setup):
     _, d, train, heldout = setup
     before = _tune.TRACE_COUNTS["tune_step"]
-    res = tuning.tune(d, train, heldout=heldout, steps=30, optimizer=ADAM, method="exact",
+    res = tuning.tune(d, train, heldout=heldout, steps=30, optimizer=ADAM, stepper=fojax.Exact(),
                       eval_every=30, extra_loss=NO_PENALTY)
     assert _tune.TRACE_COUNTS["tune_step"] == before + 1  # one jitted step, compiled once
     assert all(res.history["accepted"]) and min(res.history["margin"]) > 0
@@ -111,7 +111,7 @@ def test_resume_from_checkpoint_equals_uninterrupted(setup, tmp_path):
     # the same study, optimizer and settings as above: the compiled step is reused
     _, d, train, _ = setup
     # asked for anew: the same configuration gives the same object, hence the same compiled step
-    opts = dict(optimizer=tuning.shared_optimizer("adam", learning_rate=0.1), method="exact",
+    opts = dict(optimizer=tuning.shared_optimizer("adam", learning_rate=0.1), stepper=fojax.Exact(),
                 extra_loss=NO_PENALTY)
     assert opts["optimizer"] is ADAM
     before = _tune.TRACE_COUNTS["tune_step"]
@@ -135,7 +135,7 @@ def test_resume_from_checkpoint_equals_uninterrupted(setup, tmp_path):
 def test_tune_shows_progress_unless_quiet(setup, capsys):
     # long-running work shows progress (a tqdm bar on stderr, like run_study's); quiet=True: none
     _, d, train, _ = setup
-    opts = dict(steps=2, method="exact", extra_loss=NO_PENALTY, optimizer=ADAM)
+    opts = dict(steps=2, stepper=fojax.Exact(), extra_loss=NO_PENALTY, optimizer=ADAM)
     tuning.tune(d, train, **opts)
     err = capsys.readouterr().err
     assert "tune" in err and "2/2" in err, err
@@ -195,7 +195,7 @@ def test_a_new_learning_rate_reuses_the_compiled_step(setup):
     # Oracle: the same run with optax's own object, whose learning rate is a constant of its
     # own program (compiled once more): the same iterates bit for bit.
     _, d, train, _ = setup
-    opts = dict(steps=3, method="exact", extra_loss=NO_PENALTY)
+    opts = dict(steps=3, stepper=fojax.Exact(), extra_loss=NO_PENALTY)
     tuning.tune(d, train, optimizer=ADAM, **opts)  # the module's step (learning rate 0.1)
     before = _tune.TRACE_COUNTS["tune_step"]
     runs = {lr: tuning.tune(d, train, optimizer=tuning.shared_optimizer("adam", learning_rate=lr), **opts)
@@ -215,10 +215,10 @@ def test_a_new_quantile_level_reuses_the_compiled_step(setup):
     # (barrier 0: the loss alone) at the LMI design is `np.quantile` of the per-sample IAEs
     # (mean over the signals) that `run_study` reports on the same samples (exact engine).
     _, d, train, _ = setup
-    opts = dict(steps=1, method="exact", extra_loss=NO_PENALTY, optimizer=ADAM, barrier=0.0)
+    opts = dict(steps=1, stepper=fojax.Exact(), extra_loss=NO_PENALTY, optimizer=ADAM, barrier=0.0)
     tuning.tune(d, train, quantile=0.9, **opts)
     before = _tune.TRACE_COUNTS["tune_step"]
-    res = fojax.run_study(train, [d.observer], quantiles=(), method="exact")
+    res = fojax.run_study(train, [d.observer], quantiles=(), stepper=fojax.Exact())
     per = np.asarray(res.metrics["iae"])[0].reshape(-1, train.num_signals).mean(axis=1)
     for q in (0.5, 0.75):
         first = tuning.tune(d, train, quantile=q, **opts).history["train_loss"][0]
@@ -251,7 +251,7 @@ def test_shared_optimizer_keeps_untraceable_hyperparameters_as_constants(monkeyp
 
 def test_extra_loss_is_part_of_the_objective_and_changes_the_result(setup):
     _, d, train, _ = setup
-    opts = dict(steps=5, optimizer=ADAM, method="exact")
+    opts = dict(steps=5, optimizer=ADAM, stepper=fojax.Exact())
     before = _tune.TRACE_COUNTS["tune_step"]
     plain = tuning.tune(d, train, extra_loss=NO_PENALTY, **opts)  # both: the module's compiled step
     pen = tuning.tune(d, train, extra_loss=WeightedPenalty(GAIN_WEIGHT, _gain_size), **opts)

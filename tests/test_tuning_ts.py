@@ -48,6 +48,7 @@ U = fojax.Sine(jnp.array([0.5]), 1.0)
 STEPS, LR, BARRIER = 30, 0.1, 1e-3
 OPT = optax.adam(optax.cosine_decay_schedule(LR, STEPS, alpha=0.05))
 SOLVER = diffrax.Tsit5()  # the arm and the observer (poles in [-3, -1]) are not stiff
+STEPPER = fojax.Auto(diffrax=fojax.Diffrax(SOLVER))
 
 
 def _g_size(obs, p):  # a user term on the per-rule generalized-state gains G_i: Σ G²
@@ -78,7 +79,7 @@ def run(setup):
     iterates = []
     before = TRACE_COUNTS["tune_step"]
     res = tune(des, train, heldout=heldout, steps=STEPS, optimizer=OPT, barrier=BARRIER,
-               solver=SOLVER, extra_loss=NO_PENALTY, callback=lambda k, rec: iterates.append(rec))
+               stepper=STEPPER, extra_loss=NO_PENALTY, callback=lambda k, rec: iterates.append(rec))
     return res, iterates, TRACE_COUNTS["tune_step"] - before
 
 
@@ -105,7 +106,7 @@ def test_tuning_reduces_heldout_iae_on_the_nonlinear_arm(setup, run):
     res, _, traces = run
     assert traces == 1  # one compiled step for the whole run
     # held-out IAE recomputed independently by the study runner (separate code path)
-    out = run_study(heldout, [des.observer, res.design.observer], solver=SOLVER, quantiles=(), quiet=True)
+    out = run_study(heldout, [des.observer, res.design.observer], stepper=STEPPER, quantiles=(), quiet=True)
     assert out.metrics["success"].all()
     iae = out.metrics["iae"].mean(axis=(1, 2, 3))
     np.testing.assert_allclose(iae, [res.initial_heldout, res.final_heldout], rtol=1e-9)
@@ -158,7 +159,7 @@ def test_study_loss_gradient_matches_central_differences(setup):
     arm = robot_arm()
     st = Study(arm.system, robot_arm_ts().x0, TS[:21], L_ARM, u=U,
                uncertainty=(parameter_uncertainty(jax.random.PRNGKey(2), 2, theta, SPREAD),))
-    cfg = SimConfig(solver=SOLVER, rtol=1e-11, atol=1e-13)
+    cfg = SimConfig(stepper=fojax.Auto(diffrax=fojax.Diffrax(SOLVER, rtol=1e-11, atol=1e-13)))
     fx, params = initial_ts_parameters(des)
 
     @jax.jit
@@ -210,7 +211,7 @@ def test_proportional_design_parameters():
 
 def test_resume_from_checkpoint_equals_uninterrupted(setup, run, tmp_path):
     des, train, _ = setup
-    opts = dict(optimizer=OPT, barrier=BARRIER, solver=SOLVER, extra_loss=NO_PENALTY)  # `run`'s compiled step
+    opts = dict(optimizer=OPT, barrier=BARRIER, stepper=STEPPER, extra_loss=NO_PENALTY)  # `run`'s compiled step
     ref = tune(des, train, steps=5, **opts)
     path = str(tmp_path / "ckpt")
     tune(des, train, steps=3, checkpoint=path, **opts)
@@ -247,7 +248,7 @@ def test_common_lmi_margin_for_non_disk_regions():
 
 def test_extra_loss_is_part_of_the_ts_objective(setup, run):
     des, train, _ = setup
-    opts = dict(steps=2, optimizer=OPT, barrier=BARRIER, solver=SOLVER)
+    opts = dict(steps=2, optimizer=OPT, barrier=BARRIER, stepper=STEPPER)
     before = TRACE_COUNTS["tune_step"]
     plain = tune(des, train, extra_loss=NO_PENALTY, **opts)  # both: the step compiled by `run`
     pen = tune(des, train, extra_loss=WeightedPenalty(G_WEIGHT, _g_size), **opts)

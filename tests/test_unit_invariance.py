@@ -400,7 +400,7 @@ def test_tuning_a_balanced_design_keeps_model_units():
     d = design_functional_observer(sysm, L_, kind="generalized", q1=1, region=Disk(-2.0, 1.0), R=L_, balance=True)
     st = S.Study(sysm, jnp.asarray(np.array([1.0, -1.0, 0.5]) / np.diag(Dx)), jnp.linspace(0.0, 2.0, 21), L_,
                  fojax.Sine(jnp.array([1.0]), 1.0))
-    res = tuning.tune(d, st, steps=2, optimizer=tuning.shared_optimizer("adam", learning_rate=0.05), method="exact")
+    res = tuning.tune(d, st, steps=2, optimizer=tuning.shared_optimizer("adam", learning_rate=0.05), stepper=fojax.Exact())
     t = res.design
     assert "balance" in t.solver and t.report.passed and t.verify().passed
     assert "unit-free" in t.report.extra["balanced"]

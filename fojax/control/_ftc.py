@@ -159,7 +159,7 @@ class FaultTolerantControl:
         - `observer_x0`: initial observer state (default zero).
         - `backend`: ``"stepper"`` (default): exact host-discretized stepping
           (`fojax.control.simulate_lti`; fast to compile); ``"fojax"``: `fojax.simulate`
-          with `kwargs` (e.g. ``method="diffrax"`` for faults switching between grid points).
+          with `kwargs` (e.g. ``stepper=fojax.Diffrax()`` for faults switching between grid points).
 
         Works under `jax.vmap` over `fault` / `u_r` / `x0` (write the single call inside).
 

@@ -2,8 +2,8 @@ r"""`simulate`: plants and observers on an output grid, exact (LTI) or with diff
 
 The method is a stepper object (`fojax.simulation._steppers`): ``"exact"`` below is
 `fojax.Exact()`, ``"diffrax"`` is `fojax.Diffrax(solver, rtol, atol, max_steps)`, and
-`fojax.Auto()` (the default) picks between them; the strings are the legacy
-``method=`` spelling and `Solution.method` records the one that ran.
+`fojax.Auto()` (the default) picks between them; `Solution.method` records the name of
+the one that ran.
 
 Both methods work in the SVD coordinates of ``E`` described in
 `fojax.simulation._reduction` (full-size coordinates with a slow mask, so that
@@ -28,7 +28,7 @@ work).
   inputs the local error is $O(h^{2\nu+1}\,\|u^{(2\nu)}\|)$ (the superconvergence of
   Gauss points), globally $O(h^8)$: measured on example 4.1.3 with a sine input,
   ~3e-11 relative error at $\omega h = 1$ and ~2e-13 at $\omega h = 0.5$. A jump
-  *between* grid points costs $O(h)$ on that interval — ``method="auto"`` then uses
+  *between* grid points costs $O(h)$ on that interval — `fojax.Auto` then uses
   diffrax.
 - ``"diffrax"`` (everything else): the slow coordinates (and observer states) are
   integrated with an adaptive stiff solver (default `diffrax.Kvaerno5`, its Newton
@@ -88,7 +88,13 @@ from ._reduction import (
 )
 from ._save import Trajectory
 from ._solution import Solution
-from ._steppers import _breakpoints, AbstractStepper, resolve_stepper, UNIFORM_GRID_RTOL  # noqa: F401
+from ._steppers import (  # noqa: F401
+    _breakpoints,
+    AbstractStepper,
+    removed_keywords,
+    resolve_stepper,
+    UNIFORM_GRID_RTOL,
+)
 
 
 #: Number of traces of the compiled simulation core (tests use it to prove that a
@@ -116,6 +122,7 @@ class _Config:
 # --------------------------------------------------------------------------- public entry
 
 
+@removed_keywords
 def simulate(
     plant: AbstractPlant,
     x0,
@@ -126,11 +133,6 @@ def simulate(
     observer_x0=None,
     stepper: AbstractStepper | None = None,
     save: Trajectory | None = None,
-    method: str | None = None,
-    solver: diffrax.AbstractSolver | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
-    max_steps: int | None = None,
     strict: bool = False,
     consistency_tol: float = 1e-10,
     throw: bool = True,
@@ -174,9 +176,6 @@ def simulate(
       sets ``stats["success"] = False``. `fojax.Exponential` runs studies only.
     - `save`: `fojax.Trajectory()` (the default and only choice here: states, outputs
       and estimates on ``ts``).
-    - `method`, `solver`, `rtol`, `atol`, `max_steps`: the legacy spelling of `stepper`
-      (``method="auto"|"exact"|"diffrax"``; mapped by
-      `fojax.simulation._steppers.as_stepper`); not together with `stepper`.
     - `strict`: raise `fojax.InconsistentInitialConditionError` when
       ``‖U2ᵀ f(t0, x0, u0)‖ > consistency_tol`` instead of projecting.
     - `throw`: raise on solver failure or non-finite results; with ``False`` check
@@ -187,7 +186,9 @@ def simulate(
 
     **Returns:** a `fojax.Solution`.
 
-    **Raises:** `fojax.ShapeError` (shapes of ``x0``, ``u``, observer states),
+    **Raises:** `TypeError` for the keywords the stepper replaced (``method``, ``solver``,
+    ``rtol``, ``atol``, ``max_steps``; the message names the stepper to pass),
+    `fojax.ShapeError` (shapes of ``x0``, ``u``, observer states),
     `fojax.IrregularSystemError`, `fojax.ImpulsiveSystemError`,
     `fojax.InconsistentInitialConditionError` (`strict`), `fojax.InputError` (bad
     grid, stepper or save). Structural checks run on the host whenever the inputs are
@@ -209,7 +210,7 @@ def simulate(
     """
     if not isinstance(plant, AbstractPlant):
         raise InputError(f"plant must be a fojax.AbstractPlant, got {type(plant).__name__}.")
-    stepper = resolve_stepper(stepper, method, solver, rtol, atol, max_steps, who="simulate")
+    stepper = resolve_stepper(stepper, who="simulate")
     if save is not None and not isinstance(save, Trajectory):
         raise InputError(
             f"simulate(save=...) keeps one trajectory: save=fojax.Trajectory() (the default); got "
@@ -461,8 +462,8 @@ def _exact(plant, split: SVDSplit, x0, ts, u, observers, xi0s, cfg: _Config):
             xs = eqx.error_if(
                 xs,
                 ~uniform,
-                "method='exact' needs a uniform grid ts (runtime check); use "
-                "jnp.linspace or method='diffrax'.",
+                "stepper Exact() needs a uniform grid ts (runtime check); use "
+                "jnp.linspace or stepper=fojax.Diffrax().",
             )
         success = uniform
     n_steps = jnp.asarray(T - 1)

@@ -19,16 +19,15 @@ batch engines (each engine checks on the host whether the study qualifies and sa
 not). An explicit stepper that is not exact for the model raises `fojax.InputError`
 naming the stepper and the reason.
 
-**Legacy spelling.** The keywords ``method="auto"|"exact"|"exponential"|"diffrax"``,
-``solver=``, ``rtol=``, ``atol=``, ``max_steps=`` of `simulate`, `run_study`, `tune` and
-`fojax.studies.SimConfig` still work: they are mapped onto a stepper here, by
-`as_stepper`, and nowhere else. Passing both a stepper and a legacy keyword is an
-`InputError`.
+The stepper is the only way to choose the method: the keywords it replaced (``method=``,
+``solver=``, ``rtol=``, ``atol=``, ``max_steps=``) raise a `TypeError` naming the stepper to
+pass instead (`removed_keywords`).
 """
 
 from __future__ import annotations
 
 import abc
+import functools
 from typing import ClassVar
 
 import equinox as eqx
@@ -42,16 +41,12 @@ from ._reduction import is_concrete, lti_matrices
 #: Relative tolerance on ``|ts_k − (t0 + k h)| / h`` for a grid to count as uniform.
 UNIFORM_GRID_RTOL = 1e-9
 
-#: The legacy ``method=`` strings and the stepper each one names.
-METHODS = ("auto", "exact", "exponential", "diffrax")
-
-
 class AbstractStepper(eqx.Module):
     """Base of the steppers (see the module docstring). Final subclasses: `Auto`, `Exact`,
     `Exponential`, `Diffrax`, and `Discrete` for discrete-time plants
     (`fojax.simulation._discrete`)."""
 
-    #: the legacy ``method=`` string of this stepper (recorded in ``StudyResult.attrs``)
+    #: the name of this stepper's method (recorded in ``StudyResult.attrs`` and `Solution.method`)
     method: ClassVar[str]
     #: `run_study`'s engines this stepper may run on, in the order they are tried
     engines: ClassVar[tuple[str, ...]]
@@ -122,19 +117,19 @@ class Exact(AbstractStepper):
         cap = capabilities(plant, observers, ts, u)
         if not cap["lti"]:
             raise InputError(
-                f"stepper Exact(): method='exact' needs a linear time-invariant plant (DescriptorSystem, or "
+                f"stepper Exact() needs a linear time-invariant plant (DescriptorSystem, or "
                 f"UncertainDescriptorSystem with a Constant δ); got {type(plant).__name__}. "
                 "Use stepper=Diffrax() (or Auto())."
             )
         if not cap["observers_lti"]:
             bad = [type(o).__name__ for o in observers if o.linear_matrices() is None]
             raise InputError(
-                f"stepper Exact(): method='exact' needs LTI observers (linear_matrices() not None); {bad} are not. "
+                f"stepper Exact() needs LTI observers (linear_matrices() not None); {bad} are not. "
                 "Use stepper=Diffrax() (or Auto())."
             )
         if not cap["uniform"]:
             raise InputError(
-                "stepper Exact(): method='exact' steps on a uniform grid with one matrix exponential "
+                "stepper Exact() steps on a uniform grid with one matrix exponential "
                 f"expm(As·h); ts is not uniform (max |ts_k − (t0 + k h)| / h = {cap['deviation']:.2e} > "
                 f"{UNIFORM_GRID_RTOL:.0e}). Use ts = jnp.linspace(t0, t1, T), or "
                 "stepper=Diffrax() for non-uniform output times."
@@ -281,39 +276,40 @@ def capabilities(plant, observers, ts, u) -> dict:
     return dict(lti=lti, observers_lti=obs_lin, uniform=uniform, on_grid=on_grid, deviation=dev)
 
 
-def as_stepper(method: str = "auto", solver=None, rtol: float = 1e-8, atol: float = 1e-10,
-               max_steps: int = 100_000) -> AbstractStepper:
-    """The stepper the legacy keywords name (the one mapping, used by `simulate`,
-    `run_study`, `study_loss`/`SimConfig` and `tune`):
-
-    - ``"auto"`` → ``Auto(diffrax=Diffrax(solver, rtol, atol, max_steps))``;
-    - ``"exact"`` → ``Exact()``; ``"exponential"`` → ``Exponential()`` (the diffrax
-      options are not used by them);
-    - ``"diffrax"`` → ``Diffrax(solver, rtol, atol, max_steps)``.
-    """
-    if method not in METHODS:
-        raise InputError(f"method must be one of {METHODS}, got {method!r} (or pass stepper=Auto()/Exact()/"
-                         "Exponential()/Diffrax()).")
-    if method == "exact":
-        return Exact()
-    if method == "exponential":
-        return Exponential()
-    d = Diffrax(solver=solver, rtol=float(rtol), atol=float(atol), max_steps=int(max_steps))
-    return d if method == "diffrax" else Auto(diffrax=d)
+#: The keywords a stepper object replaced (``simulate``, ``run_study``, ``tune``, ``SimConfig``)
+#: and what to pass instead; `removed_keywords` turns them into a `TypeError` naming it.
+REMOVED_KEYWORDS = {
+    "method": "stepper=fojax.Auto() | fojax.Exact() | fojax.Exponential() | fojax.Diffrax(...)",
+    "solver": "stepper=fojax.Diffrax(solver) (or fojax.Auto(diffrax=fojax.Diffrax(solver)))",
+    "rtol": "stepper=fojax.Diffrax(rtol=...) (or fojax.Auto(diffrax=fojax.Diffrax(rtol=...)))",
+    "atol": "stepper=fojax.Diffrax(atol=...) (or fojax.Auto(diffrax=fojax.Diffrax(atol=...)))",
+    "max_steps": "stepper=fojax.Diffrax(max_steps=...) (or fojax.Auto(diffrax=fojax.Diffrax(max_steps=...)))",
+}
 
 
-def resolve_stepper(stepper, method=None, solver=None, rtol=None, atol=None, max_steps=None, *,
-                    who: str) -> AbstractStepper:
-    """`stepper`, or the one the legacy keywords name (`as_stepper`; unset keywords take its
-    defaults); `fojax.InputError` when both are given or `stepper` is not a stepper."""
-    legacy = dict(method=method, solver=solver, rtol=rtol, atol=atol, max_steps=max_steps)
-    given = [k for k, v in legacy.items() if v is not None]
+def removed_keywords(fn, who: str | None = None):
+    """`fn`, raising `TypeError` when called with a keyword of `REMOVED_KEYWORDS`; the message
+    names the stepper to pass instead."""
+    name = who or fn.__name__
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        bad = [k for k in REMOVED_KEYWORDS if k in kwargs]
+        if bad:
+            raise TypeError(
+                f"{name}() got the removed keyword(s) {', '.join(k + '=' for k in bad)}; the stepper object "
+                "replaces them: " + "; ".join(f"instead of {k}= pass {REMOVED_KEYWORDS[k]}" for k in bad) + "."
+            )
+        return fn(*args, **kwargs)
+
+    return wrapper
+
+
+def resolve_stepper(stepper, *, who: str) -> AbstractStepper:
+    """`stepper` (``None``: `Auto()`); `fojax.InputError` when it is not a stepper."""
     if stepper is None:
-        return as_stepper(**{k: v for k, v in legacy.items() if v is not None})
+        return Auto()
     if not isinstance(stepper, AbstractStepper):
         raise InputError(f"{who}(stepper=...) must be fojax.Auto(), Exact(), Exponential(...) or Diffrax(...); "
                          f"got {type(stepper).__name__}.")
-    if given:
-        raise InputError(f"{who}: pass either stepper= or the legacy keywords {given}, not both (e.g. "
-                         "stepper=fojax.Diffrax(solver, rtol=..., atol=..., max_steps=...)).")
     return stepper

@@ -343,7 +343,7 @@ def _split_bwd(saved, grad_obj, perturbed, args, problem, kon, segment=None):
         raise InputError(
             "study_loss's reverse mode differentiates the observers only: the plant's trajectory (Φ_pp, its "
             "initial state or jumps) is being differentiated, e.g. jax.grad with respect to the study's arrays. "
-            "Differentiate with respect to the observer, or use cfg=SimConfig(method='diffrax') for derivatives "
+            "Differentiate with respect to the observer, or use cfg=SimConfig(stepper=fojax.Diffrax()) for derivatives "
             "with respect to the study.")
     Poo, Pop, Go, Gp, xi0, jvo, ts = diff
     p0 = plant[1]

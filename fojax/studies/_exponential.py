@@ -233,7 +233,7 @@ def exponential_problem(study, observers, settle_tol: float, keep: bool, strict:
     def refuse(reason):
         if strict:
             raise InputError(
-                f"stepper {options!r} (method='exponential') cannot run this study: {reason}. Use "
+                f"stepper {options!r} cannot run this study: {reason}. Use "
                 "stepper=Auto() (which then takes the adaptive diffrax path) or Diffrax()."
             )
         return None, reason
@@ -264,7 +264,7 @@ def exponential_problem(study, observers, settle_tol: float, keep: bool, strict:
         ns = sum(sg.size for sg in _plant_signals(plant0))
         check_affine(StudyModel(study, tuple(observers)), first, data0, A0,
                      StudyErrors(study.L, study.fault_targets), float(t[0]), float(t[-1]), ns, plant0.m,
-                     who="run_study(method='exponential')")
+                     who="run_study(stepper=Exponential())")
     except FojaxError as err:  # refused by a check: "auto" keeps the adaptive path
         if strict:
             raise

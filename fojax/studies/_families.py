@@ -80,7 +80,7 @@ def constant_delta(key, count: int, k: int, bounds=(-1.0, 1.0), path=("plant", "
     r"""$\delta_j$ constant per sample, uniform in `bounds` (``(count, k)``), as `fojax.Constant`.
 
     With a constant $\delta$ the uncertain plant is time-invariant, so
-    ``method="exact"`` (matrix exponential) applies.
+    `fojax.Exact` (matrix exponential) applies.
     """
     return Family(_constant_delta(key, int(count), int(k), _range(bounds)), path)
 

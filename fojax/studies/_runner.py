@@ -74,7 +74,7 @@ from ..simulation._save import (
     resolve_save,
     UNSET,
 )
-from ..simulation._steppers import AbstractStepper, Exponential, resolve_stepper
+from ..simulation._steppers import AbstractStepper, Exponential, removed_keywords, resolve_stepper
 from ._exact import exact_problem, exact_refusal, sample_metrics_traced
 from ._exponential import exponential_metrics_traced, exponential_problem, exponential_schedule
 from ._families import Family
@@ -251,17 +251,11 @@ class SimConfig:
     """Static options of the simulation inside a study (hashable: part of the compile key).
 
     `stepper` (a `fojax.simulation` stepper, default `fojax.Auto()`) says how samples are
-    stepped; `method`, `rtol`, `atol`, `max_steps`, `solver` are its legacy spelling
-    (`fojax.simulation._steppers.as_stepper`; not together with `stepper`). After
-    construction both are set: the legacy fields read back the stepper's ``method`` and
-    its diffrax options (``StudyResult.attrs`` records them)."""
+    stepped (the keywords it replaced, ``method``, ``rtol``, ``atol``, ``max_steps`` and
+    ``solver``, raise a `TypeError` naming it); `attrs` are its options as
+    ``StudyResult.attrs`` records them."""
 
-    method: str | None = None
-    rtol: float | None = None
-    atol: float | None = None
-    max_steps: int | None = None
     settle_tol: float = 0.05
-    solver: object = None  # a diffrax solver (hashable module) or None: simulate's default
     # `study_loss` / `tune`: devices the samples are spread over (e.g. jax.devices() of a
     # jax.distributed run; fojax.studies._sharding), None: one block on the default device
     devices: tuple | None = None
@@ -272,19 +266,17 @@ class SimConfig:
     exponential_schedule: tuple | None = None
 
     def __post_init__(self):
-        st = self.stepper
-        if not (isinstance(st, AbstractStepper) and self.method == st.method and self._legacy_matches(st)):
-            st = resolve_stepper(st, self.method, self.solver, self.rtol, self.atol, self.max_steps,
-                                 who="SimConfig")
-        d = st.diffrax_options
-        for k, v in dict(stepper=st, method=st.method, rtol=float(d.rtol), atol=float(d.atol),
-                         max_steps=int(d.max_steps), solver=d.solver).items():
-            object.__setattr__(self, k, v)
+        object.__setattr__(self, "stepper", resolve_stepper(self.stepper, who="SimConfig"))
 
-    def _legacy_matches(self, st) -> bool:
-        """The legacy fields already read back `st` (e.g. `dataclasses.replace` of a built one)."""
-        d = st.diffrax_options
-        return (self.rtol, self.atol, self.max_steps, self.solver) == (d.rtol, d.atol, d.max_steps, d.solver)
+    def attrs(self) -> dict:
+        """``method``, ``rtol``, ``atol``, ``max_steps`` of the stepper (its diffrax options)
+        and ``settle_tol``: the options a `StudyResult` records."""
+        d = self.stepper.diffrax_options
+        return dict(method=self.stepper.method, rtol=float(d.rtol), atol=float(d.atol), max_steps=int(d.max_steps),
+                    settle_tol=self.settle_tol)
+
+
+SimConfig.__init__ = removed_keywords(SimConfig.__init__, who="SimConfig")
 
 
 def sample_errors(study: Study, observers, i, j, cfg: SimConfig):
@@ -408,6 +400,7 @@ def _atomic_write(path: str, write) -> None:
     atomic_write(path, write, overwrite=True)
 
 
+@removed_keywords
 def run_study(
     study: Study,
     observers: AbstractObserver | Sequence[AbstractObserver] | None = None,
@@ -420,11 +413,6 @@ def run_study(
     quantiles: Sequence[float] = UNSET,
     band_points: int | None = UNSET,
     settle_tol: float = UNSET,
-    method: str | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
-    max_steps: int | None = None,
-    solver=None,
     quiet: bool = False,
     compile_only: bool = False,
 ) -> StudyResult | None:
@@ -494,9 +482,6 @@ def run_study(
     - `quantiles`, `band_points`, `settle_tol`: the legacy spelling of `save`
       (``Metrics(settle_tol=settle_tol, bands=Bands(quantiles, band_points))``, no bands
       for ``quantiles=()``; `fojax.simulation._save.as_save`); not together with `save`.
-    - `method`, `rtol`, `atol`, `max_steps`, `solver`: the legacy spelling of `stepper`
-      (``method="auto"|"exact"|"exponential"|"diffrax"``;
-      `fojax.simulation._steppers.as_stepper`); not together with `stepper`.
     - `quiet`: no progress bar.
     - `compile_only`: only prepare and compile the program the batch engines (exact,
       exponential) would run, and return ``None``: the same call afterwards (the same
@@ -524,7 +509,7 @@ def run_study(
     if len(names) != len(default_names):
         raise ShapeError("observer_names", len(default_names), len(names),
                          "A signal study (observers=None) has one name." if signal_study else "")
-    stepper = resolve_stepper(stepper, method, solver, rtol, atol, max_steps, who="run_study")
+    stepper = resolve_stepper(stepper, who="run_study")
     stepper = discrete_stepper(study.plant, stepper)  # a discrete-time plant: every sample through simulate
     save = resolve_save(save, quantiles, band_points, settle_tol, who="run_study")
     settle_tol = save.settle_tol
@@ -639,8 +624,7 @@ def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, stride: int,
         "quantile": np.asarray(quantiles, dtype=float),
         "time": np.asarray(study.ts)[::stride],
     }
-    merged = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)
-              if f.name not in ("solver", "devices", "stepper", "exponential_schedule")}
+    merged = cfg.attrs()
     merged["band_stride"] = int(stride)
     merged.update(attrs)
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=merged)
@@ -692,7 +676,7 @@ def _discrete_cfg(study: Study, cfg: SimConfig) -> SimConfig:
     st = discrete_stepper(study.plant, cfg.stepper)
     if st is cfg.stepper:
         return cfg
-    return dataclasses.replace(cfg, stepper=st, method=None, rtol=None, atol=None, max_steps=None, solver=None)
+    return dataclasses.replace(cfg, stepper=st)
 
 
 def resolve_engine(study: Study, observers, cfg: SimConfig = SimConfig()) -> SimConfig:
@@ -729,7 +713,7 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     the mean over samples, or the `quantile` (e.g. 0.9) of the per-sample values.
     Traceable (use inside `jax.jit` / `jax.grad`).
 
-    With ``cfg.stepper`` `Auto` or `Exact` (``cfg.method`` ``"auto"`` or ``"exact"``) and a study of LTI samples with known
+    With ``cfg.stepper`` `Auto` or `Exact` and a study of LTI samples with known
     signals (the types `run_study`'s exact engine accepts; a traced grid is assumed
     uniform), every sample runs on the exact batch-last kernel, reverse-differentiable with
     respect to the observer (`fojax.studies._exact.sample_metrics_traced`: blocks of 32

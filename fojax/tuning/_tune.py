@@ -90,7 +90,7 @@ from ..design import (
     TakagiSugenoObserverDesign,
     unflatten,
 )
-from ..simulation import resolve_stepper
+from ..simulation._steppers import removed_keywords, resolve_stepper
 from ..studies import (
     check_same_on_every_process,
     distributed_errors,
@@ -254,6 +254,7 @@ def _evaluate(params, par, study, loss, quantile, weights, cfg):
     return study_loss(study, par.observer(params), loss=loss, quantile=quantile, weights=weights, cfg=cfg)
 
 
+@removed_keywords
 def tune(
     design,
     train_study: Study,
@@ -279,11 +280,6 @@ def tune(
     checkpoint_every: int = 1,
     resume: bool = False,
     stepper=None,
-    method: str | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
-    max_steps: int | None = None,
-    solver=None,
     callback: Callable | None = None,
     quiet: bool = False,
     devices=None,
@@ -348,8 +344,6 @@ def tune(
       `fojax.studies.study_loss`). A time-varying affine study (δ(t)) trains on the
       exponential engine: its schedule is decided on the host before the first step
       (`fojax.studies.resolve_engine`, with the starting observer).
-    - `method`, `rtol`, `atol`, `max_steps`, `solver`: the legacy spelling of `stepper`
-      (`fojax.simulation._steppers.as_stepper`); not together with `stepper`.
     - `callback`: called as ``callback(step, record)`` after every step; ``record`` is the
       step's history entry plus ``params`` (the current, accepted parameters).
     - `quiet`: no progress bar (by default one on stderr, as `fojax.run_study` shows; in a
@@ -396,7 +390,7 @@ def tune(
     barrier = _DEFAULT_BARRIER.get(type(par), 0.0) if barrier is None else float(barrier)
     optimizer = shared_optimizer("adam", learning_rate=1e-2) if optimizer is None else optimizer
     key = jax.random.PRNGKey(0) if key is None else key
-    cfg = SimConfig(stepper=resolve_stepper(stepper, method, solver, rtol, atol, max_steps, who="tune"),
+    cfg = SimConfig(stepper=resolve_stepper(stepper, who="tune"),
                     devices=None if devices is None else tuple(devices))
     local = devices is None or not spans_processes(devices)
     if not local:
