@@ -45,7 +45,8 @@ import study_default  # noqa: E402
 
 import fojax  # noqa: E402
 from fojax.design import design_functional_observer, Disk  # noqa: E402
-from fojax.simulation._batch import DEFAULT_BLOCK, run_batched  # noqa: E402
+from fojax.simulation._batch import DEFAULT_BLOCK  # noqa: E402
+from fojax.simulation._driver import run_batched  # noqa: E402
 from fojax.studies._exact import exact_problem  # noqa: E402
 from fojax.studies._runner import band_quantiles  # noqa: E402
 

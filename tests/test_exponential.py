@@ -32,7 +32,7 @@ from closed_loop_413 import (  # the §4.1.3 loop shared with test_batch_simulat
 
 import fojax
 from fojax.simulation import simulate_batch_exponential, simulate_lti_batch
-from fojax.simulation._exponential import _ModelSetup, prepare, TRACE_COUNTS
+from fojax.simulation._exponential_setup import _ModelSetup, prepare, TRACE_COUNTS
 from fojax.studies import FaultyPlant
 
 

@@ -20,7 +20,7 @@ from helpers import uncertain_plant_3_3_7
 import fojax
 from fojax import studies as S
 from fojax.design import design_functional_observer, Disk
-from fojax.simulation import _batch
+from fojax.simulation import _batch, _driver
 from fojax.studies import _exact
 
 
@@ -275,8 +275,8 @@ def test_metrics_and_bands_do_not_change_with_chunk_size(ex337):
     prepared, _ = _exact.exact_problem(study, obs, 0.05, res.attrs["band_stride"])
     problem, basis, idx = prepared
     kw = dict(chunk_size=4, block=_batch.DEFAULT_BLOCK, devices=one, basis=basis)
-    streamed, layout = _batch.run_batched(problem, idx, study.ts, host=True, **kw)
-    joined, _ = _batch.run_batched(problem, idx, study.ts, **kw)
+    streamed, layout = _driver.run_batched(problem, idx, study.ts, host=True, **kw)
+    joined, _ = _driver.run_batched(problem, idx, study.ts, **kw)
     assert layout["num_chunks"] == 3
     for a, b in zip(jax.tree.leaves(streamed), jax.tree.leaves(joined), strict=True):
         assert isinstance(a, np.ndarray) and a.shape == b.shape and a.shape[-1] == 10

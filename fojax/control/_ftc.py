@@ -373,21 +373,8 @@ def design_sensor_ftc(
         plain = design_functional_observer(sys, L, **kw).observer
         comp, cmaps = assemble(sys.E, sys.A, sys.B, sys.C, plain, Fa=Fa, Fs=Fs)
         comparison = (comp, (cmaps.K_X, cmaps.K_r))
-    return _build(
-        "sensor",
-        sys,
-        Fa,
-        Fs,
-        L,
-        fb,
-        Lbar,
-        aug,
-        obs,
-        od,
-        np.eye(sys.m),
-        np.zeros((0, sys.m)),
-        comparison,
-    )
+    return _build("sensor", sys, Fa, Fs, L, fb, Lbar, aug, obs, od,
+                  np.eye(sys.m), np.zeros((0, sys.m)), comparison)
 
 
 def design_actuator_ftc(
@@ -443,21 +430,8 @@ def design_actuator_ftc(
         K_X = L
         K_r = np.hstack([np.eye(m), np.zeros((m, nf))])
         comparison = (healthy, (K_X, K_r))
-    return _build(
-        "actuator",
-        sys,
-        Fa,
-        Fs,
-        L,
-        fb,
-        Lbar,
-        aug,
-        obs,
-        od,
-        np.eye(sys.m),
-        np.zeros((0, sys.m)),
-        comparison,
-    )
+    return _build("actuator", sys, Fa, Fs, L, fb, Lbar, aug, obs, od,
+                  np.eye(sys.m), np.zeros((0, sys.m)), comparison)
 
 
 def design_simultaneous_ftc(

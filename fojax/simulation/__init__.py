@@ -2,9 +2,9 @@
 objects (`Auto`, `Exact`, `Exponential`, `Diffrax`) and what to save (`Trajectory`, `Metrics`,
 `Bands`)."""
 
-from ._batch import simulate_lti_batch as simulate_lti_batch
 from ._discrete import Discrete as Discrete
 from ._exponential import simulate_batch_exponential as simulate_batch_exponential
+from ._lti_batch import simulate_lti_batch as simulate_lti_batch
 from ._reduction import (
     consistent_initial_condition as consistent_initial_condition,
     Index1Reduction as Index1Reduction,

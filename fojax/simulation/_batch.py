@@ -1,15 +1,15 @@
-r"""`simulate_lti_batch`: many LTI plant+observer samples, exact stepping, metrics only.
+r"""The batch kernel: many LTI plant+observer samples stepped exactly, metrics accumulated
+in the time loop.
 
 A Monte Carlo study of a linear time-invariant loop needs per-sample *numbers*
-(integrated errors), not trajectories. This path
+(integrated errors), not trajectories. A batch *problem* (`fojax.studies._exact`,
+`fojax.simulation._lti_batch`) gives each sample's joint plant+observer system
+(`joint_matrices`, the one joint builder); this kernel
 
-1. builds every sample's plant and observers with a user function ``model(params_k)``
-   (under `jax.vmap`), reduces the joint system to its slow ODE
-   $\dot w = \mathcal A_k w$ in the ``rank E`` slow SVD coordinates of `fojax.simulation`
-   (the reduction of `fojax.simulate`'s exact method; the SVD of ``E`` is computed once
-   when all samples share it) and discretises it exactly, $\Phi_k = e^{\mathcal A_k h}$
-   (`expm_last`: Taylor/Paterson–Stockmeyer scaling-and-squaring over the samples,
-   LAPACK-free);
+1. reduces the joint system to its slow ODE $\dot w = \mathcal A_k w$ in the ``rank E``
+   slow SVD coordinates of `fojax.simulation` (the reduction of `fojax.simulate`'s exact
+   method) and discretises it exactly, $\Phi_k = e^{\mathcal A_k h}$ (`expm_last` of
+   `fojax.simulation._expm`: LAPACK-free, over the samples);
 2. when the metric outputs $o = G_k w$ have at most as many independent rows as states,
    changes coordinates to $w' = S_k w$ whose leading entries *are* the outputs, so a time
    step is a single ``N × N`` product per sample (`_output_basis`);
@@ -20,34 +20,27 @@ A Monte Carlo study of a linear time-invariant loop needs per-sample *numbers*
    jumps) ``MULTISTEP`` grid steps per pass from precomputed powers, batch first: the
    outputs ``[GΦ; …; GΦ^m] w`` and ``Φ^m w`` (`_multistep_block`; ``Φ`` by `expm_first`,
    block lower-triangular when the problem says which states are the plant's; a graph
-   independent of ``N``); the requested reductions are accumulated *inside* the loop (trapezoid rule),
-   so no ``(B, T, N)`` trajectory is ever stored and memory grows linearly with ``B``;
-4. spreads the blocks over all devices with `jax.shard_map` (round-robin, each device
-   computing only blocks that hold real samples).
+   independent of ``N``); the requested reductions are accumulated *inside* the loop
+   (trapezoid rule), so no ``(B, T, N)`` trajectory is ever stored and memory grows
+   linearly with ``B``.
 
-Batches larger than `chunk_size` are streamed in fixed-size chunks, so one compilation
-serves every ``B``.
+Chunks, padding and devices are the driver's (`fojax.simulation._driver.run_batched`).
 """
 
 from __future__ import annotations
 
 import collections
 import functools
-from collections.abc import Callable, Mapping
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax, shard_map
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax import lax
 from jaxtyping import Array, Float
 
-from .._dtype import as_float_array
-from .._errors import InputError, ShapeError
+from .._errors import ShapeError
 from .._small_linalg import solve_small
-from ..observer import AbstractObserver
-from ..plant import AbstractPlant
 from ._expm import (
     block_mm,
     block_mv,
@@ -59,48 +52,16 @@ from ._expm import (
     mm_last,
 )
 from ._reduction import (
-    check_index1_host,
-    is_concrete,
-    lti_matrices,
     reduce_linear_masked,
-    svd_split,
 )
-from ._steppers import grid_deviation, UNIFORM_GRID_RTOL
 
 
 #: Number of traces of the compiled chunk kernel (tests prove no retrace with it).
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
-#: Reductions understood by `simulate_lti_batch` (``kind`` of a metric).
-METRIC_KINDS = ("iae", "ise", "iae_l1", "ise_l2")
-#: ``(kind, C, "sum")`` of the one metric vocabulary (`fojax.simulation._save`) → the kernel's
-#: summed integrand (``"iae_l1"``, ``"ise_l2"``: their legacy names, still accepted as kinds).
-_SUMMED = {"iae": "iae_l1", "ise": "ise_l2"}
 
-#: Default number of samples per compiled call (discretised together).
-DEFAULT_CHUNK = 4096
 #: Default number of samples stepped together in one time loop (Φ stays in cache).
 DEFAULT_BLOCK = 256
-
-
-def _as_model_output(out):
-    if isinstance(out, AbstractPlant):
-        return out, ()
-    if isinstance(out, tuple) and len(out) == 2 and isinstance(out[0], AbstractPlant):
-        obs = out[1]
-        if isinstance(obs, AbstractObserver):
-            obs = (obs,)
-        obs = tuple(obs)
-        for i, o in enumerate(obs):
-            if not isinstance(o, AbstractObserver):
-                raise InputError(
-                    f"model(...)[1][{i}] is a {type(o).__name__}, not a fojax.AbstractObserver."
-                )
-        return out[0], obs
-    raise InputError(
-        "model(params) must return a fojax.AbstractPlant or a tuple (plant, observers); "
-        f"got {type(out).__name__}."
-    )
 
 
 class Exogenous(eqx.Module):
@@ -172,47 +133,6 @@ def joint_matrices(E, A, B, C, observers, x0, split=None, r=None, exo: Exogenous
     return Aj, w0, out_map, ok
 
 
-def _joint_system(plant, observers, x0, split=None, r=None):
-    """`joint_matrices` of a model's plant and observers (zero input), with the checks of
-    `simulate_lti_batch`."""
-    mats = lti_matrices(plant)
-    if mats is None:
-        raise InputError(
-            "simulate_lti_batch needs a linear time-invariant plant (DescriptorSystem, or "
-            f"UncertainDescriptorSystem with a Constant δ); model returned {type(plant).__name__}. "
-            "Use jax.vmap(fojax.simulate) for other plants."
-        )
-    A, B, C = mats
-    bad = [type(o).__name__ for o in observers if o.linear_matrices() is None]
-    if bad:
-        raise InputError(
-            f"simulate_lti_batch needs LTI observers (linear_matrices() not None); {bad} are not."
-        )
-    return joint_matrices(plant.E, A, B, C, observers, x0, split, r)
-
-
-
-
-def _integrand(o, kinds):
-    """The metric integrands ``(R, b)`` of the stacked outputs ``o`` ``(K, b)`` (one row
-    per output for ``iae``/``ise``, one per metric for ``iae_l1``/``ise_l2``)."""
-    parts, off = [], 0
-    for kind, k in kinds:
-        ok = o[off : off + k]
-        off += k
-        if kind == "iae":
-            parts.append(jnp.abs(ok))
-        elif kind == "ise":
-            parts.append(ok * ok)
-        elif kind == "iae_l1":
-            parts.append(jnp.sum(jnp.abs(ok), axis=0, keepdims=True))
-        else:  # ise_l2
-            parts.append(jnp.sum(ok * ok, axis=0, keepdims=True))
-    return jnp.concatenate(parts, axis=0)
-
-
-
-
 #: Largest accepted ``‖S‖₁‖S⁻¹‖₁`` of the output-coordinate transform (per sample).
 OUTPUT_BASIS_MAX_COND = 1e8
 
@@ -241,50 +161,6 @@ def _output_basis(G0: np.ndarray):
     if np.linalg.cond(S0, 1) > 1e4:
         return None
     return ind, Nc
-
-
-class _ModelProblem(eqx.Module):
-    """The samples of `simulate_lti_batch`: ``model(params_k)``, zero input, the
-    integrated metric kinds of ``Cstack``. A *problem* of the batch kernel gives, per
-    sample ``p``, `joint` ``(Aj, w0, G, ok, jumps)`` (``G`` the metric outputs' map on
-    the joint slow state, ``jumps`` ``None`` or ``(times (J,), Δw (J, N))``), and the
-    reduction of the outputs along the grid (`init`, `update`, `final`)."""
-
-    model: Callable
-    Cstack: Array
-    split: object
-    r: int | None = eqx.field(static=True)
-    kinds: tuple = eqx.field(static=True)
-    keep: bool = eqx.field(static=True, default=False)
-
-    def joint(self, p):
-        params, x0k = p
-        plant, observers = _as_model_output(self.model(params))
-        Aj, w0, out_map, ok = _joint_system(plant, observers, x0k, self.split, self.r)
-        return Aj, w0, self.Cstack @ out_map, ok, None
-
-    def init(self, o0):
-        return jnp.zeros_like(_integrand(o0, self.kinds))
-
-    def update(self, acc, o, k, ts):
-        return acc + _integrand(o, self.kinds)
-
-    def update_block(self, acc, O, ks, ts):
-        """`update` over ``m`` steps at once: ``O`` ``(b, K, m)``."""
-        parts, off = [], 0
-        for kind, k in self.kinds:
-            ok = O[:, off : off + k]
-            off += k
-            v = jnp.sum(jnp.abs(ok) if kind in ("iae", "iae_l1") else ok * ok, axis=2)  # (b, k)
-            parts.append(jnp.sum(v, axis=1, keepdims=True) if kind in ("iae_l1", "ise_l2") else v)
-        return acc + jnp.concatenate(parts, axis=1).T
-
-    def final(self, acc, o0, o_end, ts, h, ok):
-        # trapezoid: h (f_0/2 + f_1 + ... + f_{T-2} + f_{T-1}/2); acc holds f_1 .. f_{T-1}
-        out = h * (acc + 0.5 * _integrand(o0, self.kinds) - 0.5 * _integrand(o_end, self.kinds))
-        return jnp.where(ok[None, :], out, jnp.nan)
-
-
 
 
 def repeat_groups(a, reps: int, axis: int):
@@ -333,11 +209,8 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     enter exactly: ``w_k = Φ w_{k-1} + e^{\mathcal A (t_k - t_j)} Δw_j``.
 
     With `differentiable` `expm_last` gets a squaring budget (``DIFF_MAX_SQUARINGS``) and
-    its hand-written reverse mode (`_expm_last_diff`; it was a fixed-length scan of
-    `jax.lax.cond` squarings), so the whole block is reverse-differentiable
-    (``jax.grad``); the time loop is the same `jax.lax.scan`. (This replaced `expm_small` under `jax.vmap`:
-    on the default §3.3.7 study at B = 1,000 the study_loss value_and_grad compiled in
-    ~5.2 s instead of 6.6-8.7 s and ran 2.2-2.3 s instead of 2.5-2.7 s.)
+    its hand-written reverse mode (`fojax.simulation._expm`), so the whole block is
+    reverse-differentiable (``jax.grad``); the time loop is the same `jax.lax.scan`.
 
     `time_loop` (with ``basis=None``): a replacement of the time loop,
     ``time_loop(problem, Phi, w0, G, jv, kon, ts, reps) -> (acc, w_end)`` (``jv``/``kon``
@@ -362,11 +235,9 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         if shapes[4] is None and shapes[0].shape[0] >= MULTISTEP_MIN_N:
             return _multistep_block(problem, p, h, ts)
     expm = (lambda M: expm_last(M, max_squarings=DIFF_MAX_SQUARINGS)) if differentiable else expm_last  # noqa: E731
-    # the unrolled FMA matvec (N column FMAs) is the fastest forward step (N = 22, 256
-    # samples: 100 ns per sample and step, einsum 970 ns, a fori_loop 160 ns; compile
-    # 0.1-0.2 s for each), but its reverse mode scatters N column cotangents into Φ̄ at
-    # every step: value_and_grad of 1,000 steps × 1,000 samples takes 4.4 s against 2.0 s
-    # with the einsum, so the differentiable path uses the einsum
+    # the unrolled FMA matvec (N column FMAs) is the fastest forward step, but its reverse
+    # mode scatters N column cotangents into Φ̄ at every step, about twice as slow as the
+    # einsum's, so the differentiable path uses the einsum
     matvec = (lambda M, v: jnp.einsum("ijb,jb->ib", M, v)) if differentiable else matvec_last  # noqa: E731
     T = ts.shape[0]
 
@@ -403,8 +274,7 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     Aj = jnp.moveaxis(Aj, 0, -1)  # (N, N, b), or (N, N, b / reps)
     if sim is not None:
         # the joint matrix in the output coordinates, S A S⁻¹, as two batch-last products
-        # (`mm_last`): as batched dots under `jax.vmap` they took ~9 ms of the ~40 ms
-        # set-up of the §4.1.3 workload at B = 10,000 (7 × 7, measured under load)
+        # (`mm_last`: faster than batched dots under `jax.vmap` for these small matrices)
         Aj = mm_last(mm_last(jnp.moveaxis(sim[0], 0, -1), Aj), jnp.moveaxis(sim[1], 0, -1))
     K = scale.shape[1] if basis is None else len(basis[0]) + G.shape[1]
     Phi = expm(h * Aj)  # (N, N, b), or (N, N, b / reps)
@@ -483,17 +353,14 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
 
 #: Grid steps per pass of `_multistep_block` (rounded up to a multiple of the bands' stride).
 MULTISTEP = 16
-#: Smallest joint size ``N`` stepped by `_multistep_block`. CPU time per sample and step
-#: (256 samples, T = 1001, loaded 2-core machine), batch-last matvec vs 16 steps per pass:
-#: N = 3: 3 vs 9 ns; N = 7: 16 vs 21 ns; N = 14: 161 vs 52 ns; N = 22: 372 vs 66 ns.
+#: Smallest joint size ``N`` stepped by `_multistep_block`: below it the batch-last matvec
+#: of one step per pass is faster, above it the matrix products of 16 steps per pass.
 MULTISTEP_MIN_N = 10
 
 
 #: Smallest joint size ``N`` that `_multistep_block` steps in block lower-triangular form
 #: (plant first, `StudyProblem.plant_first`); below it three small GEMMs per product cost
-#: more than one full one. run_study CPU per call (n/N, B = 1,000, measured under load),
-#: triangular vs full: 8/10: 40.7 vs 29.7 ms; 16/20: 50.6 vs 44.0 ms; 32/40: 152 vs 167 ms;
-#: one block at 128/160: 14.9 vs 20.1 ms.
+#: more than one full one, above it the triangular form is faster.
 TRIANGULAR_MIN_N = 32
 
 
@@ -504,12 +371,9 @@ BLOCK_BYTES = 2**21
 
 #: Bytes of one block's ``Φ`` (``8 N² b``) that `block_for` aims at below
 #: ``MULTISTEP_MIN_N`` (the batch-last time loop reads all of ``Φ`` at every step): about
-#: twice the L1 data cache of one core (32 KiB on the 2-core EPYC of the benchmarks). §4.1.3
-#: workload through `run_study` (N = 7, B = 10,000, T = 1,001, one device, CPU time,
-#: measured under load 9-10): blocks of 256 (100 KB of ``Φ``) 0.159 s, 128 (50 KB)
-#: 0.127-0.134 s, 64 (25 KB) 0.127-0.129 s, 32 0.156 s (the set-up's per-block cost
-#: grows); the time loop alone 9.7 / 7.0 / 6.9 / 7.9 ns per sample and step. ``N ≤ 5``
-#: keeps 256 (``n = 4`` of benchmarks/scaling.py, N = 5: 128 was not faster).
+#: twice the L1 data cache of one core (32 KiB): larger blocks leave the cache, smaller
+#: ones pay the set-up's per-block cost more often. ``N ≤ 5`` keeps 256 (smaller blocks
+#: are not faster there).
 STEP_BLOCK_BYTES = 2**16
 
 
@@ -525,8 +389,6 @@ def block_for(N: int | None, block: int) -> int:
         fit = STEP_BLOCK_BYTES // (8 * N * N)
         return max(1, min(block, max(64, 1 << max(0, fit.bit_length() - 1))))
     return max(1, min(block, max(4, BLOCK_BYTES // (8 * N * N))))
-
-
 
 
 def _output_rows(Phi, G, m: int):
@@ -577,10 +439,7 @@ def _multistep_block(problem, p, h, ts):
     error signals). ``R`` and ``Φ^m`` come from `_output_rows` (doubling: ``⌊log₂ m⌋``
     squarings and as many ``(jK × N)(N × N)`` products), ``Φ`` from `expm_first`
     (batched GEMMs). All products are batch-first (XLA's batched GEMM); the graph does
-    not grow with ``N`` (no loop unrolled over ``N``). The previous version stepped
-    ``Φ^m [w_{k+1} … w_{k+m}]`` (``N² m`` per pass): at ``N = 160``, ``K = 2``, blocks
-    of 10, the passes took 13.5 ms per block against 2.7 ms now (CPU, measured under
-    load).
+    not grow with ``N`` (no loop unrolled over ``N``).
 
     Each output is $G\Phi^j(\Phi^m)^p w_0$ instead of ``G Φ(…Φ w_0)``: the rounding
     differs by a few ulps of $\|\Phi\|^k$ (tests compare with SciPy at ``1e-8``). The
@@ -638,456 +497,3 @@ def _multistep_block(problem, p, h, ts):
     return out
 
 
-def _device_kernel(problem, p, nvalid, h, ts, basis, dev):
-    """The blocks of one device: leaves of ``p`` ``(nb, block, ...)``; the first
-    ``nvalid`` blocks are computed (a while loop), the others stay zero."""
-    nb = jax.tree.leaves(p)[0].shape[0]
-    take = lambda a, i: lax.dynamic_index_in_dim(a, i, keepdims=False)  # noqa: E731
-    # a problem with its own stepping (the exponential integrator) brings its block kernel
-    kernel = getattr(problem, "block_kernel", None) or (lambda q, h, ts, basis: _block_kernel(problem, q, h, ts, basis))
-    shape = jax.eval_shape(lambda q: kernel(q, h, ts, basis), jax.tree.map(lambda a: a[0], p))
-    # block i's output (..., b) goes to out[..., i, :]: blocks next to each other along the
-    # batch, so that `_chunk_core`'s reordering to (..., bc) is a reshape on one device
-    # (with the blocks first, it was a copy of every output: 33 MB per chunk of 2,048
-    # samples for the quantile bands' errors of the default §3.3.7 study)
-    out = jax.tree.map(lambda s: jnp.zeros(s.shape[:-1] + (nb, s.shape[-1]), s.dtype), shape)
-
-    def put(o, r_, i):
-        return lax.dynamic_update_slice(o, r_[..., None, :], (0,) * (r_.ndim - 1) + (i, 0))
-
-    def body(i, out):
-        res = kernel(jax.tree.map(lambda a: take(a, i), p), h, ts, basis)
-        return jax.tree.map(lambda o, r_: put(o, r_, i), out, res)
-
-    return lax.fori_loop(0, nvalid[dev], body, out)
-
-
-@eqx.filter_jit
-def _chunk_core(problem, p, nreal, h, ts, block, basis, mesh):
-    """One chunk of ``bc`` samples (leading axis of every leaf of ``p``), of which the
-    first ``nreal`` are real.
-
-    Samples are grouped in blocks of ``block``; block ``k`` goes to device ``k mod D``
-    (balanced within one block); each device computes only its blocks that hold real
-    samples. Returns the problem's reduction with the batch as the last axis ``bc``.
-    """
-    TRACE_COUNTS[type(problem).__name__] += 1
-    if isinstance(problem, _ModelProblem):
-        TRACE_COUNTS["simulate_lti_batch"] += 1
-    bc = jax.tree.leaves(p)[0].shape[0]
-    D = 1 if mesh is None else mesh.devices.size
-    nb = bc // (block * D)
-    # (bc, ...) -> (D, nb, block, ...): block k = j*D + d on device d
-    arrange = lambda a: jnp.swapaxes(a.reshape((nb, D, block) + a.shape[1:]), 0, 1)  # noqa: E731
-    P = jax.tree.map(arrange, p)
-    nblocks = (nreal + block - 1) // block
-    nvalid = jnp.clip((nblocks - jnp.arange(D) + D - 1) // D, 0, nb)  # (D,)
-    if mesh is None:
-        out = _device_kernel(problem, jax.tree.map(lambda a: a[0], P), nvalid, h, ts, basis, 0)
-        out = jax.tree.map(lambda o: o[None], out)
-    else:
-        spec = PartitionSpec("devices")
-
-        def local(p_, nv):
-            d = lax.axis_index("devices")
-            o = _device_kernel(problem, jax.tree.map(lambda a: a[0], p_), nv, h, ts, basis, d)
-            return jax.tree.map(lambda a: a[None], o)
-
-        out = shard_map(local, mesh=mesh, in_specs=(spec, PartitionSpec()), out_specs=spec, check_vma=False)(
-            P, nvalid
-        )
-
-    # (D, *rest, nb, block) -> (*rest, nb, D, block) -> (*rest, bc): a reshape for D = 1
-    def unarrange(o):
-        k = o.ndim - 3
-        rest = o.shape[1 : k + 1]
-        if D > 1:
-            o = jnp.transpose(o, tuple(range(1, 1 + k)) + (k + 1, 0, k + 2))
-        return o.reshape(rest + (bc,))
-
-    return gather_across_processes(jax.tree.map(unarrange, out), mesh)
-
-
-#: `eval_shape_cached`'s results by structure (cleared when it holds `_SHAPE_CACHE_MAX`).
-_SHAPE_CACHE: dict = {}
-_SHAPE_CACHE_MAX = 256
-
-
-def eval_shape_cached(fn, *args):
-    """``eqx.filter_eval_shape(fn, *args)``, cached by ``fn`` and the structure of `args`
-    (tree structure, shapes and dtypes of the array leaves, the other leaves by value).
-
-    A shape evaluation traces ``fn`` in Python every time: `run_study` asked for three or
-    four of them per call (the study's plant and observers, the joint system), 10-30 ms of
-    its fixed cost at n = 4 (measured under load). What they return depends only on that
-    key, so a second call with new numbers reuses it. ``fn`` must be a stable object (a
-    module-level function); arguments with unhashable non-array leaves are not cached."""
-    leaves, treedef = jax.tree.flatten(args)
-    key = (fn, treedef) + tuple((x.shape, x.dtype) if eqx.is_array(x) else x for x in leaves)
-    try:
-        hit = key in _SHAPE_CACHE
-    except Exception:  # an unhashable or array-valued leaf: no cache
-        return eqx.filter_eval_shape(fn, *args)
-    if not hit:
-        if len(_SHAPE_CACHE) >= _SHAPE_CACHE_MAX:
-            _SHAPE_CACHE.clear()
-        _SHAPE_CACHE[key] = eqx.filter_eval_shape(fn, *args)
-    return _SHAPE_CACHE[key]
-
-
-def _joint_of(problem, p):
-    return problem.joint(p)
-
-
-def spans_processes(mesh) -> bool:
-    """Whether `mesh` holds devices of other processes (a global mesh of
-    `jax.distributed.initialize`: ``jax.devices()`` of a multi-process run)."""
-    return mesh is not None and any(d.process_index != jax.process_index() for d in mesh.devices.flat)
-
-
-def gather_across_processes(tree, mesh):
-    """Inside a jitted function: the arrays of `tree` replicated on every device of
-    `mesh` (an all-gather, XLA's collective: gloo on CPU, NCCL on GPU) when the mesh spans
-    several processes, so that every process can read the whole result; unchanged
-    otherwise (a single process reads the shards of its own devices)."""
-    if not spans_processes(mesh):
-        return tree
-    rep = NamedSharding(mesh, PartitionSpec())
-    return jax.tree.map(lambda a: lax.with_sharding_constraint(a, rep), tree)
-
-
-def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, basis=None, host: bool = False,
-                compile_only: bool = False):
-    """Run a batch-kernel `problem` over every sample of ``p`` (leaves with a leading
-    batch axis ``B``), streamed in fixed-size chunks (the last one padded with copies of
-    the last sample; one compilation serves every chunk and every ``B``) and spread over
-    `devices`. ``ts`` must be a concrete uniform grid. Returns the problem's reduction
-    with the batch as the last axis ``B`` (JAX arrays; NumPy arrays with `host`), and the
-    layout used (chunk size after rounding to ``block × devices``, number of chunks,
-    devices, block). With `compile_only` it only compiles the program every chunk runs
-    (JAX's caches then give it to the later run) and returns ``(None, layout)``.
-
-    **Memory.** Besides the result itself, only one chunk's work is alive at a time: with
-    `host` (`run_study`) each chunk's result is copied into one preallocated NumPy array
-    of the whole batch while the next chunk computes, then dropped, so the peak is the
-    result plus about two chunks' outputs (before: every chunk's output, their
-    concatenation and its slice to ``B``, three copies of the result: the quantile bands'
-    error trajectories, ``8 · T_c · K · B`` bytes, are the one output of size ``B``).
-    Without `host` the chunks' valid parts are concatenated once (two copies at the
-    peak)."""
-    T, h, ts = _step_size(ts)
-    Bn = jax.tree.leaves(p)[0].shape[0]
-    mesh = _mesh_for(devices)
-    D = 1 if mesh is None else mesh.devices.size
-    # a global mesh (several processes): the block width of one device, so that every
-    # block has the shapes of a one-process run and its samples the same bits (batched
-    # products of other widths differed by ~1e-15 on a study with fault onsets)
-    Dw = 1 if spans_processes(mesh) else D
-    if getattr(problem, "block_kernel", None) is None:  # the batch kernel's own stepping: block by N
-        one = jax.tree.map(lambda a: a[0], p)
-        block = block_for(eval_shape_cached(_joint_of, problem, one)[0].shape[0], int(block))
-    block = max(1, min(int(block), -(-min(int(chunk_size), Bn) // Dw)))
-    unit = block * D
-    bc = -(-int(chunk_size) // unit) * unit
-    n_chunks = -(-Bn // bc)
-    pad = n_chunks * bc - Bn
-    if pad:
-        p = jax.tree.map(
-            lambda a: jnp.concatenate([a, jnp.repeat(lax.slice_in_dim(a, Bn - 1, Bn), pad, axis=0)], axis=0), p
-        )
-    layout = dict(chunk_size=bc, num_chunks=n_chunks, num_devices=D, block=block)
-    outs, result, pending = [], None, None
-
-    def store(i, o):  # host: chunk i's valid samples into the preallocated result, then drop it
-        nonlocal result
-        o = jax.tree.map(np.asarray, o)  # waits for chunk i (chunk i + 1 is already dispatched)
-        if result is None:
-            result = jax.tree.map(lambda a: np.empty(a.shape[:-1] + (Bn,), a.dtype), o)
-        nv = min(Bn - i * bc, bc)
-        for dst, src in zip(jax.tree.leaves(result), jax.tree.leaves(o)):
-            dst[..., i * bc : i * bc + nv] = src[..., :nv]
-
-    for i in range(n_chunks):
-        pc = jax.tree.map(lambda a, i=i: lax.slice_in_dim(a, i * bc, (i + 1) * bc), p)
-        nv = min(Bn - i * bc, bc)
-        if compile_only:  # one program for every chunk (the last one is padded)
-            _chunk_core.lower(problem, pc, jnp.asarray(nv), h, ts, block, basis, mesh).compile()
-            return None, layout
-        o = _chunk_core(problem, pc, jnp.asarray(nv), h, ts, block, basis, mesh)
-        if host:
-            if pending is not None:
-                store(*pending)
-            pending = (i, o)
-        else:
-            outs.append(jax.tree.map(lambda a, nv=nv: a[..., :nv], o))
-    if host:
-        store(*pending)
-        return result, layout
-    out = outs[0] if n_chunks == 1 else jax.tree.map(lambda *a: jnp.concatenate(a, axis=-1), *outs)
-    return out, layout
-
-
-def _check_metrics(metrics, size):
-    if not isinstance(metrics, Mapping) or not metrics:
-        raise InputError("metrics must be a non-empty mapping name -> (kind, C).")
-    names, kinds, mats = [], [], []
-    for name, spec in metrics.items():
-        ok = isinstance(spec, tuple) and (
-            (len(spec) == 2 and spec[0] in METRIC_KINDS)
-            or (len(spec) == 3 and spec[0] in ("iae", "ise") and spec[2] in ("none", "sum"))
-        )
-        if not ok:
-            raise InputError(
-                f"metrics[{name!r}] must be a tuple (kind, C) or (kind, C, reduce) with kind in ('iae', 'ise') "
-                f"and reduce 'none' (per row of C) or 'sum' (over the rows: the metric table of "
-                f"fojax.simulation._save; legacy kinds 'iae_l1' = ('iae', C, 'sum'), 'ise_l2' = "
-                f"('ise', C, 'sum')); got {spec!r}."
-            )
-        kind, C = spec[0], spec[1]
-        if len(spec) == 3 and spec[2] == "sum":
-            kind = _SUMMED[kind]  # the kernel's name of the summed integrand
-        C = as_float_array(f"metrics[{name!r}] C", C)
-        if C.ndim == 1:
-            C = C[None, :]
-        if C.ndim != 2 or C.shape[1] != size:
-            raise ShapeError(
-                f"metrics[{name!r}] C",
-                f"(k, {size}) acting on [x; observer states]",
-                tuple(C.shape),
-            )
-        names.append(name)
-        kinds.append((kind, int(C.shape[0])))
-        mats.append(C)
-    return names, tuple(kinds), jnp.concatenate(mats, axis=0)
-
-
-def _step_size(ts, who: str = "simulate_lti_batch"):
-    """``(T, h, ts)`` of a uniform increasing grid (the batch kernels' entries; `who` names
-    the caller in the error): the host test is `fojax.simulation._steppers.grid_deviation`,
-    a traced grid is checked at run time."""
-    ts = as_float_array("ts", ts, ndim=1)
-    T = ts.shape[0]
-    if T < 2:
-        raise ShapeError("ts", "(T,) with T >= 2", tuple(ts.shape), "ts[0] is the initial time.")
-    if is_concrete(ts):
-        dev, h = grid_deviation(ts)
-        if not dev <= UNIFORM_GRID_RTOL:  # also refuses decreasing grids (h <= 0)
-            raise InputError(
-                f"{who} steps on a uniform increasing grid; ts is not one "
-                f"(max |ts_k − (t0 + k h)| / h = {dev:.2e} > {UNIFORM_GRID_RTOL:.0e}, h = {h:g}). "
-                "Use ts = jnp.linspace(t0, t1, T)."
-            )
-        return T, jnp.asarray(h, dtype=ts.dtype), ts
-    h = (ts[-1] - ts[0]) / (T - 1)
-    k = jnp.arange(T, dtype=ts.dtype)
-    dev = jnp.max(jnp.abs(ts - (ts[0] + k * h))) / h
-    h = eqx.error_if(
-        h,
-        ~((dev <= UNIFORM_GRID_RTOL) & (h > 0)),
-        f"{who} needs a uniform increasing grid ts (runtime check).",
-    )
-    return T, h, ts
-
-
-def _mesh_for(devices):
-    """A 1-d mesh over `devices` (``None``: all local devices of the default backend), or
-    ``None`` for a single device."""
-    if devices is None:
-        devices = jax.local_devices()
-    devices = list(devices)
-    if not devices:
-        raise InputError("devices must contain at least one jax.Device.")
-    if len(devices) == 1:
-        return None
-    return Mesh(np.array(devices), ("devices",))
-
-
-@eqx.filter_jit
-def _first_sample(model, p0, x00):
-    """Sample 0, compiled once per structure (done eagerly, this host preparation cost
-    ~0.1 s per call): ``E``, ``A``, the SVD split of ``E`` and the full-size output map
-    of the joint state."""
-    plant, observers = _as_model_output(model(p0))
-    split = svd_split(plant.E)
-    _, _, out_map, _ = _joint_system(plant, observers, x00, split, None)
-    sizes = (plant.n,) + tuple(o.state_size for o in observers)  # static (Python ints)
-    return plant.E, lti_matrices(plant)[0], split, out_map, sizes
-
-
-@eqx.filter_jit
-def _same_E(model, params, E0):
-    """Whether every sample of ``params`` (leading batch axis) has ``E == E0``."""
-    Es = jax.vmap(lambda p: _as_model_output(model(p))[0].E)(params)
-    return jnp.all(Es == E0[None])
-
-
-def simulate_lti_batch(
-    model: Callable,
-    params,
-    x0,
-    ts,
-    *,
-    metrics: Mapping[str, tuple],
-    chunk_size: int = DEFAULT_CHUNK,
-    block: int = DEFAULT_BLOCK,
-    devices=None,
-) -> dict:
-    r"""Integrated metrics of a batch of LTI descriptor plants (+ LTI observers), exactly.
-
-    For every sample $k$, ``model(params_k)`` returns a linear time-invariant descriptor
-    plant $E\dot x = A_k x$ (zero input: put feedback into the matrices) and optionally
-    LTI observers $\dot\xi_i = A_{o,i}\xi_i + B_{y,i} y$ started at their
-    `initial_state()`. The joint system is reduced to its slow ODE (the index-1
-    reduction of `fojax.simulate`, kept in the ``rank E`` slow coordinates) and
-    discretised exactly on the uniform grid ``ts`` (one matrix exponential per sample,
-    `expm_last`); the samples are then stepped together and, for each requested metric
-    ``name: (kind, C)`` with $o = C\,[x;\xi_1;\dots]$, the trapezoid rule on ``ts`` is
-    accumulated during the time loop:
-
-    - ``"iae"``: $\int |o_i|\,\mathrm dt$ per row of ``C`` → ``(B, k)``;
-    - ``"ise"``: $\int o_i^2\,\mathrm dt$ per row → ``(B, k)``;
-    - ``("iae", C, "sum")`` (legacy ``"iae_l1"``): $\int \|o\|_1\,\mathrm dt$ → ``(B,)``;
-    - ``("ise", C, "sum")`` (legacy ``"ise_l2"``): $\int \|o\|_2^2\,\mathrm dt$ → ``(B,)``.
-
-    This is the exact stepper's batch kernel (`fojax.Exact`): `fojax.run_study` with
-    ``stepper=Exact()`` or ``Auto()`` runs the same kernel (`run_batched`) on a `Study`;
-    this function is its entry for a user's own ``model(params)``.
-
-    **How it runs.** No trajectory is stored. Batches are streamed in chunks of
-    `chunk_size` samples (rounded up to a multiple of ``block × devices``; the last
-    chunk padded), so the kernel is compiled once per *structure* (model, shapes, metric
-    kinds, chunk) and reused for any ``B`` and any numbers; memory is
-    ``O(chunk_size)``. Inside a chunk, samples are processed in blocks of `block`: a
-    block is discretised and then stepped through the whole grid with the batch as the
-    last axis (``Φ`` ``(N, N, block)``, each step ``N²`` fused multiply–adds per
-    sample), so its data stays in the CPU cache; only blocks holding real samples are
-    computed. With several devices (`devices`, default: all local devices, e.g.
-    ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` for two CPU cores) the blocks
-    are distributed round-robin with `jax.shard_map` — one code path for one or many
-    devices; the result does not depend on the number of devices or the block size
-    (each sample's arithmetic is the same).
-
-    When every sample has the same ``E`` (checked on the host), its SVD split is
-    computed once; otherwise each sample computes its own and a sample whose ``rank E``
-    differs from the first sample's gets ``nan`` metrics.
-
-    **Arguments:**
-
-    - `model`: ``params_k -> plant`` or ``(plant, observers)``; the plant must be a
-      `fojax.DescriptorSystem` (or an `UncertainDescriptorSystem` with constant ``δ``),
-      regular and impulse-free, the observers LTI. Use a stable function object (not a
-      new lambda per call) so the compiled kernel is reused.
-    - `params`: pytree of arrays with a leading batch axis ``B`` (one entry per sample).
-    - `x0`: ``(B, n)`` initial plant states (made consistent by keeping their slow part,
-      as `fojax.simulate` does).
-    - `ts`: ``(T,)`` uniform increasing output grid.
-    - `metrics`: mapping ``name -> (kind, C)`` or ``(kind, C, reduce)``, ``kind``
-      ``"iae"`` or ``"ise"``, ``reduce`` ``"none"`` (default, per row) or ``"sum"`` (over
-      the rows; the legacy kinds ``"iae_l1"``, ``"ise_l2"`` mean ``("iae", C, "sum")``,
-      ``("ise", C, "sum")``): the names of `fojax.Metrics` (metric table of
-      `fojax.simulation._save`). ``C`` of shape ``(k, n + Σ observer sizes)`` (or
-      ``(n + Σ,)``).
-    - `chunk_size`: samples per compiled call (default 4096).
-    - `block`: samples stepped together in one time loop (default 256): ``Φ`` and the
-      output maps of a block, ``8 (N² + k N) · block`` bytes, should fit in the CPU's
-      L2 cache; it is capped by `block_for`: for ``N ≥ 10`` 64 at ``N = 64``, 16 at
-      ``N = 128``; below, ``Φ`` within 64 KiB (128 at ``N = 6 … 8``, 64 at ``N = 9``).
-      (Unrolling the time loop was measured slower.)
-    - `devices`: the devices to spread the blocks over (default `jax.local_devices()`).
-
-    **Returns:** a dict ``name -> (B,)`` or ``(B, k)`` array (float64).
-
-    **Raises:** `fojax.InputError` (non-LTI model, unknown metric kind, non-uniform
-    grid, bad sizes), `fojax.ShapeError`; index-1 checks run on the host for the first
-    sample when the inputs are concrete. Samples whose plant is impulsive give non-finite
-    metrics. Not differentiable in reverse mode (the block loop has a data-dependent
-    trip count); use `fojax.simulate` under `jax.grad`.
-    """
-    leaves = jax.tree.leaves(params)
-    if not leaves:
-        raise InputError("params must contain at least one array with a leading batch axis.")
-    x0 = as_float_array("x0", x0, ndim=2)
-    Bn = x0.shape[0]
-    for leaf in leaves:
-        if jnp.ndim(leaf) < 1 or jnp.shape(leaf)[0] != Bn:
-            raise ShapeError(
-                "params leaves", f"leading batch axis {Bn} (= x0.shape[0])", tuple(jnp.shape(leaf))
-            )
-    chunk_size, block = int(chunk_size), int(block)
-    if chunk_size < 1:
-        raise InputError(f"chunk_size must be a positive integer, got {chunk_size}.")
-    if block < 1:
-        raise InputError(f"block must be a positive integer, got {block}.")
-    T, h, ts = _step_size(ts)
-    params = jax.tree.map(jnp.asarray, params)
-    first = jax.tree.map(lambda a: lax.index_in_dim(a, 0, keepdims=False), params)
-    n = x0.shape[1]
-    concrete = is_concrete(params, x0)
-    if concrete:  # compiled once per structure; raises the InputError of a non-LTI model
-        E0, A0, split0, out_map0, sizes = _first_sample(model, first, lax.index_in_dim(x0, 0, keepdims=False))
-    else:
-        plant0, observers0 = _as_model_output(model(first))
-        sizes = (plant0.n,) + tuple(o.state_size for o in observers0)
-    if sizes[0] != n:
-        raise ShapeError("x0", f"(B, {sizes[0]})", tuple(x0.shape))
-    names, kinds, Cstack = _check_metrics(metrics, sum(sizes))
-    if concrete:
-        E0, out_map0 = np.asarray(E0), np.asarray(out_map0)
-        check_index1_host(E0, np.asarray(A0), jacobian_name="A")
-        r = int(np.sum(np.asarray(split0.slow)))
-        G0 = np.asarray(Cstack) @ np.delete(out_map0, np.s_[r:n], axis=1)
-        Nc = _output_basis(G0)
-        Nc = None if Nc is None else (Nc[0], jnp.asarray(Nc[1]))
-    else:
-        if lti_matrices(plant0) is None:
-            _joint_system(plant0, observers0, None)  # raises the InputError naming the plant
-        split0, Nc = None, None
-        r = int(np.sum(np.asarray(svd_split(plant0.E).slow))) if is_concrete(plant0.E) else None
-    mesh = _mesh_for(devices)
-    D = 1 if mesh is None else mesh.devices.size
-    if r is not None:
-        block = block_for(r + sum(sizes[1:]), block)
-    block = min(block, -(-min(chunk_size, Bn) // D))  # tiny batches: no block of mostly padding
-    unit = block * D
-    bc = -(-chunk_size // unit) * unit
-
-    n_chunks = -(-Bn // bc)
-    pad = n_chunks * bc - Bn
-    samples = (params, x0)  # unpadded: `run_batched` pads them itself
-    if pad:
-        padf = lambda a: jnp.concatenate(  # noqa: E731
-            [a, jnp.repeat(lax.slice_in_dim(a, Bn - 1, Bn), pad, axis=0)], axis=0
-        )
-        params, x0 = jax.tree.map(padf, params), padf(x0)
-    nreal = np.minimum(Bn - bc * np.arange(n_chunks), bc)
-    chunks = None
-    split = None
-    if split0 is not None:
-        # every sample shares E (checked per chunk, compiled once): one SVD split for all
-        chunks = [
-            jax.tree.map(lambda a, i=i: lax.slice_in_dim(a, i * bc, (i + 1) * bc), (params, x0))
-            for i in range(n_chunks)
-        ]
-        if all(bool(_same_E(model, c[0], E0)) for c in chunks):
-            split = split0
-    problem = _ModelProblem(model, Cstack, split, r, kinds)
-    if chunks is not None and is_concrete(h, Cstack, ts):
-        # concrete inputs: the one chunk / pad / device front of the batch kernels, the one
-        # `run_study` runs (`run_batched`: same chunks, blocks and per-sample arithmetic)
-        out, _ = run_batched(problem, samples, ts, chunk_size=chunk_size, block=block, devices=devices, basis=Nc)
-    elif n_chunks == 1:
-        out = _chunk_core(problem, (params, x0), jnp.asarray(nreal[0]), h, ts, block, Nc, mesh)
-    else:
-        resh = lambda a: a.reshape((n_chunks, bc) + a.shape[1:])  # noqa: E731
-        res = lax.map(
-            lambda px: _chunk_core(problem, (px[0], px[1]), px[2], h, ts, block, Nc, mesh),
-            (jax.tree.map(resh, params), resh(x0), jnp.asarray(nreal)),
-        )  # (n_chunks, R, bc)
-        out = jnp.moveaxis(res, 1, 0).reshape(res.shape[1], n_chunks * bc)
-    out = out[:, :Bn].T  # (B, R)
-    result, off = {}, 0
-    for name, (kind, k) in zip(names, kinds):
-        r_ = 1 if kind in ("iae_l1", "ise_l2") else k
-        result[name] = out[:, off] if kind in ("iae_l1", "ise_l2") else out[:, off : off + r_]
-        off += r_
-    return result

@@ -19,13 +19,12 @@ from ._families import (
     piecewise_constant_delta as piecewise_constant_delta,
     sinusoidal_delta as sinusoidal_delta,
 )
+from ._loss import resolve_engine as resolve_engine, study_loss as study_loss
 from ._runner import (
     error_metrics as error_metrics,
-    resolve_engine as resolve_engine,
     run_study as run_study,
     SimConfig as SimConfig,
     Study as Study,
-    study_loss as study_loss,
     StudyResult as StudyResult,
 )
 from ._sharding import (

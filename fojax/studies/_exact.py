@@ -35,11 +35,11 @@ from ..plant import Constant, PiecewiseConstant, Ramp, Sine, Stack, Step, SumSig
 from ..simulation._batch import (
     _block_kernel,
     _output_basis,
-    eval_shape_cached,
     Exogenous,
     joint_matrices,
     repeat_groups,
 )
+from ..simulation._driver import eval_shape_cached
 from ..simulation._expm import DIFF_MAX_SQUARINGS, expm_last
 from ..simulation._reduction import (
     check_index1_host,
@@ -321,7 +321,7 @@ SAME_E_BATCH = 256
 def _structure(fn, *args):
     """The output structure of ``fn(*args)`` without computing it (``None`` stays ``None``,
     module types are kept, arrays become shapes); cached by structure
-    (`fojax.simulation._batch.eval_shape_cached`: `fn` is one of the module-level
+    (`fojax.simulation._driver.eval_shape_cached`: `fn` is one of the module-level
     functions below)."""
     return eval_shape_cached(fn, *args)
 

@@ -49,7 +49,7 @@ starting observer (`exponential_schedule` through `fojax.studies.resolve_engine`
 the step the schedule (static integers), so the study stays data.
 
 **Compile time.** The set-up of the decomposition is compiled once, for the host pre-pass
-(`fojax.simulation._exponential.prepare`), which hands the kernel only what it reads; the
+(`fojax.simulation._exponential_setup.prepare`), which hands the kernel only what it reads; the
 kernel holds one ETDRK4 step body; the host passes are compiled without the backend's
 optimisation passes (`HOST_PASS_COMPILER_OPTIONS`); the φ-functions of a concrete $A_0$
 are SciPy's `expm` on the host (nothing compiled). Where the first call's CPU goes
@@ -79,18 +79,17 @@ import numpy as np
 
 from .._errors import FojaxError, InputError
 from ..plant import Sine
-from ..simulation._batch import _step_size
-from ..simulation._exponential import (
+from ..simulation._driver import _step_size
+from ..simulation._exponential import ExponentialProblem, phi_functions
+from ..simulation._exponential_setup import (
     _check_structure,
     _full_plan,
     _plant_signals,
     _with_probes,
     check_affine,
     decompose,
-    ExponentialProblem,
     HOST_PASS_COMPILER_OPTIONS,
     kernel_inputs,
-    phi_functions,
     prepare,
     setup_all,
     setup_data,

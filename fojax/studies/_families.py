@@ -12,8 +12,8 @@ static structure and reuses the compiled study.
 Every sampler takes a `jax.random` key and a count; the same key gives the same
 family (bit for bit). The draws of `constant_delta`, `fault_scenarios` and
 `constant_faults` are one compiled program per shape (their ranges are traced): drawn
-eagerly, every `jax.random` primitive compiled on its own, ~2 s of `fojax study`'s
-start-up on the 2-core reference machine (issue 13); the bits are the eager ones.
+eagerly, every `jax.random` primitive would be compiled on its own, a noticeable part of
+`fojax study`'s start-up; the bits are the eager ones.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ numbers (a new key, new observer gains) reuse the compiled code; only a new
 `fojax.Auto()`; `fojax.simulation._steppers`). LTI studies with known signals do not
 take this path: they run on the batch-last exact kernel shared with
 `fojax.simulation.simulate_lti_batch` (`fojax.studies._exact`), which streams chunks,
-pads and shards with the same kernel code (`fojax.simulation._batch.run_batched`).
+pads and shards with the same kernel code (`fojax.simulation._driver.run_batched`).
 Time-varying affine studies (δ(t), faults, known inputs) run on the exponential
 integrator through the same `run_batched` (`fojax.studies._exponential`).
 
@@ -65,8 +65,9 @@ from .._errors import InputError, ShapeError
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ..simulation import simulate
-from ..simulation._batch import DEFAULT_BLOCK, DEFAULT_CHUNK, gather_across_processes, run_batched
+from ..simulation._batch import DEFAULT_BLOCK
 from ..simulation._discrete import discrete_stepper
+from ..simulation._driver import DEFAULT_CHUNK, gather_across_processes, run_batched
 from ..simulation._save import (
     error_metrics,
     METRIC_NAMES,
@@ -75,16 +76,13 @@ from ..simulation._save import (
     UNSET,
 )
 from ..simulation._steppers import AbstractStepper, Exponential, removed_keywords, resolve_stepper
-from ._exact import exact_problem, exact_refusal, sample_metrics_traced
-from ._exponential import exponential_metrics_traced, exponential_problem, exponential_schedule
+from ._exact import exact_problem
+from ._exponential import exponential_problem
 from ._families import Family
 from ._sharding import (
     check_same_on_every_process,
     distributed_errors,
-    per_sample,
-    sample_mesh,
     spans_processes,
-    sum_rows,
 )
 from ._wrappers import FaultyPlant
 
@@ -118,14 +116,12 @@ def band_quantiles(errors: np.ndarray, quantiles, overwrite: bool = False) -> np
     With `overwrite` (a writeable NumPy array the caller no longer needs, e.g. the
     exact engine's own host buffer) `errors` is sorted in place: no second array of the
     size of the errors is allocated (160 MB for the default §3.3.7 study at B = 10,000,
-    whose first touch cost more than the copy: in-place 0.16 s, copy-and-sort
-    0.18-0.37 s CPU, measured under load).
+    whose first touch would cost more than the sort).
 
     The same interpolation as NumPy's (``a + (b - a) γ``, or ``b - (b - a)(1 - γ)`` for
     ``γ ≥ 0.5``, at the virtual index ``(n - 1) q``; ``nan`` where a row holds a ``nan``),
-    but NumPy's vectorised sort instead of its partition with several ``kth``: on the
-    default §3.3.7 bands (201 × 10 rows of 10,000 samples) 0.56 s instead of 2.36 s
-    (measured under load). Tested equal to ``np.quantile``."""
+    but NumPy's vectorised sort instead of its partition with several ``kth`` (several
+    times faster for many quantiles). Tested equal to ``np.quantile``."""
     if overwrite and isinstance(errors, np.ndarray) and errors.flags.writeable:
         s = errors
         s.sort(axis=-1)
@@ -486,7 +482,7 @@ def run_study(
     - `compile_only`: only prepare and compile the program the batch engines (exact,
       exponential) would run, and return ``None``: the same call afterwards (the same
       study shapes and observer structures; new numbers are fine) runs it without
-      compiling. ``fojax study`` does this on a thread while it tunes (issue 13). Nothing
+      compiling. ``fojax study`` does this on a thread while it tunes. Nothing
       is compiled ahead for the ``vmap-simulate`` engine.
 
     **Returns:** a `StudyResult` (``None`` with `compile_only`).
@@ -668,114 +664,3 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
     return _result(study, names, quantiles, cfg, metrics, axes, stride, method=method, solver=solver,
                    chunk_size=layout["chunk_size"], num_chunks=layout["num_chunks"],
                    num_devices=layout["num_devices"], engine=engine)
-
-
-def _discrete_cfg(study: Study, cfg: SimConfig) -> SimConfig:
-    """`cfg`, or for a discrete-time plant `cfg` with the `Discrete` stepper (every sample
-    through `fojax.simulate`; `fojax.simulation._discrete`)."""
-    st = discrete_stepper(study.plant, cfg.stepper)
-    if st is cfg.stepper:
-        return cfg
-    return dataclasses.replace(cfg, stepper=st)
-
-
-def resolve_engine(study: Study, observers, cfg: SimConfig = SimConfig()) -> SimConfig:
-    r"""Host: the `SimConfig` with which `study_loss` runs the concrete `study` on the same
-    engine when the study is later traced (e.g. an argument of a jitted step, as in
-    `fojax.tune`, so that new study numbers do not recompile).
-
-    When the exact engine does not take the study and the exponential one does
-    (`fojax.studies._exponential.exponential_schedule`: the qualification, the affine check
-    and the step schedule, decided with the concrete `observers`, e.g. the starting design
-    of a tuning run), returns `cfg` with ``exponential_schedule`` set to that schedule;
-    otherwise `cfg` unchanged (the exact engine decides on traced studies by itself;
-    anything else runs `fojax.simulate` under `jax.vmap`). The schedule belongs to this
-    study: another study needs its own call.
-    """
-    observers = tuple(observers) if isinstance(observers, (tuple, list)) else (observers,)
-    if _discrete_cfg(study, cfg) is not cfg:
-        return _discrete_cfg(study, cfg)
-    stepper = cfg.stepper
-    if exact_refusal(study, observers, stepper) is None:
-        return cfg
-    if "exponential-batch" not in stepper.engines or sample_mesh(cfg.devices) is not None:
-        return cfg
-    options = stepper if isinstance(stepper, Exponential) else Exponential()
-    schedule = exponential_schedule(study, observers, cfg.settle_tol, options)
-    return cfg if schedule is None else dataclasses.replace(cfg, exponential_schedule=schedule)
-
-
-def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", quantile: float | None = None,
-               weights=None, cfg: SimConfig = SimConfig()) -> Array:
-    r"""Differentiable scalar loss of one observer over all samples of `study`.
-
-    Per sample: the (weighted) mean over signals of the IAE or ISE of $\hat z - z$; then
-    the mean over samples, or the `quantile` (e.g. 0.9) of the per-sample values.
-    Traceable (use inside `jax.jit` / `jax.grad`).
-
-    With ``cfg.stepper`` `Auto` or `Exact` and a study of LTI samples with known
-    signals (the types `run_study`'s exact engine accepts; a traced grid is assumed
-    uniform), every sample runs on the exact batch-last kernel, reverse-differentiable with
-    respect to the observer (`fojax.studies._exact.sample_metrics_traced`: blocks of 32
-    samples; its reverse mode is the adjoint recurrence of `fojax.studies._adjoint` at the
-    observer's size, the plant's trajectory being independent of the observer,
-    checkpointed, so memory does not grow with the number of time steps; like `jax.grad`,
-    it takes the derivative of $|e|$ as $\mathrm{sign}(e)$, 0 at 0; differentiating with
-    respect to the study's arrays raises `fojax.InputError`: use
-    ``cfg=SimConfig(stepper=fojax.Diffrax())`` for that). With ``cfg.stepper`` `Auto` (or
-    `Exponential`), no
-    ``cfg.devices`` and a *concrete* study whose samples vary in time only through signals
-    entering the differential equations affinely (`run_study`'s exponential engine: a
-    time-varying δ(t), faults on the step grid, known inputs), or a traced study with
-    ``cfg.exponential_schedule`` set by `resolve_engine` on its concrete values (as
-    `fojax.tune` does), the samples run on that engine (`fojax.studies._exponential.exponential_metrics_traced`: ETDRK4 in blocks of 64 samples,
-    every term per sample, the time loop in `jax.checkpoint`-ed segments of about √S of the
-    S steps, so the memory of the backward pass grows like √S), differentiable with respect
-    to the observer; the host decisions (qualification, the affine check, the step
-    schedule) are taken with the observer when it is concrete and with a zero stand-in of
-    it when it is traced (the schedule then ignores the observer's poles). A traced study
-    without ``cfg.exponential_schedule`` does not qualify. Otherwise each sample runs
-    `fojax.simulate` under `jax.vmap`.
-
-    With ``cfg.devices`` (e.g. ``jax.devices()`` after `jax.distributed.initialize`: all
-    processes' devices) the samples are spread over those devices, each computing its own;
-    the loss and its gradient with respect to the observer are bit-identical to
-    ``cfg.devices=None`` (one device): see `fojax.studies._sharding`.
-    """
-    if loss not in ("iae", "ise"):
-        raise InputError(f"loss must be 'iae' or 'ise', got {loss!r}.")
-    w = jnp.full((study.num_signals,), 1.0 / study.num_signals) if weights is None else jnp.asarray(weights)
-    mesh = sample_mesh(cfg.devices)
-    cfg = _discrete_cfg(study, cfg)
-    stepper = cfg.stepper  # its engines, in order (fojax.simulation._steppers)
-    if exact_refusal(study, (observer,), stepper) is None:
-        # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
-        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh, metric=loss)
-        per = w @ mets[0]  # (B,)
-        return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
-    if "exponential-batch" in stepper.engines and mesh is None:
-        # time-varying affine samples: the exponential engine, checkpointed (fojax.studies._exponential)
-        explicit = isinstance(stepper, Exponential)
-        out = exponential_metrics_traced(study, (observer,), cfg.settle_tol,
-                                         options=stepper if explicit else Exponential(),
-                                         schedule=cfg.exponential_schedule, metric=loss)
-        if out is not None:
-            per = w @ out[0][0]  # (B,): the one metric accumulated
-            return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
-    if "vmap-simulate" not in stepper.engines:
-        raise InputError(
-            f"study_loss: stepper {stepper!r} cannot run this study (the exponential engine needs a concrete "
-            "study of time-varying affine samples on one device; run_study(stepper=...) says why not). Use "
-            "SimConfig(stepper=fojax.Auto()) or Diffrax()."
-        )
-    iu, jf = (jnp.asarray(a) for a in _indices(study))
-
-    def local(study, p):
-        def one(i, j, obs):
-            (e,), _ = sample_errors(study, (obs,), i, j, cfg)
-            return error_metrics(study.ts, e, cfg.settle_tol)[loss] @ w
-
-        return jax.vmap(one)(*p)
-
-    per = per_sample(local, study, observer, iu, jf, mesh)
-    return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)

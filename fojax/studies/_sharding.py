@@ -1,6 +1,6 @@
 r"""The samples of a differentiable study loss spread over devices, and over processes.
 
-`run_study` streams chunks through `fojax.simulation._batch.run_batched` (forward only);
+`run_study` streams chunks through `fojax.simulation._driver.run_batched` (forward only);
 `study_loss` (what `tune` differentiates) computes every sample in one traced block. With
 `devices` (``SimConfig.devices``) that block is cut along the sample axis over a 1-d
 `jax.sharding.Mesh` (`jax.shard_map`: each device computes its own samples, no
@@ -42,7 +42,7 @@ from jax import lax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._errors import DistributedError, InputError
-from ..simulation._batch import spans_processes as mesh_spans_processes
+from ..simulation._driver import spans_processes as mesh_spans_processes
 
 
 AXIS = "batch"
