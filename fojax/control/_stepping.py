@@ -37,12 +37,11 @@ import scipy.linalg
 from jax import lax
 
 from .._errors import ImpulsiveSystemError, InputError
+from ..simulation._steppers import grid_deviation, UNIFORM_GRID_RTOL
 
 
 #: Gauss–Legendre nodes per grid interval.
 NODES = 4
-#: Relative tolerance on the uniformity of the grid.
-GRID_RTOL = 1e-9
 
 
 def reduce_host(E, A, B):
@@ -116,9 +115,8 @@ def grid_step(ts) -> float:
     t = np.asarray(ts, dtype=float)
     if t.ndim != 1 or t.size < 2:
         raise InputError(f"ts must be a 1-d array with at least 2 times, got shape {t.shape}.")
-    dt = (t[-1] - t[0]) / (t.size - 1)
-    dev = np.max(np.abs(t - (t[0] + dt * np.arange(t.size)))) / dt
-    if not dt > 0 or dev > GRID_RTOL:
+    dev, dt = grid_deviation(t)  # the one uniform-grid test (inf when dt <= 0)
+    if not dev <= UNIFORM_GRID_RTOL:
         raise InputError(
             "the exact stepper needs a uniform, increasing grid ts (use jnp.linspace); "
             f"max |t_k − (t_0 + kΔt)|/Δt = {dev:.2e}."

@@ -28,7 +28,7 @@ from .._dtype import as_float_array
 from .._errors import InputError, ShapeError
 from ._batch import _block_kernel, block_for, TRACE_COUNTS
 from ._reduction import is_concrete
-from ._steppers import grid_deviation, UNIFORM_GRID_RTOL
+from ._steppers import grid_deviation, grid_deviation_traced, UNIFORM_GRID_RTOL
 
 
 #: Default number of samples per compiled call (discretised together).
@@ -240,9 +240,7 @@ def _step_size(ts, who: str = "simulate_lti_batch"):
                 "Use ts = jnp.linspace(t0, t1, T)."
             )
         return T, jnp.asarray(h, dtype=ts.dtype), ts
-    h = (ts[-1] - ts[0]) / (T - 1)
-    k = jnp.arange(T, dtype=ts.dtype)
-    dev = jnp.max(jnp.abs(ts - (ts[0] + k * h))) / h
+    dev, h = grid_deviation_traced(ts)
     h = eqx.error_if(
         h,
         ~((dev <= UNIFORM_GRID_RTOL) & (h > 0)),

@@ -91,6 +91,7 @@ from ._solution import Solution
 from ._steppers import (  # noqa: F401
     _breakpoints,
     AbstractStepper,
+    grid_deviation_traced,
     removed_keywords,
     resolve_stepper,
     UNIFORM_GRID_RTOL,
@@ -300,14 +301,6 @@ def _check_observers(observers, observer_x0):
     return observers, tuple(out)
 
 
-def _grid_deviation(ts):
-    """``max_k |ts_k − (t0 + k h)| / h`` with ``h = (t_end − t0)/(T − 1)``."""
-    T = ts.shape[0]
-    h = (ts[-1] - ts[0]) / (T - 1)
-    k = jnp.arange(T, dtype=ts.dtype)
-    return jnp.max(jnp.abs(ts - (ts[0] + k * h))) / h, h
-
-
 # --------------------------------------------------------------------------- core
 
 
@@ -433,7 +426,7 @@ def _exact(plant, split: SVDSplit, x0, ts, u, observers, xi0s, cfg: _Config):
         blocks_B.append(L.Bu + L.By @ Ds)
     Aj = jnp.block(blocks_A)
     Bj = jnp.concatenate(blocks_B, axis=0)
-    dev, h = _grid_deviation(ts)
+    dev, h = grid_deviation_traced(ts)
     Phi, W, c = discretize(Aj, Bj, h)
     if m > 0:
         nodes = ts[:-1, None] + jnp.asarray(c)[None, :] * h

@@ -245,6 +245,17 @@ def grid_deviation(t) -> tuple[float, float]:
     return float(np.max(np.abs(t - (t[0] + np.arange(T) * h))) / h), h
 
 
+def grid_deviation_traced(ts):
+    """`grid_deviation` of a grid that may be traced (`jax.numpy`): ``(deviation, h)`` as arrays
+    (no special value for ``h ≤ 0``: the caller tests ``h > 0``)."""
+    import jax.numpy as jnp
+
+    T = ts.shape[0]
+    h = (ts[-1] - ts[0]) / (T - 1)
+    k = jnp.arange(T, dtype=ts.dtype)
+    return jnp.max(jnp.abs(ts - (ts[0] + k * h))) / h, h
+
+
 def _breakpoints(plant, u) -> list:
     bps = [u.breakpoints()]
     if isinstance(plant, UncertainDescriptorSystem):
