@@ -21,9 +21,10 @@ from jaxtyping import Array
 
 from .._dtype import as_float_array
 from .._errors import InputError, ShapeError
-from ._batch import _output_basis, block_for, DEFAULT_BLOCK, joint_matrices
+from ._batch import _output_basis, block_for, DEFAULT_BLOCK
 from ._driver import _chunk_core, _mesh_for, _step_size, DEFAULT_CHUNK, run_batched
 from ._exponential_setup import _parse_model_output, batch_params
+from ._joint import joint_matrices
 from ._reduction import (
     check_index1_host,
     is_concrete,

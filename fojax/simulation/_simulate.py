@@ -71,6 +71,7 @@ from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
 from ._expm import expm_small
 from ._implicit import default_implicit_solver
+from ._joint import joint_matrices
 from ._reduction import (
     check_x0,
     constraint_residual_norm,
@@ -79,7 +80,6 @@ from ._reduction import (
     lti_feedthrough,
     lti_matrices,
     project_initial_state,
-    reduce_linear_masked,
     RHS_NEWTON_ITERS,
     slow_rate,
     solve_fast,
@@ -409,23 +409,13 @@ def discretize(Aj, Bj, h, nu: int = QUADRATURE_NODES):
 
 def _exact(plant, split: SVDSplit, x0, ts, u, observers, xi0s, cfg: _Config):
     A, B, C = lti_matrices(plant)
-    red = reduce_linear_masked(plant.E, A, B)
     n, m = A.shape[0], B.shape[1]
     T = ts.shape[0]
-    w_plant0 = red.split.slow * (red.split.V.T @ x0)  # slow coordinates (fast ones: 0)
-    # Joint slow system w = (z, ξ_1, ..., ξ_k) driven by u, with y = C(Tx z + Tu u) + D u.
-    Cs, Ds = C @ red.Tx, C @ red.Tu + lti_feedthrough(plant)
-    blocks_A = [[red.As] + [jnp.zeros((n, o.state_size)) for o in observers]]
-    blocks_B = [red.Bs]
-    for i, o in enumerate(observers):
-        L = o.linear_matrices()
-        row = [L.By @ Cs]
-        for j, o2 in enumerate(observers):
-            row.append(L.A if i == j else jnp.zeros((o.state_size, o2.state_size)))
-        blocks_A.append(row)
-        blocks_B.append(L.Bu + L.By @ Ds)
-    Aj = jnp.block(blocks_A)
-    Bj = jnp.concatenate(blocks_B, axis=0)
+    # Joint slow system w = (z, ξ_1, ..., ξ_k) driven by u, with y = C(Tx z + Tu u) + D u: the
+    # one joint builder of the batch kernels (z: the plant's slow coordinates, fast ones 0)
+    Aj, w_joint0, out_map, _, Bj, in_map = joint_matrices(plant.E, A, B, C, observers, x0, inputs=True,
+                                                          D=lti_feedthrough(plant))
+    w_plant0 = w_joint0[:n]
     dev, h = grid_deviation_traced(ts)
     Phi, W, c = discretize(Aj, Bj, h)
     if m > 0:
@@ -443,7 +433,7 @@ def _exact(plant, split: SVDSplit, x0, ts, u, observers, xi0s, cfg: _Config):
     _, ws = lax.scan(step, w0, forcing)
     ws = jnp.concatenate([w0[None], ws], axis=0)
     us = jax.vmap(u)(ts)
-    xs = ws[:, :n] @ red.Tx.T + us @ red.Tu.T
+    xs = ws[:, :n] @ out_map[:n, :n].T + us @ in_map[:n].T
     xis, off = [], n
     for o in observers:
         xis.append(ws[:, off : off + o.state_size])

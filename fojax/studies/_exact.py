@@ -35,12 +35,11 @@ from ..plant import Constant, PiecewiseConstant, Ramp, Sine, Stack, Step, SumSig
 from ..simulation._batch import (
     _block_kernel,
     _output_basis,
-    Exogenous,
-    joint_matrices,
     repeat_groups,
 )
 from ..simulation._driver import eval_shape_cached
 from ..simulation._expm import DIFF_MAX_SQUARINGS, expm_last
+from ..simulation._joint import Exogenous, joint_matrices
 from ..simulation._reduction import (
     check_index1_host,
     is_concrete,
