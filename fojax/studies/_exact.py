@@ -172,9 +172,7 @@ class StudyProblem(eqx.Module):
         ``inf − inf`` in the trapezoid's end correction propagate; an overflow of the sum
         itself made the peak's run fail as well, since every computed metric is tested),
         so the peak is needed only when the settling time alone is asked for. Dropping
-        it saves one maximum per output and step: ``kinds=("iae",)`` on the §4.1.3
-        workload at B = 10,000 (6 outputs), 0.155 s CPU instead of 0.206 s (measured
-        under load)."""
+        it saves one maximum per output and step."""
         integral = any(k in self.kinds for k in ("iae", "ise", "itae"))
         return tuple(k for k in METRIC_NAMES if k in self.kinds or (k == "peak" and not integral))
 
@@ -372,8 +370,8 @@ class LossProblem(eqx.Module):
     update of all five at every step. The sums and the trapezoid end corrections are
     written exactly as in `StudyProblem`, so the value is the same number (tested against
     `run_study`). A sample is flagged (NaN) when its own metric is not finite.
-    Measured on the adjoint alone (``N = 19``, ``K = 5``, blocks of 32, under load):
-    value-and-gradient 454 ns per sample and step with one accumulator, 672 ns with five.
+    Its adjoint is correspondingly cheaper than that of `StudyProblem` (one accumulator
+    instead of five per step).
     """
 
     study: StudyProblem
@@ -543,11 +541,10 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
     of an uncertainty sample are one group: their joint exponential, its reverse pass, the
     plant's exponential and the pass matrices are formed once per group, a block holds
     ``max(2, DIFF_BLOCK // Nf)`` whole groups, and samples are spread over devices by whole groups
-    (so each group's sum of cotangents is the same on any split). On the default §3.3.7
-    study (10 scenarios, B = 2,048) the value-and-gradient took 0.21–0.30 s instead of
-    0.40–0.51 s (paired runs, Intel Xeon under load, one device;
-    ``benchmarks/results/tuning_step_latest.json``); values and gradients agree with the
-    per-sample computation to rounding (tested). With a `mesh`
+    (so each group's sum of cotangents is the same on any split); this roughly halves the
+    value-and-gradient of a study with many scenarios per uncertainty sample
+    (``benchmarks/tuning_step.py``); values and gradients agree with the per-sample
+    computation to rounding (tested). With a `mesh`
     (`fojax.studies._sharding.sample_mesh`) the samples are cut over its devices, possibly
     of several processes; the values and their gradient are bit-identical to one device
     (`fojax.studies._sharding`). Traceable."""

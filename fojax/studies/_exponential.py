@@ -52,12 +52,11 @@ the step the schedule (static integers), so the study stays data.
 (`fojax.simulation._exponential_setup.prepare`), which hands the kernel only what it reads; the
 kernel holds one ETDRK4 step body; the host passes are compiled without the backend's
 optimisation passes (`HOST_PASS_COMPILER_OPTIONS`); the φ-functions of a concrete $A_0$
-are SciPy's `expm` on the host (nothing compiled). Where the first call's CPU goes
-(§3.3.7 δ(t) study, B = 1,000, measured under load): host passes ~3.4 s (set-up of the
-decomposition, the affine check, breakpoints, initial checks: tracing and compiling at
-level 0), kernel ~3.0 s (its HLO is ~960 instructions before optimisation: no unrolled
-time loop; the time is the CPU backend's; at optimisation level 0 it compiles in ~2.0 s
-but runs ~40 % slower, so it keeps the default).
+are SciPy's `expm` on the host (nothing compiled). The first call's CPU goes about
+equally to the host passes (set-up of the decomposition, the affine check, breakpoints,
+initial checks: tracing and compiling at level 0) and to the kernel (no unrolled time
+loop; at optimisation level 0 it would compile sooner but run markedly slower, so it
+keeps the default).
 
 **Tuning.** `fojax.tune` runs its step with the study as a traced argument: the host
 decisions are taken once before the first step (`exponential_schedule` through
@@ -113,9 +112,8 @@ BREAKPOINT_RTOL = 1e-10
 PREPARE_CHUNK = 2048
 #: Samples stepped together by the differentiable path (`exponential_metrics_traced`): the
 #: blocks run one after another (`fojax.studies._exact.blocked`), so the per-sample data and
-#: the backward pass's per-sample cotangents stay in cache. Measured (one tune step, §3.3.7
-#: δ(t) study, under load): with all samples in one block 7.2 s CPU at B = 256 but 79 s at
-#: B = 1,024 (11× for 4× the samples).
+#: the backward pass's per-sample cotangents stay in cache (with all samples in one block the
+#: cost of a tune step grows much faster than the number of samples).
 DIFF_BLOCK = 64
 #: Traces of the differentiable exponential study metrics (tests prove `study_loss` takes
 #: this path and does not retrace for new observer numbers).

@@ -52,19 +52,16 @@ def backtracked_update(params, updates, margin_fn, min_margin, n_back, margin_gr
     when $\|u_t\| > 10^{-6}\|u\|$, `TANGENTIAL_MIN`). When none of those is valid either the
     parameters stay (scale 0).
 
-    *Why the tangential candidates (issue 14):* at an iterate on the boundary (margin just
+    *Why the tangential candidates:* at an iterate on the boundary (margin just
     above `min_margin`) whose optimizer update points outside, every halving of it is outside
     too, so without them the step is rejected, the next update points the same way, and the
     run stops moving: on the LC filter of ``benchmarks/tuning_circuit.py`` with ``barrier=0``,
     79 of 100 steps were rejected and the training loss stayed at 0.5313 from step 20 on.
 
-    *Why on the host (issue 13):* the rule used to run inside the jitted step (all
-    ``n_back + 1`` candidates' margins at once, the tangential branch under `jax.lax.cond`);
-    the candidates, the margin's gradient and the second set of candidates made that program
-    13 % larger (6,405 against 5,657 lines of MLIR) and its compilation ~1.6 s longer (tune
-    step on the default §3.3.7 study, B = 2,048: 11.0 s against 9.4 s, medians of six and four
-    compilations, Intel Xeon at load ~1.3), for a rule that usually takes the first
-    candidate. Evaluated in turn, the first admissible candidate is the same one, and its
+    *Why on the host:* inside the jitted step (all ``n_back + 1`` candidates' margins at
+    once, the tangential branch under `jax.lax.cond`) the candidates, the margin's gradient
+    and the second set of candidates would make that program larger and its compilation
+    longer, for a rule that usually takes the first candidate. Evaluated in turn, the first admissible candidate is the same one, and its
     margin is the one `host_check` needs anyway; `margin_grad` is called (and compiled) only
     when no halving is admissible. The candidates are the same floating-point numbers as
     before (``0.5**k`` is a power of two).

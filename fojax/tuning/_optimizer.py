@@ -3,7 +3,7 @@
 `fojax.tuning.tune` compiles its step (loss, gradient, optax update) once per optimizer:
 an optax transformation is a pair of closures, which JAX can only key by identity, and
 its hyperparameters are constants inside them. ``optax.adam(0.1)`` written twice is two
-objects, and ``optax.adam(0.05)`` a third program: each compiles the step again (10-13 s
+objects, and ``optax.adam(0.05)`` a third program: each compiles the step again (seconds
 on the default §3.3.7 study, `benchmarks/tuning_step.py`).
 
 `shared_optimizer` describes the optimizer as data instead (`OptimizerSpec`): its optax

@@ -400,7 +400,7 @@ def tune(
 
     # the engine of each study decided once on its concrete values (a time-varying study: the
     # exponential engine's schedule, so the jitted step, where the study is traced, runs on it)
-    obs0 = par.host_observer(params0)  # (NumPy: the traced map, compiled, cost ~0.5 s of start-up)
+    obs0 = par.host_observer(params0)  # NumPy: the traced map would be compiled at start-up
     if cfg.devices is not None and len(cfg.devices) > 1:
         why = exact_refusal(train_study, (obs0,), cfg.stepper)
         if why is not None:
@@ -422,7 +422,7 @@ def tune(
 
     # The step's program depends on shapes only, and for these preconditions B is square
     # (total x total) whatever `live` finds: it compiles on a thread while `live` computes on
-    # this one (issue 13); waited for before the first step.
+    # this one; waited for before the first step.
     compiling_step = None
     if local and precondition in ("live", "project", "none"):
         names = tuple(sorted((k, tuple(np.shape(v))) for k, v in params0.items()))
@@ -434,8 +434,8 @@ def tune(
         # on the mesh, as the iterates are (the starting parameters are not): one compilation
         return replicate(p, devices), par, heldout, loss, q_level, w, cfg_held
 
-    # the held-out program compiles on a thread too (XLA compiles without the GIL; the 2-core
-    # reference machine: issue 13); nothing runs until it is done
+    # the held-out program compiles on a thread too (XLA compiles without the GIL); nothing
+    # runs until it is done
     compiling = (None if heldout is None or not local
                  else _compile_in_background(_evaluate, heldout_args(params0)))
     live = par.live(params0)
