@@ -258,9 +258,8 @@ def test_every_layer_takes_the_analysis_verdict_on_a_badly_scaled_ode():
     and simulation called it impulsive. Now the host split is analysis's: 2 slow states;
     simulation, whose traced split cannot balance, refuses with a typed InputError naming
     the scaling instead of simulating a wrong model."""
-    from fojax.control._stepping import reduce_host
     from fojax.design._conditions import check_regular
-    from fojax.simulation._reduction import check_index1_host
+    from fojax.simulation._reduction import check_index1_host, reduce_host
 
     E, A = np.diag([1.0, 2.0**-40]), np.diag([-1.0, -(2.0**-40)])
     sp = fa.index1_split(E, A)

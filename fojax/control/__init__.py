@@ -1,5 +1,6 @@
 """Observer-based control and fault-tolerant control of descriptor systems (thesis Chapter 4)."""
 
+from ..simulation._discretize import simulate_lti as simulate_lti
 from ._feedback import (
     design_state_feedback as design_state_feedback,
     StateFeedbackDesign as StateFeedbackDesign,
@@ -22,4 +23,3 @@ from ._loop import (
     loop_maps as loop_maps,
     LoopMaps as LoopMaps,
 )
-from ._stepping import simulate_lti as simulate_lti

@@ -23,7 +23,7 @@ $x$ follows $(E, A + BL)$ — the loop is stabilised in finite time by construct
 
 **Integrator (documented choice).** Fixed step $\Delta t$ with $h = D\,\Delta t$
 ($D$ an integer, checked), the index-1 reduction of each regime on the host
-(`fojax.control._stepping.reduce_host`; both regimes share the slow coordinates
+(`fojax.simulation._reduction.reduce_host`; both regimes share the slow coordinates
 $z_1 = V_1^\top X$, which are continuous at the switch $t = h$ where $u$ and the
 algebraic variables jump), and exact matrix-exponential stepping of
 
@@ -62,8 +62,9 @@ from .._errors import AlgebraicLoopError, InputError, ShapeError
 from ..observer import FiniteTimeObserver
 from ..plant import AbstractSignal, DescriptorSystem, Zero
 from ..plant._signals import as_signal
+from ..simulation._discretize import discretize_host, gauss_nodes, grid_step
+from ..simulation._reduction import reduce_host
 from ._loop import assemble, linear_matrices, LOOP_RCOND, refuse_feedthrough
-from ._stepping import discretize_host, gauss_nodes, grid_step, reduce_host
 
 
 class FiniteTimeTrajectory(eqx.Module):

@@ -50,9 +50,9 @@ from ..design._conditions import check_impulse_free
 from ..observer import AbstractObserver
 from ..plant import AbstractSignal, augment_faults, DescriptorSystem, Stack, Zero
 from ..plant._signals import as_signal
+from ..simulation._discretize import simulate_lti
 from ._feedback import design_state_feedback, StateFeedbackDesign
 from ._loop import assemble, LoopMaps, refuse_feedthrough
-from ._stepping import simulate_lti
 
 
 SCHEMES = ("sensor", "actuator", "simultaneous")
@@ -158,7 +158,7 @@ class FaultTolerantControl:
         - `fault`: fault signal of size `n_faults` (``None``: fault-free).
         - `observer_x0`: initial observer state (default zero).
         - `backend`: ``"stepper"`` (default): exact host-discretized stepping
-          (`fojax.control.simulate_lti`; fast to compile); ``"fojax"``: `fojax.simulate`
+          (`fojax.simulation._discretize.simulate_lti`: only the time loop is compiled); ``"fojax"``: `fojax.simulate`
           with `kwargs` (e.g. ``stepper=fojax.Diffrax()`` for faults switching between grid points).
 
         Works under `jax.vmap` over `fault` / `u_r` / `x0` (write the single call inside).

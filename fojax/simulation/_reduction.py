@@ -545,3 +545,36 @@ def consistent_initial_condition(
     if strict and not is_concrete(plant, x0, t0, u):
         x0c = eqx.error_if(x0c, res0 > tol, "x0 violates the algebraic constraints (strict=True).")
     return x0c, dist
+
+
+def reduce_host(E, A, B):
+    r"""Host reduction of $(E, A, B)$ to ``(As, Bs, Tx, Tu, V1)``: the slow ODE
+    $\dot z_1 = A_s z_1 + B_s v$ in the SVD coordinates of ``E`` ($X = V[z_1; z_2]$) and
+    $X = T_x z_1 + T_u v$, computed with `fojax.analysis`'s index-1 split.
+
+    Raises `fojax.ImpulsiveSystemError` when $\tilde A_{22}$ is singular (index > 1).
+    """
+    from ..analysis._split import index1_split
+
+    E, A, B = (np.asarray(x, dtype=float) for x in (E, A, B))
+    n = E.shape[0]
+    sp = index1_split(E, A, fname="reduce_host")  # fojax.analysis's rank and verdict
+    r, s = sp.rank, sp.s
+    U1, U2, V1, V2 = sp.U1, sp.U2, sp.V1, sp.V2
+    A11, A12, A21, A22 = sp.blocks(A)
+    B1, B2 = U1.T @ B, U2.T @ B
+    if n - r:
+        if not sp.impulse_free:
+            raise ImpulsiveSystemError(
+                "the loop is not impulse-free: U2ᵀ A V2 (the algebraic block) is singular, so the "
+                "algebraic variables are not determined (index > 1). Check the design "
+                "(fojax.analysis.is_impulse_free)."
+            )
+        K = -np.linalg.solve(A22, A21)
+        Ku = -np.linalg.solve(A22, B2)
+    else:
+        K, Ku = np.zeros((0, r)), np.zeros((0, B.shape[1]))
+    sig = s[:r, None]
+    As = (A11 + A12 @ K) / sig
+    Bs = (B1 + A12 @ Ku) / sig
+    return As, Bs, V1 + V2 @ K, V2 @ Ku, V1

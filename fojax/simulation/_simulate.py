@@ -69,7 +69,7 @@ from .._errors import InputError, ShapeError
 from .._small_linalg import solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
-from ._expm import expm_small
+from ._discretize import discretize, step_exact
 from ._implicit import default_implicit_solver
 from ._joint import joint_matrices
 from ._reduction import (
@@ -102,8 +102,6 @@ from ._steppers import (  # noqa: F401
 #: second call with new numbers does not recompile).
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
-#: Gauss–Legendre nodes per grid interval of the exact stepper.
-QUADRATURE_NODES = 4
 #: A projected initial state must satisfy the constraints to this relative level.
 IC_RESIDUAL_RTOL = 1e-8
 
@@ -371,45 +369,9 @@ def _simulate_core(plant, x0, ts, u, observers, xi0s, solver, adjoint, cfg: _Con
 # --------------------------------------------------------------------------- exact LTI
 
 
-def _gauss_legendre(nu: int):
-    x, w = np.polynomial.legendre.leggauss(nu)
-    c = 0.5 * (x + 1.0)
-    # Interpolation u(c_j) = Σ_i a_i c_j^i / i!  →  a = Vinv @ u_nodes.
-    fact = np.array([float(np.prod(np.arange(1, i + 1))) for i in range(nu)])
-    V = c[:, None] ** np.arange(nu)[None, :] / fact[None, :]
-    return c, np.linalg.inv(V)
-
-
-def discretize(Aj, Bj, h, nu: int = QUADRATURE_NODES):
-    r"""``Φ = expm(h A)`` and product-Gauss weights ``W_j`` (``(nu, N, m)``).
-
-    $\int_0^h e^{A(h-s)}B\,u(t_k+s)\,\mathrm ds \approx \sum_j W_j\,u(t_k + c_j h)$,
-    exact for polynomial ``u`` of degree ``< nu``. Built from one exponential of the
-    Van Loan matrix $\begin{bmatrix} hA & hB & & \\ & 0 & I & \\ & & \ddots & I\\ &&&0
-    \end{bmatrix}$ in the normalised time $\tau = s/h$ (entries O(1), so no
-    cancellation between the monomial moments).
-    """
-    N, m = Bj.shape
-    c, Vinv = _gauss_legendre(nu)
-    if m == 0:
-        return expm_small(h * Aj), jnp.zeros((nu, N, 0), dtype=Aj.dtype), c
-    size = N + nu * m
-    M = jnp.zeros((size, size), dtype=Aj.dtype)
-    M = M.at[:N, :N].set(h * Aj).at[:N, N : N + m].set(h * Bj)
-    eye = jnp.eye(m, dtype=Aj.dtype)
-    for i in range(nu - 1):
-        a, b = N + i * m, N + (i + 1) * m
-        M = M.at[a : a + m, b : b + m].set(eye)
-    F = expm_small(M)
-    Phi = F[:N, :N]
-    G = jnp.stack([F[:N, N + i * m : N + (i + 1) * m] for i in range(nu)])  # (nu, N, m)
-    W = jnp.einsum("ij,ink->jnk", jnp.asarray(Vinv, dtype=Aj.dtype), G)
-    return Phi, W, c
-
-
 def _exact(plant, split: SVDSplit, x0, ts, u, observers, xi0s, cfg: _Config):
     A, B, C = lti_matrices(plant)
-    n, m = A.shape[0], B.shape[1]
+    n = A.shape[0]
     T = ts.shape[0]
     # Joint slow system w = (z, ξ_1, ..., ξ_k) driven by u, with y = C(Tx z + Tu u) + D u: the
     # one joint builder of the batch kernels (z: the plant's slow coordinates, fast ones 0)
@@ -418,20 +380,7 @@ def _exact(plant, split: SVDSplit, x0, ts, u, observers, xi0s, cfg: _Config):
     w_plant0 = w_joint0[:n]
     dev, h = grid_deviation_traced(ts)
     Phi, W, c = discretize(Aj, Bj, h)
-    if m > 0:
-        nodes = ts[:-1, None] + jnp.asarray(c)[None, :] * h
-        Un = jax.vmap(jax.vmap(u))(nodes)  # (T-1, nu, m)
-        forcing = jnp.einsum("jnk,tjk->tn", W, Un)
-    else:
-        forcing = jnp.zeros((T - 1, Aj.shape[0]), dtype=Aj.dtype)
-    w0 = jnp.concatenate([w_plant0, *xi0s])
-
-    def step(w, f):
-        w = Phi @ w + f
-        return w, w
-
-    _, ws = lax.scan(step, w0, forcing)
-    ws = jnp.concatenate([w0[None], ws], axis=0)
+    ws = step_exact(Phi, W, c, jnp.concatenate([w_plant0, *xi0s]), ts, h, u)
     us = jax.vmap(u)(ts)
     xs = ws[:, :n] @ out_map[:n, :n].T + us @ in_map[:n].T
     xis, off = [], n
