@@ -708,7 +708,7 @@ python benchmarks/tuning_scaling.py --sizes 8 32 --extra-steps 2
 
 The setup of `notebooks/monte_carlo_and_tuning.ipynb` (§3.3.7 fault-augmented benchmark,
 generalized LMI design in Disk(−2, 1), constant δ × constant faults, 81 grid points,
-`optax.adam(0.3)`, `method="exact"`), with a training study of B = N_u × N_f samples (as
+`optax.adam(0.3)`, `stepper=fojax.Exact()`), with a training study of B = N_u × N_f samples (as
 square as possible). In a fresh process per B: `tune(steps=1)` cold, `tune(steps=1)` warm
 and `tune(steps=1 + k)` warm; per step = (t(1 + k) − t(1)) / k, compile ≈ first call − per
 step; `fojax.tuning._tune.TRACE_COUNTS` tells whether the warm calls retraced the step.
