@@ -156,14 +156,14 @@ def _run_discrete(lm, ts, h, u, y, xi0, dt: float):
 
 
 def _run(lm, ts, h, u, y, xi0, interpolation):
-    from ..simulation._simulate import _gauss_legendre, discretize
+    from ..simulation._discretize import discretize, gauss_nodes
 
     v = jnp.concatenate([u, y], axis=1)  # (T, m + p)
     Bo = jnp.concatenate([lm.Bu, lm.By], axis=1)
     Do = jnp.concatenate([lm.Du, lm.Dy], axis=1)
     nu = 2 if interpolation == "linear" else 1
     Phi, W = jax.vmap(lambda hk: discretize(lm.A, Bo, hk, nu)[:2])(h)  # (T-1, s, s), (T-1, nu, s, m+p)
-    c = jnp.asarray(_gauss_legendre(nu)[0])  # the quadrature nodes in [0, 1] (static)
+    c = jnp.asarray(gauss_nodes(nu)[0])  # the quadrature nodes in [0, 1] (static)
     if interpolation == "linear":
         nodes = v[:-1, None, :] + c[None, :, None] * (v[1:] - v[:-1])[:, None, :]  # (T-1, nu, m+p)
     else:
