@@ -9,11 +9,14 @@ $$\Sigma_1\dot x_1 = A_{11}x_1 + A_{12}x_2 + B_1u,\qquad 0 = A_{21}x_1 + A_{22}x
 
 with $A_{22}$ invertible (index 1), so $\dot x_1 = A_sx_1 + B_su$ with
 $A_s = \Sigma_1^{-1}(A_{11} - A_{12}A_{22}^{-1}A_{21})$,
-$B_s = \Sigma_1^{-1}(B_1 - A_{12}A_{22}^{-1}B_2)$. With the input held,
+$B_s = \Sigma_1^{-1}(B_1 - A_{12}A_{22}^{-1}B_2)$ (the simulation layer's host reduction,
+`fojax.simulation._reduction.reduce_host`). With the input held,
 $u(t) = u[k]$ on $[t_k, t_k + h)$, the slow state is sampled exactly:
 $x_1[k+1] = \Phi x_1[k] + \Gamma u[k]$, $\Phi = e^{A_sh}$,
 $\Gamma = \int_0^h e^{A_ss}\,\mathrm ds\,B_s$ (one exponential of the Van Loan matrix
-$\begin{bmatrix}A_s&B_s\\0&0\end{bmatrix}h$), and the algebraic equation holds at every
+$\begin{bmatrix}A_s&B_s\\0&0\end{bmatrix}h$: the exact step of
+`fojax.simulation._discretize.discretize_host` with one quadrature node, exact for a
+constant input), and the algebraic equation holds at every
 sample with $u(t_k) = u[k]$: $0 = U_2^\top(Ax[k] + Bu[k])$. Stacking the two (and
 multiplying by the orthogonal $[V_1\;V_2]$ on the left) gives the discrete descriptor system
 
@@ -47,7 +50,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import scipy.linalg as sla
 
 from .._dtype import to_numpy
 from .._errors import ImpulsiveSystemError, InputError, IrregularSystemError
@@ -58,12 +60,12 @@ METHODS = ("zoh",)
 
 
 def _zoh(As: np.ndarray, Bs: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-    r"""``(Φ, Γ)`` = ``(e^{A h}, ∫_0^h e^{A s} ds B)`` from one Van Loan exponential."""
-    r, m = Bs.shape
-    M = np.zeros((r + m, r + m))
-    M[:r, :r], M[:r, r:] = As * h, Bs * h
-    F = sla.expm(M)
-    return F[:r, :r], F[:r, r:]
+    r"""``(Φ, Γ)`` = ``(e^{A h}, ∫_0^h e^{A s} ds B)``: the simulation layer's exact step
+    (`discretize_host`) with one node, whose single weight is the Van Loan block Γ."""
+    from ..simulation._discretize import discretize_host
+
+    Phi, W = discretize_host(As, Bs, h, nu=1)
+    return Phi, W[0]
 
 
 def _discretize_system(sys: DescriptorSystem, h: float) -> DescriptorSystem:
@@ -80,17 +82,11 @@ def _discretize_system(sys: DescriptorSystem, h: float) -> DescriptorSystem:
             "input, which a zero-order hold does not define. Make it impulse-free (fojax.analysis.structure_report "
             "shows the structure), e.g. by a proportional-derivative feedback, before sampling."
         )
+    from ..simulation._reduction import reduce_host
+
     r = sp.rank
     U2, V1, V2 = sp.U2, sp.V1, sp.V2
-    A11, A12, A21, A22 = sp.blocks(A)
-    B1, B2 = sp.U1.T @ B, U2.T @ B
-    s1 = sp.s[:r]
-    if r < E.shape[0]:
-        K = np.linalg.solve(A22, np.hstack([A21, B2]))
-        As = (A11 - A12 @ K[:, :r]) / s1[:, None]
-        Bs = (B1 - A12 @ K[:, r:]) / s1[:, None]
-    else:
-        As, Bs = A11 / s1[:, None], B1 / s1[:, None]
+    As, Bs = reduce_host(E, A, B)[:2]  # the slow subsystem in the same split (x1 = V1ᵀx)
     Phi, Gam = _zoh(As, Bs, h)
     Ed = V1 @ V1.T
     Ad = V1 @ Phi @ V1.T + V2 @ (U2.T @ A)
