@@ -5,7 +5,7 @@ and peak error of the public `fojax.run_study` on held-out samples.
 Two cases of §3.3.7 (``--cases``), both with a constant δ per sample (uniform in [-δ̄, δ̄],
 δ̄ = 0.3) on ΔA, x0 = 0.5 on the six plant states, zero input and zero-order-hold Gaussian
 output noise (`fojax.studies.output_noise`, std σ per output, held ``--noise-dt`` s) added to
-y (`fojax.studies.NoisyPlant`), 10 s on a 0.01 s output grid:
+y (`fojax.NoisyPlant`), 10 s on a 0.01 s output grid:
 
 - ``states``: the plant itself (n = 6, rank E = 4), estimating z = L x (no faults);
 - ``noise``: the same with x0 = 0: the plant stays at rest (so δ has no effect) and the
@@ -18,7 +18,7 @@ y (`fojax.studies.NoisyPlant`), 10 s on a 0.01 s output grid:
   [-1, 1] (``LC_DELTA_MAX = 1``: lc_filter's ΔA is the change for δ = 1, so the H∞ channel
   is ``Bw = 1 · Bδ``), x0 = 0.5 on the four differential states and the algebraic states
   (v3, iL) made consistent with the nominal algebraic rows
-  (`fojax.consistent_initial_condition`: v3 = 0.25, iL = 0.125; for δ ≠ 0 `fojax.simulate`
+  (`fojax.simulation.consistent_initial_condition`: v3 = 0.25, iL = 0.125; for δ ≠ 0 `fojax.simulate`
   re-solves iL from the same slow part), zero input, the same 10 s horizon (the plant's
   slowest pole, -0.17 ± 0.79j at δ = 1, has not decayed by then, so no shorter horizon),
   noise on both outputs (``Dv = σ I₂``).
@@ -36,7 +36,7 @@ Two more designs per kind:
 
 - **H2** (``objective="h2"``, same channels): it needs an estimate with no direct feedthrough
   from the noise, which the default order q0 = 2 of §3.3.7 cannot give (refused with
-  `fojax.InputError`), so it is designed with ``--h2-q0`` (default 4); ν and ‖T‖₂ (SciPy
+  `fojax.errors.InputError`), so it is designed with ``--h2-q0`` (default 4); ν and ‖T‖₂ (SciPy
   Lyapunov) are recorded. If a case refuses it, the refusal is recorded instead.
 - **tuned**: `fojax.tune` from the region-only design (default ``SteinDisk``
   parameterization, ``--tune-steps`` Adam steps, learning rate ``--tune-lr``) on a *training*
@@ -131,7 +131,7 @@ LC_DELTA_MAX = 1.0  # lc_filter's dA is the load change for delta = 1: Ra (1 + 0
 def lc_model():
     """``(model dict, system, uncertain plant, consistent x0)`` of the LC filter (plain units)."""
     m, sys_, st = lc_build(False, 1, 1, seed=0)
-    x0, _ = fojax.consistent_initial_condition(sys_, jnp.array([0.5, 0.5, 0.5, 0.5, 0.0, 0.0]))
+    x0, _ = fojax.simulation.consistent_initial_condition(sys_, jnp.array([0.5, 0.5, 0.5, 0.5, 0.0, 0.0]))
     return m, sys_, st.plant, x0
 
 
@@ -169,7 +169,7 @@ def designs(ex, case, sigma, h2_q0, q0=None):
         try:
             d2 = design_functional_observer(sys_, L, kind=kind, region=Disk(-3.0, 2.0), objective="h2", Bw=Bd,
                                             Dv=Dv, q0=h2_q0)
-        except fojax.InputError as err:  # e.g. a feedthrough no observer of this order avoids
+        except fojax.errors.InputError as err:  # e.g. a feedthrough no observer of this order avoids
             info[kind]["h2"] = {"refused": f"{type(err).__name__}: {err}"}
             continue
         out[f"h2 {kind}"] = d2
@@ -197,7 +197,7 @@ def tuned(ds, ex, case, args, sigma):
             try:
                 res = fojax.tune(ds[f"{start} {kind}"], train, steps=args.tune_steps, optimizer=opt, quiet=True,
                                  stepper=stepper(args), robustness=term)
-            except fojax.DesignVerificationError as err:  # recorded, not hidden
+            except fojax.errors.DesignVerificationError as err:  # recorded, not hidden
                 info[f"{label} {kind}"] = {"failed": f"{type(err).__name__}: {err}", "start": start}
                 continue
             out[f"{label} {kind}"] = res.design
@@ -231,7 +231,7 @@ def study(ex, case, n_delta, n_fault, sigma, noise_dt, seed):
     dA[0, :6, :6] = ex.dA
     base = fojax.UncertainDescriptorSystem(ex.augmented if faults else ex.system, dA=dA,
                                            delta=fojax.Constant(jnp.zeros(1)))
-    plant = S.NoisyPlant(base, fojax.Constant(jnp.zeros(3)))
+    plant = fojax.NoisyPlant(base, fojax.Constant(jnp.zeros(3)))
     x0 = jnp.concatenate([jnp.full((6,), x0_value), jnp.zeros(n - 6)])
     ts = jnp.linspace(0.0, T_END, int(round(T_END / DT)) + 1)
     k1, k2, k3 = jax.random.split(jax.random.PRNGKey(seed), 3)
@@ -247,7 +247,7 @@ def lc_study(n_delta, sigma, noise_dt, seed, at_rest=False):
     """The LC filter with constant delta in [-1, 1], consistent x0 (or 0), zero input, noise on (i1, v2)."""
     m, _, base, x0 = lc_model()
     x0 = 0.0 * x0 if at_rest else x0
-    plant = S.NoisyPlant(base, fojax.Constant(jnp.zeros(2)))
+    plant = fojax.NoisyPlant(base, fojax.Constant(jnp.zeros(2)))
     ts = jnp.linspace(0.0, T_END, int(round(T_END / DT)) + 1)
     k1, _, k3 = jax.random.split(jax.random.PRNGKey(seed), 3)
     return fojax.Study(

@@ -441,7 +441,7 @@ def design_observer(sp: StudyPlant, path: Path) -> dict:
         try:
             d = design_functional_observer(plant, sp.L, kind="proportional", method="riccati", q0=q0)
             break
-        except fojax.RankConditionError:
+        except fojax.errors.RankConditionError:
             if q0 >= n:
                 raise
             q0 = min(n, q0 + max(1, n // 4))

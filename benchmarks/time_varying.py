@@ -1,7 +1,7 @@
 """Issue 7, study 2: the §4.1.3 loop with a time-varying δ(t) and a constant actuator fault.
 
 Exact discretisation does not apply (the loop is time-varying), so fojax's entry is
-`fojax.simulate_batch_exponential` (a fourth-order exponential integrator around the
+`fojax.simulation.simulate_batch_exponential` (a fourth-order exponential integrator around the
 nominal loop, batched) and the peers are (a) a Python loop of `solve_ivp` (RK45, rtol 1e-6,
 atol 1e-9) and (c) NumPy RK4 with dt = 1e-3 vectorised over the batch (both axis orders,
 the faster kept). Every method is first compared with a tight reference (DOP853, rtol
@@ -94,10 +94,10 @@ def tv_model(p):
 
     Module-level (a stable function object, so fojax's compiled kernels are reused). Public
     API only: `fojax.UncertainDescriptorSystem` with a `fojax.Sine` uncertainty, wrapped in
-    `fojax.studies.FaultyPlant` with the constant fault entering through ``[B; 0]``.
+    `fojax.FaultyPlant` with the constant fault entering through ``[B; 0]``.
     """
     import fojax
-    from fojax.studies import FaultyPlant
+    from fojax.plant import FaultyPlant
 
     nominal = fojax.DescriptorSystem(_E_CL, _A_CL0)
     delta = fojax.Sine(p["amplitude"], p["omega"], p["phase"])
@@ -117,7 +117,7 @@ def fojax_inputs(wl: wlmod.TimeVaryingWorkload):
 
 def run_fojax(wl: wlmod.TimeVaryingWorkload, substeps: int, chunk: int = 4096, startup=None):
     """``(B, 2)`` metrics (IAE of |x|_1, of |zhat - Lx|_1) from fojax, as a JAX array."""
-    from fojax import simulate_batch_exponential
+    from fojax.simulation import simulate_batch_exponential
 
     params, x0, ts = fojax_inputs(wl)
     out = simulate_batch_exponential(
@@ -268,7 +268,7 @@ def main(argv=None) -> int:
             med = statistics.median(times)
             compile_s = max(first - med, 0.0)
             method = "fojax" if kind == "uniform" else "fojax-startup"
-            label = f"fojax.simulate_batch_exponential ({sched['label']})"
+            label = f"fojax.simulation.simulate_batch_exponential ({sched['label']})"
             _common.print_timing(label, f"compile {compile_s:6.2f} s", first, times, 40)
             row = dict(method=method, label=label, variant=f"chunk={args.chunk}", B=B, compile_s=compile_s,
                        compile_note="first call - median (caches cleared)", first_s=first, median_s=med,

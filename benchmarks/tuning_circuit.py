@@ -396,7 +396,7 @@ def run_dfo(design, train, heldout, method, budget_s, certify_each=True):
         try:
             certified = par.certify(params)
             break
-        except fojax.DesignVerificationError as err:
+        except fojax.errors.DesignVerificationError as err:
             failed.append(dict(train_loss=fx, why=str(err)[:300]))
     h0, h1 = heldout_iae(par, p0, heldout), heldout_iae(par, params, heldout)
     return dict(method=method, budget_s=budget_s, wall_s=wall, stopped=stopped, evaluations=best["evals"],

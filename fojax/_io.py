@@ -13,7 +13,7 @@ results, tuning checkpoints):
 - **Never outside a results folder.** A path built from a results folder (one created
   by `fojax.results.new_results_folder` in this process, i.e. its path is a prefix of
   the destination) must resolve inside that folder: ``folder / "../x.npz"`` or a
-  symlinked subfolder pointing elsewhere raise `fojax.UnsafePathError` before anything
+  symlinked subfolder pointing elsewhere raise `fojax.errors.UnsafePathError` before anything
   is written.
 - **Manifest.** Every file written inside a results folder is recorded, with its
   SHA-256, in the folder's ``fojax-manifest.json`` (`MANIFEST`), rewritten atomically
@@ -317,7 +317,7 @@ def atomic_write(path, data: bytes | Callable, *, overwrite: bool = False) -> pa
 
     **Returns:** the destination as a `pathlib.Path`.
 
-    **Raises:** `fojax.UnsafePathError` for a path built from a results folder that
+    **Raises:** `fojax.errors.UnsafePathError` for a path built from a results folder that
     resolves outside it (nothing is written).
     """
     path = pathlib.Path(path)

@@ -17,7 +17,7 @@ power-of-two diagonal scaling of equations and states (`fojax.analysis.balance_s
 then divides each block ``E``, ``A``, ``B``, ``C``, ``L`` by its spectral norm, and
 only then decides ranks of the block matrices built from them. So a verdict does not
 change with the units of the equations or the states. SLICOT's ``AG08BD``
-(`fojax.kronecker_structure`) gets the same data with ``tol = RANK_RTOL``. This is the
+(`fojax.analysis.kronecker_structure`) gets the same data with ``tol = RANK_RTOL``. This is the
 one place the rule is defined; `fojax.analysis` documents how it is applied.
 """
 

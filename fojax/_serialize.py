@@ -29,7 +29,7 @@ A field a class gained after a file was written (e.g. a plant's feedthrough ``D`
 takes its default (``D = 0``) when that file is read.
 
 Every problem found while decoding (a missing array, a wrong shape or dtype, an unknown
-class) raises `fojax.InputError` naming the entry, what was expected and what was found.
+class) raises `fojax.errors.InputError` naming the entry, what was expected and what was found.
 """
 
 from __future__ import annotations

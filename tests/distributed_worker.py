@@ -7,7 +7,7 @@ checkpoint at ``OUT.ckpt/tune``: a path of its own) and writes what *this* proce
 received to ``OUT`` (.npz). With KILL (a process id), that process kills itself (SIGKILL)
 while every process runs the study again (WHEN ``run_study``: right before it) or tunes
 again (``tune``: after the first of two steps); every other process must stop with
-`fojax.DistributedError`, whose message goes to ``OUT.error``. (Only the first collective
+`fojax.errors.DistributedError`, whose message goes to ``OUT.error``. (Only the first collective
 after the death can raise it: the heartbeat, 10 s here, ends a process that JAX finds
 waiting for the dead one, with JAX's own message.)
 """
@@ -128,7 +128,7 @@ def main(port, n, pid, design_path, out_path, kill=None, when=None):
             S.run_study(ev, design.observer, devices=jax.devices(), quantiles=(), quiet=True)
         else:  # the step is compiled already (study_and_tuning): step 2 comes within a second
             tuning.tune(design, train, steps=2, devices=jax.devices(), callback=die if killed else None)
-    except fojax.DistributedError as err:
+    except fojax.errors.DistributedError as err:
         with open(out_path + ".error", "w") as f:
             f.write(str(err))
         sys.stdout.flush()

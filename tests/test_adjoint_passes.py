@@ -91,7 +91,7 @@ def test_passes_equal_plain_scan_and_its_gradient(data, T, segment):
 
 def test_passes_refuse_jumps_and_non_dividing_grids(data):
     d, plant = data
-    with pytest.raises(fojax.InputError, match="steps per pass"):
+    with pytest.raises(fojax.errors.InputError, match="steps per pass"):
         _adjoint.pass_recurrence_reduce(d + (None, jnp.linspace(0.0, 1.0, 12)), plant + (None,), _Loss(), 4)
 
 

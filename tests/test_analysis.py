@@ -27,16 +27,16 @@ J2 = np.array([[0.0, 1.0], [0.0, 0.0]])  # nilpotent Jordan block, N^2 = 0
 OBS = ("c_observable", "r_observable", "i_observable", "s_observable")
 CTRL = ("c_controllable", "r_controllable", "i_controllable", "s_controllable")
 HOST = {
-    "c_observable": fojax.is_c_observable,
-    "r_observable": fojax.is_r_observable,
-    "i_observable": fojax.is_i_observable,
-    "s_observable": fojax.is_s_observable,
-    "c_controllable": fojax.is_c_controllable,
-    "r_controllable": fojax.is_r_controllable,
-    "i_controllable": fojax.is_i_controllable,
-    "s_controllable": fojax.is_s_controllable,
-    "detectable": fojax.is_detectable,
-    "stabilizable": fojax.is_stabilizable,
+    "c_observable": fojax.analysis.is_c_observable,
+    "r_observable": fojax.analysis.is_r_observable,
+    "i_observable": fojax.analysis.is_i_observable,
+    "s_observable": fojax.analysis.is_s_observable,
+    "c_controllable": fojax.analysis.is_c_controllable,
+    "r_controllable": fojax.analysis.is_r_controllable,
+    "i_controllable": fojax.analysis.is_i_controllable,
+    "s_controllable": fojax.analysis.is_s_controllable,
+    "detectable": fojax.analysis.is_detectable,
+    "stabilizable": fojax.analysis.is_stabilizable,
 }
 
 
@@ -388,8 +388,8 @@ def test_catalogue_size_and_coverage():
 
 @pytest.mark.parametrize("case", CATALOGUE, ids=_id)
 def test_regularity(case):
-    assert fojax.is_regular(case.sys()) is case.regular
-    assert fojax.is_regular(case.E, case.A) is case.regular
+    assert fojax.analysis.is_regular(case.sys()) is case.regular
+    assert fojax.analysis.is_regular(case.E, case.A) is case.regular
     # oracle: a regular pencil is invertible at a generic point, a singular one nowhere
     n = case.E.shape[0]
     s0 = 0.6180339887 + 1.4142135624j
@@ -400,11 +400,11 @@ def test_regularity(case):
 def test_pencil_properties(case):
     s = case.sys()
     ex = case.expect
-    assert fojax.is_impulse_free(s) is ex["impulse_free"]
-    assert fojax.is_stable(s) is ex["stable"]
-    assert fojax.is_admissible(s) is ex["admissible"]
-    assert fojax.nilpotency_index(s) == ex["index"]
-    poles = fojax.finite_poles(s)
+    assert fojax.analysis.is_impulse_free(s) is ex["impulse_free"]
+    assert fojax.analysis.is_stable(s) is ex["stable"]
+    assert fojax.analysis.is_admissible(s) is ex["admissible"]
+    assert fojax.analysis.nilpotency_index(s) == ex["index"]
+    poles = fojax.analysis.finite_poles(s)
     assert poles.dtype == np.complex128
     assert_eigenvalues_match(poles, case.poles, atol=1e-10)
     _assert_documented_order(poles)
@@ -418,12 +418,12 @@ def _check_against_rank_sequences(E, A):
     n = E.shape[0]
     p = as_pencil(E, A)
     n1, _, index = kernel_chain(p, None, "test")
-    assert fojax.nilpotency_index(E, A) == index
-    assert len(fojax.finite_poles(E, A)) == n1
+    assert fojax.analysis.nilpotency_index(E, A) == index
+    assert len(fojax.analysis.finite_poles(E, A)) == n1
     if n:
         T1 = np.block([[E, np.zeros((n, n))], [A, E]])
         by_rank = np.linalg.matrix_rank(T1) == n + np.linalg.matrix_rank(E)
-        assert fojax.is_impulse_free(E, A) is bool(by_rank)
+        assert fojax.analysis.is_impulse_free(E, A) is bool(by_rank)
 
 
 @pytest.mark.parametrize("case", REGULAR, ids=_id)
@@ -439,16 +439,15 @@ def test_duality_and_hierarchy(case):
     for o, c in zip(OBS, CTRL):
         assert HOST[c](s) is HOST[o](d)
         assert HOST[o](s) is HOST[c](d)
-    assert fojax.is_stabilizable(s) is fojax.is_detectable(d)
+    assert fojax.analysis.is_stabilizable(s) is fojax.analysis.is_detectable(d)
     # C => S => R, S = R and I
     for kind in (OBS, CTRL):
         c_, r_, i_, s_ = (HOST[k](s) for k in kind)
         assert s_ == (r_ and i_)
         assert (not c_) or s_
-    assert fojax.is_impulse_observable(s) is fojax.is_i_observable(s)
     # detectable without the impulse condition is implied by the full one
-    if fojax.is_detectable(s):
-        assert fojax.is_detectable(s, impulse=False)
+    if fojax.analysis.is_detectable(s):
+        assert fojax.analysis.is_detectable(s, impulse=False)
 
 
 @pytest.mark.parametrize(
@@ -457,9 +456,9 @@ def test_duality_and_hierarchy(case):
 def test_functional_observability(case):
     s = case.sys()
     if case.L_true is not None:
-        assert fojax.is_functionally_observable(s, case.L_true)
+        assert fojax.analysis.is_functionally_observable(s, case.L_true)
     if case.L_false is not None:
-        assert not fojax.is_functionally_observable(s, case.L_false)
+        assert not fojax.analysis.is_functionally_observable(s, case.L_false)
 
 
 def test_functional_observability_automatic_when_impulse_free(rng):
@@ -467,25 +466,25 @@ def test_functional_observability_automatic_when_impulse_free(rng):
     for c in REGULAR:
         if c.expect["impulse_free"] and c.E.shape[0]:
             L = rng.standard_normal((2, c.E.shape[0]))
-            assert fojax.is_functionally_observable(c.sys(), L)
-    with pytest.raises(fojax.ShapeError, match="L has shape"):
-        fojax.is_functionally_observable(CATALOGUE[0].sys(), np.ones((1, 3)))
+            assert fojax.analysis.is_functionally_observable(c.sys(), L)
+    with pytest.raises(fojax.errors.ShapeError, match="L has shape"):
+        fojax.analysis.is_functionally_observable(CATALOGUE[0].sys(), np.ones((1, 3)))
 
 
 @pytest.mark.parametrize("case", IRREGULAR, ids=_id)
 def test_irregular_systems_give_typed_errors(case):
     s = case.sys()
-    assert not fojax.is_admissible(s)
+    assert not fojax.analysis.is_admissible(s)
     fns = [
-        fojax.finite_poles,
-        fojax.nilpotency_index,
-        fojax.is_impulse_free,
-        fojax.is_stable,
-        fojax.weierstrass_form,
+        fojax.analysis.finite_poles,
+        fojax.analysis.nilpotency_index,
+        fojax.analysis.is_impulse_free,
+        fojax.analysis.is_stable,
+        fojax.analysis.weierstrass_form,
         *HOST.values(),
     ]
     for fn in fns:
-        with pytest.raises(fojax.IrregularSystemError, match=r"pencil sE - A is singular"):
+        with pytest.raises(fojax.errors.IrregularSystemError, match=r"pencil sE - A is singular"):
             fn(s)
     rep = fojax.structure_report(s, case.L_true)
     assert not rep.regular and rep.finite_poles is None and rep.c_observable is None
@@ -503,7 +502,7 @@ def _scipy_finite(E, A):
 
 @pytest.mark.parametrize("case", [c for c in REGULAR if c.E.size], ids=_id)
 def test_finite_poles_match_scipy_on_catalogue(case):
-    assert_eigenvalues_match(fojax.finite_poles(case.E, case.A), _scipy_finite(case.E, case.A), atol=1e-9)
+    assert_eigenvalues_match(fojax.analysis.finite_poles(case.E, case.A), _scipy_finite(case.E, case.A), atol=1e-9)
 
 
 def test_finite_poles_match_scipy_random(rng):
@@ -512,10 +511,10 @@ def test_finite_poles_match_scipy_random(rng):
         U, V = rng.standard_normal((2, n, n))
         E = U @ np.diag([1.0] * r + [0.0] * (n - r)) @ V
         A = rng.standard_normal((n, n))
-        ours = fojax.finite_poles(E, A)
+        ours = fojax.analysis.finite_poles(E, A)
         assert len(ours) == r
         assert_eigenvalues_match(ours, _scipy_finite(E, A), rtol=1e-8, atol=1e-9)
-        assert fojax.nilpotency_index(E, A) == (0 if r == n else 1)
+        assert fojax.analysis.nilpotency_index(E, A) == (0 if r == n else 1)
 
 
 def test_poles_of_transformed_impulsive_pencil(rng):
@@ -527,9 +526,9 @@ def test_poles_of_transformed_impulsive_pencil(rng):
     A0[0, 1] = 3.0
     U, V = rng.standard_normal((2, 4, 4))
     E, A = U @ E0 @ V, U @ A0 @ V
-    assert_eigenvalues_match(fojax.finite_poles(E, A), [-1.0, 2.0], atol=1e-9)
-    assert fojax.nilpotency_index(E, A) == 2
-    assert not fojax.is_impulse_free(E, A)
+    assert_eigenvalues_match(fojax.analysis.finite_poles(E, A), [-1.0, 2.0], atol=1e-9)
+    assert fojax.analysis.nilpotency_index(E, A) == 2
+    assert not fojax.analysis.is_impulse_free(E, A)
 
 
 def test_poles_robust_for_transformed_index3_pencil(rng):
@@ -543,22 +542,22 @@ def test_poles_robust_for_transformed_index3_pencil(rng):
     E, A = U @ E0 @ V, U @ A0 @ V
     naive = sla.eigvals(A, E)
     assert np.sum(np.isfinite(naive)) > 2  # the pitfall is real for this pencil
-    assert_eigenvalues_match(fojax.finite_poles(E, A), [-2.0, -1.0], atol=1e-9)
-    assert fojax.nilpotency_index(E, A) == 3
+    assert_eigenvalues_match(fojax.analysis.finite_poles(E, A), [-2.0, -1.0], atol=1e-9)
+    assert fojax.analysis.nilpotency_index(E, A) == 3
     _check_against_rank_sequences(E, A)
-    w = fojax.weierstrass_form(E, A)
+    w = fojax.analysis.weierstrass_form(E, A)
     assert w.residuals["E"] < 1e-10 and w.residuals["A"] < 1e-10
     assert np.all(np.linalg.matrix_power(w.N, 3) == 0)
 
 
 def test_thesis_example_4_1_3():
     s = fojax.DescriptorSystem(TE, TA, TB, TC)
-    poles = fojax.finite_poles(s)
+    poles = fojax.analysis.finite_poles(s)
     # Thesis: 1.79, -4.4 -+ 1.72i (brief: 1.795, -4.397 -+ 1.717i).
     assert_eigenvalues_match(poles, [-4.397 - 1.717j, -4.397 + 1.717j, 1.795], atol=6e-4)
     # independent: the hand-reduced ODE
     assert_eigenvalues_match(poles, np.linalg.eigvals(TA_SLOW), atol=1e-10)
-    closed = fojax.finite_poles(TE, TA + TB @ TL)
+    closed = fojax.analysis.finite_poles(TE, TA + TB @ TL)
     # Thesis prints -39.78 (truncated); the value is -39.7897.
     assert_eigenvalues_match(closed, [-39.79, -1.698 - 1.991j, -1.698 + 1.991j], atol=6e-4)
     assert_eigenvalues_match(
@@ -566,34 +565,34 @@ def test_thesis_example_4_1_3():
         np.linalg.eigvals(TA_SLOW + TB_SLOW @ (TL[:, :3] + TL[:, 3:] @ [[1.0, 2.0, 0.0]])),
         atol=1e-9,
     )
-    assert fojax.is_impulse_free(s) and not fojax.is_stable(s) and not fojax.is_admissible(s)
-    assert fojax.is_admissible(TE, TA + TB @ TL)
-    assert fojax.nilpotency_index(s) == 1
+    assert fojax.analysis.is_impulse_free(s) and not fojax.analysis.is_stable(s) and not fojax.analysis.is_admissible(s)
+    assert fojax.analysis.is_admissible(TE, TA + TB @ TL)
+    assert fojax.analysis.nilpotency_index(s) == 1
     # measuring x1, x2, x4 with E's rows e1..e3: rank[E; C] = 4 -> C-observable
-    assert fojax.is_c_observable(s)
+    assert fojax.analysis.is_c_observable(s)
     # rank[E, B] = 3 (B's last row is zero) -> not C-controllable; R-controllability is
     # controllability of the hand-reduced ODE (Kalman rank test):
     kalman = np.hstack([np.linalg.matrix_power(TA_SLOW, k) @ TB_SLOW for k in range(3)])
-    assert fojax.is_r_controllable(s) is bool(np.linalg.matrix_rank(kalman) == 3)
-    assert not fojax.is_c_controllable(s)
-    assert fojax.is_stabilizable(s)  # the thesis's L stabilizes it
-    assert fojax.is_functionally_observable(s, TL)
+    assert fojax.analysis.is_r_controllable(s) is bool(np.linalg.matrix_rank(kalman) == 3)
+    assert not fojax.analysis.is_c_controllable(s)
+    assert fojax.analysis.is_stabilizable(s)  # the thesis's L stabilizes it
+    assert fojax.analysis.is_functionally_observable(s, TL)
 
 
 def test_is_stable_margin_and_axis():
     s = CATALOGUE[0].sys()  # poles -1, -2
-    assert fojax.is_stable(s, margin=0.5)
-    assert not fojax.is_stable(s, margin=1.5)
+    assert fojax.analysis.is_stable(s, margin=0.5)
+    assert not fojax.analysis.is_stable(s, margin=1.5)
     # a pole exactly on the axis (x' = 0) is not stable
-    assert not fojax.is_stable(np.eye(1), np.zeros((1, 1)))
-    assert not fojax.is_stable(np.diag([1.0, 0.0]), np.array([[0.0, 1.0], [0.0, 1.0]]))
+    assert not fojax.analysis.is_stable(np.eye(1), np.zeros((1, 1)))
+    assert not fojax.analysis.is_stable(np.diag([1.0, 0.0]), np.array([[0.0, 1.0], [0.0, 1.0]]))
 
 
 def test_nilpotency_index_conventions():
-    assert fojax.nilpotency_index(np.eye(2), -np.eye(2)) == 0  # ODE
-    assert fojax.nilpotency_index(np.diag([1.0, 0.0]), -np.eye(2)) == 1  # N = 0
-    assert fojax.nilpotency_index(J2, I2) == 2
-    assert fojax.nilpotency_index(np.diag([1.0, 1.0, 1.0], 1), np.eye(4)) == 4
+    assert fojax.analysis.nilpotency_index(np.eye(2), -np.eye(2)) == 0  # ODE
+    assert fojax.analysis.nilpotency_index(np.diag([1.0, 0.0]), -np.eye(2)) == 1  # N = 0
+    assert fojax.analysis.nilpotency_index(J2, I2) == 2
+    assert fojax.analysis.nilpotency_index(np.diag([1.0, 1.0, 1.0], 1), np.eye(4)) == 4
 
 
 # ----------------------------------------------------------------------------- Weierstrass
@@ -620,11 +619,11 @@ def _weierstrass_cases(rng):
 
 def test_weierstrass_form(rng):
     for name, E, A, B, C in _weierstrass_cases(rng):
-        w = fojax.weierstrass_form(fojax.DescriptorSystem(E, A, B, C))
+        w = fojax.analysis.weierstrass_form(fojax.DescriptorSystem(E, A, B, C))
         n = E.shape[0]
-        poles = fojax.finite_poles(E, A)
+        poles = fojax.analysis.finite_poles(E, A)
         assert w.n1 == len(poles) and w.n1 + w.n2 == n, name
-        assert w.index == fojax.nilpotency_index(E, A), name
+        assert w.index == fojax.analysis.nilpotency_index(E, A), name
         tE = sla.block_diag(np.eye(w.n1), w.N) if n else np.zeros((0, 0))
         tA = sla.block_diag(w.A1, np.eye(w.n2)) if n else np.zeros((0, 0))
         assert np.max(np.abs(w.P @ E @ w.Q - tE), initial=0.0) <= 1e-10, name
@@ -649,14 +648,14 @@ def test_weierstrass_form(rng):
 def test_e_perp(rng):
     U, V = rng.standard_normal((2, 5, 5))
     E = U @ np.diag([3.0, 1.0, 0.5, 0.0, 0.0]) @ V
-    Ep = fojax.e_perp(E)
+    Ep = fojax.analysis.e_perp(E)
     assert Ep.shape == (2, 5)
     np.testing.assert_allclose(Ep @ E, 0.0, atol=1e-12)
     np.testing.assert_allclose(Ep @ Ep.T, np.eye(2), atol=1e-12)
-    assert fojax.e_perp(np.eye(3)).shape == (0, 3)
-    assert fojax.e_perp(np.zeros((0, 0))).shape == (0, 0)
-    np.testing.assert_allclose(np.abs(fojax.e_perp(TE)), [[0.0, 0.0, 0.0, 1.0]])
-    assert fojax.e_perp(fojax.DescriptorSystem(TE, TA)).shape == (1, 4)
+    assert fojax.analysis.e_perp(np.eye(3)).shape == (0, 3)
+    assert fojax.analysis.e_perp(np.zeros((0, 0))).shape == (0, 0)
+    np.testing.assert_allclose(np.abs(fojax.analysis.e_perp(TE)), [[0.0, 0.0, 0.0, 1.0]])
+    assert fojax.analysis.e_perp(fojax.DescriptorSystem(TE, TA)).shape == (1, 4)
 
 
 # ----------------------------------------------------------------------------- certificate
@@ -673,10 +672,10 @@ def _check_certificate(cert, E, A):
 
 def test_admissibility_certificate_verified():
     c = CATALOGUE[3]  # index1_admissible
-    cert = fojax.admissibility_certificate(c.sys())
+    cert = fojax.analysis.admissibility_certificate(c.sys())
     _check_certificate(cert, c.E, c.A)
     closed = TA + TB @ TL
-    cert = fojax.admissibility_certificate(TE, closed)
+    cert = fojax.analysis.admissibility_certificate(TE, closed)
     _check_certificate(cert, TE, closed)
     assert "optimal" in repr(cert)
 
@@ -688,24 +687,24 @@ def test_admissibility_certificate_verified():
 )
 def test_admissibility_certificate_infeasible(E, A):
     with pytest.raises(
-        fojax.LMIInfeasibleError, match="solver status 'infeasible.*not admissible"
+        fojax.errors.LMIInfeasibleError, match="solver status 'infeasible.*not admissible"
     ) as info:
-        fojax.admissibility_certificate(E, A)
+        fojax.analysis.admissibility_certificate(E, A)
     assert info.value.status.startswith("infeasible")
 
 
 def test_admissibility_certificate_rejects_inaccurate_and_bad_verification():
     c = CATALOGUE[3]
-    with pytest.raises(fojax.SolverStoppedShortError, match=r"was not solved.*raise max_iters") as info:
-        fojax.admissibility_certificate(c.sys(), max_iters=2)
+    with pytest.raises(fojax.errors.SolverStoppedShortError, match=r"was not solved.*raise max_iters") as info:
+        fojax.analysis.admissibility_certificate(c.sys(), max_iters=2)
     assert info.value.status != "optimal"
     # An absurd verification margin must fail the float64 re-check, with the numbers.
-    with pytest.raises(fojax.DesignVerificationError, match=r"Lyapunov margin .* < 1\.0e\+01"):
-        fojax.admissibility_certificate(c.sys(), verify_rtol=10.0)
+    with pytest.raises(fojax.errors.DesignVerificationError, match=r"Lyapunov margin .* < 1\.0e\+01"):
+        fojax.analysis.admissibility_certificate(c.sys(), verify_rtol=10.0)
 
 
 def test_admissibility_certificate_empty():
-    cert = fojax.admissibility_certificate(np.zeros((0, 0)), np.zeros((0, 0)))
+    cert = fojax.analysis.admissibility_certificate(np.zeros((0, 0)), np.zeros((0, 0)))
     assert cert.status == "trivial" and cert.P.shape == (0, 0)
 
 
@@ -738,14 +737,14 @@ def test_structure_report_matches_functions(case):
 
 
 def test_input_errors():
-    with pytest.raises(fojax.InputError, match=r"expects a fojax.DescriptorSystem or the two"):
-        fojax.finite_poles(TE)
-    with pytest.raises(fojax.InputError, match="needs a fojax.DescriptorSystem"):
-        fojax.is_c_observable((TE, TA))
-    with pytest.raises(fojax.ShapeError, match="A has shape"):
-        fojax.is_regular(TE, np.ones((3, 3)))
-    with pytest.raises(fojax.InputError, match="traced JAX value"):
-        jax.jit(lambda E, A: fojax.is_regular(E, A))(TE, TA)
+    with pytest.raises(fojax.errors.InputError, match=r"expects a fojax.DescriptorSystem or the two"):
+        fojax.analysis.finite_poles(TE)
+    with pytest.raises(fojax.errors.InputError, match="needs a fojax.DescriptorSystem"):
+        fojax.analysis.is_c_observable((TE, TA))
+    with pytest.raises(fojax.errors.ShapeError, match="A has shape"):
+        fojax.analysis.is_regular(TE, np.ones((3, 3)))
+    with pytest.raises(fojax.errors.InputError, match="traced JAX value"):
+        jax.jit(lambda E, A: fojax.analysis.is_regular(E, A))(TE, TA)
 
 
 # ----------------------------------------------------------------------------- traced
@@ -763,22 +762,22 @@ def batch():
 
 def test_traced_index1_screens_agree_with_host(batch):
     E, A = batch
-    margin = jax.jit(jax.vmap(lambda e, a: fojax.impulse_free_margin(e, a, rank_E=3)))(E, A)
-    stab = jax.jit(jax.vmap(lambda e, a: fojax.stability_margin_index1(e, a, rank_E=3)))(E, A)
-    gap = jax.jit(jax.vmap(lambda e, a: fojax.functional_observability_gap(e, a, TC, TL, 3)))(E, A)
+    margin = jax.jit(jax.vmap(lambda e, a: fojax.analysis.impulse_free_margin(e, a, rank_E=3)))(E, A)
+    stab = jax.jit(jax.vmap(lambda e, a: fojax.analysis.stability_margin_index1(e, a, rank_E=3)))(E, A)
+    gap = jax.jit(jax.vmap(lambda e, a: fojax.analysis.functional_observability_gap(e, a, TC, TL, 3)))(E, A)
     s0 = 0.3 + 0.7j
-    reg = jax.jit(jax.vmap(lambda e, a: fojax.regular_at(e, a, s0)))(E, A)
+    reg = jax.jit(jax.vmap(lambda e, a: fojax.analysis.regular_at(e, a, s0)))(E, A)
     for i in range(E.shape[0]):
         # E = diag(*, *, *, 0): null spaces are e4 on both sides, so A22 = A[3, 3].
         np.testing.assert_allclose(margin[i], abs(A[i, 3, 3]), rtol=1e-12)
-        assert fojax.is_impulse_free(E[i], A[i]) is bool(
+        assert fojax.analysis.is_impulse_free(E[i], A[i]) is bool(
             margin[i] > 1e-10 * np.linalg.norm(A[i], 2)
         )
-        poles = fojax.finite_poles(E[i], A[i])
+        poles = fojax.analysis.finite_poles(E[i], A[i])
         np.testing.assert_allclose(stab[i], poles.real.max(), rtol=1e-9, atol=1e-10)
-        assert fojax.is_stable(E[i], A[i]) is bool(stab[i] < 0)
+        assert fojax.analysis.is_stable(E[i], A[i]) is bool(stab[i] < 0)
         assert gap[i] < 1e-10
-        assert bool(reg[i]) is fojax.is_regular(E[i], A[i])
+        assert bool(reg[i]) is fojax.analysis.is_regular(E[i], A[i])
     assert bool(jnp.all(reg))
 
 
@@ -791,7 +790,7 @@ def test_traced_functional_gap_and_regularity_negative_cases():
     A[:, 2, 2] = 1.0 + 0.1 * r.standard_normal(k)  # keep E^perp A = a33 e3'
     gap = jax.jit(
         jax.vmap(
-            lambda a, L: fojax.functional_observability_gap(c.E, a, c.C, L, rank_E=2),
+            lambda a, L: fojax.analysis.functional_observability_gap(c.E, a, c.C, L, rank_E=2),
             in_axes=(0, None),
         )
     )
@@ -799,32 +798,32 @@ def test_traced_functional_gap_and_regularity_negative_cases():
     g_true = gap(A, c.L_true)
     for i in range(k):
         s = fojax.DescriptorSystem(c.E, A[i], c.B, c.C)
-        assert not fojax.is_functionally_observable(s, c.L_false)
-        assert fojax.is_functionally_observable(s, c.L_true)
+        assert not fojax.analysis.is_functionally_observable(s, c.L_false)
+        assert fojax.analysis.is_functionally_observable(s, c.L_true)
         np.testing.assert_allclose(g_false[i], 1.0, atol=1e-12)  # e2 is orthogonal to Gamma
         assert g_true[i] < 1e-10
-        assert fojax.impulse_free_margin(c.E, A[i]) < 1e-12  # impulsive: A22 = 0
-        assert not fojax.is_impulse_free(c.E, A[i])
+        assert fojax.analysis.impulse_free_margin(c.E, A[i]) < 1e-12  # impulsive: A22 = 0
+        assert not fojax.analysis.is_impulse_free(c.E, A[i])
     # irregular pencils: singular at every s
     d = np.abs(1.0 + 0.1 * r.standard_normal(k))
     Ei = np.zeros((k, 2, 2))
     Ei[:, 0, 0] = d
-    reg = jax.jit(jax.vmap(lambda e: fojax.regular_at(e, e, 0.3 + 0.7j)))(Ei)
-    marg = jax.vmap(lambda e: fojax.regularity_margin_at(e, e, 0.3 + 0.7j))(Ei)
+    reg = jax.jit(jax.vmap(lambda e: fojax.analysis.regular_at(e, e, 0.3 + 0.7j)))(Ei)
+    marg = jax.vmap(lambda e: fojax.analysis.regularity_margin_at(e, e, 0.3 + 0.7j))(Ei)
     assert not bool(jnp.any(reg)) and float(jnp.max(marg)) < 1e-15
-    assert not any(fojax.is_regular(Ei[i], Ei[i]) for i in range(k))
+    assert not any(fojax.analysis.is_regular(Ei[i], Ei[i]) for i in range(k))
 
 
 def test_traced_needs_static_rank():
-    with pytest.raises(fojax.InputError, match="Pass rank_E="):
-        jax.jit(fojax.impulse_free_margin)(TE, TA)
+    with pytest.raises(fojax.errors.InputError, match="Pass rank_E="):
+        jax.jit(fojax.analysis.impulse_free_margin)(TE, TA)
     # concrete inputs: rank inferred on the host
-    np.testing.assert_allclose(fojax.impulse_free_margin(TE, TA), 1.0)
-    np.testing.assert_allclose(fojax.impulse_free_margin(np.eye(2), TA[:2, :2]), np.inf)
+    np.testing.assert_allclose(fojax.analysis.impulse_free_margin(TE, TA), 1.0)
+    np.testing.assert_allclose(fojax.analysis.impulse_free_margin(np.eye(2), TA[:2, :2]), np.inf)
     np.testing.assert_allclose(
-        fojax.stability_margin_index1(TE, TA), fojax.finite_poles(TE, TA).real.max(), rtol=1e-10
+        fojax.analysis.stability_margin_index1(TE, TA), fojax.analysis.finite_poles(TE, TA).real.max(), rtol=1e-10
     )
-    assert fojax.stability_margin_index1(np.zeros((2, 2)), -I2) == -np.inf
+    assert fojax.analysis.stability_margin_index1(np.zeros((2, 2)), -I2) == -np.inf
     np.testing.assert_allclose(
-        fojax.stability_margin_index1(I2, np.diag([-1.0, -2.0])), -1.0, rtol=1e-12
+        fojax.analysis.stability_margin_index1(I2, np.diag([-1.0, -2.0])), -1.0, rtol=1e-12
     )

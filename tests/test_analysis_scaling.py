@@ -268,7 +268,7 @@ def test_every_layer_takes_the_analysis_verdict_on_a_badly_scaled_ode():
     As, _, _, _, _ = reduce_host(E, A, np.ones((2, 1)))
     assert_eigenvalues_match(np.linalg.eigvals(As), fa.finite_poles(E, A), rtol=1e-12)
     assert_eigenvalues_match(np.linalg.eigvals(As), [-1.0, -1.0], rtol=1e-12)
-    with pytest.raises(fojax.InputError, match="too badly scaled for simulation"):
+    with pytest.raises(fojax.errors.InputError, match="too badly scaled for simulation"):
         check_index1_host(E, A)
     check_index1_host(np.eye(2), A)  # the same model in balanced units is accepted
 

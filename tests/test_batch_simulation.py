@@ -206,18 +206,18 @@ def test_vmapped_simulate_traceable_inside_jit(batch_result):
 
 def test_refuses_bad_inputs(batch_result):
     params, x0, _, _ = batch_result
-    with pytest.raises(fojax.InputError, match="uniform"):
+    with pytest.raises(fojax.errors.InputError, match="uniform"):
         simulate_lti_batch(model, params, x0, TS**2, metrics=METRICS)
-    with pytest.raises(fojax.InputError, match="kind in"):
+    with pytest.raises(fojax.errors.InputError, match="kind in"):
         simulate_lti_batch(model, params, x0, TS, metrics={"a": ("peak", MX)})
-    with pytest.raises(fojax.ShapeError, match="metrics"):
+    with pytest.raises(fojax.errors.ShapeError, match="metrics"):
         simulate_lti_batch(model, params, x0, TS, metrics={"a": ("iae", MX[:, :4])})
 
     def nonlinear(p):
         f = lambda x, u, th: jnp.asarray(ACL) @ x  # noqa: E731
         return fojax.NonlinearDescriptorSystem(jnp.asarray(E), f, lambda x, th: x[:3], {}, m=2, p=3)
 
-    with pytest.raises(fojax.InputError, match="linear time-invariant"):
+    with pytest.raises(fojax.errors.InputError, match="linear time-invariant"):
         simulate_lti_batch(nonlinear, params, x0, TS, metrics={"a": ("iae", np.eye(4))})
 
 

@@ -63,13 +63,13 @@ def test_bisection_brackets_the_closed_form_fraction(motor):
 
 def test_centre_refusals(motor):
     sys_, L = motor
-    with pytest.raises(fojax.InputError, match="bounded region"):
+    with pytest.raises(fojax.errors.InputError, match="bounded region"):
         design_functional_observer(sys_, L, region=HalfPlane(1.0), objective="centre")
-    with pytest.raises(fojax.InputError, match="method='lmi' or 'auto'"):
+    with pytest.raises(fojax.errors.InputError, match="method='lmi' or 'auto'"):
         design_functional_observer(sys_, L, region=Disk(-2.0, 1.0), objective="centre", method="riccati")
-    with pytest.raises(fojax.InputError, match="only used with objective='hinf'"):
+    with pytest.raises(fojax.errors.InputError, match="only used with objective='hinf'"):
         design_functional_observer(sys_, L, objective="centre", Bw=np.eye(3))
-    with pytest.raises(fojax.InputError, match="objective must be one of"):
+    with pytest.raises(fojax.errors.InputError, match="objective must be one of"):
         design_functional_observer(sys_, L, objective="center")
 
 
@@ -84,7 +84,7 @@ def test_model_file_key():
     cfg = parse_config(data, "c.toml")
     assert cfg.observers[0].design_kwargs() == {"objective": "centre", "Bw": None, "Dv": None}
     bad = {**data, "observer": [{**data["observer"][0], "Bw": [[1.0]] * 4}]}
-    with pytest.raises(fojax.ConfigError, match="Bw"):
+    with pytest.raises(fojax.errors.ConfigError, match="Bw"):
         parse_config(bad, "c.toml")
 
 

@@ -94,7 +94,7 @@ def test_check_checks_every_file_and_reports_each_bad_one(tmp_path, capsys, monk
     # all good: exit 0; FOJAX_DEBUG=1: the full exception instead of the one line
     assert main(["check", "example_3_1_3", "--quiet"]) == 0
     monkeypatch.setenv("FOJAX_DEBUG", "1")
-    with pytest.raises(fojax.ConfigError, match="not valid TOML"):
+    with pytest.raises(fojax.errors.ConfigError, match="not valid TOML"):
         main(["check", str(bad_syntax), "example_3_1_3"])
 
 
@@ -159,7 +159,7 @@ def test_saved_design_of_a_finite_time_observer_is_reloaded(tmp_path):
     for other in (dataclasses.replace(spec, name="other"),
                   dataclasses.replace(spec, regions=(Disk(-5.0, 0.5), Disk(-3.0, 0.5))),
                   dataclasses.replace(spec, kind="generalized")):
-        with pytest.raises(fojax.InputError, match=r"is not the design of observer"):
+        with pytest.raises(fojax.errors.InputError, match=r"is not the design of observer"):
             _saved_design(path, other)
 
 
@@ -186,5 +186,5 @@ def test_saved_design_of_the_other_kinds_is_reloaded(tmp_path):
         assert assert_designs_identical(d, loaded) >= 30
         assert "saved" not in loaded.solver
         other = "generalized" if kind else "unknown-input"
-        with pytest.raises(fojax.InputError, match=r"is not the design of observer"):
+        with pytest.raises(fojax.errors.InputError, match=r"is not the design of observer"):
             _saved_design(path, dataclasses.replace(spec, kind=other))

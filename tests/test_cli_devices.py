@@ -150,11 +150,12 @@ def test_compile_flag_rules(environ, jax_started, jaxlib, added):
 
 
 def test_the_program_compiles_with_the_flag_on_the_measured_jaxlib():
-    # a child that is the `fojax` program (argv[0]; fojax/cli/_startup.py runs while fojax is
+    # a child that starts as the `fojax` program does (_fojax_program.start, before fojax is
     # imported): the flag is in its XLA_FLAGS exactly on a measured jaxlib, and JAX starts with it
     env = _env()
     env["XLA_FLAGS"] = " ".join(f for f in env["XLA_FLAGS"].split() if "fusion_emitters" not in f)
-    code = ("import sys; sys.argv = ['fojax']; import os, fojax, jax; "
+    code = ("import sys; sys.argv = ['fojax']; import _fojax_program; _fojax_program.start(); "
+            "import os, fojax, jax; "
             "print(os.environ.get('XLA_FLAGS', '')); print(jax.devices('cpu')[0].platform)")
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]

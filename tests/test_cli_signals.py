@@ -58,7 +58,7 @@ class _Child:
         if log_compiles:
             env["JAX_LOG_COMPILES"] = "1"
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "fojax.cli", *map(str, args)], stdout=subprocess.PIPE,
+            [sys.executable, "-m", "_fojax_program", *map(str, args)], stdout=subprocess.PIPE,
             stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_defaults, start_new_session=True,
         )
         self.out, self.err = [], []

@@ -243,7 +243,7 @@ BAD_FAULTS = [
 
 @pytest.mark.parametrize("mutate, key, what", BAD_FAULTS, ids=[b[1] + ":" + b[2][:12] for b in BAD_FAULTS])
 def test_bad_ts_faults_keys_name_the_key(mutate, key, what):
-    with pytest.raises(fojax.ConfigError, match=what) as info:
+    with pytest.raises(fojax.errors.ConfigError, match=what) as info:
         parse_config(_bad(mutate), "arm.toml")
     assert info.value.key == key
 
@@ -348,7 +348,7 @@ BAD = [
 
 @pytest.mark.parametrize("mutate, key, what", BAD, ids=[b[1] + ":" + b[2][:12] for b in BAD])
 def test_bad_ts_study_keys_name_the_key(mutate, key, what):
-    with pytest.raises(fojax.ConfigError, match=what) as info:
+    with pytest.raises(fojax.errors.ConfigError, match=what) as info:
         parse_config(_bad(mutate), "arm.toml")
     assert info.value.key == key
 
@@ -356,12 +356,12 @@ def test_bad_ts_study_keys_name_the_key(mutate, key, what):
 def test_ts_only_keys_are_refused_for_lti_models():
     d = tomllib.loads(example_path("example_3_3_7").read_text())
     d["initial_state"] = {"spread": 0.1}
-    with pytest.raises(fojax.ConfigError, match="only available for Takagi-Sugeno") as info:
+    with pytest.raises(fojax.errors.ConfigError, match="only available for Takagi-Sugeno") as info:
         parse_config(d, "lti.toml")
     assert info.value.key == "initial_state"
     d = tomllib.loads(example_path("example_3_3_7").read_text())
     d["uncertainty"]["parameters"] = {"k": 0.1}
-    with pytest.raises(fojax.ConfigError, match="is for Takagi-Sugeno models") as info:
+    with pytest.raises(fojax.errors.ConfigError, match="is for Takagi-Sugeno models") as info:
         parse_config(d, "lti.toml")
     assert info.value.key == "uncertainty.parameters"
 
@@ -453,7 +453,7 @@ BAD_SPECIAL = [
 @pytest.mark.parametrize("case, key, what", BAD_SPECIAL, ids=[b[1] + ":" + b[2][:10] for b in BAD_SPECIAL])
 def test_bad_special_observer_keys_name_the_key(case, key, what):
     example, obs = case
-    with pytest.raises(fojax.ConfigError, match=what) as info:
+    with pytest.raises(fojax.errors.ConfigError, match=what) as info:
         parse_config(_with_observer(example, **obs), "x.toml")
     assert info.value.key == key
 

@@ -79,7 +79,7 @@ def test_examples_are_package_data():
     assert sorted(p.name for p in root.iterdir() if p.name.endswith(".toml")) == [f"{e}.toml" for e in EXAMPLES]
     assert example_names() == EXAMPLES
     assert example_path("example_3_3_7").is_file()
-    with pytest.raises(fojax.ConfigError, match="Did you mean 'example_3_3_7'"):
+    with pytest.raises(fojax.errors.ConfigError, match="Did you mean 'example_3_3_7'"):
         example_path("example_3_3_8")
 
 
@@ -226,7 +226,7 @@ MALFORMED = [
 @pytest.mark.parametrize("path,value,key,what", MALFORMED, ids=[m[2] + ":" + m[3][:20] for m in MALFORMED])
 def test_malformed_config_names_file_and_key(tmp_path, path, value, key, what):
     p = write(tmp_path, _mutate(path, value))
-    with pytest.raises(fojax.ConfigError, match=what) as info:
+    with pytest.raises(fojax.errors.ConfigError, match=what) as info:
         load_config(p)
     err = info.value
     assert err.key == key and err.file == str(p)
@@ -282,7 +282,7 @@ def test_balance_key_refused_where_the_design_has_none(tmp_path, extra, what):
     if "regions" in extra:  # a finite-time observer has two regions instead of one
         del d["observer"][0]["region"]
     p = write(tmp_path, d)
-    with pytest.raises(fojax.ConfigError, match=what) as info:
+    with pytest.raises(fojax.errors.ConfigError, match=what) as info:
         load_config(p)
     assert info.value.key == "observer[0].balance"
 
@@ -290,38 +290,38 @@ def test_balance_key_refused_where_the_design_has_none(tmp_path, extra, what):
 def test_balance_key_refused_for_takagi_sugeno():
     d = load_config(example_path("robot_arm_ts")).raw
     bad = {**d, "observer": [{**d.get("observer", [{}])[0], "balance": True}]}
-    with pytest.raises(fojax.ConfigError, match=r"\[observer\[0\]\.balance\] is for linear models"):
+    with pytest.raises(fojax.errors.ConfigError, match=r"\[observer\[0\]\.balance\] is for linear models"):
         parse_config(bad, "ts.toml")
 
 
 def test_takagi_sugeno_errors(tmp_path):
     d = load_config(example_path("robot_arm_ts")).raw
     bad = {**d, "takagi_sugeno": {**d["takagi_sugeno"], "index": 2}}
-    with pytest.raises(fojax.ConfigError, match=r"\[takagi_sugeno\.index\] is 2; expected an output index in 0\.\.1"):
+    with pytest.raises(fojax.errors.ConfigError, match=r"\[takagi_sugeno\.index\] is 2; expected an output index in 0\.\.1"):
         parse_config(bad, "ts.toml")
     bad = {**d, "takagi_sugeno": {**d["takagi_sugeno"], "premise": "sin"}}
-    with pytest.raises(fojax.ConfigError, match=r"\[takagi_sugeno\.premise\].*Did you mean 'sinc'"):
+    with pytest.raises(fojax.errors.ConfigError, match=r"\[takagi_sugeno\.premise\].*Did you mean 'sinc'"):
         parse_config(bad, "ts.toml")
     bad = {**d, "model": {**d["model"], "A": d["model"]["A"][0]}}
-    with pytest.raises(fojax.ConfigError, match=r"\[model\.A\] expected a list of n x n rule matrices"):
+    with pytest.raises(fojax.errors.ConfigError, match=r"\[model\.A\] expected a list of n x n rule matrices"):
         parse_config(bad, "ts.toml")
 
 
 def test_file_level_errors(tmp_path):
-    with pytest.raises(fojax.ConfigError, match=r"nope\.toml: \[\(file\)\] does not exist"):
+    with pytest.raises(fojax.errors.ConfigError, match=r"nope\.toml: \[\(file\)\] does not exist"):
         load_config(tmp_path / "nope.toml")
     p = tmp_path / "syntax.toml"
     p.write_text("[model]\nE = [[1, 0]\n")
-    with pytest.raises(fojax.ConfigError, match=r"syntax\.toml: \[\(syntax\)\] is not valid TOML"):
+    with pytest.raises(fojax.errors.ConfigError, match=r"syntax\.toml: \[\(syntax\)\] is not valid TOML"):
         load_config(p)
     p.write_text("name = 'x'\n")
-    with pytest.raises(fojax.ConfigError, match=r"\[model\] missing required key 'model'"):
+    with pytest.raises(fojax.errors.ConfigError, match=r"\[model\] missing required key 'model'"):
         load_config(p)
     p.write_text("[model]\nE = [[1.0, nan], [0.0, 1.0]]\nA = [[1.0]]\nB = [[1.0]]\nC = [[1.0]]\nL = [[1.0]]\n")
-    with pytest.raises(fojax.ConfigError, match=r"\[model\.E\] entry model\.E\[0\]\[1\] is nan; every entry must be finite"):
+    with pytest.raises(fojax.errors.ConfigError, match=r"\[model\.E\] entry model\.E\[0\]\[1\] is nan; every entry must be finite"):
         load_config(p)
     p.write_text("[model]\nE = [[1.0, true], [0.0, 1.0]]\nA = [[1.0]]\nB = [[1.0]]\nC = [[1.0]]\nL = [[1.0]]\n")
-    with pytest.raises(fojax.ConfigError, match=r"\[model\.E\].*is True \(boolean\)"):
+    with pytest.raises(fojax.errors.ConfigError, match=r"\[model\.E\].*is True \(boolean\)"):
         load_config(p)
 
 
@@ -329,11 +329,11 @@ def test_model_keys_outside_the_model_table(tmp_path):
     model = "E = [[1.0]]\nA = [[-1.0]]\nB = [[1.0]]\nC = [[1.0]]\nL = [[1.0]]\n"
     p = tmp_path / "noheader.toml"
     p.write_text("name = 'x'\n" + model)  # the [model] header forgotten (was: "unknown key 'E'")
-    with pytest.raises(fojax.ConfigError, match=r"\[model\] missing \[model\] table: E, A, B, C, L are at the "
+    with pytest.raises(fojax.errors.ConfigError, match=r"\[model\] missing \[model\] table: E, A, B, C, L are at the "
                        r"top level\. Put them under a \[model\] table \(a line `\[model\]` above E\)"):
         load_config(p)
     p.write_text("E = [[1.0]]\n[model]\n" + model.split("\n", 1)[1])  # the header one line too low
-    with pytest.raises(fojax.ConfigError, match=r"\[E\] E is at the top level of the file, outside the \[model\] "
+    with pytest.raises(fojax.errors.ConfigError, match=r"\[E\] E is at the top level of the file, outside the \[model\] "
                        r"table.*Move them below the \[model\] header"):
         load_config(p)
 
@@ -373,7 +373,7 @@ BAD_NAMES = [
 def test_names_that_become_files_are_validated(tmp_path, value, what):
     for path, key in ((("observer", 0, "name"), "observer[0].name"), (("name",), "name")):
         p = write(tmp_path, _mutate(path, value))
-        with pytest.raises(fojax.ConfigError, match=what) as info:
+        with pytest.raises(fojax.errors.ConfigError, match=what) as info:
             load_config(p)
         assert info.value.key == key and info.value.file == str(p)
         assert f"[{key}] {value!r} cannot be used" in str(info.value)
@@ -406,7 +406,7 @@ def test_valid_names_and_the_default_model_name(tmp_path):
 def test_observer_names_must_give_distinct_files(tmp_path, names, what):
     d = base()
     d["observer"] = [{"name": n} for n in names]
-    with pytest.raises(fojax.ConfigError, match=what):
+    with pytest.raises(fojax.errors.ConfigError, match=what):
         load_config(write(tmp_path, d))
 
 
@@ -427,7 +427,7 @@ METHOD_ERRORS = [
 @pytest.mark.parametrize("observer,what", METHOD_ERRORS, ids=[m[1][:30] for m in METHOD_ERRORS])
 def test_design_method_key_is_checked_at_load(tmp_path, observer, what):
     d = {**base(), "observer": [observer]}
-    with pytest.raises(fojax.ConfigError, match=what) as info:
+    with pytest.raises(fojax.errors.ConfigError, match=what) as info:
         load_config(write(tmp_path, d))
     assert info.value.key == "observer[0].method"
 
@@ -447,7 +447,7 @@ def test_design_method_key_reaches_the_design(tmp_path):
     # a Takagi-Sugeno model's observers need the common-certificate LMI
     ts = load_config(example_path("robot_arm_ts")).raw
     bad = {**ts, "observer": [{**ts["observer"][0], "method": "auto"}]}
-    with pytest.raises(fojax.ConfigError, match=r"one certificate common to all rules"):
+    with pytest.raises(fojax.errors.ConfigError, match=r"one certificate common to all rules"):
         parse_config(bad, "ts.toml")
 
 

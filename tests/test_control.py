@@ -210,7 +210,7 @@ def test_ill_posed_algebraic_loop_refused(ex413):
     )
     with pytest.raises(AlgebraicLoopError, match="ill-posed algebraic loop"):
         closed_loop(s, obs)
-    with pytest.raises(fojax.ShapeError, match="one per plant input"):
+    with pytest.raises(fojax.errors.ShapeError, match="one per plant input"):
         closed_loop(s, design_functional_observer(s, np.eye(3, 4), region=Disk(-2.0, 1.0)))
 
 
@@ -314,7 +314,7 @@ def test_not_stabilizable_raises():
     # not impulse controllable: a nilpotent block [[0, 1], [0, 0]] that u does not reach
     E = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 0, 0]])
     s2 = fojax.DescriptorSystem(E, -np.eye(3), [[1.0], [0.0], [0.0]])
-    assert not fojax.analysis.is_impulse_controllable(s2)
+    assert not fojax.analysis.is_i_controllable(s2)
     with pytest.raises(StabilizabilityError, match="impulse controllability fails"):
         design_state_feedback(s2)
     # a stable uncontrollable mode outside the requested region
@@ -396,7 +396,7 @@ def test_actuator_ftc():
     # u -> L x - f + u_r (eq. 4.25)
     law = np.asarray(tr.x) @ ex.L.T - np.asarray(tr.f) + np.asarray(tr.u_r)
     assert np.abs(np.asarray(tr.u)[-1] - law[-1]).max() < 1e-6
-    with pytest.raises(fojax.ExistenceConditionError, match="actuator-fault matching"):
+    with pytest.raises(fojax.errors.ExistenceConditionError, match="actuator-fault matching"):
         design_actuator_ftc(ex.system, Fa=np.eye(4)[:, :1] + np.eye(4)[:, 3:], L=ex.L)
 
 
@@ -561,7 +561,7 @@ def test_finite_time_loop_fourth_order(ft_loop, ft_runs):
     e25 = np.abs(ft_runs[25][1] - fine[::10]).max()
     e50 = np.abs(ft_runs[50][1] - fine[::5]).max()
     assert 8.0 < e25 / e50 < 32.0, (e25, e50)
-    with pytest.raises(fojax.InputError, match="multiple of the grid step"):
+    with pytest.raises(fojax.errors.InputError, match="multiple of the grid step"):
         loop.simulate(ex.x0, jnp.linspace(0.0, 1.0, 8))
     # vmap over initial states (linear loop: the trajectory from 2 x0 is twice that from x0)
     ts = jnp.linspace(0.0, 5.0, 10 * 25 + 1)

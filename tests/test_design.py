@@ -61,11 +61,11 @@ L413 = np.array([[-8.95, -26.07, 12.1, -4.85], [1.71, 1.31, -3.51, -0.16]])
 DISK = Disk(-2.0, 1.0)
 KINDS = ("proportional", "PI", "generalized")
 TYPED = (
-    fojax.FunctionalObservabilityError,
-    fojax.RankConditionError,
-    fojax.DetectabilityError,
-    fojax.LMIInfeasibleError,
-    fojax.DesignVerificationError,
+    fojax.errors.FunctionalObservabilityError,
+    fojax.errors.RankConditionError,
+    fojax.errors.DetectabilityError,
+    fojax.errors.LMIInfeasibleError,
+    fojax.errors.DesignVerificationError,
 )
 
 # An impulsive (index-2) system: det(sE - A) = s + 1 has degree 1 < rank E = 2.
@@ -497,12 +497,12 @@ def test_lmi_matrix_closed_forms():
     ],
 )
 def test_region_errors(make, match):
-    with pytest.raises(fojax.RegionError, match=match):
+    with pytest.raises(fojax.errors.RegionError, match=match):
         make()
 
 
 def test_region_errors_from_design(sys413):
-    with pytest.raises(fojax.RegionError, match="closed right half-plane"):
+    with pytest.raises(fojax.errors.RegionError, match="closed right half-plane"):
         design_functional_observer(sys413, L413, region=(0.5, 1.0))
 
 
@@ -688,7 +688,7 @@ def _confirm_existence_error(err, E, A, C, R, parts):
     """Existence errors must be true: re-check the failing condition with the oracle pieces."""
     Ep = fojax.design.observer_structure(E, A, np.zeros((E.shape[0], 1)), C, np.zeros((1, E.shape[0])), R).Eperp
     pc = oracle_pieces(E, A, C, R, np.asarray(Ep))
-    if isinstance(err, fojax.DetectabilityError):
+    if isinstance(err, fojax.errors.DetectabilityError):
         # Lemma 8 / Remark 3 with the admissible Z: N = N1r - Z N2r - Y1 N3
         Cm = np.vstack([pc["N2r"], pc["N3"]])
         q0 = pc["N1r"].shape[0]
@@ -696,7 +696,7 @@ def _confirm_existence_error(err, E, A, C, R, parts):
             assert oracle_margin(parts, [lam])[0] <= 0  # outside the requested region
             sv = np.linalg.svd(np.vstack([lam * np.eye(q0) - pc["N1r"], Cm]), compute_uv=False)
             assert sv[-1] <= 1e-6 * max(1.0, nrm(pc["N1r"]), nrm(Cm))  # and truly unmovable
-    elif isinstance(err, fojax.RankConditionError) and "TA" in err.condition:
+    elif isinstance(err, fojax.errors.RankConditionError) and "TA" in err.condition:
         U, V = pc["U"], pc["V"]
         assert nrm(U - U @ sla.pinv(V, atol=1e-9 * max(1.0, nrm(V))) @ V) > 1e-8 * max(1.0, nrm(U))
 
@@ -745,7 +745,7 @@ def test_property_random_systems_verified_or_typed_error(batch):
 def test_functional_observability_error_impulsive():
     sysm = fojax.DescriptorSystem(E_IMP, A_IMP, B_IMP, C_IMP)
     # x2 = -u' is not determined by w = [-E⊥B u; y] and the constraints
-    with pytest.raises(fojax.FunctionalObservabilityError,
+    with pytest.raises(fojax.errors.FunctionalObservabilityError,
                        match=r"rank \[L; E; E⊥A; C\] = 3 but rank \[E; E⊥A; C\] = 2") as ei:
         design_functional_observer(sysm, np.array([[0.0, 1.0, 0.0]]))
     assert (ei.value.lhs, ei.value.rhs) == (3, 2)
@@ -758,14 +758,14 @@ def test_functional_observability_error_impulsive():
 
 def test_rank_condition_R_outside_row_space_of_gamma():
     sysm = fojax.DescriptorSystem(E_IMP, A_IMP, B_IMP, C_IMP)
-    with pytest.raises(fojax.RankConditionError,
+    with pytest.raises(fojax.errors.RankConditionError,
                        match=r"rank \[R; E; Ψ\] = 3 but rank \[E; Ψ\] = 2: some rows of R are not in the row space"):
         design_functional_observer(sysm, np.array([[1.0, 0.0, 0.0]]), R=np.array([[0.0, 1.0, 0.0]]))
 
 
 def test_rank_condition_sigma_L(sys413):
     """R = e1ᵀ: Σ = [e1; E⊥A; C] misses x3, which L needs (L[:, 2] ≠ 0)."""
-    with pytest.raises(fojax.RankConditionError,
+    with pytest.raises(fojax.errors.RankConditionError,
                        match=r"rank \[R; Ψ; L\] = 4 but rank Σ = rank \[R; Ψ\] = 3"):
         design_functional_observer(sys413, L413, R=np.array([[1.0, 0.0, 0.0, 0.0]]))
 
@@ -775,7 +775,7 @@ def test_rank_condition_sigma_TA():
     rng = np.random.default_rng(3)
     A, C, L = rng.standard_normal((4, 4)), rng.standard_normal((1, 4)), rng.standard_normal((1, 4))
     sysm = fojax.DescriptorSystem(np.eye(4), A, np.ones((4, 1)), C)
-    with pytest.raises(fojax.RankConditionError, match=r"rank \[Σ; TA\] = rank Σ fails: no choice of Z"):
+    with pytest.raises(fojax.errors.RankConditionError, match=r"rank \[Σ; TA\] = rank Σ fails: no choice of Z"):
         design_functional_observer(sysm, L, R=L)
     # independent confirmation: U (I - V⁺V) ≠ 0
     pc = oracle_pieces(np.eye(4), A, C, L, np.zeros((0, 4)))
@@ -785,18 +785,18 @@ def test_rank_condition_sigma_TA():
 
 
 def test_observer_order_errors(sys413):
-    with pytest.raises(fojax.RankConditionError, match="q0 = 2 but R has 1 rows"):
+    with pytest.raises(fojax.errors.RankConditionError, match="q0 = 2 but R has 1 rows"):
         design_functional_observer(sys413, L413, R=np.array([[1.0, 0.0, 0.0, 0.0]]), q0=2)
-    with pytest.raises(fojax.RankConditionError, match="q0 = 0"):
+    with pytest.raises(fojax.errors.RankConditionError, match="q0 = 0"):
         design_functional_observer(sys413, L413, q0=0)
-    with pytest.raises(fojax.RankConditionError, match="full row rank of R"):
+    with pytest.raises(fojax.errors.RankConditionError, match="full row rank of R"):
         design_functional_observer(sys413, L413, R=np.vstack([L413, L413[:1]]))
 
 
 def test_largest_useful_order_message_is_true(sys413):
     gam = np.vstack([E413, A413[3:], C413])
     r = np.linalg.matrix_rank(np.vstack([L413, gam]))  # 4: R needs independent rows in row(Γ)
-    with pytest.raises(fojax.RankConditionError) as ei:
+    with pytest.raises(fojax.errors.RankConditionError) as ei:
         design_functional_observer(sys413, L413, q0=r + 1)
     assert f"largest useful order {r}" in str(ei.value)
     # every order up to it is accepted (q0 = 3: one row beyond L, as in §4.3.2's printed R)
@@ -810,7 +810,7 @@ HIDDEN = fojax.DescriptorSystem(np.eye(2), np.diag([-1.0, 0.5]), np.ones((2, 1))
 
 def test_detectability_error_hidden_unstable_mode():
     """x2' = 0.5 x2 is neither measured nor coupled to x1: estimating x2 leaves the mode 0.5."""
-    with pytest.raises(fojax.DetectabilityError,
+    with pytest.raises(fojax.errors.DetectabilityError,
                        match=r"the mode\(s\) 0\.5\+0j of the observer cannot be moved by any gain") as ei:
         design_functional_observer(HIDDEN, np.array([[0.0, 1.0]]), R=np.array([[0.0, 1.0]]))
     assert "disk centred at -2 with radius 1" in str(ei.value)
@@ -822,7 +822,7 @@ def test_detectability_error_slow_mode_descriptor():
     E = np.diag([1.0, 1.0, 0.0])
     A = np.array([[-1.0, 0.0, 0.0], [0.0, -0.2, 0.0], [1.0, 0.0, -1.0]])  # x3 = x1
     sysm = fojax.DescriptorSystem(E, A, np.array([[1.0], [0.0], [0.0]]), np.array([[1.0, 0.0, 0.0]]))
-    with pytest.raises(fojax.DetectabilityError, match=r"-0\.2\+0j"):
+    with pytest.raises(fojax.errors.DetectabilityError, match=r"-0\.2\+0j"):
         design_functional_observer(sysm, np.array([[0.0, 1.0, 0.0]]), R=np.array([[0.0, 1.0, 0.0]]))
     # the same mode is fine for a region that contains it
     d = design_functional_observer(sysm, np.array([[0.0, 1.0, 0.0]]), R=np.array([[0.0, 1.0, 0.0]]),
@@ -831,19 +831,19 @@ def test_detectability_error_slow_mode_descriptor():
 
 
 def test_detectability_error_names_requested_region():
-    with pytest.raises(fojax.DetectabilityError) as ei:
+    with pytest.raises(fojax.errors.DetectabilityError) as ei:
         design_functional_observer(HIDDEN, np.array([[1.0, 1.0]]), region=Disk(-2.0, 1.0))
     assert "radius 1)" in str(ei.value)
 
 
 def test_shape_and_argument_errors(sys413):
-    with pytest.raises(fojax.ShapeError, match=r"L has shape \(2, 3\), expected \(2, 4\)"):
+    with pytest.raises(fojax.errors.ShapeError, match=r"L has shape \(2, 3\), expected \(2, 4\)"):
         design_functional_observer(sys413, L413[:, :3])
-    with pytest.raises(fojax.ShapeError, match="R has shape"):
+    with pytest.raises(fojax.errors.ShapeError, match="R has shape"):
         design_functional_observer(sys413, L413, R=np.ones((2, 3)))
-    with pytest.raises(fojax.InputError, match="kind must be one of 'generalized', 'PI', 'proportional'"):
+    with pytest.raises(fojax.errors.InputError, match="kind must be one of 'generalized', 'PI', 'proportional'"):
         design_functional_observer(sys413, L413, kind="PID")
-    with pytest.raises(fojax.InputError, match="proportional observer has q1 = 0 .*got q1 = 2"):
+    with pytest.raises(fojax.errors.InputError, match="proportional observer has q1 = 0 .*got q1 = 2"):
         design_functional_observer(sys413, L413, kind="proportional", q1=2)
     with pytest.raises(TypeError, match="DescriptorSystem"):
         design_functional_observer((E413, A413), L413)
@@ -859,7 +859,7 @@ def test_misspelt_kind_is_a_typed_error_with_the_closest_kind(sys413, kind, clos
         lambda: design_finite_time_observer(sys413, L413, h=1.0, kind=kind),
         lambda: design_fault_estimator(sys413, L413, Fa=np.eye(4)[:, :1], kind=kind),
     ):
-        with pytest.raises(fojax.InputError, match=what):
+        with pytest.raises(fojax.errors.InputError, match=what):
             design()
 
 
@@ -878,14 +878,14 @@ def test_verify_margin_sign_and_wording_tiny_and_normal_disks(center, radius):
     assert rep.passed and np.isclose(rep.region_margin, 0.8 * radius, rtol=1e-6, atol=0)
     assert "(> 0 inside, < 0 outside)" in str(rep)
     outside = center + 1.25 * radius  # margin -0.25 r
-    with pytest.raises(fojax.DesignVerificationError,
+    with pytest.raises(fojax.errors.DesignVerificationError,
                        match=rf"eigenvalue \S+ is outside the region \(disk centred at "
                              rf"{center:g} with radius {radius:g}\) by {0.25 * radius:.3e}") as ei:
         verify({}, 1.0, np.array([[outside]]), region)
     assert ei.value.report.region_margin < 0
     # inside, but by less than the required margin: said as such, never "outside"
     barely = center + radius - 1e-4 * min(radius, 1e-9)
-    with pytest.raises(fojax.DesignVerificationError, match=r"is inside the region .* by only .* less than "
+    with pytest.raises(fojax.errors.DesignVerificationError, match=r"is inside the region .* by only .* less than "
                                                             r"the required margin") as ei:
         verify({}, 1.0, np.array([[barely]]), region)
     assert "outside" not in str(ei.value) and ei.value.report.region_margin > 0
@@ -903,12 +903,12 @@ def test_verify_flags_a_perturbed_design(designs413):
         return verify({k: float(v) for k, v in r.items()}, scale, np.asarray(error_dynamics(m, xp=np)), DISK, X)
 
     assert run(mats).passed  # the unperturbed design passes
-    with pytest.raises(fojax.DesignVerificationError, match=r"design-condition residual .* exceeds 1e-08") as ei:
+    with pytest.raises(fojax.errors.DesignVerificationError, match=r"design-condition residual .* exceeds 1e-08") as ei:
         run(mats._replace(F=mats.F + 1e-4))
     rep = ei.value.report
     assert not rep.passed and rep.relative_residual > 1e-8 and len(rep.failures) == 1
     # move one eigenvalue out of the disk (G + 3I shifts the v-block for generalized designs)
-    with pytest.raises(fojax.DesignVerificationError, match="outside the region") as ei:
+    with pytest.raises(fojax.errors.DesignVerificationError, match="outside the region") as ei:
         run(mats._replace(G=mats.G + 3.0 * np.eye(mats.G.shape[-1])))
     assert ei.value.report.region_margin < 0
     assert np.all(np.asarray(Aerr) == np.asarray(error_dynamics(mats, xp=np)))
@@ -919,9 +919,9 @@ def test_verify_rejects_a_non_certificate():
     (‖𝔸 + 2I‖ = 10 > 1); the Stein solution X - MᵀXM = I, M = (𝔸 + 2I)/1, is one."""
     Aerr = np.array([[-2.0, 10.0], [0.0, -2.0]])
     res = {"a": 0.0}
-    with pytest.raises(fojax.DesignVerificationError, match="region LMI re-checked in float64"):
+    with pytest.raises(fojax.errors.DesignVerificationError, match="region LMI re-checked in float64"):
         verify(res, 1.0, Aerr, DISK, np.eye(2))
-    with pytest.raises(fojax.DesignVerificationError, match="not positive definite"):
+    with pytest.raises(fojax.errors.DesignVerificationError, match="not positive definite"):
         verify(res, 1.0, Aerr, DISK, -np.eye(2))
     Mm = Aerr + 2.0 * np.eye(2)
     X = sla.solve_discrete_lyapunov(Mm.T, np.eye(2))
@@ -943,7 +943,7 @@ def test_corrupted_solver_output_is_never_returned(sys413, monkeypatch):
         return out
 
     monkeypatch.setattr(cp.Problem, "solve", corrupt)
-    with pytest.raises(fojax.DesignVerificationError) as ei:
+    with pytest.raises(fojax.errors.DesignVerificationError) as ei:
         design_functional_observer(sys413, L413, kind="proportional", solver="CLARABEL")
     assert ei.value.report is not None and not ei.value.report.passed
 
@@ -969,18 +969,18 @@ def _force_status(monkeypatch, status):
 @pytest.mark.parametrize("solver", ["CLARABEL", "SCS"])
 def test_optimal_inaccurate_is_refused(sys413, monkeypatch, solver):
     calls = _force_status(monkeypatch, cp.OPTIMAL_INACCURATE)
-    with pytest.raises(fojax.SolverStoppedShortError, match="optimal_inaccurate") as ei:
+    with pytest.raises(fojax.errors.SolverStoppedShortError, match="optimal_inaccurate") as ei:
         design_functional_observer(sys413, L413, kind="proportional", solver=solver)
     # every attempt (objectives, retries, then the unit-free model) reported optimal_inaccurate
     assert "optimal_inaccurate" in ei.value.status and "optimal (" not in ei.value.status
-    assert isinstance(ei.value.balanced_error, fojax.SolverStoppedShortError)
-    assert not isinstance(ei.value, fojax.LMIInfeasibleError)
+    assert isinstance(ei.value.balanced_error, fojax.errors.SolverStoppedShortError)
+    assert not isinstance(ei.value, fojax.errors.LMIInfeasibleError)
     assert calls and set(calls) == {solver}
 
 
 def test_optimal_inaccurate_is_refused_with_auto_fallback(sys413, monkeypatch):
     calls = _force_status(monkeypatch, cp.OPTIMAL_INACCURATE)
-    with pytest.raises(fojax.SolverStoppedShortError, match="optimal_inaccurate") as ei:
+    with pytest.raises(fojax.errors.SolverStoppedShortError, match="optimal_inaccurate") as ei:
         design_functional_observer(sys413, L413, kind="proportional", balance=False)
     assert "CLARABEL" in ei.value.status.upper() and "SCS" in ei.value.status.upper()
     assert calls[0] == "CLARABEL" and set(calls) == {"CLARABEL", "SCS"}
@@ -992,13 +992,13 @@ def test_stopped_short_message_says_what_to_try(sys413, monkeypatch):
     one was tried, balance=True, a looser region) and never the infeasible-LMI hint; an
     'infeasible' status raises LMIInfeasibleError with that hint."""
     _force_status(monkeypatch, cp.OPTIMAL_INACCURATE)
-    with pytest.raises(fojax.SolverStoppedShortError) as ei:
+    with pytest.raises(fojax.errors.SolverStoppedShortError) as ei:
         design_functional_observer(sys413, L413, kind="proportional", solver="CLARABEL", balance=False)
     msg = str(ei.value)
     assert "does not show that the LMI is infeasible" in msg and "another solver" in msg
     assert "balance=True" in msg and "looser region" in msg and "enlarge" not in msg
     assert "iterations" in msg and "tolerance 1e-08" in msg  # the numbers of the last run
-    both = fojax.SolverStoppedShortError("x", "optimal_inaccurate (Clarabel), optimal_inaccurate (SCS)",
+    both = fojax.errors.SolverStoppedShortError("x", "optimal_inaccurate (Clarabel), optimal_inaccurate (SCS)",
                                          {"clarabel": {"status": "optimal_inaccurate", "iterations": 40},
                                           "scs": {"status": "optimal_inaccurate", "iterations": 40000}})
     assert both.tried_solvers == ["CLARABEL", "SCS"] and "another solver" not in str(both)
@@ -1007,7 +1007,7 @@ def test_stopped_short_message_says_what_to_try(sys413, monkeypatch):
 
 def test_stopped_short_then_unit_free_failure_is_reported(sys413, monkeypatch):
     _force_status(monkeypatch, cp.OPTIMAL_INACCURATE)
-    with pytest.raises(fojax.SolverStoppedShortError) as ei:
+    with pytest.raises(fojax.errors.SolverStoppedShortError) as ei:
         design_functional_observer(sys413, L413, kind="proportional", solver="CLARABEL")
     msg = str(ei.value)
     assert "unit-free model (balance=True) was tried too: SolverStoppedShortError" in msg
@@ -1017,7 +1017,7 @@ def test_stopped_short_then_unit_free_failure_is_reported(sys413, monkeypatch):
 
 def test_infeasible_status_is_refused(sys413, monkeypatch):
     _force_status(monkeypatch, cp.INFEASIBLE)
-    with pytest.raises(fojax.LMIInfeasibleError, match="solver status 'infeasible") as ei:
+    with pytest.raises(fojax.errors.LMIInfeasibleError, match="solver status 'infeasible") as ei:
         design_functional_observer(sys413, L413, kind="proportional", solver="CLARABEL")
     assert "enlarge the region" in str(ei.value) and "does not show" not in str(ei.value)
 
@@ -1027,10 +1027,10 @@ def test_one_infeasibility_certificate_decides_the_ladder():
     infeasibility, else it stopped short."""
     from fojax._errors import combined_failure
 
-    short = fojax.SolverStoppedShortError("x", "optimal_inaccurate", {})
-    infeasible = fojax.LMIInfeasibleError("x", "infeasible", {})
-    assert isinstance(combined_failure("x", "s", [short, infeasible]), fojax.LMIInfeasibleError)
-    assert isinstance(combined_failure("x", "s", [short, short]), fojax.SolverStoppedShortError)
+    short = fojax.errors.SolverStoppedShortError("x", "optimal_inaccurate", {})
+    infeasible = fojax.errors.LMIInfeasibleError("x", "infeasible", {})
+    assert isinstance(combined_failure("x", "s", [short, infeasible]), fojax.errors.LMIInfeasibleError)
+    assert isinstance(combined_failure("x", "s", [short, short]), fojax.errors.SolverStoppedShortError)
 
 
 def test_scs_solves_an_easy_problem():

@@ -115,10 +115,10 @@ def test_base_attributes_of_every_kind(old):
         else:
             assert d.certificate is (d.design.X if kind == "fault" else d.X)
             assert np.all(np.linalg.eigvalsh(0.5 * (d.certificate + d.certificate.T)) > 0)
-            assert isinstance(d.region, fojax.AbstractRegion)
+            assert isinstance(d.region, fojax.design.AbstractRegion)
     assert old["hinf"].hinf is not None and "H∞" in old["hinf"].verify().extra
     assert old["ts"].verify().extra["lyapunov_max_eig"] < 0
-    assert fojax.AbstractDesign is AbstractDesign
+    assert fojax.design.AbstractDesign is AbstractDesign
 
 
 @pytest.mark.parametrize("kind", ["functional", "ts", "uio", "hinf"])
@@ -130,7 +130,7 @@ def test_verify_rechecks_the_numbers_not_the_stored_report(old, kind):
     assert G.size
     bad = dataclasses.replace(d, params={**d.params, "G": G + 10.0 * (1.0 + np.abs(G))})
     assert bad.report.passed
-    with pytest.raises(fojax.DesignVerificationError, match="outside the region|region LMI|Lyapunov") as info:
+    with pytest.raises(fojax.errors.DesignVerificationError, match="outside the region|region LMI|Lyapunov") as info:
         bad.verify()
     assert not info.value.report.passed
 
@@ -140,7 +140,7 @@ def test_finite_time_verify_rechecks_the_reconstruction(old):
 
     d = old["finite_time"]
     o = eqx.tree_at(lambda o: o.Gamma_now, d.observer, d.observer.Gamma_now * 1.001)
-    with pytest.raises(fojax.DesignVerificationError, match="reconstruction is not exact"):
+    with pytest.raises(fojax.errors.DesignVerificationError, match="reconstruction is not exact"):
         dataclasses.replace(d, observer=o).verify()
 
 
@@ -155,28 +155,28 @@ def _rewrite(src, dst, change):
 def test_damaged_files_give_clear_errors(resaved, tmp_path):
     path = resaved["functional"][0]
     wrong = _rewrite(path, tmp_path / "shape.npz", lambda a: a.update({"observer/N": np.zeros((3, 3))}))
-    with pytest.raises(fojax.InputError, match=r"array 'observer/N' has shape \(3, 3\).*expects shape \(\d+, \d+\)"
+    with pytest.raises(fojax.errors.InputError, match=r"array 'observer/N' has shape \(3, 3\).*expects shape \(\d+, \d+\)"
                        r".*Re-create it"):
         load_design(wrong)
     missing = _rewrite(path, tmp_path / "missing.npz", lambda a: a.pop("structure/E"))
-    with pytest.raises(fojax.InputError, match=r"has no array 'structure/E'.*changed or truncated"):
+    with pytest.raises(fojax.errors.InputError, match=r"has no array 'structure/E'.*changed or truncated"):
         load_design(missing)
     dtype = _rewrite(path, tmp_path / "dtype.npz", lambda a: a.update({"X": a["X"].astype(np.float32)}))
-    with pytest.raises(fojax.InputError, match=r"array 'X' has shape .* dtype float32.*dtype float64"):
+    with pytest.raises(fojax.errors.InputError, match=r"array 'X' has shape .* dtype float32.*dtype float64"):
         load_design(dtype)
     numbers = _rewrite(path, tmp_path / "numbers.npz", lambda a: a.update({"params/Y1": a["params/Y1"] + 50.0}))
-    with pytest.raises(fojax.DesignVerificationError):
+    with pytest.raises(fojax.errors.DesignVerificationError):
         load_design(numbers)
     unchecked = load_design(numbers, verify=False)  # the caller's choice; verify() still says no
-    with pytest.raises(fojax.DesignVerificationError):
+    with pytest.raises(fojax.errors.DesignVerificationError):
         unchecked.verify()
-    with pytest.raises(fojax.InputError, match="holds a FunctionalObserverDesign, not a FiniteTimeObserverDesign"):
+    with pytest.raises(fojax.errors.InputError, match="holds a FunctionalObserverDesign, not a FiniteTimeObserverDesign"):
         FiniteTimeObserverDesign.load(path)
 
 
 def test_damaged_old_format_file_names_the_missing_entry(tmp_path):
     bad = _rewrite(V2 / "uio.npz", tmp_path / "uio.npz", lambda a: a.pop("observer/Delta"))
-    with pytest.raises(fojax.InputError, match=r"has no array 'observer/Delta', which a format-2 design needs"):
+    with pytest.raises(fojax.errors.InputError, match=r"has no array 'observer/Delta', which a format-2 design needs"):
         load_design(bad)
 
 
@@ -188,7 +188,7 @@ def test_a_file_never_makes_fojax_import_code(resaved, tmp_path):
         meta["tree"]["fields"]["region"]["class"] = "os:system"
         a["__metadata__"] = np.array(json.dumps(meta))
 
-    with pytest.raises(fojax.InputError, match=r"os:system is not a fojax class \(fojax never imports"):
+    with pytest.raises(fojax.errors.InputError, match=r"os:system is not a fojax class \(fojax never imports"):
         load_design(_rewrite(path, tmp_path / "foreign.npz", foreign))
 
 
@@ -213,7 +213,7 @@ def test_state_feedback_is_a_design_result_too(tmp_path):
         assert type(loaded) is type(sf) and assert_designs_identical(sf, loaded) >= 6
         assert loaded.observer is None and loaded.report is loaded.checks
         assert loaded.verify()["region_margin"] == sf.checks["region_margin"] > 0
-        with pytest.raises(fojax.DesignVerificationError):
+        with pytest.raises(fojax.errors.DesignVerificationError):
             dataclasses.replace(sf, L=-np.asarray(sf.L)).verify()
 
 

@@ -82,7 +82,7 @@ ENTRY_POINTS = {
 def test_irregular_pencil_is_refused_by_every_design(name):
     """On main every one of these returned a 'verified' observer (or failed later, untyped
     as to the cause); now each raises IrregularSystemError with the failed rank decision."""
-    with pytest.raises(fojax.IrregularSystemError, match="is not regular") as ei:
+    with pytest.raises(fojax.errors.IrregularSystemError, match="is not regular") as ei:
         ENTRY_POINTS[name]()
     msg = str(ei.value)
     assert "smallest singular value 0.0e+00" in msg and "threshold 1.0e-10" in msg
@@ -103,7 +103,7 @@ def test_ts_design_refuses_an_irregular_rule():
         E_IRR, A, B, C_IRR, fojax.plant.SectorMembership(fojax.plant.OutputPremise(0), -1.0, 1.0)
     )
     assert [fojax.analysis.is_regular(E_IRR, Ai) for Ai in A] == [True, False]
-    with pytest.raises(fojax.IrregularSystemError, match=r"design_ts_observer: rule 2 \(E, A_2\) is not regular"):
+    with pytest.raises(fojax.errors.IrregularSystemError, match=r"design_ts_observer: rule 2 \(E, A_2\) is not regular"):
         design_ts_observer(ts, L_IRR)
 
 
@@ -127,7 +127,7 @@ def test_ftc_refuses_a_given_feedback_with_an_impulsive_or_irregular_loop():
     for design in (fojax.control.design_sensor_ftc, fojax.control.design_actuator_ftc,
                    fojax.control.design_simultaneous_ftc):
         kw = {"Fa": B_IMP} if design is not fojax.control.design_sensor_ftc else {}
-        with pytest.raises(fojax.ImpulsiveSystemError, match="nilpotency index 2 > 1") as ei:
+        with pytest.raises(fojax.errors.ImpulsiveSystemError, match="nilpotency index 2 > 1") as ei:
             design(sys, L=L0, **kw)
         assert ei.value.property == "impulse-freeness" and ei.value.index == 2
         assert design.__name__ in str(ei.value)
@@ -135,7 +135,7 @@ def test_ftc_refuses_a_given_feedback_with_an_impulsive_or_irregular_loop():
     sys2 = fojax.DescriptorSystem(E_IRR, A_REG, np.array([[0.0], [1.0]]), C_IRR)
     L_bad = np.array([[0.0, -1.0]])
     assert sympy_det(E_IRR, A_REG + np.array([[0.0], [1.0]]) @ L_bad).is_zero
-    with pytest.raises(fojax.IrregularSystemError, match="closed loop"):
+    with pytest.raises(fojax.errors.IrregularSystemError, match="closed loop"):
         fojax.control.design_sensor_ftc(sys2, L=L_bad)
 
 
@@ -157,10 +157,10 @@ def test_entries_near_the_double_range_get_a_typed_error(what):
         E = E * 1e-300
     sys = fojax.DescriptorSystem(E, A, B, C)
     assert fojax.analysis.is_regular(sys)  # analysis normalises: regular
-    with pytest.raises(fojax.DataRangeError, match="Rescale the model") as ei:
+    with pytest.raises(fojax.errors.DataRangeError, match="Rescale the model") as ei:
         design_functional_observer(sys, L)
     assert ei.value.name == what[0]
-    with pytest.raises(fojax.DataRangeError):
+    with pytest.raises(fojax.errors.DataRangeError):
         design_unknown_input_observer(sys, np.eye(4)[:, [2]], L)
 
 
@@ -198,7 +198,7 @@ def test_design_and_analysis_agree_on_functional_observability_under_scaling():
             if expected:
                 check_functional_observability(E, A, Cs, L, fojax.analysis.e_perp(E))
             else:
-                with pytest.raises(fojax.FunctionalObservabilityError):
+                with pytest.raises(fojax.errors.FunctionalObservabilityError):
                     check_functional_observability(E, A, Cs, L, fojax.analysis.e_perp(E))
 
 
@@ -217,12 +217,12 @@ def test_solver_exceptions_become_stopped_short_errors(monkeypatch):
         raise ValueError("ScsWork allocation error!")
 
     monkeypatch.setattr(cp.Problem, "solve", broken)
-    with pytest.raises(fojax.SolverStoppedShortError, match="ScsWork allocation error!") as ei:
+    with pytest.raises(fojax.errors.SolverStoppedShortError, match="ScsWork allocation error!") as ei:
         _lmi.solve(prob, "test LMI", solver="SCS")
     assert ei.value.status == "solver_error"
     assert ei.value.info["variables"] == X.size and ei.value.info["data_magnitude"] == 3e5
     assert "largest data entry 3.0e+05" in str(ei.value) and "enlarge" not in str(ei.value)
-    with pytest.raises(fojax.SolverStoppedShortError, match="SCS: solver_error, tolerance 1e-06, ValueError: ScsWork allocation"):
+    with pytest.raises(fojax.errors.SolverStoppedShortError, match="SCS: solver_error, tolerance 1e-06, ValueError: ScsWork allocation"):
         _lmi.solve(prob, "test LMI")  # auto: Clarabel, then SCS
 
 

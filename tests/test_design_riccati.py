@@ -231,11 +231,11 @@ def test_auto_dispatch():
     both = Disk(-2.0, 1.0) & HalfPlane(1.5)
     inter = design_functional_observer(ex.system, ex.L, kind="proportional", region=both, method="auto")
     assert inter.solver["lmi"]["method"] == "lmi" and inter.report.passed
-    with pytest.raises(fojax.InputError, match="method='riccati' does not apply.*not a single disk"):
+    with pytest.raises(fojax.errors.InputError, match="method='riccati' does not apply.*not a single disk"):
         design_functional_observer(ex.system, ex.L, kind="proportional", region=both, method="riccati")
     pi = design_functional_observer(ex.system, ex.L, kind="PI", method="riccati")
     assert pi.report.passed and not np.any(np.asarray(pi.observer.S))
-    with pytest.raises(fojax.InputError, match="method must be one of"):
+    with pytest.raises(fojax.errors.InputError, match="method must be one of"):
         design_functional_observer(ex.system, ex.L, method="ricatti")
 
 
@@ -252,7 +252,7 @@ def test_undetectable_raises_the_same_error_for_both_routes():
             design_functional_observer(sysm, L, kind="proportional", method=method)
         errs.append(type(ei.value))
     assert errs[0] is errs[1]
-    assert issubclass(errs[0], (fojax.FunctionalObservabilityError, fojax.DetectabilityError))
+    assert issubclass(errs[0], (fojax.errors.FunctionalObservabilityError, fojax.errors.DetectabilityError))
 
 
 def test_output_injection_failure_is_typed():
@@ -260,7 +260,7 @@ def test_output_injection_failure_is_typed():
 
     # Ad = diag(2, 0.5) with only the stable mode measured: the mode 2 (outside the unit
     # disk) is unobservable, so no gain makes Ad - Y Cd Schur
-    with pytest.raises(fojax.LMIInfeasibleError, match="no observer gain can move|outside the disk"):
+    with pytest.raises(fojax.errors.LMIInfeasibleError, match="no observer gain can move|outside the disk"):
         output_injection_gain(np.diag([2.0, 0.5]), np.array([[0.0, 1.0]]))
     # a detectable pair: Schur closed loop (independent eigenvalue check)
     Ad, Cd = np.array([[1.5, 1.0], [0.0, 0.5]]), np.array([[1.0, 0.0]])
@@ -297,7 +297,7 @@ def test_choose_route_rule():
     assert choose_route(None, objective="region", solver="SCS", order=big) == "lmi"
     for objective in ("hinf", "h2", "centre"):
         assert choose_route(None, objective=objective, solver=None, order=big) == "lmi"
-    with pytest.raises(fojax.InputError, match="method must be one of"):
+    with pytest.raises(fojax.errors.InputError, match="method must be one of"):
         choose_route("fast", objective="region", solver=None, order=big)
 
 
@@ -330,7 +330,7 @@ def test_auto_falls_back_to_the_lmi_route(monkeypatch):
     from fojax.design import _riccati
 
     def refuse(*a, **k):
-        raise fojax.LMIInfeasibleError("output-injection Riccati equation", "no_stabilizing_solution", {},
+        raise fojax.errors.LMIInfeasibleError("output-injection Riccati equation", "no_stabilizing_solution", {},
                                        "forced by the test")
 
     monkeypatch.setattr(_riccati, "riccati_gains", refuse)
@@ -339,7 +339,7 @@ def test_auto_falls_back_to_the_lmi_route(monkeypatch):
                                    method="auto")
     assert d.report.passed and d.solver["lmi"]["method"] == "lmi"
     assert "forced by the test" in d.report.extra["Riccati route refused"]
-    with pytest.raises(fojax.LMIInfeasibleError, match="forced by the test"):
+    with pytest.raises(fojax.errors.LMIInfeasibleError, match="forced by the test"):
         design_functional_observer(ex.system, ex.L, kind="generalized", region=Disk(ex.alpha, ex.tau),
                                    method="riccati")
 

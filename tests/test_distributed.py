@@ -180,7 +180,7 @@ def test_study_loss_and_gradient_on_several_devices_equal_one_device(loss_case):
 
 def test_devices_must_be_jax_devices(loss_case):
     train, obs = loss_case
-    with pytest.raises(fojax.InputError, match="devices must be a non-empty sequence of jax.Device"):
+    with pytest.raises(fojax.errors.InputError, match="devices must be a non-empty sequence of jax.Device"):
         S.study_loss(train, obs, cfg=SimConfig(devices=("cpu:0",)))
 
 

@@ -31,9 +31,9 @@ from closed_loop_413 import (  # the §4.1.3 loop shared with test_batch_simulat
 )
 
 import fojax
+from fojax.plant import FaultyPlant
 from fojax.simulation import simulate_batch_exponential, simulate_lti_batch
 from fojax.simulation._exponential_setup import _ModelSetup, prepare, TRACE_COUNTS
-from fojax.studies import FaultyPlant
 
 
 # bit-for-bit equality of different programs (device counts): compiled as users get it
@@ -290,7 +290,7 @@ def test_autonomous_common_loop_is_exact_stepping(batch):
 
 
 def test_observer_shapes_are_checked():
-    with pytest.raises(fojax.ShapeError, match=r"observers\[0\].linear_matrices\(\).Bu has shape \(2, 2\), expected \(2, 0\)"):
+    with pytest.raises(fojax.errors.ShapeError, match=r"observers\[0\].linear_matrices\(\).Bu has shape \(2, 2\), expected \(2, 0\)"):
         simulate_batch_exponential(
             lambda q: (fojax.DescriptorSystem(jnp.asarray(E), jnp.asarray(ACL) * q, C=jnp.asarray(C0)), (_observer({"xi0": jnp.zeros(2)}),)),
             jnp.ones(2),
@@ -303,7 +303,7 @@ def test_observer_shapes_are_checked():
 # ------------------------------------------------------------------- errors
 
 
-class ClockPlant(fojax.AbstractPlant):
+class ClockPlant(fojax.plant.AbstractPlant):
     """Linear in x but with an explicit time dependence (not through a signal)."""
 
     E: jax.Array
@@ -348,7 +348,7 @@ def model_alg_delta(p):
     [(model_clock, r"misses the vector field at t = "), (model_alg_delta, r"random signal values")],
 )
 def test_non_affine_plants_are_refused(fn, match):
-    with pytest.raises(fojax.InputError, match=r"affine in the state and in the values of its signals") as e:
+    with pytest.raises(fojax.errors.InputError, match=r"affine in the state and in the values of its signals") as e:
         simulate_batch_exponential(fn, jnp.array([1.0, 2.0]), X2, TS2, metrics=M2)
     assert e.match(match)
 
@@ -358,30 +358,30 @@ def test_input_errors(batch):
     p = jax.tree.map(jnp.asarray, params)
     x0 = jnp.asarray(x0)
     bad_ts = jnp.asarray(np.r_[0.0, 0.1, 0.25, 0.3])
-    with pytest.raises(fojax.InputError, match=r"uniform increasing grid.*jnp.linspace"):
+    with pytest.raises(fojax.errors.InputError, match=r"uniform increasing grid.*jnp.linspace"):
         simulate_batch_exponential(model, p, x0, bad_ts, metrics=METRICS)
-    with pytest.raises(fojax.ShapeError, match=r"x0 has shape \(5, 3\), expected \(B, 4\)"):
+    with pytest.raises(fojax.errors.ShapeError, match=r"x0 has shape \(5, 3\), expected \(B, 4\)"):
         simulate_batch_exponential(model, p, x0[:, :3], jnp.asarray(TS), metrics=METRICS)
-    with pytest.raises(fojax.ShapeError, match=r"leading batch axis 4"):
+    with pytest.raises(fojax.errors.ShapeError, match=r"leading batch axis 4"):
         simulate_batch_exponential(model, p, x0[:4], jnp.asarray(TS), metrics=METRICS)
-    with pytest.raises(fojax.InputError, match=r"substeps must be a positive integer.*got 0"):
+    with pytest.raises(fojax.errors.InputError, match=r"substeps must be a positive integer.*got 0"):
         simulate_batch_exponential(model, p, x0, jnp.asarray(TS), metrics=METRICS, substeps=0)
-    with pytest.raises(fojax.InputError, match=r"startup must be a pair \(n_intervals, substeps\)"):
+    with pytest.raises(fojax.errors.InputError, match=r"startup must be a pair \(n_intervals, substeps\)"):
         simulate_batch_exponential(model, p, x0, jnp.asarray(TS), metrics=METRICS, startup=5)
-    with pytest.raises(fojax.InputError, match=r"startup\[0\] must be a non-negative integer.*got -1"):
+    with pytest.raises(fojax.errors.InputError, match=r"startup\[0\] must be a non-negative integer.*got -1"):
         simulate_batch_exponential(model, p, x0, jnp.asarray(TS), metrics=METRICS, startup=(-1, 2))
-    with pytest.raises(fojax.InputError, match=r"reference must be the params of one sample"):
+    with pytest.raises(fojax.errors.InputError, match=r"reference must be the params of one sample"):
         simulate_batch_exponential(model, p, x0, jnp.asarray(TS), metrics=METRICS, reference=p)
-    with pytest.raises(fojax.ShapeError, match=r"metrics\['x'\] C has shape \(4, 5\)"):
+    with pytest.raises(fojax.errors.ShapeError, match=r"metrics\['x'\] C has shape \(4, 5\)"):
         simulate_batch_exponential(model, p, x0, jnp.asarray(TS), metrics={"x": ("iae", jnp.ones((4, 5)))})
-    with pytest.raises(fojax.InputError, match=r"must return a fojax.AbstractPlant"):
+    with pytest.raises(fojax.errors.InputError, match=r"must return a fojax.plant.AbstractPlant"):
         simulate_batch_exponential(lambda q: q, p, x0, jnp.asarray(TS), metrics=METRICS)
 
 
 def test_nonlinear_plants_and_observers_are_refused():
     f = lambda x, u, th: -x + th * x**2  # noqa: E731
     nl = lambda th: fojax.NonlinearDescriptorSystem(E2, f, lambda x, th: x, th, m=0, p=2)  # noqa: E731
-    with pytest.raises(fojax.InputError, match=r"linear in the state.*NonlinearDescriptorSystem"):
+    with pytest.raises(fojax.errors.InputError, match=r"linear in the state.*NonlinearDescriptorSystem"):
         simulate_batch_exponential(nl, jnp.array([1.0, 2.0]), X2, TS2, metrics=M2)
 
     class TVObserver(LTIObserver):
@@ -392,5 +392,5 @@ def test_nonlinear_plants_and_observers_are_refused():
         obs = TVObserver(jnp.asarray(AO), jnp.asarray(BY[:, :2]), jnp.zeros(2))
         return fojax.DescriptorSystem(E2, A2 * p), (obs,)
 
-    with pytest.raises(fojax.InputError, match=r"needs LTI observers.*TVObserver"):
+    with pytest.raises(fojax.errors.InputError, match=r"needs LTI observers.*TVObserver"):
         simulate_batch_exponential(with_tv_observer, jnp.array([1.0, 2.0]), X2, TS2, metrics=M2)

@@ -84,5 +84,5 @@ def test_fojax_simulation_agrees_with_reference(ex, estimator):
 
 def test_fault_estimator_needs_fault_matrices(ex):
     sys = fojax.DescriptorSystem(ex.E, ex.A, ex.B, ex.C)
-    with pytest.raises(fojax.ShapeError, match="at least one fault matrix"):
+    with pytest.raises(fojax.errors.ShapeError, match="at least one fault matrix"):
         design_fault_estimator(sys, ex.L)

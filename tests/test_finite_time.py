@@ -115,9 +115,9 @@ def test_reconstruction_matrix_full_rank_under_lemma_6(rng):
 
 
 def test_regions_must_be_separated_disks(ex313):
-    with pytest.raises(fojax.RegionError, match="separated along the real axis"):
+    with pytest.raises(fojax.errors.RegionError, match="separated along the real axis"):
         design_finite_time_observer(ex313.system, ex313.L, h=0.5, regions=((-3, 1.5), (-1, 0.5)))
-    with pytest.raises(fojax.RegionError, match="two Disk regions"):
+    with pytest.raises(fojax.errors.RegionError, match="two Disk regions"):
         design_finite_time_observer(
             ex313.system, ex313.L, h=0.5, regions=(HalfPlane(2.0), Disk(-1, 0.5))
         )

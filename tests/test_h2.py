@@ -33,8 +33,8 @@ from helpers import (
     scalar_plant,
 )
 
-from fojax import InputError
 from fojax.design import design_functional_observer, Disk
+from fojax.errors import InputError
 
 
 def integral_h2(sys_, L, obs, Bw, Dv):
@@ -119,9 +119,9 @@ def test_config_cli_and_file(tmp_path, capsys):
     import json
     import tomllib
 
-    from fojax import ConfigError
     from fojax.cli import main
     from fojax.config import parse_config
+    from fojax.errors import ConfigError
     from fojax.results import load_design
 
     [h] = parse_config(tomllib.loads(SCALAR_TOML)).observers
@@ -146,8 +146,8 @@ def test_config_cli_and_file(tmp_path, capsys):
 def test_certificate_is_checked_in_float64():
     """ẋ = -x + d, e = x: L_o = 1/2 (closed form), ‖T‖₂ = √(1/2). A certificate X below L_o
     cannot satisfy the Lyapunov inequality and is rejected; X = 0.6 certifies ν = √0.6."""
-    from fojax import DesignVerificationError
     from fojax.design._hinf import certify_nu, h2_norm
+    from fojax.errors import DesignVerificationError
 
     A, B, C = -np.eye(1), np.eye(1), np.eye(1)
     np.testing.assert_allclose(h2_norm(A, B, C), np.sqrt(0.5), rtol=1e-14)

@@ -31,8 +31,8 @@ import slycot
 from helpers import channels_3_3_7, joint_error_system, random_descriptor, scalar_plant
 
 import fojax
-from fojax import InputError, ShapeError
 from fojax.design import design_functional_observer, Disk
+from fojax.errors import InputError, ShapeError
 
 
 def joint_sweep(sys_, L, obs, Bw, Dv, n_grid=2000):
@@ -184,8 +184,8 @@ region = { disk = { center = -2.5, radius = 2.0 } }
 def test_config_keys_and_errors():
     import tomllib
 
-    from fojax import ConfigError
     from fojax.config import parse_config
+    from fojax.errors import ConfigError
 
     cfg = parse_config(tomllib.loads(SCALAR_TOML))
     h, r = cfg.observers

@@ -80,7 +80,7 @@ def faulty_study():
     T, nf = 0.5, 3
     k_u, k_f = jax.random.split(jax.random.PRNGKey(11))
     base = fojax.UncertainDescriptorSystem(ex.system, dA=ex.dA, delta=fojax.Constant(jnp.zeros(1)))
-    plant = S.FaultyPlant(base, ex.Fa, ex.Fs, fault=S.FaultProfile(jnp.zeros(nf)))
+    plant = fojax.FaultyPlant(base, ex.Fa, ex.Fs, fault=fojax.plant.FaultProfile(jnp.zeros(nf)))
     study = S.Study(
         plant, jnp.full((6,), 0.5), jnp.linspace(0.0, T, 6), ex.L, fojax.Sine(jnp.ones(2), 1.0),
         uncertainty=(S.constant_delta(k_u, 2, 1, bounds=(-0.3, 0.3), path=("plant", "base", "delta")),),

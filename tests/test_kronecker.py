@@ -10,7 +10,7 @@ Oracles, independent of fojax and of SLICOT:
   rational points that are not eigenvalues), det,
   and the invariant zeros of square systems as the roots of det [[A - sE, B], [C, D]];
 - closed-form transfer functions for the zeros and for properness;
-- `fojax.finite_poles` (orthogonal deflation + QZ, no SLICOT) for the finite eigenvalues
+- `fojax.analysis.finite_poles` (orthogonal deflation + QZ, no SLICOT) for the finite eigenvalues
   of regular pencils: two algorithms that must agree.
 """
 
@@ -213,10 +213,10 @@ def test_singular_pencil_gets_its_minimal_indices_in_the_report():
 
 
 def test_bad_input_names_the_matrix():
-    with pytest.raises(fojax.ShapeError, match="A"):
+    with pytest.raises(fojax.errors.ShapeError, match="A"):
         fa.kronecker_structure(np.eye(2), np.eye(3))
-    with pytest.raises(fojax.InputError, match="DescriptorSystem"):
+    with pytest.raises(fojax.errors.InputError, match="DescriptorSystem"):
         fa.system_zeros(np.eye(2))
-    with pytest.raises(fojax.ShapeError, match="D"):
+    with pytest.raises(fojax.errors.ShapeError, match="D"):
         fa.system_zeros(fojax.DescriptorSystem(np.eye(2), -np.eye(2), np.ones((2, 1)),
                                                np.ones((1, 2))), D=np.ones((2, 2)))  # fmt: skip

@@ -6,8 +6,8 @@ Oracle: hand-counted rung sequences (which thunks ran, in which order, what was 
 
 import pytest
 
-from fojax import LMIInfeasibleError
 from fojax.design._ladder import climb, Refused
+from fojax.errors import LMIInfeasibleError
 
 
 def _rungs(outcomes, ran):

@@ -36,31 +36,31 @@ def test_dimensions_are_derived_and_matrices_are_leaves():
     ],
 )
 def test_shape_errors_name_the_matrix(kwargs, match):
-    with pytest.raises(fojax.ShapeError, match=match) as info:
+    with pytest.raises(fojax.errors.ShapeError, match=match) as info:
         fojax.DescriptorSystem(**kwargs)
     assert isinstance(info.value, ValueError)
 
 
 def test_non_finite_entries_are_refused():
-    with pytest.raises(fojax.NonFiniteError, match=r"A contains 1 non-finite .* index \(1, 0\)"):
+    with pytest.raises(fojax.errors.NonFiniteError, match=r"A contains 1 non-finite .* index \(1, 0\)"):
         fojax.DescriptorSystem(E2, [[-1.0, 1.0], [np.nan, -2.0]])
-    with pytest.raises(fojax.NonFiniteError, match="B contains 2 non-finite"):
+    with pytest.raises(fojax.errors.NonFiniteError, match="B contains 2 non-finite"):
         fojax.DescriptorSystem(E2, A2, [[np.inf], [-np.inf]])
 
 
 def test_float32_inputs_are_refused_with_how_to_fix():
-    with pytest.raises(fojax.Float64RequiredError, match="A has dtype float32.*jax_enable_x64"):
+    with pytest.raises(fojax.errors.Float64RequiredError, match="A has dtype float32.*jax_enable_x64"):
         fojax.DescriptorSystem(E2, np.asarray(A2, dtype=np.float32))
 
 
 def test_complex_inputs_are_refused_as_complex_not_as_precision():
     # complex data is not a precision problem: its own message, saying what to do
     A = np.asarray(A2, dtype=complex) + 0.5j * np.eye(2)
-    with pytest.raises(fojax.InputError, match=r"A is complex \(complex128, largest \|imaginary part\| "
+    with pytest.raises(fojax.errors.InputError, match=r"A is complex \(complex128, largest \|imaginary part\| "
                        r"0\.5\);.* are real\..*np\.real\(A\).*\[\[Re M, -Im M\], \[Im M, Re M\]\]") as info:
         fojax.DescriptorSystem(E2, A)
-    assert not isinstance(info.value, fojax.Float64RequiredError)
-    with pytest.raises(fojax.InputError, match=r"^E is complex \(complex64"):
+    assert not isinstance(info.value, fojax.errors.Float64RequiredError)
+    with pytest.raises(fojax.errors.InputError, match=r"^E is complex \(complex64"):
         fojax.DescriptorSystem(np.eye(2, dtype=np.complex64), A2)
 
 
@@ -69,7 +69,7 @@ def test_32_bit_jax_is_refused_without_changing_global_config():
         "import jax, fojax\n"
         "try:\n"
         "    fojax.DescriptorSystem([[1.0]], [[-1.0]])\n"
-        "except fojax.Float64RequiredError as e:\n"
+        "except fojax.errors.Float64RequiredError as e:\n"
         "    print('REFUSED', 'jax_enable_x64' in str(e), jax.config.jax_enable_x64)\n"
     )
     env = {k: v for k, v in __import__("os").environ.items() if k != "JAX_ENABLE_X64"}
@@ -84,7 +84,7 @@ def test_fault_augmentation_matches_eq_3_196():
     C = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]])
     Fa = np.array([[1.0, 0.0], [0.0, 0.0], [0.0, 3.0]])
     Fs = np.array([[0.0, 0.0], [0.0, 1.0]])
-    aug = fojax.augment_faults(fojax.DescriptorSystem(E, A, B, C), Fa=Fa, Fs=Fs)
+    aug = fojax.plant.augment_faults(fojax.DescriptorSystem(E, A, B, C), Fa=Fa, Fs=Fs)
     # hand-written blocks
     assert np.array_equal(np.asarray(aug.E), np.diag([1.0, 1.0, 0.0, 1.0, 1.0]))
     assert np.array_equal(np.asarray(aug.A)[:3, :3], A)
@@ -93,12 +93,12 @@ def test_fault_augmentation_matches_eq_3_196():
     assert np.array_equal(np.asarray(aug.C), np.hstack([C, Fs]))
     assert np.array_equal(np.asarray(aug.B), np.vstack([B, np.zeros((2, 1))]))
     # ramp faults: [x; f; f'] with d/dt f = f', d/dt f' = 0
-    r = fojax.augment_faults(fojax.DescriptorSystem(E, A, B, C), Fa=Fa, ramp=True)
+    r = fojax.plant.augment_faults(fojax.DescriptorSystem(E, A, B, C), Fa=Fa, ramp=True)
     assert r.n == 7
     assert np.array_equal(np.asarray(r.A)[3:5, 5:7], np.eye(2))
     assert not np.asarray(r.A)[5:].any()
-    with pytest.raises(fojax.ShapeError, match="Fa has shape"):
-        fojax.augment_faults(fojax.DescriptorSystem(E, A, B, C), Fa=np.ones((2, 1)))
+    with pytest.raises(fojax.errors.ShapeError, match="Fa has shape"):
+        fojax.plant.augment_faults(fojax.DescriptorSystem(E, A, B, C), Fa=np.ones((2, 1)))
 
 
 def test_from_state_space_has_identity_E():
@@ -115,7 +115,7 @@ def test_signals_closed_forms_and_vmap():
     assert np.isclose(float(fojax.Sine([2.0], 3.0, 0.5, 1.0)(t)[0]), 1.0 + 2.0 * np.sin(3.9 + 0.5))
     pc = fojax.PiecewiseConstant([1.0, 2.0], [[0.0], [5.0], [-1.0]])
     assert [float(pc(jnp.asarray(x))[0]) for x in (0.5, 1.0, 1.9, 2.0, 9.0)] == [0, 5, 5, -1, -1]
-    f = fojax.intermittent([1.0], [(1.0, 2.0), (3.0, 4.0)])
+    f = fojax.plant.intermittent([1.0], [(1.0, 2.0), (3.0, 4.0)])
     assert [float(f(jnp.asarray(x))[0]) for x in (0.5, 1.5, 2.5, 3.5, 4.5)] == [0, 1, 0, 1, 0]
     total = fojax.Step([1.0], 0.0) + fojax.Sine([1.0], 1.0)
     assert np.isclose(float(total(t)[0]), 1.0 + np.sin(1.3))
@@ -129,7 +129,7 @@ def test_signals_closed_forms_and_vmap():
 
 def test_sector_membership_is_a_convex_combination_and_exact():
     # rho = sin(y)/y in [rho_min, 1]: w1 = (1 - rho)/(1 - rho_min) is the weight of the rho_min rule
-    m = fojax.SectorMembership(fojax.SincPremise(0), -0.2173, 1.0)
+    m = fojax.plant.SectorMembership(fojax.plant.SincPremise(0), -0.2173, 1.0)
     for y in (0.0, 0.7, 2.0, 4.49):
         w = np.asarray(m(jnp.array([y]), jnp.zeros(0)))
         rho = np.sinc(y / np.pi)
@@ -144,7 +144,7 @@ def test_uncertain_system_matrices():
     unc = fojax.UncertainDescriptorSystem(nom, dA=dA, delta=fojax.Sine([0.3], 2.0))
     A_t, _, _ = unc.matrices(jnp.asarray(0.25))
     assert np.isclose(float(A_t[0, 1]), 1.0 + 0.3 * np.sin(0.5))
-    with pytest.raises(fojax.ShapeError, match="delta"):
+    with pytest.raises(fojax.errors.ShapeError, match="delta"):
         fojax.UncertainDescriptorSystem(nom, dA=dA, delta=fojax.Sine([0.3, 0.1], 2.0))
 
 
@@ -161,7 +161,7 @@ def test_scipy_sparse_matrices_are_densified():
         for a, b in zip(jax.tree_util.tree_leaves(s), jax.tree_util.tree_leaves(dense), strict=True):
             assert a.dtype == jnp.float64 and np.array_equal(np.asarray(a), np.asarray(b))
     # wrong shapes are still named with the sparse matrix's real shape
-    with pytest.raises(fojax.ShapeError, match=r"A .*\(3, 3\)"):
+    with pytest.raises(fojax.errors.ShapeError, match=r"A .*\(3, 3\)"):
         fojax.DescriptorSystem(sp.eye(2), sp.eye(3))
 
 
@@ -169,7 +169,7 @@ def test_huge_sparse_matrix_is_refused_before_densifying():
     import scipy.sparse as sp
 
     big = sp.eye(20_000, format="csr")  # 4e8 dense entries (3 GiB) > the 2^27 limit
-    with pytest.raises(fojax.InputError, match=r"E is a sparse 20000x20000 matrix .*GiB"):
+    with pytest.raises(fojax.errors.InputError, match=r"E is a sparse 20000x20000 matrix .*GiB"):
         fojax.DescriptorSystem(big, big)
 
 

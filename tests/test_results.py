@@ -99,7 +99,7 @@ def test_save_rejects_non_design_and_load_rejects_foreign_npz(tmp_path):
     with pytest.raises(TypeError, match="FunctionalObserverDesign"):
         save_design(object(), tmp_path / "x.npz")
     np.savez(tmp_path / "foreign.npz", a=np.zeros(2))
-    with pytest.raises(fojax.InputError, match="not a fojax design file"):
+    with pytest.raises(fojax.errors.InputError, match="not a fojax design file"):
         load_design(tmp_path / "foreign.npz")
 
 
@@ -520,7 +520,7 @@ def test_nothing_is_written_outside_a_results_folder(tmp_path, design):
         lambda: atomic_write_text(folder / ".", "x"),
     ]
     for attempt in attempts:
-        with pytest.raises(fojax.UnsafePathError, match=r"outside the results folder .*run") as info:
+        with pytest.raises(fojax.errors.UnsafePathError, match=r"outside the results folder .*run") as info:
             attempt()
         assert not info.value.resolved.is_relative_to(folder.resolve()) or info.value.resolved == folder.resolve()
     found = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*"))
@@ -530,9 +530,9 @@ def test_nothing_is_written_outside_a_results_folder(tmp_path, design):
     assert atomic_write_text(folder / "sub" / ".." / "in.txt", "x").read_text() == "x"
     assert atomic_write_text(elsewhere / "free.txt", "x").read_text() == "x"
     for bad in ("../x", "a/b", ".hidden", ""):
-        with pytest.raises(fojax.InputError, match=r"results folder name \(--name\) .* cannot be used"):
+        with pytest.raises(fojax.errors.InputError, match=r"results folder name \(--name\) .* cannot be used"):
             new_results_folder(tmp_path, name=bad)
-    with pytest.raises(fojax.InputError, match="results folder prefix"):
+    with pytest.raises(fojax.errors.InputError, match="results folder prefix"):
         new_results_folder(tmp_path, prefix="../up")
     assert not (tmp_path / "x").exists() and not (tmp_path.parent / "x").exists()
 
@@ -598,7 +598,7 @@ def test_load_design_of_a_config_file_says_what_it_is(tmp_path):
         (tmp_path / "empty.npz").write_bytes(b"")
         (tmp_path / "truncated.npz").write_bytes(b"PK\x03\x04" + b"\x00" * 10)
         for fn in (load_design, read_design_metadata):
-            with pytest.raises(fojax.InputError, match=what) as info:
+            with pytest.raises(fojax.errors.InputError, match=what) as info:
                 fn(path)
             assert "load_design reads the .npz files written by fojax.results.save_design or `fojax design`" in str(info.value)
 
@@ -610,7 +610,7 @@ def test_a_continued_run_keeps_the_manifest_of_the_first(tmp_path):
     atomic_write_text(folder / "a.txt", "first")
     register_results_folder(folder, continue_run=True)  # as `fojax study --resume` does
     atomic_write_text(folder / "b.txt", "second")
-    with pytest.raises(fojax.UnsafePathError):
+    with pytest.raises(fojax.errors.UnsafePathError):
         atomic_write_text(folder / ".." / "c.txt", "x")
     manifest = json.loads((folder / "fojax-manifest.json").read_text())
     assert sorted(manifest["files"]) == ["a.txt", "b.txt"] and len(manifest["continued"]) == 1

@@ -148,7 +148,7 @@ def test_loaded_observer_gives_identical_vector_field_and_output(designs, saved,
         assert np.array_equal(o1.reconstruct(xi, xi2, u, y), o2.reconstruct(xi, xi2, u, y))
 
 
-class _ForeignMembership(fojax.AbstractMembership):
+class _ForeignMembership(fojax.plant.AbstractMembership):
     """Two rules, w1 = logistic(a * y0), and a Python callable: not storable in a file."""
 
     a: jax.Array
@@ -163,7 +163,7 @@ class _ForeignMembership(fojax.AbstractMembership):
         return jnp.stack([w1, 1.0 - w1])
 
 
-class _ForeignArraysOnly(fojax.AbstractMembership):
+class _ForeignArraysOnly(fojax.plant.AbstractMembership):
     a: jax.Array
 
     @property
@@ -182,7 +182,7 @@ def test_foreign_membership_is_never_imported_and_can_be_passed(designs, tmp_pat
     path = save_design(d2, tmp_path / "custom.npz")
     meta = _node(read_design_metadata(path), "observer", "membership")
     assert meta["$"] == "unstored" and meta["reason"].startswith("_ForeignMembership.squash is a ")
-    with pytest.raises(fojax.InputError, match=r"cannot be rebuilt: it was not stored.*membership=plant\.membership"):
+    with pytest.raises(fojax.errors.InputError, match=r"cannot be rebuilt: it was not stored.*membership=plant\.membership"):
         load_design(path)
     loaded = load_design(path, membership=custom)
     assert_designs_identical(d2, loaded)
@@ -191,7 +191,7 @@ def test_foreign_membership_is_never_imported_and_can_be_passed(designs, tmp_pat
     d3 = dataclasses.replace(d, observer=eqx.tree_at(lambda o: o.membership, d.observer, arrays_only))
     path3 = save_design(d3, tmp_path / "arrays.npz")
     assert _node(read_design_metadata(path3), "observer", "membership", "a")["$"] == "array"
-    with pytest.raises(fojax.InputError, match=r"_ForeignArraysOnly is not a fojax class \(fojax never imports"):
+    with pytest.raises(fojax.errors.InputError, match=r"_ForeignArraysOnly is not a fojax class \(fojax never imports"):
         load_design(path3)
     xi, u, y = _random_inputs(d3.observer, 1, 2, 0)
     o = load_design(path3, membership=arrays_only).observer
@@ -212,12 +212,12 @@ def test_format_1_files_load_and_membership_argument_is_ts_only(designs, tmp_pat
     old = load_design(tmp_path / "v1.npz")
     assert type(old) is FunctionalObserverDesign
     assert_designs_identical(load_design(v2), old)
-    with pytest.raises(fojax.InputError, match="membership= applies to Takagi–Sugeno designs only"):
+    with pytest.raises(fojax.errors.InputError, match="membership= applies to Takagi–Sugeno designs only"):
         load_design(v2, membership=designs["ts"].observer.membership)
-    with pytest.raises(fojax.InputError, match="membership= applies to Takagi–Sugeno designs only"):
+    with pytest.raises(fojax.errors.InputError, match="membership= applies to Takagi–Sugeno designs only"):
         load_design(save_design(designs["uio"], tmp_path / "uio.npz"), membership=designs["ts"].observer.membership)
     meta["format_version"], meta["design_class"] = 2, "FancyDesign"
     arrays["__metadata__"] = np.array(json.dumps(meta))
     np.savez(tmp_path / "fancy.npz", **arrays)
-    with pytest.raises(fojax.InputError, match="class 'FancyDesign', which this fojax version cannot load"):
+    with pytest.raises(fojax.errors.InputError, match="class 'FancyDesign', which this fojax version cannot load"):
         load_design(tmp_path / "fancy.npz")

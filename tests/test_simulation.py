@@ -198,7 +198,7 @@ def robot_solution():
 
 
 def test_reduce_index1_poles_and_maps(plant413):
-    red = fojax.reduce_index1(plant413)
+    red = fojax.simulation.reduce_index1(plant413)
     poles = scipy.linalg.eigvals(ACL413, E413)
     poles = poles[np.isfinite(poles)]
     assert_eigenvalues_match(np.linalg.eigvals(red.As), poles, rtol=1e-10)
@@ -214,12 +214,12 @@ def test_reduce_index1_poles_and_maps(plant413):
 
 
 def test_consistent_initial_condition_keeps_slow_part(plant413):
-    x0c, dist = fojax.consistent_initial_condition(plant413, X0_413)
+    x0c, dist = fojax.simulation.consistent_initial_condition(plant413, X0_413)
     np.testing.assert_allclose(x0c, [16.0, -1.0, 3.0, 14.0], atol=1e-12)  # x4 = x1 + 2 x2
     assert abs(float(dist) - 7.0) < 1e-12
     np.testing.assert_allclose(E413 @ np.asarray(x0c), E413 @ X0_413, atol=1e-12)
     # Nonlinear: x5 = l sin(x3), Newton from the given x5.
-    x0c, dist = fojax.consistent_initial_condition(robot_plant(), ROBOT_X0, u=robot_input())
+    x0c, dist = fojax.simulation.consistent_initial_condition(robot_plant(), ROBOT_X0, u=robot_input())
     x5 = ROBOT["l"] * np.sin(ROBOT_X0[2])
     np.testing.assert_allclose(x0c, [*ROBOT_X0[:4], x5], atol=1e-14)
     assert abs(float(dist) - abs(ROBOT_X0[4] - x5)) < 1e-14
@@ -260,7 +260,7 @@ def test_auto_picks_exact_then_falls_back(plant413, refs413):
     xd = scipy_trajectory(lambda t, x: rhs(x, np.zeros(2)), X0_413[d], ts)
     ref = np.stack([full(x, np.zeros(2)) for x in xd])
     assert rel_err(sol.xs, ref) <= 1e-6
-    with pytest.raises(fojax.InputError, match="uniform grid"):
+    with pytest.raises(fojax.errors.InputError, match="uniform grid"):
         fojax.simulate(plant413, X0_413, ts, stepper=fojax.Exact())
 
 
@@ -502,10 +502,10 @@ def test_observer_estimates_equal_joint_system(plant413):
 
 def test_irregular_pencil_is_refused():
     sys = fojax.DescriptorSystem(np.diag([1.0, 0.0]), np.diag([-1.0, 0.0]))
-    with pytest.raises(fojax.IrregularSystemError, match=r"singular for every s.*not regular"):
+    with pytest.raises(fojax.errors.IrregularSystemError, match=r"singular for every s.*not regular"):
         fojax.simulate(sys, np.zeros(2), TS)
-    with pytest.raises(fojax.IrregularSystemError):
-        fojax.reduce_index1(sys)
+    with pytest.raises(fojax.errors.IrregularSystemError):
+        fojax.simulation.reduce_index1(sys)
 
 
 def test_impulsive_system_is_refused():
@@ -514,10 +514,10 @@ def test_impulsive_system_is_refused():
     A = np.diag([-1.0, 1.0, 1.0])
     sys = fojax.DescriptorSystem(E, A)
     msg = r"Ã22 = U2ᵀ A V2 .* is singular .*impulsive modes \(index > 1\); fojax simulates index-1"
-    with pytest.raises(fojax.ImpulsiveSystemError, match=msg):
+    with pytest.raises(fojax.errors.ImpulsiveSystemError, match=msg):
         fojax.simulate(sys, np.zeros(3), TS)
-    with pytest.raises(fojax.ImpulsiveSystemError, match="impulsive modes"):
-        fojax.reduce_index1(sys)
+    with pytest.raises(fojax.errors.ImpulsiveSystemError, match="impulsive modes"):
+        fojax.simulation.reduce_index1(sys)
 
 
 def _index2_f(x, u, th):
@@ -529,32 +529,32 @@ def test_nonlinear_index_check_at_initial_point():
     plant = fojax.NonlinearDescriptorSystem(
         np.diag([1.0, 0.0]), _index2_f, lambda x, th: x, {}, m=0, p=2
     )
-    with pytest.raises(fojax.ImpulsiveSystemError, match=r"U2ᵀ ∂f/∂x V2.*at the initial point"):
+    with pytest.raises(fojax.errors.ImpulsiveSystemError, match=r"U2ᵀ ∂f/∂x V2.*at the initial point"):
         fojax.simulate(plant, np.array([0.0, 0.0]), TS)
 
 
 def test_inconsistent_x0_strict_raises(plant413):
     with pytest.raises(
-        fojax.InconsistentInitialConditionError, match=r"violates the algebraic constraints by 7\.0"
+        fojax.errors.InconsistentInitialConditionError, match=r"violates the algebraic constraints by 7\.0"
     ):
         fojax.simulate(plant413, X0_413, TS, strict=True)
-    with pytest.raises(fojax.InconsistentInitialConditionError):
-        fojax.consistent_initial_condition(plant413, X0_413, strict=True)
-    x0c, _ = fojax.consistent_initial_condition(plant413, X0_413)
+    with pytest.raises(fojax.errors.InconsistentInitialConditionError):
+        fojax.simulation.consistent_initial_condition(plant413, X0_413, strict=True)
+    x0c, _ = fojax.simulation.consistent_initial_condition(plant413, X0_413)
     sol = fojax.simulate(plant413, x0c, TS, strict=True)  # consistent: accepted
     assert float(sol.stats["projection_distance"]) < 1e-12
 
 
 def test_bad_shapes_and_arguments(plant413):
-    with pytest.raises(fojax.ShapeError, match=r"x0 has shape \(3,\), expected \(4,\)"):
+    with pytest.raises(fojax.errors.ShapeError, match=r"x0 has shape \(3,\), expected \(4,\)"):
         fojax.simulate(plant413, np.zeros(3), TS)
-    with pytest.raises(fojax.ShapeError, match="input signal"):
+    with pytest.raises(fojax.errors.ShapeError, match="input signal"):
         fojax.simulate(plant413, X0_413, TS, fojax.Step(jnp.ones(3)))
-    with pytest.raises(fojax.ShapeError, match=r"observer_x0\[0\]"):
+    with pytest.raises(fojax.errors.ShapeError, match=r"observer_x0\[0\]"):
         fojax.simulate(plant413, X0_413, TS, observers=(_filter(True),), observer_x0=(jnp.ones(3),))
-    with pytest.raises(fojax.InputError, match="strictly increasing"):
+    with pytest.raises(fojax.errors.InputError, match="strictly increasing"):
         fojax.simulate(plant413, X0_413, TS[::-1])
-    with pytest.raises(fojax.InputError, match=r"stepper Exact\(\) needs a linear time-invariant"):
+    with pytest.raises(fojax.errors.InputError, match=r"stepper Exact\(\) needs a linear time-invariant"):
         fojax.simulate(robot_plant(), ROBOT_X0, ROBOT_TS, robot_input(), stepper=fojax.Exact())
 
 
@@ -572,5 +572,5 @@ def test_batch_of_plants_with_different_E_inside_jit():
         ref = fojax.simulate(fojax.DescriptorSystem(c * E413, ACL413, B413), X0_413, ts).xs
         np.testing.assert_allclose(xs[i], ref, rtol=1e-12, atol=1e-11)
     assert not np.allclose(xs[0], xs[1])
-    with pytest.raises(fojax.InputError, match="rank_E"):
-        jax.jit(lambda E: fojax.reduce_index1(fojax.DescriptorSystem(E, ACL413, B413)).As)(E413)
+    with pytest.raises(fojax.errors.InputError, match="rank_E"):
+        jax.jit(lambda E: fojax.simulation.reduce_index1(fojax.DescriptorSystem(E, ACL413, B413)).As)(E413)

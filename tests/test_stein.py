@@ -39,7 +39,7 @@ def test_matrix_residual_and_region_lmi(method):
 def test_outside_the_disk_is_not_a_certificate_and_overflow_is_named():
     X = host_stein_certificate(np.array([[0.5]]), -2.0, 1.0)  # eigenvalue outside the disk
     assert not np.linalg.eigvalsh(X).min() > 0
-    from fojax import DesignVerificationError
+    from fojax.errors import DesignVerificationError
 
     with pytest.raises(DesignVerificationError, match="overflows float64"):
         host_stein_certificate(np.array([[1e300, 1e300], [0.0, 0.5]]), method="doubling")

@@ -120,25 +120,25 @@ def test_removed_keywords_raise_type_error_naming_the_stepper():
 
 
 def test_bad_objects_and_mixed_spellings_raise_input_error():
-    with pytest.raises(fojax.InputError, match=r"Diffrax\(rtol=...\) must be a positive float"):
+    with pytest.raises(fojax.errors.InputError, match=r"Diffrax\(rtol=...\) must be a positive float"):
         fojax.Diffrax(rtol=-1.0)
-    with pytest.raises(fojax.InputError, match=r"Exponential\(substeps=...\)"):
+    with pytest.raises(fojax.errors.InputError, match=r"Exponential\(substeps=...\)"):
         fojax.Exponential(substeps=0)
-    with pytest.raises(fojax.InputError, match=r"reduce='sum'.*'peak'"):
+    with pytest.raises(fojax.errors.InputError, match=r"reduce='sum'.*'peak'"):
         fojax.Metrics(kinds=("iae", "peak"), reduce="sum")
-    with pytest.raises(fojax.InputError, match=r"Metrics\(kinds=...\)"):
+    with pytest.raises(fojax.errors.InputError, match=r"Metrics\(kinds=...\)"):
         fojax.Metrics(kinds=("iae", "l2"))
-    with pytest.raises(fojax.InputError, match=r"Bands\(points=...\)"):
+    with pytest.raises(fojax.errors.InputError, match=r"Bands\(points=...\)"):
         fojax.Bands(points=1)
-    with pytest.raises(fojax.InputError, match=r"simulate\(stepper=...\) must be fojax.Auto\(\)"):
+    with pytest.raises(fojax.errors.InputError, match=r"simulate\(stepper=...\) must be fojax.Auto\(\)"):
         fojax.simulate(lti_plant(), X0, TS, stepper="exact")
-    with pytest.raises(fojax.InputError, match=r"run_study: pass either save= or the legacy keywords \['quantiles'\]"):
+    with pytest.raises(fojax.errors.InputError, match=r"run_study: pass either save= or the legacy keywords \['quantiles'\]"):
         fojax.run_study(lti_study(), OBS, save=fojax.Metrics(), quantiles=(0.5,))
-    with pytest.raises(fojax.InputError, match=r"run_study\(save=...\) must be fojax.Metrics"):
+    with pytest.raises(fojax.errors.InputError, match=r"run_study\(save=...\) must be fojax.Metrics"):
         fojax.run_study(lti_study(), OBS, save=fojax.Trajectory())
-    with pytest.raises(fojax.InputError, match=r"simulate\(save=...\) keeps one trajectory"):
+    with pytest.raises(fojax.errors.InputError, match=r"simulate\(save=...\) keeps one trajectory"):
         fojax.simulate(lti_plant(), X0, TS, save=fojax.Metrics())
-    with pytest.raises(fojax.InputError, match=r"stepper Exponential\(\) runs studies"):
+    with pytest.raises(fojax.errors.InputError, match=r"stepper Exponential\(\) runs studies"):
         fojax.simulate(lti_plant(), X0, TS, stepper=fojax.Exponential())
 
 
@@ -155,10 +155,10 @@ def test_auto_picks_exact_for_lti_and_diffrax_otherwise_and_exact_refuses_nonlin
                                            delta=fojax.Sine(jnp.ones(1), jnp.ones(1), jnp.zeros(1)))
     assert auto.select(sine, (OBS,), ts, as_signal(None, 2)) is auto.diffrax  # δ(t): one simulate runs diffrax
     assert auto.select(nonlinear_plant(), (), ts, as_signal(None, 1)) is auto.diffrax
-    with pytest.raises(fojax.InputError, match=r"stepper Exact\(\).*needs a linear time-invariant plant.*"
+    with pytest.raises(fojax.errors.InputError, match=r"stepper Exact\(\).*needs a linear time-invariant plant.*"
                                                r"NonlinearDescriptorSystem"):
         fojax.Exact().select(nonlinear_plant(), (), ts, as_signal(None, 1))
-    with pytest.raises(fojax.InputError, match=r"stepper Exact\(\).*uniform grid"):
+    with pytest.raises(fojax.errors.InputError, match=r"stepper Exact\(\).*uniform grid"):
         fojax.Exact().select(lti_plant(), (), jnp.asarray(TS ** 2), as_signal(None, 2))
     # the study engines, in the order run_study tries them
     assert fojax.Auto.engines == ("exact-batch", "exponential-batch", "vmap-simulate")
@@ -237,11 +237,11 @@ def test_explicit_stepper_that_is_not_exact_for_the_study_names_itself():
     plant = nonlinear_plant()
     st = fojax.Study(plant, jnp.array([0.5, 0.25]), TS, jnp.eye(2))
     obs = LTIObserver(-jnp.eye(2), jnp.zeros((2, 2)), jnp.zeros(2))
-    with pytest.raises(fojax.InputError, match=r"stepper Exponential\(\) cannot run"):
+    with pytest.raises(fojax.errors.InputError, match=r"stepper Exponential\(\) cannot run"):
         fojax.run_study(st, obs, stepper=fojax.Exponential(), quiet=True)
-    with pytest.raises(fojax.InputError, match=r"stepper Exact\(\).*needs a linear time-invariant plant"):
+    with pytest.raises(fojax.errors.InputError, match=r"stepper Exact\(\).*needs a linear time-invariant plant"):
         fojax.run_study(st, obs, stepper=fojax.Exact(), quiet=True)
-    with pytest.raises(fojax.InputError, match=r"study_loss: stepper Exponential\(\) cannot run this study"):
+    with pytest.raises(fojax.errors.InputError, match=r"study_loss: stepper Exponential\(\) cannot run this study"):
         S.study_loss(st, obs, cfg=SimConfig(stepper=fojax.Exponential()))
 
 
@@ -286,7 +286,7 @@ def test_metric_vocabulary_is_the_same_everywhere(lti_results):
     assert summed.axes["iae"] == ("observer", "uncertainty", "fault")
     for k in ("iae", "ise"):
         np.testing.assert_allclose(summed.metrics[k], res.metrics[k].sum(axis=-1), rtol=1e-14)
-    with pytest.raises(fojax.InputError, match=r"\(kind, C, reduce\)"):
+    with pytest.raises(fojax.errors.InputError, match=r"\(kind, C, reduce\)"):
         simulate_lti_batch(model, p, jnp.asarray(x0)[None], TS, metrics={"x": ("peak", Ce, "sum")})
 
 
@@ -341,7 +341,7 @@ def test_one_uniform_grid_test_for_every_entry():
     p = {"delta": jnp.zeros((1, 1))}
     x0 = jnp.asarray(X0)[None]
     for fn in (simulate_lti_batch, simulate_batch_exponential):
-        with pytest.raises(fojax.InputError, match=rf"{fn.__name__} steps on a uniform increasing grid.*2\.00e-03"):
+        with pytest.raises(fojax.errors.InputError, match=rf"{fn.__name__} steps on a uniform increasing grid.*2\.00e-03"):
             fn(_Model(), p, x0, bad, metrics={"x": ("iae", np.eye(6))})
-    with pytest.raises(fojax.InputError, match=r"stepper Exact\(\).*not uniform \(max .* = 2\.00e-03"):
+    with pytest.raises(fojax.errors.InputError, match=r"stepper Exact\(\).*not uniform \(max .* = 2\.00e-03"):
         fojax.Exact().select(lti_plant(), (), jnp.asarray(bad), as_signal(None, 2))

@@ -57,7 +57,7 @@ def test_band_stride_and_band_quantiles_equal_np_quantile():
     assert S._runner.band_stride(1001, 201) == 5 and S._runner.band_stride(1001, None) == 1
     assert S._runner.band_stride(51, 8) == 7 and S._runner.band_stride(6, 201) == 1
     for bad in (1, 0, 2.5, True):
-        with pytest.raises(fojax.InputError, match="band_points must be an integer >= 2"):
+        with pytest.raises(fojax.errors.InputError, match="band_points must be an integer >= 2"):
             S._runner.band_stride(100, bad)
     rng = np.random.default_rng(0)
     E = rng.standard_normal((7, 3, 101))
@@ -163,8 +163,8 @@ def test_compiled_samplers_draw_the_eager_bits_and_compile_once_per_shape():
 
 
 def test_fault_profile_shapes():
-    step = S.FaultProfile(jnp.array([2.0]), onset=1.0, rise=0.0)
-    ramp = S.FaultProfile(jnp.array([2.0]), onset=1.0, rise=2.0)
+    step = fojax.plant.FaultProfile(jnp.array([2.0]), onset=1.0, rise=0.0)
+    ramp = fojax.plant.FaultProfile(jnp.array([2.0]), onset=1.0, rise=2.0)
     assert float(step(0.99)[0]) == 0.0 and float(step(1.0)[0]) == 2.0
     assert np.isclose(float(ramp(2.0)[0]), 1.0) and float(ramp(5.0)[0]) == 2.0
 
@@ -232,8 +232,8 @@ def test_noise_and_fault_wrappers(bench):
     ex, d, _, x0, u = bench
     nf = 3
     base = fojax.UncertainDescriptorSystem(ex.system, dA=ex.dA, delta=fojax.Constant(jnp.zeros(1)))
-    fault = S.FaultProfile(jnp.zeros(nf), 0.0, 0.0)
-    plant = S.NoisyPlant(S.FaultyPlant(base, ex.Fa, ex.Fs, fault), fojax.Constant(jnp.zeros(3)))
+    fault = fojax.plant.FaultProfile(jnp.zeros(nf), 0.0, 0.0)
+    plant = fojax.NoisyPlant(fojax.FaultyPlant(base, ex.Fa, ex.Fs, fault), fojax.Constant(jnp.zeros(3)))
     key = jax.random.PRNGKey(2)
     study = S.Study(
         plant, x0[:6], TS, ex.L, u,

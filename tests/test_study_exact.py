@@ -175,7 +175,7 @@ def test_faulty_plant_steps_ramps_and_sine_input_match_tight_diffrax(ex337):
     # grid points, a sine input and a step input off the grid; all exact on the kernel.
     ex, _, _, x0 = ex337
     base = fojax.UncertainDescriptorSystem(ex.system, dA=ex.dA, delta=fojax.Constant(jnp.zeros(1)))
-    plant = S.FaultyPlant(base, ex.Fa, ex.Fs, fault=S.FaultProfile(jnp.zeros(3)))
+    plant = fojax.FaultyPlant(base, ex.Fa, ex.Fs, fault=fojax.plant.FaultProfile(jnp.zeros(3)))
     po = design_functional_observer(ex.augmented, ex.L_aug, kind="proportional", region=Disk(-3.0, 2.0))
     obs = po.observer
     key = jax.random.PRNGKey(4)

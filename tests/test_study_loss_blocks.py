@@ -80,5 +80,5 @@ def test_gradient_with_respect_to_the_study_is_refused(case):
     def loss(c):
         return S.study_loss(eqx.tree_at(lambda s: s.ts, study, c * study.ts), observer)
 
-    with pytest.raises(fojax.InputError, match="differentiates the observers only"):
+    with pytest.raises(fojax.errors.InputError, match="differentiates the observers only"):
         jax.jit(jax.grad(loss))(1.0)  # raised while tracing the reverse pass: nothing compiles

@@ -40,7 +40,7 @@ def _faulty_study(scenario_delta: bool):
     `scenario_delta` the scenarios also draw δ (so the joint matrix depends on them)."""
     ex = fojax.models.example_3_3_7()
     base = fojax.UncertainDescriptorSystem(ex.system, dA=ex.dA, delta=fojax.Constant(jnp.zeros(1)))
-    plant = S.FaultyPlant(base, ex.Fa, ex.Fs, fault=S.FaultProfile(jnp.zeros(3)))
+    plant = fojax.FaultyPlant(base, ex.Fa, ex.Fs, fault=fojax.plant.FaultProfile(jnp.zeros(3)))
     obs = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-3.0, 2.0)).observer
     k1, k2, k3 = jax.random.split(jax.random.PRNGKey(7), 3)
     x0 = jnp.full((6,), 0.3)

@@ -183,7 +183,7 @@ def test_signal_study_with_fault_targets_matches_solve_ivp(engine):
     # (exponential engine)
     k1, k2 = jax.random.split(jax.random.PRNGKey(2))
     base = fojax.UncertainDescriptorSystem(fojax.DescriptorSystem(E, A, B, np.eye(3)), dA=DA)
-    plant = S.FaultyPlant(base, Fa=B, fault=S.FaultProfile(jnp.array([0.7]), 0.5))
+    plant = fojax.FaultyPlant(base, Fa=B, fault=fojax.plant.FaultProfile(jnp.array([0.7]), 0.5))
     path = ("plant", "base", "delta")
     delta = (S.constant_delta(k1, NU, 1, (-0.3, 0.3), path=path) if engine == "exact-batch"
              else S.sinusoidal_delta(k1, NU, 1, amplitude=(0.1, 0.3), path=path))
@@ -209,12 +209,12 @@ def test_signal_study_with_fault_targets_matches_solve_ivp(engine):
 
 def test_signal_study_refusals():
     st = study(0)
-    with pytest.raises(fojax.InputError, match="observers=None"):
+    with pytest.raises(fojax.errors.InputError, match="observers=None"):
         S.run_study(st, [], quiet=True)
-    with pytest.raises(fojax.ShapeError, match="observer_names"):
+    with pytest.raises(fojax.errors.ShapeError, match="observer_names"):
         S.run_study(st, observer_names=("a", "b"), quiet=True)
     maps = fojax.control.loop_maps(fojax.models.example_4_1_3().system, _printed_observer())
-    with pytest.raises(fojax.ShapeError, match="L has shape"):
+    with pytest.raises(fojax.errors.ShapeError, match="L has shape"):
         maps.signal_rows(np.zeros((2, 3)))
 
 

@@ -54,7 +54,7 @@ def _rel(a, b):
 def test_ts_refuses_algebraic_state_x5(arm_ts):
     # x5 = l sin x3 is only determined by the rule-dependent row E⊥A_i; Γ = [E; C] lacks it.
     with pytest.raises(
-        fojax.FunctionalObservabilityError,
+        fojax.errors.FunctionalObservabilityError,
         match=r"rank \[L; E; C\] = 5 but rank \[E; C\] = 4: row\(s\) \[3\] of L are not in the row space of \[E; C\]",
     ):
         design_ts_observer(arm_ts.system, arm_ts.L)
@@ -71,7 +71,7 @@ def test_ts_impulse_observability_names_the_rule(arm_ts):
     assert fojax.analysis.is_regular(np.asarray(sys.E), A[1])
     bad = fojax.TakagiSugenoSystem(sys.E, A, sys.B, sys.C, sys.membership)
     with pytest.raises(
-        fojax.ImpulseObservabilityError, match=r"rank \[E; E⊥A_2; C\] = 4 < n = 5 for rule 2"
+        fojax.errors.ImpulseObservabilityError, match=r"rank \[E; E⊥A_2; C\] = 4 < n = 5 for rule 2"
     ):
         design_ts_observer(bad, L_ARM)
 
@@ -382,7 +382,7 @@ def _uio_twin(plant413cl, **kw):
 def test_uio_badly_scaled_twin_on_the_raw_data_is_refused(plant413cl):
     # Regression: this design was returned (residual 2e-19 relative on the data as given, whose
     # terms are ~1e12) while a.–f. fail at 0.14–0.2 relative in the unit-free frame.
-    with pytest.raises(fojax.DesignVerificationError, match="unit-free frame"):
+    with pytest.raises(fojax.errors.DesignVerificationError, match="unit-free frame"):
         _uio_twin(plant413cl, balance=False)
 
 
@@ -532,7 +532,7 @@ def test_uio_lmi_certifies_the_error_matrix_of_the_returned_observer(uio, rng):
 def test_uio_rejects_dependent_unknown_inputs(plant413cl):
     E, A, B, C, L = plant413cl
     D = np.column_stack([UIO_D[:, 0], 2.0 * UIO_D[:, 0]])
-    with pytest.raises(fojax.RankConditionError, match=r"full column rank of D fails: D is 4 x 2 but has rank 1"):
+    with pytest.raises(fojax.errors.RankConditionError, match=r"full column rank of D fails: D is 4 x 2 but has rank 1"):
         design_unknown_input_observer(fojax.DescriptorSystem(E, A, B, C), D, L)
 
 
@@ -545,7 +545,7 @@ def test_uio_functional_observability_uses_annihilator_of_E_D():
     L = np.array([[0.0, 0.0, 1.0]])
     assert design_unknown_input_observer(sys, np.array([[0.0], [1.0], [0.0]]), L).report.passed
     with pytest.raises(
-        fojax.FunctionalObservabilityError,
+        fojax.errors.FunctionalObservabilityError,
         match=r"E⊥ annihilating \[E D\]\) fails: rank \[L; E; E⊥A; C\] = 3 but rank \[E; E⊥A; C\] = 2",
     ):
         design_unknown_input_observer(sys, np.array([[0.0], [0.0], [1.0]]), L)
@@ -557,7 +557,7 @@ def test_uio_unknown_input_in_unobservable_direction_is_undetectable():
         np.diag([-1.0, -2.0]), np.array([[1.0], [0.0]]), np.array([[1.0, 0.0]])
     )
     with pytest.raises(
-        fojax.DetectabilityError,
+        fojax.errors.DetectabilityError,
         match=r"mode s = 0 of d̃.*rank \[\[N1 - Z N2, T D\], \[N3, 0\]\] = \d < q0 \+ l = \d for every Z",
     ):
         design_unknown_input_observer(sys, np.array([[0.0], [1.0]]), np.array([[1.0, 0.0]]))
@@ -568,5 +568,5 @@ def test_uio_needs_an_observer_order_at_least_the_number_of_unknown_inputs(plant
     D = np.eye(4)[:, [0, 2]]
     sys = fojax.DescriptorSystem(E, A, B, C)
     R = np.array([[1.0, 0.0, 0.0, 0.0]])
-    with pytest.raises(fojax.DetectabilityError, match=r"observer order q0 \(now 1; at least l = 2 is needed\)"):
+    with pytest.raises(fojax.errors.DetectabilityError, match=r"observer order q0 \(now 1; at least l = 2 is needed\)"):
         design_unknown_input_observer(sys, D, R, R=R)

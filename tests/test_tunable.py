@@ -145,7 +145,7 @@ def test_certify_reproduces_the_design_and_refuses_outside(hand_designs, cls):
                                    atol=1e-9)
     Aa = out.error_matrix + 2.0 * np.eye(out.error_matrix.shape[0])  # disk LMI at the certificate
     assert np.linalg.eigvalsh(Aa.T @ out.X @ Aa - out.X).max() < 0
-    with pytest.raises(fojax.InputError, match="AbstractParameterization"):
+    with pytest.raises(fojax.errors.InputError, match="AbstractParameterization"):
         certify(d, p)
 
 
@@ -159,7 +159,7 @@ def test_certify_raises_outside_the_region(hand_designs):
     m = observer_matrices(d.structure, **par.design_params(p), xp=np)
     ev = np.linalg.eigvals(np.block([[m.N[0], m.J[0]], [m.S[0], m.G[0]]]))
     worst = ev[np.argmax(np.abs(ev + 2.0))]
-    with pytest.raises(fojax.DesignVerificationError, match=r"eigenvalue \S+ is outside the region \(disk centred at "
+    with pytest.raises(fojax.errors.DesignVerificationError, match=r"eigenvalue \S+ is outside the region \(disk centred at "
                        r"-2 with radius 1\) by [0-9.]+e[+-]\d+") as err:
         certify(par, p)
     assert f"by {abs(worst + 2.0) - 1.0:.3e}" in str(err.value)
@@ -225,7 +225,7 @@ def test_host_margin_is_one_compiled_program(hand_designs):
 
 
 def test_common_certificate_refuses_lti_designs(hand_designs):
-    with pytest.raises(fojax.InputError, match="needs a TakagiSugenoObserverDesign"):
+    with pytest.raises(fojax.errors.InputError, match="needs a TakagiSugenoObserverDesign"):
         CommonCertificate(hand_designs["generalized"])
-    with pytest.raises(fojax.InputError, match="parameterization must be one of"):
+    with pytest.raises(fojax.errors.InputError, match="parameterization must be one of"):
         tuning.make_parameterization(hand_designs["generalized"], "bogus")

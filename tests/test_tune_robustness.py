@@ -31,8 +31,9 @@ import pytest
 from helpers import channels_3_3_7, h2_by_integral, joint_error_system, scalar_plant
 
 import fojax
-from fojax import InputError, studies as S, tuning
+from fojax import studies as S, tuning
 from fojax.design import design_functional_observer, Disk
+from fojax.errors import InputError
 from fojax.tuning import _tune
 
 
@@ -196,9 +197,9 @@ robustness = { hinf = 2, h2 = 0.5 }
 def test_config_key_and_the_study_command_helpers(scalar_runs):
     import tomllib
 
-    from fojax import ConfigError
     from fojax.cli._study import _robustness_line, _robustness_terms
     from fojax.config import parse_config
+    from fojax.errors import ConfigError
 
     cfg = parse_config(tomllib.loads(SCALAR_TOML))
     assert cfg.tuning.robustness == (("h2", 0.5), ("hinf", 2.0))

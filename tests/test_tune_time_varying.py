@@ -68,7 +68,7 @@ def test_tune_over_several_devices_refuses_a_study_off_the_exact_engine(setup):
     train = study(0)
     assert S.exact_refusal(train, (d.observer,)) is not None  # time-varying δ(t): not the exact engine
     steps = _tune.TRACE_COUNTS["tune_step"]
-    with pytest.raises(fojax.InputError, match=r"devices=None.*diffrax#765|diffrax#765.*devices=None"):
+    with pytest.raises(fojax.errors.InputError, match=r"devices=None.*diffrax#765|diffrax#765.*devices=None"):
         tuning.tune(d, train, steps=1, quiet=True, devices=jax.devices()[:2])
     assert _tune.TRACE_COUNTS["tune_step"] == steps  # refused before the step was traced
     assert _distributed.tuning_devices(exact=False) is None  # the CLI's choice on one process

@@ -161,13 +161,13 @@ def test_resume_refuses_the_checkpoint_of_another_run(tmp_path):
               (xi, optax.chain(optax.scale_by_adam(), optax.trace(0.9)).init(xi)),  # more arrays
               ({"xi": jnp.zeros(4)}, adam.init({"xi": jnp.zeros(4)}))]  # other coordinates: shapes
     for params, st in others:
-        with pytest.raises(fojax.InputError, match="holds the tuning state of another run"):
+        with pytest.raises(fojax.errors.InputError, match="holds the tuning state of another run"):
             load_checkpoint(path, params, st)
 
 
 def test_non_disk_region_is_refused(setup):
     _, d, _, _ = setup
-    with pytest.raises(fojax.InputError, match="disk regions only"):
+    with pytest.raises(fojax.errors.InputError, match="disk regions only"):
         tuning.initial_parameters(d, fojax.design.HalfPlane(0.5))
 
 
@@ -183,9 +183,9 @@ def test_shared_optimizer_is_one_object_per_configuration_and_refuses_bad_input(
     ref = optax.adam(0.1)
     theirs, _ = ref.update(g, ref.init(p), p)
     np.testing.assert_array_equal(ours["w"], theirs["w"])
-    with pytest.raises(fojax.InputError, match="no optimizer named 'adamm'"):
+    with pytest.raises(fojax.errors.InputError, match="no optimizer named 'adamm'"):
         tuning.shared_optimizer("adamm", learning_rate=0.1)
-    with pytest.raises(fojax.InputError, match="must be hashable"):
+    with pytest.raises(fojax.errors.InputError, match="must be hashable"):
         tuning.shared_optimizer("adam", learning_rate=[0.1])
 
 
@@ -225,7 +225,7 @@ def test_a_new_quantile_level_reuses_the_compiled_step(setup):
         assert first == pytest.approx(np.quantile(per, q), rel=1e-9), q
     assert _tune.TRACE_COUNTS["tune_step"] == before  # two new levels, no new trace
     for bad in (1.5, -0.1, "high"):
-        with pytest.raises(fojax.InputError, match="quantile must be a number in"):
+        with pytest.raises(fojax.errors.InputError, match="quantile must be a number in"):
             tuning.tune(d, train, quantile=bad, **opts)
 
 
@@ -276,6 +276,6 @@ def test_extra_loss_is_part_of_the_objective_and_changes_the_result(setup):
 def test_extra_loss_is_checked_before_compiling(setup, bad, match):
     _, d, train, _ = setup
     before = _tune.TRACE_COUNTS["tune_step"]
-    with pytest.raises(fojax.InputError, match=match):
+    with pytest.raises(fojax.errors.InputError, match=match):
         tuning.tune(d, train, steps=1, optimizer=ADAM, extra_loss=bad)
     assert _tune.TRACE_COUNTS["tune_step"] == before

@@ -182,18 +182,18 @@ def test_study_loss_gradient_matches_central_differences(setup):
 def test_refusals():
     ex = example_3_3_7()
     lti = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
-    with pytest.raises(fojax.InputError, match=r"needs a TakagiSugenoObserverDesign .* got FunctionalObserverDesign"):
+    with pytest.raises(fojax.errors.InputError, match=r"needs a TakagiSugenoObserverDesign .* got FunctionalObserverDesign"):
         initial_ts_parameters(lti)
     ts_sys = robot_arm_ts().system
     pi = design_ts_observer(ts_sys, L_ARM, kind="PI")
-    with pytest.raises(fojax.InputError, match=r"generalized and proportional designs; got kind='PI'"):
+    with pytest.raises(fojax.errors.InputError, match=r"generalized and proportional designs; got kind='PI'"):
         initial_ts_parameters(pi)
     des = design_ts_observer(ts_sys, L_ARM, kind="generalized")
-    with pytest.raises(fojax.InputError, match=r"does not satisfy the LMI of disk centred at -2 with radius 0.3"):
+    with pytest.raises(fojax.errors.InputError, match=r"does not satisfy the LMI of disk centred at -2 with radius 0.3"):
         initial_ts_parameters(des, Disk(-2.0, 0.3))
     arm = robot_arm()
     one_signal = Study(arm.system, robot_arm_ts().x0, TS, L_ARM[:1], u=U)
-    with pytest.raises(fojax.InputError, match=r"the study has 1 signals but the observer estimates 2"):
+    with pytest.raises(fojax.errors.InputError, match=r"the study has 1 signals but the observer estimates 2"):
         tune(des, one_signal, steps=1)
 
 

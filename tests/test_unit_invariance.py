@@ -121,7 +121,7 @@ def test_takagi_sugeno_design_on_the_badly_scaled_twin_estimates_z(kind):
         m = lc_filter.lc_filter(scaled)
         rules = np.stack([m["A"] - m["dA"], m["A"] + m["dA"]])
         ts = fojax.TakagiSugenoSystem(m["E"], rules, np.stack([m["B"], m["B"]]), m["C"],
-                                      fojax.SectorMembership(fojax.OutputPremise(0), -1.0, 1.0))
+                                      fojax.plant.SectorMembership(fojax.plant.OutputPremise(0), -1.0, 1.0))
         d = fojax.design.design_ts_observer(ts, m["L"], kind=kind, region=REGION)
         assert d.report.passed
         for i in range(2):
@@ -195,7 +195,7 @@ def test_regression_unbalanced_twin_design_is_refused_or_redesigned():
     plant's transfer functions) and says so in its report."""
     m = lc_filter.lc_filter(True)
     sysm = fojax.DescriptorSystem(m["E"], m["A"], m["B"], m["C"])
-    with pytest.raises(fojax.DesignVerificationError, match="unit-free frame") as err:
+    with pytest.raises(fojax.errors.DesignVerificationError, match="unit-free frame") as err:
         design_functional_observer(sysm, m["L"], kind="proportional", region=REGION, balance=False)
     assert err.value.report.relative_residual < 1e-8  # the raw-data test alone passes
     assert err.value.report.extra["unit-free relative residual"] > 1e-4
@@ -233,7 +233,7 @@ def test_default_balance_redesigns_unit_free_after_any_failed_verification():
         report: Report
 
     def raw():
-        raise fojax.DesignVerificationError("region LMI re-checked in float64 has max eigenvalue 1.3e-08",
+        raise fojax.errors.DesignVerificationError("region LMI re-checked in float64 has max eigenvalue 1.3e-08",
                                             Report({"unit-free relative residual": 1e-13}))
 
     def balanced():
@@ -242,14 +242,14 @@ def test_default_balance_redesigns_unit_free_after_any_failed_verification():
     d = unit_free_fallback(raw, balanced, None, "a.-d.")
     assert d.report.extra["balance"].startswith("the design on the data as given: region LMI re-checked")
     assert d.report.extra["unit-free relative residual"] == 1e-14  # the balanced design's own report
-    with pytest.raises(fojax.DesignVerificationError, match="region LMI") as err:
+    with pytest.raises(fojax.errors.DesignVerificationError, match="region LMI") as err:
         unit_free_fallback(raw, balanced, False, "a.-d.")
     assert "unit-free model" not in str(err.value)
 
     def balanced_fails():
-        raise fojax.LMIInfeasibleError("unit-free LMI", "optimal_inaccurate", {}, "")
+        raise fojax.errors.LMIInfeasibleError("unit-free LMI", "optimal_inaccurate", {}, "")
 
-    with pytest.raises(fojax.DesignVerificationError, match="region LMI") as err:
+    with pytest.raises(fojax.errors.DesignVerificationError, match="region LMI") as err:
         unit_free_fallback(raw, balanced_fails, None, "a.-d.")
     assert "the design on the unit-free model, tried next, failed too: LMIInfeasibleError" in str(err.value)
     assert err.value.report.extra["unit-free relative residual"] == 1e-13  # the raw design's report
@@ -300,7 +300,7 @@ def test_certify_checks_the_unit_free_frame_as_verify_does(monkeypatch):
         return ("unit-free relative residual", 2.5e-3, _observer_design.unit_free_failure(2.5e-3, "a.-d.", fix))
 
     monkeypatch.setattr(_observer_design, "unit_free_check", failing)
-    with pytest.raises(fojax.DesignVerificationError, match="unit-free frame") as err:
+    with pytest.raises(fojax.errors.DesignVerificationError, match="unit-free frame") as err:
         certify(par, params)
     assert "balance=True" in str(err.value) and err.value.report.extra["unit-free relative residual"] == 2.5e-3
     assert checked

@@ -1,4 +1,5 @@
-r"""Structural analysis of descriptor systems $E\dot x = Ax + Bu$, $y = Cx$ (thesis §2.1.2).
+r"""Structural analysis of descriptor systems $E\dot x = Ax + Bu$, $y = Cx$ (thesis §2.1.2): regularity,
+index, stability, observability, Kronecker structure, zeros, balancing and the index-1 split.
 
 **Host-only functions** (NumPy/SciPy: SVD rank decisions, QZ; cvxpy/SCS for the LMI
 certificate) must be called outside `jax.jit`/`jax.vmap`: `e_perp`, `is_regular`,
@@ -49,7 +50,7 @@ infinite elementary divisors, finite eigenvalues), `system_zeros` (invariant zer
 
 **Singular pencils.** `is_regular`, `is_admissible` (answers ``False``),
 `is_functionally_observable`, `e_perp` and `structure_report` accept them; every
-other host function raises `fojax.IrregularSystemError` with an explanation.
+other host function raises `fojax.errors.IrregularSystemError` with an explanation.
 """
 
 from ._balance import (
@@ -80,8 +81,6 @@ from ._observability import (
     is_functionally_observable as is_functionally_observable,
     is_i_controllable as is_i_controllable,
     is_i_observable as is_i_observable,
-    is_impulse_controllable as is_impulse_controllable,
-    is_impulse_observable as is_impulse_observable,
     is_r_controllable as is_r_controllable,
     is_r_observable as is_r_observable,
     is_s_controllable as is_s_controllable,

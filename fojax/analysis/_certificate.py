@@ -97,13 +97,13 @@ def admissibility_certificate(
     $(E, A)$ too. Solved with cvxpy + SCS on the host (never inside ``jit``).
 
     **Acceptance.** Only solver status ``"optimal"`` is accepted; anything else
-    raises with the status: ``"infeasible"`` `fojax.LMIInfeasibleError`, any other
+    raises with the status: ``"infeasible"`` `fojax.errors.LMIInfeasibleError`, any other
     (``"optimal_inaccurate"``, an iteration limit, a solver error)
-    `fojax.SolverStoppedShortError`. The solution is then re-checked in float64 against the
+    `fojax.errors.SolverStoppedShortError`. The solution is then re-checked in float64 against the
     original $E$, $A$: ``symmetry_residual <= verify_rtol``,
     ``psd_min_eig >= -verify_rtol``, ``lyapunov_margin >= verify_rtol`` and
     $\lambda_{\min}(X) > 0$ (definitions in `AdmissibilityCertificate`); a failure
-    raises `fojax.DesignVerificationError` with the numbers.
+    raises `fojax.errors.DesignVerificationError` with the numbers.
 
     Host-only (cvxpy/SCS).
 
@@ -118,8 +118,8 @@ def admissibility_certificate(
     **Returns:** an `AdmissibilityCertificate`. For ``n = 0`` a trivial certificate
     (empty matrices, status ``"trivial"``) is returned without calling the solver.
 
-    **Raises:** `fojax.LMIInfeasibleError`, `fojax.SolverStoppedShortError`,
-    `fojax.DesignVerificationError`.
+    **Raises:** `fojax.errors.LMIInfeasibleError`, `fojax.errors.SolverStoppedShortError`,
+    `fojax.errors.DesignVerificationError`.
     """
     import cvxpy as cp
 
@@ -127,7 +127,7 @@ def admissibility_certificate(
     if p.dt is not None:
         raise InputError(
             f"admissibility_certificate certifies continuous-time admissibility (Theorem 2.1.3); this system is "
-            f"discrete-time (dt = {p.dt:g}). Use fojax.is_admissible (regular, causal, |λ| < 1) for its verdict."
+            f"discrete-time (dt = {p.dt:g}). Use fojax.analysis.is_admissible (regular, causal, |λ| < 1) for its verdict."
         )
     n = p.n
     if n == 0:

@@ -79,8 +79,8 @@ def _host(name: str, M) -> np.ndarray:
             f"{name} is a traced JAX value: this analysis function runs on the host "
             "(NumPy/SciPy, QZ or SVD with rank decisions) and cannot be called inside "
             "jax.jit / jax.vmap / jax.grad. Call it on concrete arrays, or use the "
-            "traceable screens fojax.impulse_free_margin, fojax.stability_margin_index1, "
-            "fojax.functional_observability_gap, fojax.regular_at."
+            "traceable screens fojax.analysis.impulse_free_margin, fojax.analysis.stability_margin_index1, "
+            "fojax.analysis.functional_observability_gap, fojax.analysis.regular_at."
         )
     M = to_numpy(M)
     if M.ndim != 2:
@@ -89,7 +89,7 @@ def _host(name: str, M) -> np.ndarray:
             "a 2-d matrix",
             tuple(M.shape),
             "Host analysis takes one system at a time; for a batch of systems loop on the "
-            "host or use the traceable screens (fojax.impulse_free_margin, ...) under jax.vmap.",
+            "host or use the traceable screens (fojax.analysis.impulse_free_margin, ...) under jax.vmap.",
         )
     return M
 
@@ -301,7 +301,7 @@ def irregular_error(fname: str, d: Deflation) -> IrregularSystemError:
         f"{d.failed}. The descriptor system is irregular: its solutions are not unique (or "
         "do not exist), and its poles, Weierstrass form, stability and observability "
         "notions are undefined. Check the model: a missing or duplicated equation, or a "
-        "state that appears in no equation, typically causes this. See fojax.is_regular."
+        "state that appears in no equation, typically causes this. See fojax.analysis.is_regular."
     )
 
 
@@ -353,5 +353,5 @@ def kernel_chain(p: Pencil, tol: float | None, fname: str) -> tuple[int, int, in
     raise IrregularSystemError(
         f"{fname}: the kernel dimensions {dims} of the block matrices [[E, 0], [A, E]], ... "
         "do not settle at a value <= n, which happens only for a (numerically) singular "
-        "pencil. Check regularity with fojax.is_regular, or pass a larger tol=."
+        "pencil. Check regularity with fojax.analysis.is_regular, or pass a larger tol=."
     )

@@ -280,8 +280,8 @@ def properness(sys: DescriptorSystem, *, tol: float | None = None,
                balance: bool = True) -> Properness:
     r"""Properness of the transfer function of a regular system (host-only).
 
-    Uses `fojax.weierstrass_form` (balanced, the fojax rank rule); see `Properness`.
-    ``D`` does not affect properness. Raises `fojax.IrregularSystemError` for a singular
+    Uses `fojax.analysis.weierstrass_form` (balanced, the fojax rank rule); see `Properness`.
+    ``D`` does not affect properness. Raises `fojax.errors.IrregularSystemError` for a singular
     pencil (no transfer function).
     """
     from ._common import as_system, require_regular

@@ -2,7 +2,7 @@ r"""Observability and controllability notions of regular descriptor systems (Dai
 
 All functions are **host-only** (rank tests with SVD, poles with QZ) and need a
 `fojax.DescriptorSystem` (they use ``C`` and/or ``B``). They are defined for regular
-systems only and raise `fojax.IrregularSystemError` for a singular pencil, except
+systems only and raise `fojax.errors.IrregularSystemError` for a singular pencil, except
 `is_functionally_observable`, which is a pure rank condition.
 
 Rank tests (each on the normalised matrices ``E/‖E‖``, ``A/‖A‖``, ``B/‖B‖``,
@@ -121,7 +121,7 @@ _ARGS = """
       balanced, normalised matrices).
     - `balance`: ``False`` skips the power-of-two balancing (`fojax.analysis.balance_system`).
 
-    **Raises:** `fojax.IrregularSystemError` for a singular pencil.
+    **Raises:** `fojax.errors.IrregularSystemError` for a singular pencil.
 """
 
 
@@ -259,11 +259,6 @@ for _f in (
 ):
     _f.__doc__ = (_f.__doc__ or "") + _ARGS
 del _f
-
-#: Alias of `is_i_observable`.
-is_impulse_observable = is_i_observable
-#: Alias of `is_i_controllable`.
-is_impulse_controllable = is_i_controllable
 
 
 def functional_rank_pair(E, A, C, L, *, D=None, output_only: bool = False,

@@ -113,7 +113,7 @@ def is_regular(sys, A=None, *, tol: float | None = None, balance: bool = True) -
     singular values above ``max(RANK_RTOL, RANK_ATOL) = 1e-10`` count (or above `tol`).
     The same deflation feeds `finite_poles`, `nilpotency_index`, `is_impulse_free` and
     `weierstrass_form`, so all of them take the same decisions. For a traceable check at
-    a given point see `fojax.regular_at`.
+    a given point see `fojax.analysis.regular_at`.
 
     **Arguments:**
 
@@ -180,7 +180,7 @@ def finite_poles(sys, A=None, *, tol: float | None = None, balance: bool = True)
     **Returns:** a complex NumPy array of length $n_1$, sorted by real part (then by
     imaginary part). Empty for a purely algebraic system and for ``n = 0``.
 
-    **Raises:** `fojax.IrregularSystemError` when the pencil is singular (no poles exist).
+    **Raises:** `fojax.errors.IrregularSystemError` when the pencil is singular (no poles exist).
     """
     p = as_pencil(sys, A, fname="finite_poles", balance=balance)
     return _sort_poles(_poles_normalized(p, tol, "finite_poles") * p.pole_scale)
@@ -201,7 +201,7 @@ def nilpotency_index(sys, A=None, *, tol: float | None = None, balance: bool = T
 
     **Returns:** the integer $\nu$.
 
-    **Raises:** `fojax.IrregularSystemError` for a singular pencil.
+    **Raises:** `fojax.errors.IrregularSystemError` for a singular pencil.
     """
     p = as_pencil(sys, A, fname="nilpotency_index", balance=balance)
     return require_regular(p, "nilpotency_index", tol).index
@@ -220,7 +220,7 @@ def is_impulse_free(sys, A=None, *, tol: float | None = None, balance: bool = Tr
 
     **Returns:** ``True`` or ``False`` (``True`` when $E$ is invertible or ``n = 0``).
 
-    **Raises:** `fojax.IrregularSystemError` for a singular pencil (impulse-freeness is
+    **Raises:** `fojax.errors.IrregularSystemError` for a singular pencil (impulse-freeness is
     defined for regular systems only; `is_admissible` answers ``False`` instead).
     """
     p = as_pencil(sys, A, fname="is_impulse_free", balance=balance)
@@ -266,7 +266,7 @@ def is_stable(
       \text{axis\_tol}\cdot\max(1, |\lambda|)$ counts as not stable, so that a pole
       on the boundary computed as ``-1e-17`` is not declared stable. Default ``1e-9``.
 
-    **Raises:** `fojax.IrregularSystemError` for a singular pencil.
+    **Raises:** `fojax.errors.IrregularSystemError` for a singular pencil.
     """
     p = as_pencil(sys, A, fname="is_stable", balance=balance)
     poles = _poles_normalized(p, tol, "is_stable") * p.pole_scale

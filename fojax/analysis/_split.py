@@ -31,7 +31,7 @@ class Index1Split:
 
     ``E = U diag(s) Vt``; ``U1 = U[:, :rank]``, ``U2 = U[:, rank:]``, ``V1 = Vt[:rank].T``,
     ``V2 = Vt[rank:].T``. `regular` and `index` (``None`` when irregular) are
-    `fojax.is_regular`'s and `fojax.nilpotency_index`'s; `failed` explains a singular
+    `fojax.analysis.is_regular`'s and `fojax.analysis.nilpotency_index`'s; `failed` explains a singular
     pencil.
     """
 
@@ -77,7 +77,7 @@ def index1_split(E, A, *, tol: float | None = None, balance: bool = True,
     Host-only; never raises for a singular or impulsive pencil (see `regular`, `index`);
     the callers raise their own typed errors with their context.
 
-    **Arguments:** `E`, `A` (``(n, n)``); `tol`, `balance` as `fojax.is_regular`.
+    **Arguments:** `E`, `A` (``(n, n)``); `tol`, `balance` as `fojax.analysis.is_regular`.
     """
     E = np.asarray(E, dtype=float)
     A = np.asarray(A, dtype=float)

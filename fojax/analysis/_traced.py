@@ -70,7 +70,7 @@ def impulse_free_margin(E, A, rank_E: int | None = None):
     impulse-free (index $\le 1$) iff $A_{22}$ is invertible, i.e. iff the margin is
     $> 0$; it is the distance (in the 2-norm, for perturbations of $A$ that act on
     $\ker E$) to the nearest impulsive pencil. Compare with
-    ``RANK_RTOL * ‖A‖₂`` to reproduce `fojax.is_impulse_free`. Returns ``inf`` when
+    ``RANK_RTOL * ‖A‖₂`` to reproduce `fojax.analysis.is_impulse_free`. Returns ``inf`` when
     ``rank_E = n`` (no algebraic part). The value does not depend on the choice of bases.
 
     **Arguments:** `E`, `A` (``(n, n)`` float64 JAX arrays); `rank_E` (static ``int``,
@@ -127,7 +127,7 @@ def stability_margin_index1(E, A, rank_E: int | None = None):
     ``max(real(eigvals(A_s)))`` is returned: negative iff the (impulse-free) system is
     stable. ``-inf`` when there are no finite poles (``rank_E = 0``). Only meaningful
     where `impulse_free_margin` is clearly positive; for impulsive pencils use the host
-    function `fojax.finite_poles`. Uses ``jnp.linalg.eigvals`` (a non-symmetric
+    function `fojax.analysis.finite_poles`. Uses ``jnp.linalg.eigvals`` (a non-symmetric
     eigensolver; available on CPU, and on GPU only in recent JAX versions) and is not
     meant to be differentiated at repeated poles.
 
@@ -199,7 +199,7 @@ def regular_at(E, A, s):
     \text{RANK\_ATOL})$. ``True`` proves regularity of the pencil (a regular pencil is
     singular only at its poles, so a generic `s` should be used); ``False`` means
     either a singular pencil or that `s` is (numerically) a pole. For the host decision
-    see `fojax.is_regular`.
+    see `fojax.analysis.is_regular`.
     """
     E = jnp.asarray(E)
     A = jnp.asarray(A)

@@ -53,7 +53,7 @@ def weierstrass_form(sys, A=None, *, tol: float | None = None, balance: bool = T
     r"""Weierstrass canonical form of a regular pencil (thesis eq. 2.16).
 
     Host-only. Algorithm: (i) orthogonal deflation of the infinite eigenvalues of the
-    normalised pencil (see `fojax.is_regular`), giving the block lower triangular pencil
+    normalised pencil (see `fojax.analysis.is_regular`), giving the block lower triangular pencil
     $W^T(sE - A)V = \begin{bmatrix}sE_f - A_f & 0\\ sE_{21} - A_{21} & sE_\infty -
     A_\infty\end{bmatrix}$ with $E_f$ and $A_\infty$ invertible and
     $A_\infty^{-1}E_\infty$ strictly block lower triangular; (ii) decoupling by the
@@ -74,7 +74,7 @@ def weierstrass_form(sys, A=None, *, tol: float | None = None, balance: bool = T
 
     **Returns:** a `WeierstrassForm`.
 
-    **Raises:** `fojax.IrregularSystemError` for a singular pencil (no such form exists).
+    **Raises:** `fojax.errors.IrregularSystemError` for a singular pencil (no such form exists).
     """
     p = as_pencil(sys, A, fname="weierstrass_form", balance=balance)
     d = require_regular(p, "weierstrass_form", tol)

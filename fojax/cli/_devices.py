@@ -5,7 +5,7 @@ XLA exposes a single CPU device unless ``--xla_force_host_platform_device_count=
 (`fojax.studies.run_study`; `fojax.tune` with ``devices=``), and the results are the same
 bits on any number of devices (`fojax.studies._sharding`, ``tests/test_cli_devices.py``).
 When the process is the ``fojax`` program running ``study``, `configure_host_devices`
-(called by ``fojax/cli/_startup.py`` while ``fojax`` is imported, before JAX is) adds that
+(called by the program's entry point ``_fojax_program.py``, before JAX is imported) adds that
 flag with ``N`` from ``--devices N`` on the command line, else the environment variable
 ``FOJAX_DEVICES``; ``auto`` is one device per core this process may use
 (``os.sched_getaffinity``).
@@ -155,7 +155,7 @@ def check_devices(requested: int | None) -> int:
     """The number of JAX devices this ``fojax study`` uses; `requested` (``--devices``, or
     ``FOJAX_DEVICES`` when it is None) must equal it when given.
 
-    **Raises:** `fojax.InputError` when ``FOJAX_DEVICES`` is not a positive integer, or when
+    **Raises:** `fojax.errors.InputError` when ``FOJAX_DEVICES`` is not a positive integer, or when
     the count asked for differs from JAX's (JAX was started before fojax could set it:
     a Python session, or ``XLA_FLAGS`` setting another count).
     """

@@ -142,7 +142,7 @@ def process_folders(out_dir, resume):
 
 
 def run(command) -> int:
-    """Run ``command()`` (the study) after `initialize`. A `fojax.DistributedError` (another
+    """Run ``command()`` (the study) after `initialize`. A `fojax.errors.DistributedError` (another
     process died) ends this process at once with its one-line reason (exit code 2),
     without JAX's shutdown barrier, which the dead process can never join."""
     import jax

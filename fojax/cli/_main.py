@@ -408,7 +408,7 @@ def main(argv: list[str] | None = None) -> int:
 
     SIGINT/SIGTERM end every command with one line on stderr and exit code 130/143 (see
     `fojax.cli._signals`). Called as the program (`argv` None: the ``fojax`` script,
-    ``python -m fojax.cli``), an interrupted command leaves with ``os._exit`` after its
+    ``python -m _fojax_program``, ``python -m fojax.cli``), an interrupted command leaves with ``os._exit`` after its
     message, without the interpreter shutdown that crashes while jaxlib still compiles.
     """
     import os

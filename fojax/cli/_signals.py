@@ -24,8 +24,8 @@ temporary files on the way out). What can go wrong with a plain
   printed, leaves with ``os._exit`` (no interpreter shutdown, no destructors: every
   file was already written, flushed and fsync'ed by the atomic writers).
 - **A signal while Python imports fojax** (before `main` runs; the import of JAX, SciPy,
-  cvxpy and matplotlib takes seconds): `quiet_while_starting`, called first thing by
-  ``fojax/__init__.py`` when the process is the ``fojax`` program, ends the process
+  cvxpy and matplotlib takes seconds): `quiet_while_starting`, called first thing by the
+  program's entry point (``_fojax_program.py``, before fojax is imported), ends the process
   with one line and exit code 130/143 (nothing is written before `main`).
 - **A signal that is ignored** when the program starts (``SIG_IGN``, e.g. a background
   job of a non-interactive shell) stays ignored.
@@ -219,19 +219,6 @@ def on_interrupt(message: str) -> None:
         _current.message = message
 
 
-def _is_program() -> bool:
-    """Whether this process is the ``fojax`` program (the console script or
-    ``python -m fojax.cli``), not a Python session that imports fojax."""
-    import os
-
-    argv0 = os.path.basename(sys.argv[0]) if sys.argv else ""
-    if argv0 in ("fojax", "fojax.exe", "fojax-script.py"):
-        return True
-    orig = list(getattr(sys, "orig_argv", ()))
-    return any(a == "-m" and orig[i + 1:i + 2] == ["fojax.cli"] or a == "-mfojax.cli"
-               for i, a in enumerate(orig))
-
-
 def _starting(signum, frame):
     import os
 
@@ -240,10 +227,11 @@ def _starting(signum, frame):
 
 
 def quiet_while_starting() -> None:
-    """If this process is the ``fojax`` program: until `fojax.cli.main` takes over, SIGINT
-    and SIGTERM end it at once with one line on stderr and exit code 130/143 (instead of a
-    traceback from deep inside an import). A Python session importing fojax is untouched."""
-    if threading.current_thread() is not threading.main_thread() or not _is_program():
+    """Until `fojax.cli.main` takes over, SIGINT and SIGTERM end the ``fojax`` program at
+    once with one line on stderr and exit code 130/143 (instead of a traceback from deep
+    inside an import). Called by the program's entry point (``_fojax_program.py``) only,
+    before fojax is imported."""
+    if threading.current_thread() is not threading.main_thread():
         return
     for sig in (signal.SIGINT, signal.SIGTERM):
         if signal.getsignal(sig) is not signal.SIG_IGN:

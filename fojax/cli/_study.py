@@ -402,7 +402,7 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
                       "the algebraic constraints. For the fault-augmented training set the last nf "
                       "entries are the constant faults",
                 "x0_consistent": "the plant state the simulation starts from: x0 projected onto the "
-                                 "algebraic constraints (fojax.consistent_initial_condition) (N, n)",
+                                 "algebraic constraints (fojax.simulation.consistent_initial_condition) (N, n)",
                 "delta": "constant uncertainty δ per sample (N, k)",
                 "fault_amplitude": "fault vector after the onset (N, nf)",
                 "fault_onset": "onset time [s] (N,)", "fault_rise": "rise time [s] (N,), 0: a step",

@@ -174,14 +174,14 @@ def make_study(cfg, seed: int, count: int, horizon: float, dt: float):
     import jax.numpy as jnp
 
     from .. import studies
-    from ..plant import Sine
+    from ..plant import FaultProfile, FaultyPlant, Sine
 
     k_u, k_f = jax.random.split(jax.random.PRNGKey(seed))
     plant = cfg.plant()
     families, prefix = [], ("plant",)
     if cfg.has_faults:
         nf = _nf(cfg)
-        plant = studies.FaultyPlant(plant, cfg.Fa, cfg.Fs, fault=studies.FaultProfile(jnp.zeros(nf)))
+        plant = FaultyPlant(plant, cfg.Fa, cfg.Fs, fault=FaultProfile(jnp.zeros(nf)))
         prefix = ("plant", "base")
     if cfg.is_takagi_sugeno:  # physical parameters (δ key) and x0 (fault key), drawn jointly
         if cfg.parameter_spread:
@@ -252,7 +252,7 @@ def describe_samples(study, cfg, observers: dict) -> dict:
     **Returns:** a dict of NumPy arrays: ``ts``, ``u`` ``(T, m)`` (shared input),
     ``x0`` ``(N, n)`` (given plant initial state per sample), ``x0_consistent``
     (the state the simulation starts from: `x0` projected onto the algebraic constraints
-    by `fojax.consistent_initial_condition`), ``delta`` ``(N, k)``
+    by `fojax.simulation.consistent_initial_condition`), ``delta`` ``(N, k)``
     (constant δ), ``fault_amplitude`` ``(N, nf)``, ``fault_onset``, ``fault_rise``
     ``(N,)``, ``fault_index`` ``(N,)`` (the active fault, ``-1`` none; for the augmented
     training study the faults are the last ``nf`` entries of ``x0``, present from
@@ -261,8 +261,7 @@ def describe_samples(study, cfg, observers: dict) -> dict:
     """
     import jax.numpy as jnp
 
-    from ..plant import Constant, UncertainDescriptorSystem
-    from ..studies import FaultyPlant
+    from ..plant import Constant, FaultyPlant, UncertainDescriptorSystem
 
     N = study.num_samples
     k = np.arange(N)

@@ -1,4 +1,5 @@
-"""TOML model and study files (format: `fojax.config.load_config` and ``docs/config.md``)."""
+"""TOML model and study files, read into plants, observer specifications and studies
+(format: `fojax.config.load_config` and ``docs/config.md``)."""
 
 from ._load import (
     example_names as example_names,

@@ -91,7 +91,7 @@ examples ship as ``fojax/examples/*.toml`` (see `example_path`). Layout::
     robustness = { h2 = 0.1 }            # optional: H2Term / HinfTerm weights ("h2", "hinf") for
                                          # objective = "hinf"/"h2" observers (their channels)
 
-Every problem raises `fojax.ConfigError` naming the file, the key (dotted path, e.g.
+Every problem raises `fojax.errors.ConfigError` naming the file, the key (dotted path, e.g.
 ``observer[1].region.disk.radius``) and what was expected.
 """
 
@@ -115,7 +115,7 @@ def load_config(path) -> Config:
 
     **Returns:** a `Config`.
 
-    **Raises:** `fojax.ConfigError` naming the file, the key and what was expected
+    **Raises:** `fojax.errors.ConfigError` naming the file, the key and what was expected
     (missing file, TOML syntax, unknown or missing keys, non-numeric entries, wrong
     shapes, inconsistent dimensions, bad region parameters).
     """

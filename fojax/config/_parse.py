@@ -40,7 +40,7 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
     - `data`: the dict `tomllib` returns.
     - `file`: the name used in error messages.
 
-    **Returns:** a `Config`. **Raises:** `fojax.ConfigError`.
+    **Returns:** a `Config`. **Raises:** `fojax.errors.ConfigError`.
     """
     v = V(file)
     check_model_header(v, data)
@@ -245,7 +245,7 @@ def _sampling_period(v: V, model: dict, ts_raw, data: dict) -> float | None:
 
 def _ts_faults(v: V, f: dict, ramp: bool, estimate_faults: bool) -> None:
     """``[faults]`` of a Takagi–Sugeno model: the faults act on the simulated plant (through
-    `fojax.studies.FaultyPlant`), the observers estimate ``z = L x`` only, since the T–S
+    `fojax.FaultyPlant`), the observers estimate ``z = L x`` only, since the T–S
     design (`fojax.design.design_ts_observer`) has no fault-augmented form. So
     ``estimate_faults`` must be given as ``false`` (its default ``true`` would ask for fault
     estimates) and ``ramp`` (the fault model of the augmented design) cannot be ``true``."""

@@ -1,6 +1,6 @@
 """Validation helpers of the config files: typed values, arrays and shapes (`V`), and the
 checks across tables (model header, state count, observer file names). Every problem is a
-`fojax.ConfigError` naming the file, the dotted key and what was expected."""
+`fojax.errors.ConfigError` naming the file, the dotted key and what was expected."""
 
 
 from __future__ import annotations

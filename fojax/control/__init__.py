@@ -1,4 +1,5 @@
-"""Observer-based control and fault-tolerant control of descriptor systems (thesis Chapter 4)."""
+"""Observer-based control and fault-tolerant control of descriptor systems (thesis Chapter 4):
+state feedback, closed loops, fault-tolerant designs and the finite-time loop."""
 
 from ..simulation._discretize import simulate_lti as simulate_lti
 from ._feedback import (

@@ -150,7 +150,7 @@ class StateFeedbackDesign(AbstractDesign):
         """Re-run the float64 verification of `L` (`fojax.design.AbstractDesign.verify`):
         regularity, impulse freedom and the finite poles of $(E, A + BL)$ in `region`, and
         for the dual LMI the certificate's inequalities; returns the `checks`, raises
-        `fojax.DesignVerificationError` on a failure."""
+        `fojax.errors.DesignVerificationError` on a failure."""
         return _verify(self.system, np.asarray(self.L), self.region, self.method, self.certificate)[2]
 
     def closed_loop(self) -> DescriptorSystem:
@@ -482,9 +482,9 @@ def design_state_feedback(
 
     **Returns:** a verified `StateFeedbackDesign` (``.L``, ``.poles``, ...).
 
-    **Raises:** `fojax.StabilizabilityError` (checked before any LMI: not impulse
+    **Raises:** `fojax.errors.StabilizabilityError` (checked before any LMI: not impulse
     controllable, or an uncontrollable finite mode outside the region — the message
-    lists them), `fojax.LMIInfeasibleError`, `fojax.DesignVerificationError`.
+    lists them), `fojax.errors.LMIInfeasibleError`, `fojax.errors.DesignVerificationError`.
 
     !!! example
 

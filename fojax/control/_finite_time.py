@@ -249,7 +249,7 @@ def finite_time_loop(sys: DescriptorSystem, observer, *, u_r=None) -> FiniteTime
     **Returns:** a `FiniteTimeLoop`; `FiniteTimeLoop.simulate` runs the delay loop
     (module docstring: method and accuracy).
 
-    **Raises:** `fojax.AlgebraicLoopError` ($I - Q_1W_u$ singular), `fojax.ShapeError`.
+    **Raises:** `fojax.errors.AlgebraicLoopError` ($I - Q_1W_u$ singular), `fojax.errors.ShapeError`.
     """
     require_x64("finite-time loop")
     refuse_feedthrough(sys)

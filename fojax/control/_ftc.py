@@ -1,7 +1,7 @@
 r"""Fault-tolerant control with functional observers (thesis §4.2–4.4).
 
 Every scheme augments the faults into the state, $\bar x = [x; f]$ with $\dot f = 0$
-(`fojax.augment_faults`, eq. 4.22/4.26/4.29), designs a functional observer of
+(`fojax.plant.augment_faults`, eq. 4.22/4.26/4.29), designs a functional observer of
 $\bar z = \bar L\bar x$ on the augmented system, and feeds the control-law rows of its
 estimate back, $u = \Pi\hat z + u_r$:
 
@@ -12,11 +12,11 @@ estimate back, $u = \Pi\hat z + u_r$:
 | simultaneous (§4.4, eq. 4.28–4.29) | both | $\begin{bmatrix}L & -K_a & 0\\ 0 & I & 0\\ 0 & 0 & I\end{bmatrix}$ | $u = Lx - K_af_a + u_r$, and $\hat f$ |
 
 Actuator faults must be *matched*, $F_a = BK_a$ (the thesis's $F_a = B$, $K_a = I$:
-"$-I_a$" in eq. 4.29); otherwise no $u$ cancels them and a `fojax.ExistenceConditionError`
+"$-I_a$" in eq. 4.29); otherwise no $u$ cancels them and a `fojax.errors.ExistenceConditionError`
 is raised. The state feedback $L$ is designed by `design_state_feedback` when not
 given (the thesis's two-step procedure, §4.1.2).
 
-**Simulation model.** The faults are *exogenous signals* (`fojax.AbstractSignal`:
+**Simulation model.** The faults are *exogenous signals* (`fojax.plant.AbstractSignal`:
 `Step`, `Ramp`, `Sine`, `intermittent`, sums ``+``, `Stack`), not states: the
 simulated plant is $E\dot x = Ax + Bu + F_af(t)$, $y = Cx + F_sf(t)$, and the closed
 loop (`fojax.control.assemble`) is one `DescriptorSystem` on $[x; \zeta; v]$ with input
@@ -128,7 +128,7 @@ class FaultTolerantControl:
         return self.Fa.shape[1]
 
     def inputs(self, u_r=None, fault=None) -> AbstractSignal:
-        """The loop input $[u_r; f]$ as one signal (`fojax.Stack`), for `fojax.simulate`."""
+        """The loop input $[u_r; f]$ as one signal (`fojax.plant.Stack`), for `fojax.simulate`."""
         m = self.plant.m
         u_r = as_signal(u_r, m) if u_r is not None else Zero(m)
         fault = as_signal(fault, self.n_faults) if fault is not None else Zero(self.n_faults)
@@ -253,7 +253,7 @@ def _matched(sys: DescriptorSystem, Fa) -> np.ndarray:
             f"F_a is not in the range of B (‖B K_a − F_a‖/‖F_a‖ = {res:.2e}): no control u "
             "cancels these faults (u = Lx − K_a f_a needs F_a = B K_a).",
             "Add actuators, or only estimate these faults (fojax.design.design_functional_observer "
-            "on fojax.augment_faults(sys, Fa=Fa)).",
+            "on fojax.plant.augment_faults(sys, Fa=Fa)).",
             lhs=res,
             rhs=0.0,
         )
@@ -307,7 +307,7 @@ def _check(sys):
 
 _COMMON_ARGS = r"""
     - `L`: ``(m, n)`` state feedback ($u = Lx$); a given `L` must make $(E, A + BL)$
-      regular and impulse-free (`fojax.IrregularSystemError` / `fojax.ImpulsiveSystemError`
+      regular and impulse-free (`fojax.errors.IrregularSystemError` / `fojax.errors.ImpulsiveSystemError`
       otherwise, checked before any design); designed by `design_state_feedback`
       (with `feedback` as keyword arguments, e.g. ``{"decay": 1.0}``) when ``None``.
     - `region`, `R`, `q0`, `q1`, `kind`, `solver`: the observer design on the augmented
@@ -410,7 +410,7 @@ def design_actuator_ftc(
 
     **Returns:** a `FaultTolerantControl`.
 
-    **Raises:** `fojax.ExistenceConditionError` when $F_a$ is not matched.
+    **Raises:** `fojax.errors.ExistenceConditionError` when $F_a$ is not matched.
     """
     _check(sys)
     Fa = np.asarray(sys.B) if Fa is None else np.asarray(as_matrix("Fa", Fa, rows=sys.n))

@@ -15,7 +15,7 @@ $u$ appears on both sides: it is an algebraic loop, solved exactly,
 
 $$u = K\big(\Pi C_o\xi + \Pi D_y(Cx + F_sf) + B_ru_r\big),\qquad K = (I - \Pi D_u)^{-1},$$
 
-and refused (`fojax.AlgebraicLoopError`) when $I - \Pi D_u$ is singular. Substituting
+and refused (`fojax.errors.AlgebraicLoopError`) when $I - \Pi D_u$ is singular. Substituting
 gives one descriptor system on $[x; \xi]$ with input $[u_r; f]$. No design condition is
 assumed: this is the loop that a simulation of plant + observer runs.
 
@@ -148,7 +148,7 @@ def assemble(E, A, B, C, observer, *, Fa=None, Fs=None, select=None, Br=None):
     **Returns:** ``(system, maps)``: a `DescriptorSystem` on ``[x; ξ]`` (full-state
     output) with input ``[u_r; f]`` and the `LoopMaps`.
 
-    **Raises:** `fojax.AlgebraicLoopError`, `fojax.ShapeError`.
+    **Raises:** `fojax.errors.AlgebraicLoopError`, `fojax.errors.ShapeError`.
     """
     require_x64("closed-loop assembly")
     lm = linear_matrices(observer)
@@ -249,8 +249,8 @@ def closed_loop(
     `fojax.analysis.finite_poles` and `fojax.simulate`. For the applied control and
     the estimate along a simulated trajectory use `loop_maps`.
 
-    **Raises:** `fojax.AlgebraicLoopError` when $I - QW_u$ is singular;
-    `fojax.ShapeError` for mismatched sizes; `ValueError` for unknown coordinates.
+    **Raises:** `fojax.errors.AlgebraicLoopError` when $I - QW_u$ is singular;
+    `fojax.errors.ShapeError` for mismatched sizes; `ValueError` for unknown coordinates.
 
     !!! example
 

@@ -15,7 +15,7 @@ and offering
   own terms, eigenvalues in the region, the region LMI at the certificate, plus the
   checks of the class: the common Lyapunov inequality of a Takagi–Sugeno design, the
   H∞ bound, the exactness of a finite-time reconstruction); raises
-  `fojax.DesignVerificationError` with the report when a check fails;
+  `fojax.errors.DesignVerificationError` with the report when a check fails;
 - `summary()`: the human-readable description (also ``str(design)``);
 - `save(path)` / `load(path)`: one ``.npz`` file written atomically (`fojax._io`) with
   no code per class (format below).
@@ -30,7 +30,7 @@ that name their place (``observer/N``, ``structure/E``, ``params/Z``, ``designs/
 with each array's key, shape and dtype). Loading rebuilds the object of the saved class
 with bit-identical arrays, checks every array's shape and dtype against the skeleton, and
 (by default) re-runs `verify()`: a damaged or edited file is refused with
-`fojax.InputError` (a missing or mis-shaped entry) or `fojax.DesignVerificationError`
+`fojax.errors.InputError` (a missing or mis-shaped entry) or `fojax.errors.DesignVerificationError`
 (numbers that no longer verify). Files of format 1 and 2 (fojax before this format)
 still load (`fojax.design._legacy_io`).
 """
@@ -70,7 +70,7 @@ class AbstractDesign(abc.ABC):
     @abc.abstractmethod
     def verify(self):
         """Re-run the float64 verification on the stored numbers; returns the
-        `VerificationReport`, raises `fojax.DesignVerificationError` on a failed check."""
+        `VerificationReport`, raises `fojax.errors.DesignVerificationError` on a failed check."""
 
     def summary(self) -> str:
         """What was designed, and its verification report (``str(design)``)."""
@@ -99,7 +99,7 @@ class AbstractDesign(abc.ABC):
         **Arguments:**
 
         - `path`: the file (conventionally ``*.npz``); its directory must exist. Inside a
-          results folder the path must stay inside it (`fojax.UnsafePathError`).
+          results folder the path must stay inside it (`fojax.errors.UnsafePathError`).
         - `overwrite`: replace an existing file (default: `FileExistsError`).
         - `metadata`: JSON-serialisable user metadata (e.g. the config file's name).
 

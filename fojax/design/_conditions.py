@@ -28,7 +28,7 @@ def gamma_matrix(E, A, C, Eperp) -> np.ndarray:
 
 
 def check_regular(E, A, *, fname: str, what: str = "the plant") -> None:
-    r"""Refuse a singular pencil before any LMI: `fojax.IrregularSystemError` with the numbers.
+    r"""Refuse a singular pencil before any LMI: `fojax.errors.IrregularSystemError` with the numbers.
 
     The decision is `fojax.analysis.is_regular`'s (the orthogonal deflation of the
     normalised pencil $(E/\|E\|, A/\|A\|)$ with the fojax rank rule), so design and
@@ -70,7 +70,7 @@ DATA_RANGE = (2.0**-100, 2.0**100)
 
 
 def check_data_range(blocks: dict, *, fname: str) -> None:
-    """`fojax.DataRangeError` when a non-zero matrix has its largest entry outside `DATA_RANGE`.
+    """`fojax.errors.DataRangeError` when a non-zero matrix has its largest entry outside `DATA_RANGE`.
 
     `blocks` maps names (``"E"``, ``"A"``, ...) to arrays; empty and all-zero matrices are
     skipped (a zero ``B`` or ``A`` is legitimate).
@@ -86,7 +86,7 @@ def check_data_range(blocks: dict, *, fname: str) -> None:
 
 
 def check_impulse_free(E, A, *, fname: str, what: str = "the closed loop (E, A + BL)") -> None:
-    r"""Refuse an impulsive (index > 1) regular pencil: `fojax.ImpulsiveSystemError`.
+    r"""Refuse an impulsive (index > 1) regular pencil: `fojax.errors.ImpulsiveSystemError`.
 
     Regularity first (`check_regular`); then `fojax.analysis.nilpotency_index` decides
     (index $\le 1$ is impulse-free, the same decision as `fojax.analysis.is_impulse_free`).

@@ -84,7 +84,7 @@ def design_fault_estimator(
 ) -> FaultEstimatorDesign:
     r"""Design an observer of $[z; f]$ for $E\dot x = Ax + Bu + F_af$, $y = Cx + F_sf$.
 
-    The faults are augmented into the state (`fojax.augment_faults`: constant faults,
+    The faults are augmented into the state (`fojax.plant.augment_faults`: constant faults,
     or ramps with `ramp=True`, Remark 9) and the functional
     $\mathbf L = \operatorname{blkdiag}(L, I_{n_f})$ (eq. 3.196) is estimated by
     `design_functional_observer` (all of its arguments and errors apply). `L` may be an

@@ -22,8 +22,8 @@ from .._errors import (
     ShapeError,
     SolverStoppedShortError,
 )
-from ..analysis._pencil import e_perp as _e_perp  # analysis decides the rank of E (balanced)
-from ..plant._descriptor import check_functional, DescriptorSystem
+from ..analysis import e_perp as _e_perp  # analysis decides the rank of E (balanced)
+from ..plant import check_functional, DescriptorSystem
 from . import _discrete, _lmi, _riccati
 from ._base import with_feedthrough
 from ._conditions import (
@@ -154,7 +154,7 @@ def choose_route(method: str | None, *, objective: str, solver: str | None, orde
     **The rule** (the one place it is written down):
 
     - an explicit ``method="lmi"`` or ``"riccati"`` is taken as given (``"riccati"`` raises
-      `fojax.InputError` where it does not apply);
+      `fojax.errors.InputError` where it does not apply);
     - ``method="auto"``: the Riccati/Stein route (`fojax.design._riccati`: $O(n^3)$ time,
       $O(n^2)$ memory, no SDP) where it applies — one rule, a disk, half-plane or sector
       region, any of the three kinds — and the LMI route otherwise. When the Riccati route

@@ -1,8 +1,8 @@
 """cvxpy on the host: building and solving region LMIs, strictly.
 
 Only solver status ``optimal`` is accepted. Status ``infeasible`` (a certificate of
-infeasibility) raises `fojax.LMIInfeasibleError`; every other status (``optimal_inaccurate``,
-an iteration limit, a solver error) raises `fojax.SolverStoppedShortError`, both with the
+infeasibility) raises `fojax.errors.LMIInfeasibleError`; every other status (``optimal_inaccurate``,
+an iteration limit, a solver error) raises `fojax.errors.SolverStoppedShortError`, both with the
 status and solver statistics.
 Every solution is re-verified in float64 by the caller, independently of the solver.
 

@@ -94,7 +94,7 @@ of $0.05\tau$ inside the disk (hence inside the region).
 **What is not different from the LMI route.** The result goes through the same
 `verify_structure_design` (conditions a.–d., eigenvalues in the user's region, the
 region LMI at $X$ in float64). A failure of the Riccati route (no stabilizing solution)
-raises `fojax.LMIInfeasibleError`, the error the LMI route raises when its solver finds
+raises `fojax.errors.LMIInfeasibleError`, the error the LMI route raises when its solver finds
 no solution, with the closed-loop spectral radius in the message.
 """
 

@@ -19,7 +19,7 @@ Two algorithms, one equation (``method=``):
 - ``"doubling"``: Smith's doubling $X = \sum_k (\bar A^\top)^k\bar A^k$, which keeps $X$
   positive definite for the highly non-normal $\mathbb A$ of high-gain pole placement
   (where a direct Kronecker solve can lose definiteness, e.g. the §3.1.3 finite-time
-  fallback); it raises `fojax.DesignVerificationError` when the sum overflows float64.
+  fallback); it raises `fojax.errors.DesignVerificationError` when the sum overflows float64.
 
 `stein_certificate` is the traced twin (Smith's doubling over $2^{40}$ terms by
 `lax.fori_loop`: matrix products only, cheap to compile and differentiate) used inside

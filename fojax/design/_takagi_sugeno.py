@@ -36,7 +36,7 @@ float64 for every rule (`report.extra["lyapunov_max_eig"]`).
 **Limits.** The thesis's T-S observer uses $w = y$: functionals involving
 directions outside the row space of $[E; C]$ (e.g. the algebraic state $x_5$ of
 the robot arm, only determined through the rule-dependent row $E^\perp A_i$) are
-refused with `fojax.FunctionalObservabilityError`. The convergence guarantee holds
+refused with `fojax.errors.FunctionalObservabilityError`. The convergence guarantee holds
 for the T-S model; for a nonlinear plant it holds where the T-S model is exact
 (sector nonlinearity), robustness to model errors is not certified.
 """

@@ -17,7 +17,7 @@ are leaves, its options (sizes, kind, which blocks are frozen) static. Its proto
 - ``certify(params) -> design`` (host): the verified design of these parameters, checked in
   float64 by the one verification routine (`fojax.design.verify`: residuals of a.–d.,
   eigenvalues, the region LMI at the returned certificate); raises
-  `fojax.DesignVerificationError` with the numbers otherwise;
+  `fojax.errors.DesignVerificationError` with the numbers otherwise;
 - ``live(params)``: how many free parameters can change the estimate $\hat z$ (below).
 
 Final classes: `SteinDisk` (the parameters themselves, certified by the Stein solution of
@@ -278,7 +278,7 @@ class AbstractParameterization(eqx.Module):
         ``verify()``, including a.–d. in the unit-free frame (models with ``l + n ≤ 200``;
         `fojax.design._functional.unit_free_check`).
 
-        **Raises:** `fojax.DesignVerificationError` (with the report) when a residual of
+        **Raises:** `fojax.errors.DesignVerificationError` (with the report) when a residual of
         a.–d. exceeds 1e-8 relative (on the data as given or in the unit-free frame), an
         eigenvalue is outside the region, or the region LMI fails at the certificate.
         """
@@ -498,10 +498,10 @@ def certify(parameterization: AbstractParameterization, params):
     `CommonCertificate`) whose ``report`` holds the numbers; ``design.verify()`` re-runs the
     check and ``design.save(path)`` stores it.
 
-    **Raises:** `fojax.DesignVerificationError` with the failed checks and their numbers
+    **Raises:** `fojax.errors.DesignVerificationError` with the failed checks and their numbers
     (e.g. ``"eigenvalue 5 is outside the region (disk centred at -2 with radius 1) by
     6.000e+00"``, ``"region LMI re-checked in float64 has max eigenvalue ..."``) and the
-    `VerificationReport` as ``err.report``; `fojax.InputError` if `parameterization` is not
+    `VerificationReport` as ``err.report``; `fojax.errors.InputError` if `parameterization` is not
     an `AbstractParameterization`.
 
     !!! example

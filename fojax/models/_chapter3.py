@@ -149,7 +149,7 @@ def example_3_3_7() -> ThesisExample:
     with $n = 6$, $\operatorname{rank}E = 4$, $m = 2$, $p = 3$, $n_f = 3$ (two
     actuator/process faults, one sensor fault on $y_3$). The augmented system
     (eq. 3.196, state $\chi = [x; f]$, $n = 9$) is `augmented`, built with
-    `fojax.augment_faults`, and the augmented functional is
+    `fojax.plant.augment_faults`, and the augmented functional is
     $\mathbf L = \operatorname{blkdiag}(L, I_3)$ (`L_aug`, 5x9).
 
     **Not available.** The uncertainty profile $\delta(t)$ is only shown in

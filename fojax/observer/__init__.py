@@ -1,4 +1,5 @@
-"""Observer modules: the thesis's matrices under the thesis's names."""
+"""Observer modules (generalized functional, unknown-input, finite-time, Takagi–Sugeno): equinox
+modules holding the thesis's matrices under the thesis's names."""
 
 from ._base import (
     AbstractFunctionalObserver as AbstractFunctionalObserver,

@@ -73,7 +73,7 @@ class TakagiSugenoObserver(AbstractFunctionalObserver):
     def __init__(self, N, J, F, H, S, G, M, P, Q, Wu, Wy, T, membership, kind: str = "generalized"):
         if not isinstance(membership, AbstractMembership):
             raise TypeError(
-                f"membership must be a fojax.AbstractMembership (the plant's), got {type(membership).__name__}."
+                f"membership must be a fojax.plant.AbstractMembership (the plant's), got {type(membership).__name__}."
             )
         k = membership.num_rules
         N = _stack("N", N, k, None, None)

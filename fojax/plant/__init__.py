@@ -1,10 +1,16 @@
-"""Model layer: descriptor, Takagi–Sugeno, uncertain and nonlinear plants, and signals."""
+"""Plants: descriptor, uncertain, Takagi–Sugeno and nonlinear systems, their faults and noise,
+and the input signals that drive them."""
 
 from ._base import AbstractPlant as AbstractPlant
 from ._descriptor import (
     augment_faults as augment_faults,
     check_functional as check_functional,
     DescriptorSystem as DescriptorSystem,
+)
+from ._faults import (
+    FaultProfile as FaultProfile,
+    FaultyPlant as FaultyPlant,
+    NoisyPlant as NoisyPlant,
 )
 from ._nonlinear import NonlinearDescriptorSystem as NonlinearDescriptorSystem
 from ._signals import (

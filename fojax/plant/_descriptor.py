@@ -45,21 +45,21 @@ class DescriptorSystem(AbstractPlant):
       $t_0 + kh$. `fojax.discretize` turns a continuous model into a discrete one.
 
     Validation happens at construction: shapes must agree (each mismatch raises
-    `fojax.ShapeError` naming the matrix, the expected and the actual shape),
-    entries must be finite (`fojax.NonFiniteError`) and float64 must be available
-    (`fojax.Float64RequiredError`, see the README on enabling 64-bit JAX); a `dt` that
-    is not a finite positive number raises `fojax.InputError`.
+    `fojax.errors.ShapeError` naming the matrix, the expected and the actual shape),
+    entries must be finite (`fojax.errors.NonFiniteError`) and float64 must be available
+    (`fojax.errors.Float64RequiredError`, see the README on enabling 64-bit JAX); a `dt` that
+    is not a finite positive number raises `fojax.errors.InputError`.
 
     A model from python-control or SciPy converts with `fojax.interop.from_control` /
     `fojax.interop.from_scipy`. Sensor faults enter through the fault augmentation
-    (`fojax.augment_faults`).
+    (`fojax.plant.augment_faults`).
 
     !!! example
 
         ```python
         sys = fojax.DescriptorSystem(E, A, B, C)
         sys.n, sys.m, sys.p
-        fojax.finite_poles(sys)
+        fojax.analysis.finite_poles(sys)
         ```
     """
 
@@ -143,7 +143,7 @@ class DescriptorSystem(AbstractPlant):
 
 
 def check_dt(dt) -> float | None:
-    """`dt` as a Python float (``None`` stays ``None``: continuous time); `fojax.InputError`
+    """`dt` as a Python float (``None`` stays ``None``: continuous time); `fojax.errors.InputError`
     unless it is a finite number ``> 0``."""
     if dt is None:
         return None

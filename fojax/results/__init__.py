@@ -1,4 +1,5 @@
-"""Results that last: saved designs (bit-exact), results folders, Markdown reports, figures."""
+"""Results that last: saved designs (bit-exact), results folders, Markdown reports, figures.
+Every file is written atomically, inside the folder chosen for it."""
 
 from ._io import (
     atomic_write_bytes as atomic_write_bytes,

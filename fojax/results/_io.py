@@ -29,7 +29,7 @@ proceed. (The one writer is `fojax._io.atomic_write`.)
 (with a ``-2``, ``-3``, … suffix if that name is taken) and never reuses a folder;
 with an explicit `name`, an existing non-empty folder is refused unless
 ``overwrite=True``. Names are single portable file-name components (`NAME_RULE`).
-A path built from a results folder must resolve inside it (`fojax.UnsafePathError`
+A path built from a results folder must resolve inside it (`fojax.errors.UnsafePathError`
 otherwise, nothing written), and every file written in it is recorded in its manifest
 ``fojax-manifest.json`` (relative path, SHA-256, size). ``overwrite=True`` first removes
 the files the previous run recorded there (a file changed since it was written is
@@ -98,7 +98,7 @@ def atomic_write_bytes(path, data: bytes, *, overwrite: bool = False) -> pathlib
     **Returns:** the destination as a `pathlib.Path`.
 
     The file gets the mode the umask gives (``0o666 & ~umask``). A path built from a
-    results folder of `new_results_folder` must resolve inside it (`fojax.UnsafePathError`
+    results folder of `new_results_folder` must resolve inside it (`fojax.errors.UnsafePathError`
     otherwise), and the file is recorded in the folder's manifest (module docstring).
     """
     return _atomic_write(path, bytes(data), overwrite=overwrite)
@@ -158,9 +158,9 @@ def load_design(path, *, membership=None, verify: bool = True):
 
     - `path`: a file written by `save_design`, ``design.save`` or `fojax design`.
     - `membership`: only for Takagi–Sugeno designs whose membership functions are not
-      fojax classes (fojax rebuilds `fojax.SectorMembership` and the other fojax
+      fojax classes (fojax rebuilds `fojax.plant.SectorMembership` and the other fojax
       memberships from the file, but never imports code named in a file): the
-      plant's `fojax.AbstractMembership`.
+      plant's `fojax.plant.AbstractMembership`.
     - `verify`: re-run the design's float64 verification (``design.verify()``) on the
       loaded numbers (default ``True``).
 
@@ -169,10 +169,10 @@ def load_design(path, *, membership=None, verify: bool = True):
     creation time, user metadata) is in ``design.solver["saved"]`` (for finite-time and
     fault-estimator designs: in the `solver` of each inner `FunctionalObserverDesign`).
 
-    **Raises:** `fojax.InputError` for a file that is not a fojax design (a config file,
+    **Raises:** `fojax.errors.InputError` for a file that is not a fojax design (a config file,
     any other file or archive), has a newer format, holds a design class this version
     does not know, or was damaged (a missing array, an array of the wrong shape or dtype,
-    each named); `fojax.DesignVerificationError` when the loaded numbers fail verification.
+    each named); `fojax.errors.DesignVerificationError` when the loaded numbers fail verification.
     """
     from ..design._base import load
 
@@ -212,7 +212,7 @@ def new_results_folder(
       files of the new run replace those of the same name.
 
     `prefix` and `name` must be single portable file-name components (`NAME_RULE`;
-    `fojax.InputError` otherwise), so the folder is always inside `root`.
+    `fojax.errors.InputError` otherwise), so the folder is always inside `root`.
 
     **Returns:** the created folder. Files written into it through paths built from it are
     confined to it and recorded in its manifest (module docstring).

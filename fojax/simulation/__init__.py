@@ -1,6 +1,5 @@
-"""Simulation layer: index-1 reduction, consistent initial conditions, `simulate`, the stepper
-objects (`Auto`, `Exact`, `Exponential`, `Diffrax`) and what to save (`Trajectory`, `Metrics`,
-`Bands`)."""
+"""Simulation: `simulate`, the stepper objects (`Auto`, `Exact`, `Exponential`, `Diffrax`), what
+to save (`Trajectory`, `Metrics`, `Bands`), index-1 reduction and consistent initial conditions."""
 
 from ._discrete import Discrete as Discrete
 from ._exponential import simulate_batch_exponential as simulate_batch_exponential

@@ -17,7 +17,7 @@ approximated. Because $A_0$ is the same for every sample, its $\varphi$-function
 computed once and applied to the whole batch as matrix products.
 
 **How the decomposition is found.** For every sample, ``model(params_k)`` builds the
-plant (and LTI observers, and optionally an input signal). Every `fojax.AbstractSignal`
+plant (and LTI observers, and optionally an input signal). Every `fojax.plant.AbstractSignal`
 inside the plant is replaced by a constant *probe* value $s$; the probed plant is
 time-invariant, is reduced to its slow ODE in the masked SVD coordinates of
 `fojax.simulation` (the reduction of `fojax.simulate`'s exact method, with the input
@@ -29,7 +29,7 @@ maps. The decomposition is exact when the reduced field is affine in the signal 
 the plant depends on time only through its signals. This is **checked** on the first
 sample whenever the inputs are concrete: the decomposition is compared with the plant's
 own right-hand side (the vector field of `fojax.simulate`'s diffrax path) at random
-signal values and at a random time, and a mismatch raises `fojax.InputError`.
+signal values and at a random time, and a mismatch raises `fojax.errors.InputError`.
 
 **The method** is Krogstad's fourth-order exponential Runge–Kutta method (ETDRK4-K;
 S. Krogstad, *J. Comput. Phys.* 203 (2005) 72–88; the Butcher tableau as in
@@ -484,7 +484,7 @@ def simulate_batch_exponential(
     r"""Integrated metrics of a batch of time-varying linear descriptor loops (exponential RK4).
 
     For every sample $k$, ``model(params_k)`` returns an index-1 plant that is linear in
-    the state and depends on time only through the `fojax.AbstractSignal`\ s it contains
+    the state and depends on time only through the `fojax.plant.AbstractSignal`\ s it contains
     (e.g. a `fojax.UncertainDescriptorSystem` with a `fojax.Sine` uncertainty
     $\delta_k(t)$; faults and output noise added by wrappers), optionally LTI observers
     driven by its input and output, and optionally the input signal $u_k(t)$. The joint
@@ -540,7 +540,7 @@ def simulate_batch_exponential(
     - `model`: ``params_k -> plant``, ``(plant, observers)`` or ``(plant, observers, u)``;
       the plant linear in the state, regular and index 1 along the trajectory, with its
       time dependence entering its differential equations affinely through signals;
-      observers LTI (`linear_matrices()`); ``u`` a `fojax.AbstractSignal` of size
+      observers LTI (`linear_matrices()`); ``u`` a `fojax.plant.AbstractSignal` of size
       ``plant.m`` or ``None``. Use a stable function object (not a new lambda per call) so
       the compiled kernels are reused.
     - `params`: pytree of arrays with a leading batch axis ``B``.
@@ -566,9 +566,9 @@ def simulate_batch_exponential(
 
     **Returns:** a dict ``name -> (B,)`` or ``(B, k)`` array (float64).
 
-    **Raises:** `fojax.InputError` (plant not linear in the state, non-LTI observers, the
+    **Raises:** `fojax.errors.InputError` (plant not linear in the state, non-LTI observers, the
     affine decomposition fails the host check, unknown metric kind, non-uniform grid,
-    bad `substeps`/`startup`/`reference`), `fojax.ShapeError` (shapes of ``x0``, ``ts``, ``params``,
+    bad `substeps`/`startup`/`reference`), `fojax.errors.ShapeError` (shapes of ``x0``, ``ts``, ``params``,
     metric maps); index-1 checks run on the host for the first sample when the inputs
     are concrete.
 

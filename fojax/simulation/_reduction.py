@@ -108,8 +108,8 @@ def check_index1_host(E, J, *, jacobian_name: str = "A", where: str = "") -> Non
       plants, the Jacobian ``∂f/∂x`` at the initial point.
     - `jacobian_name`: how `J` is named in messages; `where`: e.g. ``" at t0 = 0"``.
 
-    **Raises:** `fojax.IrregularSystemError` if ``sE − J`` is singular for every ``s``;
-    `fojax.ImpulsiveSystemError` if the pencil is regular but ``Ã22 = U2ᵀ J V2`` is
+    **Raises:** `fojax.errors.IrregularSystemError` if ``sE − J`` is singular for every ``s``;
+    `fojax.errors.ImpulsiveSystemError` if the pencil is regular but ``Ã22 = U2ᵀ J V2`` is
     singular. Both verdicts are `fojax.analysis`'s (`fojax.analysis._split.index1_split`:
     `is_regular`, `nilpotency_index` on the balanced pencil), so simulation, design and
     analysis agree.
@@ -122,7 +122,7 @@ def check_index1_host(E, J, *, jacobian_name: str = "A", where: str = "") -> Non
     if not np.all(np.isfinite(J)):
         raise InputError(f"{jacobian_name}{where} contains non-finite entries.")
     # The verdict is fojax.analysis's (balanced, the fojax rank rule): the same as
-    # fojax.is_regular / fojax.is_impulse_free on (E, J).
+    # fojax.analysis.is_regular / fojax.analysis.is_impulse_free on (E, J).
     sp = index1_split(E, J, fname="simulate")
     if sp.impulse_free:
         r_raw = _host_rank(E)
@@ -134,7 +134,7 @@ def check_index1_host(E, J, *, jacobian_name: str = "A", where: str = "") -> Non
                 f"power-of-two balancing) finds rank E = {sp.rank}, but the simulation's "
                 f"SVD split of the unbalanced E sees rank {r_raw} (singular values "
                 f"{np.array2string(sp.s, precision=2)}). Rescale the states or equations "
-                "(e.g. by the powers of two fojax.balance_system(E, A).scaling reports) so "
+                "(e.g. by the powers of two fojax.analysis.balance_system(E, A).scaling reports) so "
                 "that the singular values of E are comparable."
             )
         return
@@ -333,7 +333,7 @@ class Index1Reduction(eqx.Module):
     with $x_1 = V_1^\top x$, $x_2 = K x_1 + K_u u$, $T_x = V_1 + V_2 K$,
     $T_u = V_2 K_u$, $C_s = C T_x$, $D_s = C T_u + D$ (see the module docstring for
     $A_s$, $B_s$, $K = -\tilde A_{22}^{-1}\tilde A_{21}$,
-    $K_u = -\tilde A_{22}^{-1}\tilde B_2$). Built by `fojax.reduce_index1`.
+    $K_u = -\tilde A_{22}^{-1}\tilde B_2$). Built by `fojax.simulation.reduce_index1`.
 
     The output has a direct feedthrough $D_s = C T_u + D$: the plant's own $D$ plus
     the part through the algebraic states when they depend on $u$.
@@ -387,7 +387,7 @@ def reduce_index1(sys: AbstractPlant, *, rank_E: int | None = None) -> Index1Red
     **Arguments:**
 
     - `sys`: a `fojax.DescriptorSystem`, or a `fojax.UncertainDescriptorSystem` with a
-      constant uncertainty ``δ`` (a `fojax.Constant` or `fojax.Zero` signal).
+      constant uncertainty ``δ`` (a `fojax.Constant` or `fojax.plant.Zero` signal).
     - `rank_E`: ``rank E``; only needed when ``E`` is traced (inside `jax.jit` etc.),
       because the result has ``r × r`` blocks.
 
@@ -395,8 +395,8 @@ def reduce_index1(sys: AbstractPlant, *, rank_E: int | None = None) -> Index1Red
     `state_map`/`input_map` back to the descriptor state, the SVD bases ``V1``,
     ``V2`` and the algebraic gains ``K``, ``Ku``.
 
-    **Raises:** `fojax.IrregularSystemError` when ``det(sE − A) ≡ 0``;
-    `fojax.ImpulsiveSystemError` when the pencil is regular but ``Ã22`` is singular
+    **Raises:** `fojax.errors.IrregularSystemError` when ``det(sE − A) ≡ 0``;
+    `fojax.errors.ImpulsiveSystemError` when the pencil is regular but ``Ã22`` is singular
     (index > 1). These checks run when the matrices are concrete; under a
     transformation they cannot, and a singular ``Ã22`` shows up as non-finite
     entries instead.
@@ -406,7 +406,7 @@ def reduce_index1(sys: AbstractPlant, *, rank_E: int | None = None) -> Index1Red
     !!! example
 
         ```python
-        red = fojax.reduce_index1(fojax.DescriptorSystem(E, A + B @ L, B))
+        red = fojax.simulation.reduce_index1(fojax.DescriptorSystem(E, A + B @ L, B))
         jnp.linalg.eigvals(red.As)   # finite poles of (E, A + BL)
         ```
     """
@@ -517,7 +517,7 @@ def consistent_initial_condition(
 
     **Arguments:**
 
-    - `plant`: any `fojax.AbstractPlant`.
+    - `plant`: any `fojax.plant.AbstractPlant`.
     - `x0`: ``(n,)`` initial state.
     - `t0`: initial time; `u`: the input (signal, constant vector or ``None``).
     - `strict`: raise instead of projecting when ``‖U2ᵀ f(t0, x0, u0)‖₂ > tol``.
@@ -525,16 +525,16 @@ def consistent_initial_condition(
 
     **Returns:** ``(x0_consistent, distance)`` with ``distance = ‖x0_consistent − x0‖₂``.
 
-    **Raises:** `fojax.ShapeError` (wrong ``x0`` shape),
-    `fojax.InconsistentInitialConditionError` (`strict`), `fojax.ImpulsiveSystemError` /
-    `fojax.IrregularSystemError` (the Jacobian of the algebraic part is singular at the
+    **Raises:** `fojax.errors.ShapeError` (wrong ``x0`` shape),
+    `fojax.errors.InconsistentInitialConditionError` (`strict`), `fojax.errors.ImpulsiveSystemError` /
+    `fojax.errors.IrregularSystemError` (the Jacobian of the algebraic part is singular at the
     initial point). Traceable: under `jax.jit`/`jax.vmap` the checks are skipped
     (with `strict`, an equinox runtime error replaces the typed one).
 
     !!! example
 
         ```python
-        x0c, dist = fojax.consistent_initial_condition(sys, jnp.array([16., -1., 3., 7.]))
+        x0c, dist = fojax.simulation.consistent_initial_condition(sys, jnp.array([16., -1., 3., 7.]))
         ```
     """
     x0 = check_x0(plant, x0)

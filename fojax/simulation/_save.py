@@ -46,7 +46,7 @@ class AbstractSave(eqx.Module):
 
 class Trajectory(AbstractSave):
     """Keep the states, outputs and estimates on the output grid ``ts``: `fojax.simulate`
-    returns a `fojax.Solution` (its default and only save for one simulation)."""
+    returns a `fojax.simulation.Solution` (its default and only save for one simulation)."""
 
 
 class Bands(eqx.Module):
@@ -136,7 +136,7 @@ UNSET = _Unset()
 
 def resolve_save(save, quantiles=UNSET, band_points=UNSET, settle_tol=UNSET, *, who: str) -> Metrics:
     """`save`, or the `Metrics` the legacy keywords name (`as_save`; unset ones take its
-    defaults); `fojax.InputError` when both are given or `save` is not `Metrics`."""
+    defaults); `fojax.errors.InputError` when both are given or `save` is not `Metrics`."""
     legacy = dict(quantiles=quantiles, band_points=band_points, settle_tol=settle_tol)
     given = {k: v for k, v in legacy.items() if v is not UNSET}
     if save is None:

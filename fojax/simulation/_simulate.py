@@ -143,21 +143,21 @@ def simulate(
       \dot\xi_i = \phi_i(t, \xi_i, u, y),\quad \hat z_i = \psi_i(t, \xi_i, u, y).$$
 
     The plant must be regular and impulse-free (index 1); ``x0`` is made consistent
-    by keeping its slow part (see `fojax.consistent_initial_condition`). See the
+    by keeping its slow part (see `fojax.simulation.consistent_initial_condition`). See the
     module docstring for the two methods and their accuracy.
 
     **Arguments:**
 
-    - `plant`: any `fojax.AbstractPlant`. A discrete-time plant (``dt`` set) is stepped on its
+    - `plant`: any `fojax.plant.AbstractPlant`. A discrete-time plant (``dt`` set) is stepped on its
       samples ``ts = t0 + k dt`` by `fojax.simulation.Discrete` (with observers of the same
       ``dt``).
     - `x0`: ``(n,)`` initial state at ``ts[0]`` (projected onto the constraints
       unless `strict`).
     - `ts`: ``(T,)`` increasing output times, ``T ≥ 2``; ``ts[0]`` is the initial time.
       `fojax.Exact` needs a uniform grid (e.g. `jnp.linspace`).
-    - `u`: input signal (`fojax.AbstractSignal`), a constant ``(m,)`` vector, or
+    - `u`: input signal (`fojax.plant.AbstractSignal`), a constant ``(m,)`` vector, or
       ``None`` (zero).
-    - `observers`: a sequence of `fojax.AbstractObserver`, integrated together with
+    - `observers`: a sequence of `fojax.observer.AbstractObserver`, integrated together with
       the plant.
     - `observer_x0`: one initial state per observer (``None``: each observer's
       `initial_state()`).
@@ -175,7 +175,7 @@ def simulate(
       sets ``stats["success"] = False``. `fojax.Exponential` runs studies only.
     - `save`: `fojax.Trajectory()` (the default and only choice here: states, outputs
       and estimates on ``ts``).
-    - `strict`: raise `fojax.InconsistentInitialConditionError` when
+    - `strict`: raise `fojax.errors.InconsistentInitialConditionError` when
       ``‖U2ᵀ f(t0, x0, u0)‖ > consistency_tol`` instead of projecting.
     - `throw`: raise on solver failure or non-finite results; with ``False`` check
       ``sol.stats["success"]`` (use ``False`` under `jax.vmap` if some samples may
@@ -183,13 +183,13 @@ def simulate(
     - `adjoint`: diffrax adjoint (default `diffrax.RecursiveCheckpointAdjoint()`,
       reverse mode; use `diffrax.ForwardMode()` for `jax.jacfwd`).
 
-    **Returns:** a `fojax.Solution`.
+    **Returns:** a `fojax.simulation.Solution`.
 
     **Raises:** `TypeError` for the keywords the stepper replaced (``method``, ``solver``,
     ``rtol``, ``atol``, ``max_steps``; the message names the stepper to pass),
-    `fojax.ShapeError` (shapes of ``x0``, ``u``, observer states),
-    `fojax.IrregularSystemError`, `fojax.ImpulsiveSystemError`,
-    `fojax.InconsistentInitialConditionError` (`strict`), `fojax.InputError` (bad
+    `fojax.errors.ShapeError` (shapes of ``x0``, ``u``, observer states),
+    `fojax.errors.IrregularSystemError`, `fojax.errors.ImpulsiveSystemError`,
+    `fojax.errors.InconsistentInitialConditionError` (`strict`), `fojax.errors.InputError` (bad
     grid, stepper or save). Structural checks run on the host whenever the inputs are
     concrete arrays; under `jax.vmap`/`jax.grad` they run inside XLA (`throw=True`)
     with the same meaning but as `equinox` runtime errors.
@@ -208,7 +208,7 @@ def simulate(
         ```
     """
     if not isinstance(plant, AbstractPlant):
-        raise InputError(f"plant must be a fojax.AbstractPlant, got {type(plant).__name__}.")
+        raise InputError(f"plant must be a fojax.plant.AbstractPlant, got {type(plant).__name__}.")
     stepper = resolve_stepper(stepper, who="simulate")
     if save is not None and not isinstance(save, Trajectory):
         raise InputError(
@@ -274,7 +274,7 @@ def _check_observers(observers, observer_x0):
     for i, o in enumerate(observers):
         if not isinstance(o, AbstractObserver):
             raise InputError(
-                f"observers[{i}] is a {type(o).__name__}, not a fojax.AbstractObserver."
+                f"observers[{i}] is a {type(o).__name__}, not a fojax.observer.AbstractObserver."
             )
     if observer_x0 is None:
         xi0s = tuple(o.initial_state() for o in observers)

@@ -16,7 +16,7 @@ is part of the compile key, and an equal stepper never recompiles).
 observers, the grid, the signals' `breakpoints()`), in one place: `Auto.select` for one
 simulation, `AbstractStepper.engines` for the order in which `run_study` tries its
 batch engines (each engine checks on the host whether the study qualifies and says why
-not). An explicit stepper that is not exact for the model raises `fojax.InputError`
+not). An explicit stepper that is not exact for the model raises `fojax.errors.InputError`
 naming the stepper and the reason.
 
 The stepper is the only way to choose the method: the keywords it replaced (``method=``,
@@ -60,7 +60,7 @@ class AbstractStepper(eqx.Module):
     @abc.abstractmethod
     def select(self, plant, observers, ts, u) -> AbstractStepper:
         """The stepper one `fojax.simulate` call runs with (`Exact` or `Diffrax`); raises
-        `fojax.InputError` when this stepper is not exact for the model."""
+        `fojax.errors.InputError` when this stepper is not exact for the model."""
 
 
 class Diffrax(AbstractStepper):
@@ -317,7 +317,7 @@ def removed_keywords(fn, who: str | None = None):
 
 
 def resolve_stepper(stepper, *, who: str) -> AbstractStepper:
-    """`stepper` (``None``: `Auto()`); `fojax.InputError` when it is not a stepper."""
+    """`stepper` (``None``: `Auto()`); `fojax.errors.InputError` when it is not a stepper."""
     if stepper is None:
         return Auto()
     if not isinstance(stepper, AbstractStepper):

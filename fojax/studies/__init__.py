@@ -1,10 +1,11 @@
-"""Monte Carlo studies: uncertainty and fault families, the batched study runner, metrics.
+"""Monte Carlo studies: uncertainty and fault families, the batched study runner, metrics,
+and the helpers of a study spread over several processes.
 
 Also the multi-process helpers of a computation spread over the devices of several
 processes (`fojax.tuning.tune` and ``fojax study --distributed`` use them):
 `spans_processes`, `writes_files` (only process 0 writes), `replicate`,
 `check_same_on_every_process`, `broadcast_bytes` (process 0's bytes on every process) and
-`distributed_errors` (a lost peer becomes `fojax.DistributedError`).
+`distributed_errors` (a lost peer becomes `fojax.errors.DistributedError`).
 """
 
 from ._exact import exact_refusal as exact_refusal
@@ -34,9 +35,4 @@ from ._sharding import (
     replicate as replicate,
     spans_processes as spans_processes,
     writes_files as writes_files,
-)
-from ._wrappers import (
-    FaultProfile as FaultProfile,
-    FaultyPlant as FaultyPlant,
-    NoisyPlant as NoisyPlant,
 )

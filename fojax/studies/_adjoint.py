@@ -311,7 +311,7 @@ def split_recurrence_reduce(diff, plant, problem, kon, segment=None):
     - `plant`: ``(Ppp, p0, jvp)``: ``(m, m, b)``, ``(m, b)``, ``(J, m, b)`` or ``None``;
       the caller must build them from data that the differentiated arguments do not
       reach. Differentiating with respect to them (e.g. `jax.grad` with respect to the
-      study's own arrays) raises `fojax.InputError` when the reverse pass is traced: the
+      study's own arrays) raises `fojax.errors.InputError` when the reverse pass is traced: the
       plant part of the adjoint is not computed, so such a gradient would be incomplete.
     - `problem`: gives ``init(o0)`` and ``update(acc, o, k, ts)`` (not differentiated).
     - `kon`: ``(J, b)`` grid index of each jump (``-1``: none) or ``None``.

@@ -31,7 +31,18 @@ from jax import lax
 from jax.extend.core import Literal
 from jaxtyping import Array
 
-from ..plant import Constant, PiecewiseConstant, Ramp, Sine, Stack, Step, SumSignal, Zero
+from ..plant import (
+    Constant,
+    FaultProfile,
+    FaultyPlant,
+    PiecewiseConstant,
+    Ramp,
+    Sine,
+    Stack,
+    Step,
+    SumSignal,
+    Zero,
+)
 from ..simulation._batch import (
     _block_kernel,
     _output_basis,
@@ -52,7 +63,6 @@ from ..simulation._save import METRIC_NAMES
 from ..simulation._steppers import grid_deviation, UNIFORM_GRID_RTOL
 from ._adjoint import pass_length, pass_recurrence_reduce, split_recurrence_reduce
 from ._sharding import per_sample
-from ._wrappers import FaultProfile, FaultyPlant
 
 
 #: Signal types `exosystem` generates exactly (and sums / stacks of them).
@@ -465,7 +475,7 @@ def _split_loop(problem, q, h, Phi, w0, G, jv, kon, ts, reps=1, q_rep=None):
     samples with the observers under `jax.lax.stop_gradient` (the plant rows of the joint
     do not involve the observers) and discretised by its own `expm_last`: nothing the
     observers' parameters reach is treated as constant, and differentiating with respect
-    to the study's arrays raises `fojax.InputError` (the adjoint has no plant part). ``Φ_pp = e^{A_p h}`` is the plant block of ``e^{\mathcal A h}`` (block
+    to the study's arrays raises `fojax.errors.InputError` (the adjoint has no plant part). ``Φ_pp = e^{A_p h}`` is the plant block of ``e^{\mathcal A h}`` (block
     lower-triangular ``\mathcal A``), equal up to rounding.
 
     The loss (`LossProblem`) without jumps runs in passes of ``S`` grid steps

@@ -223,7 +223,7 @@ def _off_step_grid(bps: np.ndarray, t0: float, t1: float, h_step: float) -> np.n
 def exponential_problem(study, observers, settle_tol: float, keep: bool, strict: bool,
                         options: Exponential = Exponential(), kinds: tuple[str, ...] = METRIC_NAMES):
     """Host: ``((problem, None, (iu, jf)), None)`` for `run_batched`, or ``(None,
-    reason)`` when the study does not qualify (with `strict`: raise `fojax.InputError`).
+    reason)`` when the study does not qualify (with `strict`: raise `fojax.errors.InputError`).
     `options`: the `fojax.Exponential` stepper (its step schedule); `kinds`: the metrics
     to accumulate (`fojax.studies._exact.StudyProblem.kinds`)."""
 

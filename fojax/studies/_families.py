@@ -24,8 +24,7 @@ import jax.numpy as jnp
 from jaxtyping import PyTree
 
 from .._errors import InputError
-from ..plant import Constant, PiecewiseConstant, Sine
-from ._wrappers import FaultProfile
+from ..plant import Constant, FaultProfile, PiecewiseConstant, Sine
 
 
 class Family(eqx.Module):
@@ -229,7 +228,7 @@ def _fault_scenarios(key, count, nf, magnitude, onset, rise, which, signed):
 def constant_faults(key, count: int, x0, nf: int, magnitude=(0.5, 2.0), which: str = "all",
                     signed: bool = True, path=("x0",)) -> Family:
     r"""Constant faults present from ``t0`` for a *fault-augmented* plant
-    (`fojax.augment_faults`, state $\chi = [x;\,f]$): a family of initial states equal to
+    (`fojax.plant.augment_faults`, state $\chi = [x;\,f]$): a family of initial states equal to
     `x0` (``(n + nf,)``) with the last ``nf`` entries replaced by random fault magnitudes
     (drawn as in `fault_scenarios`).
     """

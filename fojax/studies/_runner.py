@@ -63,7 +63,7 @@ from tqdm import tqdm
 
 from .._errors import InputError, ShapeError
 from ..observer import AbstractObserver
-from ..plant import AbstractPlant, AbstractSignal, as_signal
+from ..plant import AbstractPlant, AbstractSignal, as_signal, FaultyPlant
 from ..simulation import simulate
 from ..simulation._batch import DEFAULT_BLOCK
 from ..simulation._discrete import discrete_stepper
@@ -84,7 +84,6 @@ from ._sharding import (
     distributed_errors,
     spans_processes,
 )
-from ._wrappers import FaultyPlant
 
 
 #: Number of traces of the compiled study chunk and of the study loss.
@@ -149,7 +148,7 @@ class Study(eqx.Module):
 
     **Arguments:**
 
-    - `plant`: template plant (any `fojax.AbstractPlant`; wrap it in `FaultyPlant` /
+    - `plant`: template plant (any `fojax.plant.AbstractPlant`; wrap it in `FaultyPlant` /
       `NoisyPlant` for fault or noise families).
     - `x0`: ``(n,)`` template initial state.
     - `ts`: ``(T,)`` output grid.
@@ -177,7 +176,7 @@ class Study(eqx.Module):
     def __init__(self, plant, x0, ts, L, u=None, uncertainty=(), scenarios=(), signal_names=None,
                  fault_targets=False):
         if not isinstance(plant, AbstractPlant):
-            raise InputError(f"plant must be a fojax.AbstractPlant, got {type(plant).__name__}.")
+            raise InputError(f"plant must be a fojax.plant.AbstractPlant, got {type(plant).__name__}.")
         self.plant = plant
         self.x0 = jnp.asarray(x0, dtype=jnp.float64)
         self.ts = jnp.asarray(ts, dtype=jnp.float64)
@@ -436,7 +435,7 @@ def run_study(
       `jax.devices()`: after `jax.distributed.initialize`, the devices of every process,
       each process computing its share; every process then receives the whole result,
       bit-identical to a one-device run, and the processes must pass the same study and
-      observers (checked; `fojax.DistributedError` otherwise, and when another process
+      observers (checked; `fojax.errors.DistributedError` otherwise, and when another process
       dies). See ``docs/distributed.md``.
     - `stepper`: how the samples are stepped (`fojax.simulation._steppers`; default
       `fojax.Auto()`). `run_study` tries the stepper's engines in order
@@ -457,7 +456,7 @@ def run_study(
         breakpoint (fault onset, switching time) on the step grid: the exponential
         integrator (ETDRK4, fourth order, steps a fraction of the grid chosen from the
         loop's fastest rate, see `fojax.Exponential` and `fojax.studies._exponential`) on
-        the same batch kernel; an explicit `Exponential` raises `fojax.InputError` saying
+        the same batch kernel; an explicit `Exponential` raises `fojax.errors.InputError` saying
         why a study does not qualify;
       - ``"vmap-simulate"`` (`fojax.Auto()`, `fojax.Exact()`, `fojax.Diffrax(...)`):
         every sample runs `fojax.simulate` with the stepper under `jax.vmap`

@@ -1,4 +1,5 @@
-"""Gradient tuning of observer gains over Monte Carlo studies (optax), certified at every iterate."""
+"""Gradient tuning of observer gains over Monte Carlo studies (optax), certified at every iterate:
+`tune`, its coordinates and initial parameters, and the H2/H∞ robustness terms."""
 
 from ._optimizer import shared_optimizer as shared_optimizer
 from ._robustness import (

@@ -95,7 +95,7 @@ def shared_optimizer(name: str = "adam", **hyperparameters) -> optax.GradientTra
     - `hyperparameters`: its keyword arguments; they must be hashable (numbers, strings,
       or a schedule *object* created once and reused).
 
-    **Raises:** `fojax.InputError` for an unknown name or unhashable hyperparameters.
+    **Raises:** `fojax.errors.InputError` for an unknown name or unhashable hyperparameters.
     """
     factory = getattr(optax, name, None) if isinstance(name, str) else None
     if not callable(factory):

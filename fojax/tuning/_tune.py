@@ -354,10 +354,10 @@ def tune(
       (``None``: one device), see `fojax.studies` (its multi-process helpers). Several
       devices need a training study on the exact engine (`fojax.studies.exact_refusal` is
       None: LTI samples with known signals); any other (Takagi–Sugeno observers, a
-      time-varying δ(t)) raises `fojax.InputError`, because the diffrax path's reverse mode
+      time-varying δ(t)) raises `fojax.errors.InputError`, because the diffrax path's reverse mode
       fails inside `jax.shard_map` (equinox 0.13 compares sharding metadata when it calls a
       closure-converted loop body: patrick-kidger/diffrax#765). Every process runs the same
-      `tune` call (checked; `fojax.DistributedError` otherwise or when another dies).
+      `tune` call (checked; `fojax.errors.DistributedError` otherwise or when another dies).
       With `checkpoint`, only process 0 writes it (at its `checkpoint` path), and with
       `resume` every process continues from process 0's checkpoint (sent to the others:
       no file system shared by the hosts is needed); the other processes' paths are
@@ -365,8 +365,8 @@ def tune(
 
     **Returns:** a `TuneResult`.
 
-    **Raises:** `fojax.InputError` (bad options, a design or region the parameterization
-    cannot take); `fojax.DesignVerificationError` if the final design fails its float64
+    **Raises:** `fojax.errors.InputError` (bad options, a design or region the parameterization
+    cannot take); `fojax.errors.DesignVerificationError` if the final design fails its float64
     verification (it cannot, as every accepted iterate passed the same check).
     """
     if getattr(design, "dt", None) is not None:
@@ -484,7 +484,7 @@ def tune(
 
 def _quantile_level(quantile):
     """`quantile` as a float64 array (data of the jitted step and evaluation: a new level
-    reuses their programs), or None; `fojax.InputError` outside [0, 1]."""
+    reuses their programs), or None; `fojax.errors.InputError` outside [0, 1]."""
     if quantile is None:
         return None
     try:

@@ -1,7 +1,8 @@
-r"""Plant wrappers and signals used by studies: faults, output noise, fault profiles.
+r"""Faults and output noise: plant wrappers (`FaultyPlant`, `NoisyPlant`) and the fault
+signal `FaultProfile`.
 
 They change *what* is simulated without touching the simulator: a wrapped plant is
-still an `fojax.AbstractPlant` (and every leaf can carry a batch axis).
+still an `fojax.plant.AbstractPlant` (and every leaf can carry a batch axis).
 """
 
 from __future__ import annotations
@@ -11,7 +12,8 @@ from jaxtyping import Array, Float
 
 from .._dtype import as_float_array, as_matrix
 from .._errors import ShapeError
-from ..plant import AbstractPlant, AbstractSignal
+from ._base import AbstractPlant
+from ._signals import AbstractSignal
 
 
 class FaultProfile(AbstractSignal):
@@ -103,7 +105,7 @@ class FaultyPlant(AbstractPlant):
 class NoisyPlant(AbstractPlant):
     r"""Measurement noise on the output: $y = g(t, x, u) + \nu(t)$.
 
-    `noise` is any signal of size ``p``; `output_noise` draws seeded zero-order-hold
+    `noise` is any signal of size ``p``; `fojax.studies.output_noise` draws seeded zero-order-hold
     (piecewise-constant) Gaussian sequences on a grid, so the simulator is unchanged
     and every sample is reproducible from its key.
     """
