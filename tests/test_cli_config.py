@@ -16,7 +16,7 @@ import pytest
 from test_config import _mutate, dumps, MALFORMED
 
 from fojax import FojaxError, HalfPlane
-from fojax.cli._main import main
+from fojax.cli import main
 from fojax.config import example_names, example_path, load_config
 from fojax.design import TakagiSugenoObserverDesign
 from fojax.results import load_design, read_design_metadata

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from helpers import child_xla_flags
 
+from fojax.cli import main
 from fojax.cli._devices import (
     _jaxlib_version,
     COMPILE_FLAG,
@@ -30,7 +31,6 @@ from fojax.cli._devices import (
     FLAG,
     usable_cores,
 )
-from fojax.cli._main import main
 
 
 # bit-for-bit equality of different programs (`fojax study` on two devices against one): compiled as users get it

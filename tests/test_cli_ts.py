@@ -17,7 +17,7 @@ import pytest
 from test_config import dumps
 
 import fojax
-from fojax.cli._main import main
+from fojax.cli import main
 from fojax.config import example_path, load_config, parse_config
 from fojax.design import TakagiSugenoObserverDesign
 from fojax.results import load_design

@@ -23,7 +23,6 @@ from scipy.integrate import solve_ivp
 
 import fojax
 import fojax.models as fm
-from fojax._errors import AlgebraicLoopError, StabilizabilityError
 from fojax.control import (
     assemble,
     closed_loop,
@@ -35,6 +34,7 @@ from fojax.control import (
     simulate_lti,
 )
 from fojax.design import design_finite_time_observer, design_functional_observer, Disk
+from fojax.errors import AlgebraicLoopError, StabilizabilityError
 from fojax.observer import GeneralizedFunctionalObserver
 from fojax.plant import Sine, Stack, Step, Zero
 

@@ -20,8 +20,7 @@ import scipy.stats
 import fojax._linalg as la
 import fojax.design._conditions as conditions
 from fojax.analysis import e_perp
-from fojax.design import default_R
-from fojax.design._regions import HalfPlane
+from fojax.design import default_R, HalfPlane
 from fojax.models import flexible_drive
 
 

@@ -30,7 +30,7 @@ from helpers import child_xla_flags, json_differences as _differences
 import fojax
 from fojax import studies as S
 from fojax.design import design_functional_observer, Disk
-from fojax.studies._runner import SimConfig
+from fojax.studies import SimConfig
 
 
 # bit-for-bit equality of different programs (the same results on 1 and several devices and processes): compiled as users get it

@@ -6,8 +6,7 @@ import pytest
 import scipy.integrate
 
 import fojax
-from fojax.design import Disk
-from fojax.design._fault import design_fault_estimator
+from fojax.design import design_fault_estimator, Disk
 
 
 @pytest.fixture(scope="module")

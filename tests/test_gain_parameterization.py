@@ -6,8 +6,14 @@ import numpy as np
 import pytest
 
 import fojax
-from fojax.design import design_functional_observer, Disk, pieces
-from fojax.design._gain_parameterization import contraction, disk_gain, lemma10_gain
+from fojax.design import (
+    contraction,
+    design_functional_observer,
+    Disk,
+    disk_gain,
+    lemma10_gain,
+    pieces,
+)
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,10 @@ from helpers import assert_eigenvalues_match
 
 import fojax
 import fojax.models as fm
-from fojax.models._power import POWER_PARAMS
+
+
+#: the model's per-unit defaults (the hand-derived ODE below is checked at these values)
+POWER_PARAMS = dict(fm.two_area_power().params)
 
 
 def _finite_poles(A, E):

@@ -370,7 +370,7 @@ def test_tuning_curve_marks_the_heldout_loss_before_and_after():
 
 def test_pole_plot_of_a_region_class_fojax_does_not_know():
     # a user's own region (an ellipse): shaded from its margin, named in the legend, equal axes
-    from fojax.design._regions import AbstractRegion
+    from fojax.design import AbstractRegion
 
     class Ellipse(AbstractRegion):
         def characteristic(self):  # not an LMI region: the plot must not need it

@@ -10,8 +10,7 @@ disk's region LMI evaluated by `fojax.design.Disk.lmi_matrix` (``eigvalsh``).
 import numpy as np
 import pytest
 
-from fojax.design import Disk, stein_certificate
-from fojax.design._stein import host_stein_certificate
+from fojax.design import Disk, host_stein_certificate, stein_certificate
 
 
 @pytest.mark.parametrize("method", ["scipy", "doubling"])

@@ -19,7 +19,7 @@ from closed_loop_413 import ACL, AO, B0, BY, C0, DA, E, LTIObserver, X0
 
 import fojax
 from fojax import studies as S
-from fojax._errors import InputError
+from fojax.errors import InputError
 from fojax.plant import FaultProfile, FaultyPlant
 from fojax.simulation import _batch, _exponential
 from fojax.studies._exponential import exponential_problem

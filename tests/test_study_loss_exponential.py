@@ -16,9 +16,8 @@ import pytest
 from test_study_exponential import make_study, OBSERVER, oracle, SETTLE_TOL
 
 import fojax
-from fojax.studies import study_loss
+from fojax.studies import SimConfig, study_loss
 from fojax.studies._exponential import TRACE_COUNTS
-from fojax.studies._runner import SimConfig
 
 
 CFG = SimConfig(settle_tol=SETTLE_TOL)

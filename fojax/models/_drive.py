@@ -17,7 +17,7 @@ DRIVE_STATES = ("omega_m", "phi_1", "omega_1", "phi_2", "omega_2", "i", "tau_1",
 
 
 def flexible_drive(k_2_uncertainty: float = 0.5, **params) -> ThesisExample:
-    r"""A three-inertia flexible drive train (**not from the thesis**: issue 14's second model).
+    r"""A three-inertia flexible drive train (**not from the thesis**: a second tuning model).
 
     A DC motor (inertia $J_m$, viscous friction $b_m$, torque constant $K_t$, back-EMF
     constant $K_b$, armature resistance $R$) drives, through a gear of ratio $N$ (motor speed
@@ -92,7 +92,7 @@ def flexible_drive(k_2_uncertainty: float = 0.5, **params) -> ThesisExample:
     dA = np.zeros((8, 8))
     dA[7, ip2] = k_2_uncertainty * p["k_2"]
     E, A, B, C = _array(E), _array(A), _array(B), _array(C)
-    notes = ("Not from the thesis: a model of our choice for issue 14's tuning targets (a second model "
+    notes = ("Not from the thesis: a model of our choice for the tuning benchmarks (a second model "
              "besides the LC filter of benchmarks/lc_filter.py).",
              "Per-unit values chosen by us (a slow, lightly damped drive), not measured on a rig.")
     return ThesisExample(

@@ -19,7 +19,7 @@ POWER_STATES = ("omega_1", "delta_12", "omega_2", "P_m1", "P_v1", "P_m2", "P_v2"
 
 def two_area_power(inertia_uncertainty: float = 0.4, **params) -> ThesisExample:
     r"""Two-area load-frequency control with an uncertain area inertia (**not from the thesis**:
-    issue 14's third model, chosen so that a parameter's uncertainty matters to the estimate).
+    chosen so that a parameter's uncertainty matters to the estimate).
 
     Two control areas (each a lumped generator with governor and non-reheat turbine plus a
     frequency-sensitive load) exchange power over one tie line. All quantities are per-unit
@@ -69,7 +69,7 @@ def two_area_power(inertia_uncertainty: float = 0.4, **params) -> ThesisExample:
     $a$ times row 1 of $A$ (columns $\Delta P_{m1}$, $\Delta P_{e1}$), a rank-one change.
 
     **Why the nominal design is sensitive to $\delta$, and why the observer's freedom can remove
-    that (the a-priori argument, written before any tuning run).** For the plant with
+    that (an a-priori argument).** For the plant with
     $A + \delta\,\Delta A$ and an observer that satisfies conditions a.–d. for the nominal $A$
     (`fojax.design` §3.1.2: $\varepsilon = \zeta - TEx$, $w = \Psi x$ nominally), the error obeys
 
@@ -96,39 +96,16 @@ def two_area_power(inertia_uncertainty: float = 0.4, **params) -> ThesisExample:
     contains the uncertain stiffness itself and the load speed is not measured, so an estimate
     of $\tau_2$ has to lean on $k_2$ (an a-priori remark, not a proved bound).
 
-    **Benchmark settings (fixed and committed before the first tuning run;
-    ``benchmarks/tuning_circuit.py --model two_area_power``).** Region ``Disk(-3.5, 2.5)``
-    (eigenvalues in $[-6, -1]$: it contains the turbine and governor poles $-2$, $-5$ of the
-    insensitive observer of (ii), which the other models' ``Disk(-3, 2)`` has on its edge);
-    ``q0 = 5``, the smallest order at which $[R;\Psi]$ is rank deficient so that $Y$, $J$, $G$
-    are live (10 of 251 parameters; at ``q0 = 3, 4`` only $Z$ is: 6 and 7 live, and the centred
-    designs there have $|T| \approx 2\cdot10^3$ and held-out IAE 1505 / 3463 at the first
-    settings tried, below); $u = 0.1\sin 2t$ pu (the other models' $\sin 2t$, near the
-    inter-area modes at 1.7–1.8 rad/s where the inertia acts, with an amplitude of 100 MW on
-    the 1000 MVA base); initial deviations
-    uniform, $|\Delta\omega_i| \le 0.002$ pu (0.12 Hz), $|\Delta\delta_{12}| \le 0.02$ rad,
-    $|\Delta P_{m,v}| \le 0.02$ pu; δ uniform in $[-1, 1]$; 10 s on a 0.02 s grid; the other
-    models' sample counts, seeds, optimizer (Adam 0.1) and 100 steps. Measured on the
-    centred and the min-gain LMI designs before tuning (held-out samples; one run): the centred
-    design's IAE is 0.110, 0.091 of it with δ = 0 (the δ-caused share 17 %; with initial
-    states 0, i.e. the error δ alone causes, 0.021); the min-gain design's IAE is 0.0071 (δ = 0:
-    0.0067, share 4.6 %; δ alone: 0.00042). So the centred design (all eigenvalues at −3.5,
-    parameters up to 1.7e6) is 15× worse than the min-gain one and 50× more sensitive to
-    $H_1$, while the min-gain design is already nearly insensitive: against the centred start
-    target (a) measures mostly the cost of centring, not the uncertainty; the benchmark
-    therefore also tunes from the min-gain design (``"plain_from_min_gain_lmi/live"``). The
-    first settings tried (before any tuning: $u = 0.1\sin 0.5t$, 20 s on a 0.04 s grid) gave
-    a δ-caused share of 11 % on the centred design; they were replaced by the other models'
-    input frequency and horizon.
-
-    **Measured by that benchmark (one run with the settings above, under load).** Tuning from
-    the centred design: held-out IAE −94.1 % (to 0.00648), −8.2 % against the min-gain design;
-    from the min-gain design: −4.5 %. The error $H_1$'s uncertainty alone causes (initial
-    states 0) falls from 0.0207 (centred) / 0.00042 (min-gain) to 0.000054 (tuned): the
-    tuned observer is nearly insensitive to $H_1$, as (ii) predicts, and its IAE is 99 %
-    initial-state transient. Not by the route (ii) names, though: $\|t_1\|$ goes only from
-    3.89 to 2.76 ($\|T\|$ 46.9 → 46.5; min-gain design: 0.40 of 4.40); what shrank is the
-    transfer from that channel to $\hat z$ (a separate check, not in the benchmark's JSON).
+    **Tuning benchmark** (``benchmarks/tuning_circuit.py --model two_area_power``; its numbers
+    are in ``benchmarks/results/``): region ``Disk(-3.5, 2.5)`` (eigenvalues in $[-6, -1]$: it
+    contains the turbine and governor poles $-2$, $-5$ of the insensitive observer of (ii),
+    which the other models' ``Disk(-3, 2)`` has on its edge); ``q0 = 5``, the smallest order at
+    which $[R;\Psi]$ is rank deficient so that $Y$, $J$, $G$ are live (at ``q0 = 3, 4`` only $Z$
+    is); $u = 0.1\sin 2t$ pu (near the inter-area modes at 1.7–1.8 rad/s where the inertia
+    acts); initial deviations uniform, $|\Delta\omega_i| \le 0.002$ pu,
+    $|\Delta\delta_{12}| \le 0.02$ rad, $|\Delta P_{m,v}| \le 0.02$ pu; δ uniform in
+    $[-1, 1]$; 10 s on a 0.02 s grid. The centred LMI design (all eigenvalues at $-3.5$) is far
+    more sensitive to $H_1$ than the min-gain one, so the benchmark tunes from both.
 
     **Values**: `POWER_PARAMS`, the two-area example of H. Saadat, *Power System Analysis*
     (McGraw-Hill, 1999), ch. 12 (the two-area LFC example: $R_1 = 0.05$, $D_1 = 0.6$,
@@ -173,7 +150,7 @@ def two_area_power(inertia_uncertainty: float = 0.4, **params) -> ThesisExample:
     dA = np.zeros((10, 10))
     dA[0] = a * A[0]
     E, A, B, C = _array(E), _array(A), _array(B), _array(C)
-    notes = ("Not from the thesis: issue 14's third model, a two-area load-frequency-control system with an "
+    notes = ("Not from the thesis: a two-area load-frequency-control system with an "
              "uncertain area inertia (values of Saadat's textbook example, as commonly reproduced).",)
     return ThesisExample(
         name="two_area_power",
