@@ -15,7 +15,8 @@ Floors (each imports only the floors below it): ``plant`` (plants, signals, faul
 ``models`` (the thesis's examples) → ``analysis`` (structure) → ``observer`` → ``design``
 (LMIs, verified) → ``simulation`` → ``studies`` (Monte Carlo) and ``control`` → ``tuning``
 (optax) → ``results`` (files, reports, figures) → ``config`` (TOML) → ``cli`` (the
-``fojax`` program, which the library never imports). ``errors`` is the ground floor.
+``fojax`` program, which the library never imports). ``errors`` is the ground floor;
+``interop`` trades models, designs and data with python-control, SciPy and MATLAB files.
 """
 
 import importlib.metadata as _metadata

@@ -18,9 +18,9 @@ def test_demo_runs_and_converges(capsys):
 
 
 def test_help_and_bad_command():
-    r = subprocess.run([sys.executable, "-m", "fojax.cli", "--help"], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "_fojax_program", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "demo" in r.stdout and "64-bit" in r.stdout
-    r = subprocess.run([sys.executable, "-m", "fojax.cli", "nonsense"], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "_fojax_program", "nonsense"], capture_output=True, text=True)
     assert r.returncode != 0 and "invalid choice" in r.stderr
 
 

@@ -67,7 +67,7 @@ CLI_MALFORMED = [MALFORMED[i] for i in (0, 1, 2, 3, 9, 11, 17, 22)]
 
 def fojax(*args, cwd=None, env=None):
     return subprocess.run(
-        [sys.executable, "-m", "fojax.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd,
+        [sys.executable, "-m", "_fojax_program", *map(str, args)], capture_output=True, text=True, cwd=cwd,
         env=env,
     )
 
@@ -75,7 +75,7 @@ def fojax(*args, cwd=None, env=None):
 class _Run:
     """A subprocess started at once; `.returncode`, `.stdout`, `.stderr` wait for it."""
 
-    def __init__(self, *args, env=None, program=("-m", "fojax.cli")):
+    def __init__(self, *args, env=None, program=("-m", "_fojax_program")):
         self.proc = subprocess.Popen(
             [sys.executable, *program, *map(str, args)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,

@@ -52,7 +52,7 @@ def two_runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("devices")
     procs = {}
     for n, env in ((1, _env(FOJAX_DEVICES="1")), (2, _env(FOJAX_DEVICES="2"))):
-        procs[n] = subprocess.Popen([sys.executable, "-m", "fojax.cli", *ARGS, "--out", str(tmp / f"d{n}")],
+        procs[n] = subprocess.Popen([sys.executable, "-m", "_fojax_program", *ARGS, "--out", str(tmp / f"d{n}")],
                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     out = {}
     for n, p in procs.items():

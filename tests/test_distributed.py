@@ -205,11 +205,11 @@ def _study_folder(out: pathlib.Path) -> pathlib.Path:
 
 
 def _fojax_study(args, *, processes=None, timeout=TIMEOUT):
-    """Run ``python -m fojax.cli study ARGS`` in one process (``processes=None``) or with
+    """Run ``python -m _fojax_program study ARGS`` (the `fojax` program) in one process (``processes=None``) or with
     ``--distributed`` on that many local processes (one device each, the same command line,
     as on a cluster); returns the processes' (return code, output)."""
     env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=child_xla_flags(1))
-    cmd = [sys.executable, "-m", "fojax.cli", "study", *args]
+    cmd = [sys.executable, "-m", "_fojax_program", "study", *args]
     if processes is None:
         r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
         return [(r.returncode, r.stdout + r.stderr)]

@@ -190,8 +190,13 @@ class Config:
 
         For a Takagi–Sugeno model, the `fojax.TakagiSugenoSystem`.
         """
-        from ..plant import DescriptorSystem, TakagiSugenoSystem
-        from ..plant._takagi_sugeno import OutputPremise, SectorMembership, SincPremise
+        from ..plant import (
+            DescriptorSystem,
+            OutputPremise,
+            SectorMembership,
+            SincPremise,
+            TakagiSugenoSystem,
+        )
 
         if self.is_takagi_sugeno:
             ts = self.takagi_sugeno

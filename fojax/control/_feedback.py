@@ -81,10 +81,16 @@ from .._errors import (
 )
 from .._linalg import null_space, rank
 from ..analysis import finite_poles, is_impulse_free, is_regular, is_stabilizable
-from ..design import _ladder, _lmi
-from ..design._base import AbstractDesign
+from ..design import (
+    _ladder,
+    _lmi,
+    AbstractDesign,
+    AbstractRegion,
+    as_region,
+    HalfPlane,
+    Intersection,
+)
 from ..design._discrete import continuous_only
-from ..design._regions import AbstractRegion, as_region, HalfPlane, Intersection
 from ..design._verify import margin_failure, required_margin
 from ..plant import DescriptorSystem
 
@@ -195,7 +201,7 @@ def _decay_of(region: AbstractRegion) -> float:
 
 def _svd_coordinates(E, A, B):
     """``Ẽ = diag(I_r, 0) = Ul E V``, ``Ã = Ul A V``, ``B̃ = Ul B`` (restricted equivalence)."""
-    from ..analysis._split import index1_split
+    from ..analysis import index1_split
 
     n = E.shape[0]
     sp = index1_split(E, A, fname="design_state_feedback")  # fojax.analysis's rank of E

@@ -60,8 +60,7 @@ from jax import lax
 from .._dtype import as_matrix, require_x64
 from .._errors import AlgebraicLoopError, InputError, ShapeError
 from ..observer import FiniteTimeObserver
-from ..plant import AbstractSignal, DescriptorSystem, Zero
-from ..plant._signals import as_signal
+from ..plant import AbstractSignal, as_signal, DescriptorSystem, Zero
 from ..simulation._discretize import discretize_host, gauss_nodes, grid_step
 from ..simulation._reduction import reduce_host
 from ._loop import assemble, linear_matrices, LOOP_RCOND, refuse_feedthrough

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import ShapeError
-from ..plant._descriptor import augment_faults, check_functional, DescriptorSystem
+from ..plant import augment_faults, check_functional, DescriptorSystem
 from . import _lmi
 from ._base import AbstractDesign
 from ._conditions import check_regular

@@ -54,9 +54,8 @@ from .._errors import (
     InputError,
 )
 from .._linalg import row_space
-from ..observer._takagi_sugeno import TakagiSugenoObserver
-from ..plant._descriptor import check_functional
-from ..plant._takagi_sugeno import TakagiSugenoSystem
+from ..observer import TakagiSugenoObserver
+from ..plant import check_functional, TakagiSugenoSystem
 from . import _lmi
 from ._base import AbstractDesign
 from ._conditions import check_regular

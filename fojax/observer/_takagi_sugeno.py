@@ -8,7 +8,7 @@ from jaxtyping import Array, Float
 
 from .._dtype import as_float_array, as_matrix
 from .._errors import ShapeError
-from ..plant._takagi_sugeno import AbstractMembership
+from ..plant import AbstractMembership
 from ._base import AbstractFunctionalObserver, measurement_maps
 from ._generalized import GeneralizedFunctionalObserver
 
