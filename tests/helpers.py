@@ -21,7 +21,7 @@ from scipy.optimize import linear_sum_assignment
 def child_xla_flags(devices: int | None = None) -> str:
     """``XLA_FLAGS`` for a child process: this process's (e.g. the suite's compile flag,
     tests/conftest.py) without its host-device count, and with `devices` host devices if given."""
-    from fojax.cli._devices import FLAG
+    from fojax.cli._devices import FLAG  # private: the program's flag
 
     kept = [f for f in os.environ.get("XLA_FLAGS", "").split() if FLAG not in f]
     return " ".join(kept + ([] if devices is None else [f"{FLAG}={devices}"]))

@@ -19,7 +19,7 @@ import scipy.linalg as sla
 from helpers import assert_eigenvalues_match
 
 import fojax
-from fojax.analysis._common import as_pencil, kernel_chain
+from fojax.analysis._common import as_pencil, kernel_chain  # private: tested itself
 
 
 I2 = np.eye(2)

@@ -15,7 +15,7 @@ import pytest
 import fojax
 from fojax.config import parse_config
 from fojax.design import design_functional_observer, Disk, HalfPlane
-from fojax.design._centre import CENTRE_TOL
+from fojax.design._centre import CENTRE_TOL  # private: the bisection's tolerance
 
 
 @pytest.fixture(scope="module")

@@ -22,6 +22,8 @@ import pytest
 from helpers import child_xla_flags
 
 from fojax.cli import main
+
+# private: the program's device and compile-flag set-up is what this module tests
 from fojax.cli._devices import (
     _jaxlib_version,
     COMPILE_FLAG,

@@ -253,7 +253,7 @@ def test_sample_read_back_compiles_once_per_structure():
     every sample set recompiled its read-back (3 compiles in a robot-arm study, 2 needed).
     New draws of one structure must not trace again (on a small LTI model with faults: the
     same function, compiled in seconds)."""
-    from fojax.cli import _study_samples as ss
+    from fojax.cli import _study_samples as ss  # private: the drawn samples are checked
 
     cfg = load_config(example_path("example_4_2_2"))
     a = ss.describe_samples(ss.make_study(cfg, 11, 2, 0.5, 0.05), cfg, {})

@@ -18,7 +18,7 @@ import scipy.linalg
 import scipy.stats
 
 import fojax._linalg as la
-import fojax.design._conditions as conditions
+import fojax.design._conditions as conditions  # private: its row-space basis is rotated here
 from fojax.analysis import e_perp
 from fojax.design import default_R, HalfPlane
 from fojax.models import flexible_drive
@@ -124,7 +124,7 @@ def test_power_of_two_twin_gets_the_same_functional(drive):
 def test_unknown_input_candidates_do_not_depend_on_the_svd_basis(monkeypatch):
     """The unknown-input observer's candidate R's (`_candidate_Rs`, greedy prefixes of the
     same kind of complement bases) on §4.1.3's closed loop with d in the row of x3."""
-    from fojax.design._unknown_input import _candidate_Rs
+    from fojax.design._unknown_input import _candidate_Rs  # private: the candidates are tested
     from fojax.models import example_4_1_3
 
     ex = example_4_1_3()

@@ -1127,7 +1127,7 @@ def test_inaccurate_min_gain_is_retried_before_the_feasibility_fallback(monkeypa
     (`CLARABEL_SETTINGS`) ends at "optimal_inaccurate" (or raises cvxpy's SolverError).
     The next run must be the same min-gain problem at `CLARABEL_RETRY` (on main it was the
     feasibility problem, or the error was raised), and the design verifies."""
-    from fojax.design import _lmi
+    from fojax.design import _lmi  # private: the LMI ladder's solver settings are checked
 
     orig, calls = cp.Problem.solve, []
 

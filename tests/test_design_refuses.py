@@ -208,7 +208,7 @@ def test_solver_exceptions_become_stopped_short_errors(monkeypatch):
     problem size and the data magnitude."""
     import cvxpy as cp
 
-    from fojax.design import _lmi
+    from fojax.design import _lmi  # private: the solver wrapper is tested itself
 
     X = cp.Variable((2, 2), symmetric=True)
     prob = cp.Problem(cp.Minimize(cp.trace(X)), [X >> 3e5 * np.eye(2)])

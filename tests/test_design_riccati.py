@@ -198,7 +198,7 @@ def test_pi_gain_is_the_full_riccati_solution():
 def test_unobservable_modes_shortcut_agrees_with_the_pbh_loop():
     """`unobservable_modes` skips the per-eigenvalue SVDs when Cm has full column rank
     (σ_min([λI - A; Cm]) ≥ σ_min(Cm)); oracle: the PBH rank test with NumPy's matrix_rank."""
-    from fojax.design._conditions import unobservable_modes
+    from fojax.design._conditions import unobservable_modes  # private: tested itself
 
     rng = np.random.default_rng(5)
     A = rng.standard_normal((6, 6))
@@ -256,7 +256,7 @@ def test_undetectable_raises_the_same_error_for_both_routes():
 
 
 def test_output_injection_failure_is_typed():
-    from fojax.design._riccati import output_injection_gain
+    from fojax.design._riccati import output_injection_gain  # private: tested itself
 
     # Ad = diag(2, 0.5) with only the stable mode measured: the mode 2 (outside the unit
     # disk) is unobservable, so no gain makes Ad - Y Cd Schur

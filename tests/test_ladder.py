@@ -6,7 +6,7 @@ Oracle: hand-counted rung sequences (which thunks ran, in which order, what was 
 
 import pytest
 
-from fojax.design._ladder import climb, Refused
+from fojax.design._ladder import climb, Refused  # private: the ladder is tested itself
 from fojax.errors import LMIInfeasibleError
 
 

@@ -36,6 +36,8 @@ from fojax.design import (
     project_parameters,
     SteinDisk,
 )
+
+# private: the exact structure check and its scales are what this module tests
 from fojax.design._functional import condition_scales, verify_structure_design
 
 

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fojax.tuning._loop import backtracked_update
+from fojax.tuning._loop import backtracked_update  # private: the step rule is tested itself
 
 
 MIN_MARGIN = 1e-6

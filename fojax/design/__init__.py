@@ -1,5 +1,8 @@
 """Design layer: parameterization (pure JAX), LMI regions, LMI design (cvxpy, host), verification,
-and `AbstractDesign`, the base of every design result (verify, summary, save/load)."""
+and `AbstractDesign`, the base of every design result (verify, summary, save/load).
+
+`SOLVERS` names the LMI solvers a design accepts (``solver=``), `DEFAULT_SOLVER` the default.
+"""
 
 from ._base import AbstractDesign as AbstractDesign
 from ._conditions import (
