@@ -622,7 +622,7 @@ can be judged. At every timed B, fojax's metrics are also compared with RK4's
 
 | | method | notes |
 |---|---|---|
-| fojax | `fojax.simulate_batch_exponential(model, params, x0, ts, metrics=..., substeps=s[, startup=(k, s0)])`: the model is `FaultyPlant(UncertainDescriptorSystem(nominal, dA, delta=Sine(a, ω, φ)), Fa=[B; 0], fault=Constant(f))`; fojax reduces the descriptor loop itself, takes the nominal (δ = 0) loop as the common linear part and integrates it exactly with Krogstad's 4th-order exponential Runge–Kutta method, all samples together (batch last), metrics accumulated in the loop | public API only; one compiled kernel per chunk size (`--chunk` = 4096); compile time = first call − median after `jax.clear_caches()` |
+| fojax | `fojax.simulation.simulate_batch_exponential(model, params, x0, ts, metrics=..., substeps=s[, startup=(k, s0)])`: the model is `FaultyPlant(UncertainDescriptorSystem(nominal, dA, delta=Sine(a, ω, φ)), Fa=[B; 0], fault=Constant(f))`; fojax reduces the descriptor loop itself, takes the nominal (δ = 0) loop as the common linear part and integrates it exactly with Krogstad's 4th-order exponential Runge–Kutta method, all samples together (batch last), metrics accumulated in the loop | public API only; one compiled kernel per chunk size (`--chunk` = 4096); compile time = first call − median after `jax.clear_caches()` |
 | (a) | Python loop of `solve_ivp` (RK45, rtol 1e-6, atol 1e-9, `t_eval` on the grid) on the reduced ODE | up to `--loop-max-b` (default 1,000), extrapolated linearly beyond (*extrap.*) |
 | (c) | NumPy RK4, dt = 1e-3, vectorised over the batch, both axis orders (the faster kept) | the careful version: common matrices applied as one product for the whole batch (`X @ A0.T`, `X @ dA.T`, δ scaling per sample), δ evaluated twice per step, metrics accumulated while stepping |
 
@@ -899,7 +899,7 @@ were scaled by up to 2^±40, every verdict and every pole stayed the same
 (`tests/test_analysis_scaling.py`; without balancing most verdicts change). The issue's
 badly scaled examples are now answered correctly, e.g. diag(1, 1e-11)·(s + 1) is regular with
 poles [−1, −1], and pencils T·diag(D), T with cond(T) ≈ 1e18 give D to 6e-15.
-`fojax.kronecker_structure`, `system_zeros`, `properness` and `mode_counts` (SLICOT AG08BD after
+`fojax.analysis.kronecker_structure`, `system_zeros`, `properness` and `mode_counts` (SLICOT AG08BD after
 balancing) give normal rank, minimal indices, infinite elementary divisors, finite eigenvalues
 and invariant zeros; `fojax check` prints them.
 
@@ -1091,7 +1091,7 @@ uneven splits), tuning iterates and the tuning checkpoint equal one process bit 
 distributed `fojax study` stopped after its first tuning step and resumed on 2 processes
 gives the uninterrupted one-process folder bit for bit. Only process 0 writes; on resume it
 sends what it read to the others (no shared file system needed). A killed process ends the
-others with `fojax.DistributedError` (or JAX's heartbeat message, when JAX notices first).
+others with `fojax.errors.DistributedError` (or JAX's heartbeat message, when JAX notices first).
 Nothing has been run on a GPU or on more than one host, and no multi-process speed has been
 measured; [docs/distributed.md](../docs/distributed.md) has a SLURM script and a single-host
 multi-GPU example.

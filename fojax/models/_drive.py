@@ -61,7 +61,7 @@ def flexible_drive(k_2_uncertainty: float = 0.5, **params) -> ThesisExample:
     $K_t = K_b = 1$, $R = 1$, $N = 2$, $k_1 = 4$, $c_1 = 0.1$, $J_1 = 1$, $b_1 = 0.05$,
     $k_2 = 2$, $c_2 = 0.05$, $J_2 = 0.5$, $b_2 = 0.1$: a slow, lightly damped drive
     (finite poles $-0.876$, $-0.201 \pm 1.567i$, $-0.174 \pm 2.880i$). Chosen by us, not
-    measured on a rig.
+    identified on a rig.
 
     **Arguments:** `k_2_uncertainty` ($a$ above) and any of `DRIVE_PARAMS` by name.
 

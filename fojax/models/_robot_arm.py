@@ -261,7 +261,7 @@ def robot_arm_ts(
 ) -> ThesisExample:
     r"""Takagi–Sugeno form of `robot_arm` (eqs. 2.9–2.12 / 3.189–3.192).
 
-    With the premise $\rho = \sin x_3 / x_3$ (measured: $x_3 = y_2$) the nonlinear
+    With the premise $\rho = \sin x_3 / x_3$ (known from the output: $x_3 = y_2$) the nonlinear
     model is exactly $E\dot x = A(\rho)x + Bu$, affine in $\rho$:
 
     $$A(\rho) = \begin{bmatrix}0&1&0&0&0\\ -k/J_m&-\beta/J_m&k/J_m&0&0\\ 0&0&0&1&0\\

@@ -1,7 +1,7 @@
 """The typed errors fojax raises on purpose, all subclasses of `FojaxError`.
 Bad input is an `InputError` (a `ValueError`); a failed design or solver a `RuntimeError`."""
 
-from ._errors import (
+from .._errors import (
     AlgebraicLoopError as AlgebraicLoopError,
     ConfigError as ConfigError,
     DataRangeError as DataRangeError,
