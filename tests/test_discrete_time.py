@@ -88,7 +88,7 @@ def observer_recursion(obs, xs, ts):
 
 @pytest.mark.parametrize("bad", [0.0, -0.1, float("nan"), float("inf"), "fast", True])
 def test_dt_is_validated(bad):
-    with pytest.raises(fojax.InputError, match="dt"):
+    with pytest.raises(fojax.errors.InputError, match="dt"):
         fojax.DescriptorSystem(E4, A4, B4, C4, dt=bad)
 
 
@@ -111,9 +111,9 @@ def test_discrete_stability_against_scipy_eigenvalues():
         E = np.diag([1.0, 1.0, 1.0, 0.0]) @ rng.normal(size=(4, 4))
         lam = finite_eigs(E, A)
         s = fojax.DescriptorSystem(E, A, dt=0.2)
-        assert_eigenvalues_match(fojax.finite_poles(s), lam, rtol=1e-8, atol=1e-12)
-        assert fojax.is_stable(s) == bool(np.all(np.abs(lam) < 1))
-        assert fojax.is_stable(s.replace(dt=None)) == bool(np.all(lam.real < 0))
+        assert_eigenvalues_match(fojax.analysis.finite_poles(s), lam, rtol=1e-8, atol=1e-12)
+        assert fojax.analysis.is_stable(s) == bool(np.all(np.abs(lam) < 1))
+        assert fojax.analysis.is_stable(s.replace(dt=None)) == bool(np.all(lam.real < 0))
 
 
 def test_unit_circle_is_the_boundary():
@@ -121,14 +121,14 @@ def test_unit_circle_is_the_boundary():
     E = np.diag([1.0, 1.0, 0.0])
     A = np.diag([0.5, -2.0, 1.0])
     s = fojax.DescriptorSystem(E, A, dt=1.0)
-    assert not fojax.is_stable(s) and not fojax.is_stable(s.replace(dt=None))
+    assert not fojax.analysis.is_stable(s) and not fojax.analysis.is_stable(s.replace(dt=None))
     s2 = fojax.DescriptorSystem(E, np.diag([0.5, -0.9, 1.0]), dt=1.0)
-    assert fojax.is_stable(s2) and fojax.is_admissible(s2)
-    assert not fojax.is_stable(s2.replace(dt=None))  # 0.5 > 0
+    assert fojax.analysis.is_stable(s2) and fojax.analysis.is_admissible(s2)
+    assert not fojax.analysis.is_stable(s2.replace(dt=None))  # 0.5 > 0
     on = fojax.DescriptorSystem(E, np.diag([0.5, -1.0, 1.0]), dt=1.0)  # |λ| = 1: not stable
-    assert not fojax.is_stable(on)
-    assert fojax.is_stable(fojax.DescriptorSystem(E, np.diag([0.5, -0.5, 1.0]), dt=1.0), margin=0.4)
-    assert not fojax.is_stable(fojax.DescriptorSystem(E, np.diag([0.5, -0.7, 1.0]), dt=1.0), margin=0.4)
+    assert not fojax.analysis.is_stable(on)
+    assert fojax.analysis.is_stable(fojax.DescriptorSystem(E, np.diag([0.5, -0.5, 1.0]), dt=1.0), margin=0.4)
+    assert not fojax.analysis.is_stable(fojax.DescriptorSystem(E, np.diag([0.5, -0.7, 1.0]), dt=1.0), margin=0.4)
 
 
 def test_causality_is_the_rank_test():
@@ -143,7 +143,7 @@ def test_causality_is_the_rank_test():
         assert is_causal(s) == oracle == fojax.analysis.is_impulse_free(s)
         assert n == EE.shape[0]
     assert not is_causal(fojax.DescriptorSystem(E, A, dt=0.3))
-    assert not fojax.is_admissible(fojax.DescriptorSystem(E, A, dt=0.3))
+    assert not fojax.analysis.is_admissible(fojax.DescriptorSystem(E, A, dt=0.3))
 
 
 def test_observability_rank_tests_identical_detectability_on_the_unit_circle():
@@ -165,7 +165,7 @@ def test_observability_rank_tests_identical_detectability_on_the_unit_circle():
 
 
 def test_continuous_certificate_refused_for_a_discrete_system():
-    with pytest.raises(fojax.InputError, match="continuous-time admissibility"):
+    with pytest.raises(fojax.errors.InputError, match="continuous-time admissibility"):
         fojax.analysis.admissibility_certificate(plant())
 
 
@@ -210,7 +210,7 @@ def test_other_design_options_keep_the_discrete_region(options):
 def test_tune_refuses_a_discrete_design():
     d = fojax.design_functional_observer(plant(), L4, kind="proportional")
     study = fojax.Study(plant(), consistent([1.0, 0.0, 0.0, 0.0], 0.0), H * jnp.arange(20), L4, u=U_SIG)
-    with pytest.raises(fojax.InputError, match="continuous-time designs"):
+    with pytest.raises(fojax.errors.InputError, match="continuous-time designs"):
         fojax.tune(d, study, steps=1)
 
 
@@ -230,15 +230,15 @@ def test_default_region_and_tuple():
 
 
 def test_region_errors():
-    with pytest.raises(fojax.RegionError, match="Re\\(s\\) < -1.*not inside the open unit disk"):
+    with pytest.raises(fojax.errors.RegionError, match="Re\\(s\\) < -1.*not inside the open unit disk"):
         fojax.design_functional_observer(plant(), L4, region=fojax.HalfPlane(1.0))
-    with pytest.raises(fojax.RegionError, match="disk centred at -2 with radius 1 is not inside"):
+    with pytest.raises(fojax.errors.RegionError, match="disk centred at -2 with radius 1 is not inside"):
         fojax.design_functional_observer(plant(), L4, region=fojax.Disk(-2.0, 1.0))
-    with pytest.raises(fojax.RegionError, match="not inside the open unit disk"):
+    with pytest.raises(fojax.errors.RegionError, match="not inside the open unit disk"):
         DiscreteDisk(0.5, 0.6)
-    with pytest.raises(fojax.RegionError, match="z-plane disk.*continuous-time"):
+    with pytest.raises(fojax.errors.RegionError, match="z-plane disk.*continuous-time"):
         fojax.design_functional_observer(plant(None), L4, region=DiscreteDisk(-0.5, 0.2))
-    with pytest.raises(fojax.InputError, match="continuous-time norm"):
+    with pytest.raises(fojax.errors.InputError, match="continuous-time norm"):
         fojax.design_functional_observer(plant(), L4, objective="hinf")
     # an intersection with a disk inside the unit disk is accepted
     reg = DiscreteDisk(0.0, 0.7) & fojax.Sector(0.2)
@@ -249,10 +249,10 @@ def test_region_errors():
 def test_fault_estimator_on_a_discrete_plant():
     # constant actuator fault f on row 0: f[k+1] = f[k] (the augmented A has I, not 0, there)
     Fa = np.array([[1.0], [0.0], [0.0], [0.0]])
-    aug = fojax.augment_faults(plant(), Fa=Fa)
+    aug = fojax.plant.augment_faults(plant(), Fa=Fa)
     assert aug.dt == H
     np.testing.assert_allclose(aug.A, np.block([[A4, Fa], [np.zeros((1, 4)), np.eye(1)]]))
-    ramp = fojax.augment_faults(plant(), Fa=Fa, ramp=True)
+    ramp = fojax.plant.augment_faults(plant(), Fa=Fa, ramp=True)
     np.testing.assert_allclose(ramp.A[4:, 4:], [[1.0, H], [0.0, 1.0]])
     d = fojax.design_fault_estimator(plant(), L4, Fa=Fa)
     assert d.design.dt == H and d.design.report.passed
@@ -277,9 +277,9 @@ def test_fault_estimator_on_a_discrete_plant():
 
 
 def test_continuous_only_designs_refuse_discrete_models():
-    with pytest.raises(fojax.InputError, match="design_unknown_input_observer designs for continuous-time"):
+    with pytest.raises(fojax.errors.InputError, match="design_unknown_input_observer designs for continuous-time"):
         fojax.design_unknown_input_observer(plant(), np.array([[0.0], [1.0], [0.0], [0.0]]), L4)
-    with pytest.raises(fojax.InputError, match="design_state_feedback designs for continuous-time"):
+    with pytest.raises(fojax.errors.InputError, match="design_state_feedback designs for continuous-time"):
         fojax.control.design_state_feedback(plant())
 
 
@@ -333,15 +333,15 @@ def test_new_numbers_do_not_recompile():
 def test_simulate_errors():
     s = plant()
     x0 = consistent([1.0, 0.0, 0.0, 0.0], 0.0)
-    with pytest.raises(fojax.InputError, match="t0 \\+ k\\*dt"):
+    with pytest.raises(fojax.errors.InputError, match="t0 \\+ k\\*dt"):
         fojax.simulate(s, x0, 0.05 * jnp.arange(10), U_SIG)
-    with pytest.raises(fojax.InputError, match="steps continuous-time models"):
+    with pytest.raises(fojax.errors.InputError, match="steps continuous-time models"):
         fojax.simulate(s, x0, H * jnp.arange(10), U_SIG, stepper=fojax.Exact())
-    with pytest.raises(fojax.InputError, match="Discrete\\(\\) steps discrete-time plants"):
+    with pytest.raises(fojax.errors.InputError, match="Discrete\\(\\) steps discrete-time plants"):
         fojax.simulate(plant(None), x0, H * jnp.arange(10), U_SIG, stepper=Discrete())
     obs = fojax.design_functional_observer(plant(), L4, kind="proportional").observer
     for other in (0.2, None):  # another period, or a continuous-time observer
-        with pytest.raises(fojax.InputError, match="same sampling period"):
+        with pytest.raises(fojax.errors.InputError, match="same sampling period"):
             fojax.simulate(s, x0, H * jnp.arange(10), U_SIG, observers=dataclasses.replace(obs, dt=other))
 
 

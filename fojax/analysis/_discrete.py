@@ -63,7 +63,7 @@ def is_causal(sys, *, tol: float | None = None, balance: bool = True) -> bool:
 
     **Returns:** ``True`` or ``False``.
 
-    **Raises:** `fojax.IrregularSystemError` for a singular pencil.
+    **Raises:** `fojax.errors.IrregularSystemError` for a singular pencil.
 
     !!! example
 

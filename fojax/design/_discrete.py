@@ -63,7 +63,7 @@ def time_region(sys, region, objective: str = "region"):
     Continuous time (``sys.dt is None``): `region` unchanged, but a `DiscreteDisk` is refused.
     Discrete time: ``None`` gives ``DiscreteDisk(0.0, 0.5)``, a ``(center, radius)`` pair a
     `DiscreteDisk`; the region must lie inside the open unit disk (`inside_unit_disk`), else
-    `fojax.RegionError` naming it; objectives ``"hinf"``/``"h2"`` raise `fojax.InputError`.
+    `fojax.errors.RegionError` naming it; objectives ``"hinf"``/``"h2"`` raise `fojax.errors.InputError`.
     """
     dt = getattr(sys, "dt", None)
     if dt is None:
@@ -97,7 +97,7 @@ def time_region(sys, region, objective: str = "region"):
 def with_dt(design, dt):
     """`design` with `dt` set on its observer and a note in its report (``dt=None``:
     `design` unchanged). Re-checks in float64 that the error eigenvalues are inside the
-    unit disk (`fojax.DesignVerificationError` otherwise; the design's verification has
+    unit disk (`fojax.errors.DesignVerificationError` otherwise; the design's verification has
     already placed them in its region)."""
     if dt is None:
         return design
@@ -114,7 +114,7 @@ def with_dt(design, dt):
 
 
 def continuous_only(sys, fname: str) -> None:
-    """`fojax.InputError` when `sys` is a discrete-time model: `fname` designs continuous-time
+    """`fojax.errors.InputError` when `sys` is a discrete-time model: `fname` designs continuous-time
     observers or controllers only (its regions and certificates are continuous-time)."""
     dt = getattr(sys, "dt", None)
     if dt is not None:

@@ -135,7 +135,7 @@ class DiscreteDisk(Disk):
 
     **Arguments:** `center` $\alpha$ (real), `radius` $\tau > 0$.
 
-    **Raises:** `fojax.RegionError` when the disk is not inside the open unit disk.
+    **Raises:** `fojax.errors.RegionError` when the disk is not inside the open unit disk.
 
     !!! example
 

@@ -28,7 +28,7 @@ coordinates $V^\top x$ its pencil is block triangular with $zI - \Phi$ and $-A_{
 diagonal), its finite poles are $e^{\lambda h}$ for the finite poles $\lambda$ of $(E, A)$,
 and for $E = I$ it is the state-space ZOH: $E_d = I$, $A_d = e^{Ah}$ (what
 `scipy.signal.cont2discrete` returns). Impulsive systems have no ZOH equivalent of this
-kind (the state depends on derivatives of the input): `fojax.ImpulsiveSystemError`.
+kind (the state depends on derivatives of the input): `fojax.errors.ImpulsiveSystemError`.
 
 **Observers (their own dynamics).** A continuous LTI observer
 $\dot\xi = \mathbb A\xi + B_uu + B_yy$, $\hat z = C_\xi\xi + D_uu + D_yy$ (for the
@@ -145,9 +145,9 @@ def discretize(system_or_observer, dt, method: str = "zoh"):
     - for an observer, a `fojax.GeneralizedFunctionalObserver` with ``dt = h`` and error
       eigenvalues $e^{\lambda h}$ ($\lambda$ those of the continuous error matrix).
 
-    **Raises:** `fojax.InputError` (bad `dt`, unknown `method`, an object that is already
-    discrete or not discretizable), `fojax.ImpulsiveSystemError` (an impulsive system),
-    `fojax.IrregularSystemError` (a singular pencil).
+    **Raises:** `fojax.errors.InputError` (bad `dt`, unknown `method`, an object that is already
+    discrete or not discretizable), `fojax.errors.ImpulsiveSystemError` (an impulsive system),
+    `fojax.errors.IrregularSystemError` (a singular pencil).
 
     !!! example
 

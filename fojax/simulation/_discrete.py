@@ -97,7 +97,7 @@ class Discrete(AbstractStepper):
 
 def discrete_stepper(plant, stepper: AbstractStepper) -> AbstractStepper:
     """The stepper `simulate`/`run_study` use for `plant`: `Discrete` for a discrete-time plant
-    when `stepper` is `Auto` or `Discrete` (`fojax.InputError` for any other), else `stepper`."""
+    when `stepper` is `Auto` or `Discrete` (`fojax.errors.InputError` for any other), else `stepper`."""
     if plant_dt(plant) is None:
         return stepper
     if not isinstance(stepper, Auto | Discrete):
