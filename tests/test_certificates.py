@@ -111,11 +111,11 @@ def test_stopped_short_on_every_penalty_is_typed(monkeypatch):
         return out
 
     monkeypatch.setattr(cp.Problem, "solve", inaccurate)
-    with pytest.raises(fojax.SolverStoppedShortError) as ei:
+    with pytest.raises(fojax.errors.SolverStoppedShortError) as ei:
         design_functional_observer(sys_, L, region=Disk(-3.0, 2.5), objective="hinf", Bw=Bw, Dv=Dv,
                                    balance=False, solver="CLARABEL")
     assert "gain penalty 0.01" in ei.value.status and "enlarge" not in str(ei.value)
-    assert not isinstance(ei.value, fojax.LMIInfeasibleError)
+    assert not isinstance(ei.value, fojax.errors.LMIInfeasibleError)
 
 
 # ------------------------------------------------------------------ H2 feedthrough rank rule
@@ -136,7 +136,7 @@ def test_differential_disturbance_has_no_feedthrough_in_any_coordinates():
     for M in (np.eye(5), U, np.diag(2.0 ** rng.integers(-20, 21, 5)) @ U, U @ np.diag(rng.uniform(0.1, 10, 5))):
         dr = rng.uniform(0.1, 10, 5)
         s2, _, Bw2 = _transformed(sys_, L, Bw, M, dr)
-        raw = fojax.e_perp(s2.E) @ Bw2
+        raw = fojax.analysis.e_perp(s2.E) @ Bw2
         assert np.abs(algebraic_channel(s2.E, Bw2)).max() == 0.0, np.abs(raw).max()
         Bw_alg = Bw2 + M @ np.eye(5)[:, [4]] @ np.ones((1, 2))  # a disturbance on the algebraic row
         assert np.linalg.matrix_rank(algebraic_channel(s2.E, Bw_alg)) == 1
@@ -199,7 +199,7 @@ def test_balancing_that_cannot_be_represented_names_the_matrix():
     from fojax.analysis._balance import apply_scaling, Scaling
 
     s = Scaling(np.array([60]), np.array([0]), "ward")
-    with pytest.raises(fojax.DataRangeError, match="largest entry of E") as ei:
+    with pytest.raises(fojax.errors.DataRangeError, match="largest entry of E") as ei:
         apply_scaling(s, np.array([[1e300]]), np.array([[1.0]]))
     assert ei.value.name == "E" and ei.value.magnitude == 1e300
 
@@ -227,10 +227,10 @@ def _ag08bd_regular(E, A):
 def test_nearly_singular_pencil_is_reported_undecidable():
     """Seed 13: fojax's deflation at the default tolerance called it regular, AG08BD singular."""
     E, A = _nearly_singular_4x4(13)
-    with pytest.raises(fojax.NumericallyUndecidableError, match="undecidable at tolerance 1.0e-10") as ei:
+    with pytest.raises(fojax.errors.NumericallyUndecidableError, match="undecidable at tolerance 1.0e-10") as ei:
         is_regular(E, A)
     assert ei.value.tol == 1e-10 and ei.value.deflation_regular != ei.value.ag08bd_regular
-    with pytest.raises(fojax.NumericallyUndecidableError):
+    with pytest.raises(fojax.errors.NumericallyUndecidableError):
         structure_report(fojax.DescriptorSystem(E, A, np.ones((4, 1)), np.ones((1, 4))))
     assert is_regular(E, A, tol=1e-14)  # an explicit tolerance far from the value decides
 
@@ -240,7 +240,7 @@ def test_near_threshold_verdicts_agree_with_the_reference_or_are_undecidable(see
     E, A = _nearly_singular_4x4(seed)
     try:
         verdict = is_regular(E, A)
-    except fojax.NumericallyUndecidableError:
+    except fojax.errors.NumericallyUndecidableError:
         return
     ref = _ag08bd_regular(E, A)
     if verdict != ref:  # AG08BD's own scaling (equil="S") may still differ far from the band

@@ -382,7 +382,7 @@ def apply_scaling(s: Scaling, E, A, B=None, C=None):
     """``(D_l E D_r, D_l A D_r, D_l B, C D_r)`` (exact: powers of two, each entry scaled by
     the sum of its row and column exponents, so no intermediate product overflows).
 
-    Raises `fojax.DataRangeError` naming the matrix when a scaled entry would not be a
+    Raises `fojax.errors.DataRangeError` naming the matrix when a scaled entry would not be a
     finite float64 (balanced data outside ``2^±1024``)."""
     from .._errors import DataRangeError
 

@@ -201,7 +201,7 @@ def deflate(p: Pencil, tol: float | None) -> Deflation:
     of that threshold, the regularity verdict is cross-checked with SLICOT ``AG08BD``
     (normal rank of the same pencil at the same tolerance); if the two disagree the
     pencil is numerically undecidable at that tolerance and
-    `fojax.NumericallyUndecidableError` is raised (never a silent guess).
+    `fojax.errors.NumericallyUndecidableError` is raised (never a silent guess).
     """
     d = _deflate(p, tol)
     if d.nearest is not None and d.nearest[0] < UNDECIDED_BAND:

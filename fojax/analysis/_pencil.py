@@ -124,7 +124,7 @@ def is_regular(sys, A=None, *, tol: float | None = None, balance: bool = True) -
     **Returns:** ``True`` or ``False`` (``True`` for ``n = 0``). Never raises for a
     singular pencil.
 
-    **Raises:** `fojax.NumericallyUndecidableError` when a deciding singular value is
+    **Raises:** `fojax.errors.NumericallyUndecidableError` when a deciding singular value is
     within a factor 100 of the tolerance and SLICOT ``AG08BD`` gives the other verdict
     (`fojax.analysis._common.deflate`): the verdict then depends on the last digits.
     """

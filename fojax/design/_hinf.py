@@ -84,8 +84,8 @@ bound and the design LMI's is returned. Every design reports ``tightness = γ / 
 (H2: ``ν / ‖T‖₂``); `benchmarks/gamma_tightness.py` measures it on a random sweep.
 **Solver stops.** The design LMI adds a small gain penalty to γ (`GAIN_PENALTIES`); when
 the solvers stop short of "optimal" it is retried with a larger penalty, and a solver that
-stops short on every penalty raises `fojax.SolverStoppedShortError` (never
-`fojax.LMIInfeasibleError`, which needs a certificate of infeasibility).
+stops short on every penalty raises `fojax.errors.SolverStoppedShortError` (never
+`fojax.errors.LMIInfeasibleError`, which needs a certificate of infeasibility).
 
 **Deviations from the literature.**
 (1) $Z$ (hence $T$) is *not* optimised: $F = TA\Sigma^+[K;I] - Y_1F_3$ is quadratic in $Z$
