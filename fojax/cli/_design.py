@@ -43,13 +43,13 @@ def design(
     from .._io import folder_manifest, name_problem, NAME_RULE, suggest_name
     from ..design import design_functional_observer, design_ts_observer
     from ..results import (
+        atomic_write_bytes,
         atomic_write_json,
         new_results_folder,
         plot_poles,
         save_design,
         write_report,
     )
-    from ..results._io import atomic_write_bytes
 
     if name is not None and name_problem(name) is not None:  # before any work
         raise InputError(

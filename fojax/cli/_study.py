@@ -238,6 +238,8 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
     from ..analysis import structure_report
     from ..design import design_functional_observer, design_ts_observer
     from ..results import (
+        atomic_write_json,
+        atomic_write_npz,
         plot_error_distributions,
         plot_estimates,
         plot_poles,
@@ -246,7 +248,6 @@ def _study(out, cfg, path, folder, spec, tspec, plan, T, n_steps, *, resumed: bo
         write_metrics,
         write_report,
     )
-    from ..results._io import atomic_write_json, atomic_write_npz
     from . import _study_samples as ss
 
     ow = resumed  # a resumed run replaces the files it regenerates

@@ -294,7 +294,7 @@ def _dcal(s, Bw, Dv, xp=np):
     r1, p = Ep.shape[0], s.C.shape[0]
     EpBw = Ep @ Bw
     if xp is np and EpBw.size:
-        from ..analysis._pencil import algebraic_channel
+        from ..analysis import algebraic_channel
 
         EpBw = algebraic_channel(np.asarray(s.E), Bw, Eperp=Ep)
     top = xp.concatenate([EpBw, xp.zeros((r1, Dv.shape[1]))], axis=1)

@@ -10,7 +10,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ..observer._unknown_input import UnknownInputObserver
+from ..observer import UnknownInputObserver
 from ._base import AbstractDesign
 from ._conditions import (
     unit_free_structure,
