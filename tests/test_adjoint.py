@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 
 from fojax import studies as S
+
+# private: the adjoint passes of the exact kernel are tested themselves
 from fojax.studies import _exact
 from fojax.studies._adjoint import split_recurrence_reduce
 from tests.helpers import small_step_input_study

@@ -40,6 +40,7 @@ def ab13dd(A, B, C, D):
 
 
 def error_system(design, Bw, Dv):
+    # private: the error system's blocks, rebuilt here as the oracle's input
     from fojax.design._hinf import base_mats, error_system as es
 
     s = design.structure
@@ -75,6 +76,7 @@ def test_h2_nu_is_the_returned_observers_own_bound():
 
 def test_observer_gamma_on_a_closed_form():
     """First-order lag 1/(s + a) with feedthrough 0: ‖T‖∞ = 1/a at ω = 0."""
+    # private: tested itself on a closed form
     from fojax.design._hinf import observer_gamma
 
     a = 2.0
@@ -196,6 +198,7 @@ def test_extreme_pencils_get_the_right_verdict_without_warnings(rows):
 
 
 def test_balancing_that_cannot_be_represented_names_the_matrix():
+    # private: tested itself
     from fojax.analysis._balance import apply_scaling, Scaling
 
     s = Scaling(np.array([60]), np.array([0]), "ward")
@@ -244,6 +247,7 @@ def test_near_threshold_verdicts_agree_with_the_reference_or_are_undecidable(see
         return
     ref = _ag08bd_regular(E, A)
     if verdict != ref:  # AG08BD's own scaling (equil="S") may still differ far from the band
+        # private: the deflation's distance to the band is checked
         from fojax.analysis._common import as_pencil, deflate
 
         assert deflate(as_pencil(E, A), None).nearest[0] >= 100.0

@@ -144,6 +144,8 @@ def test_saved_design_of_a_finite_time_observer_is_reloaded(tmp_path):
     from helpers import assert_designs_identical
 
     import fojax
+
+    # private: the CLI's design reader is tested itself
     from fojax.cli._study import _saved_design
     from fojax.config import ObserverSpec
     from fojax.design import Disk
@@ -174,6 +176,8 @@ def test_saved_design_of_the_other_kinds_is_reloaded(tmp_path):
     from helpers import assert_designs_identical
 
     import fojax
+
+    # private: the CLI's design reader is tested itself
     from fojax.cli._study import _saved_design
     from fojax.config import ObserverSpec
 

@@ -326,6 +326,7 @@ def test_sample_plan_runs_any_count_and_reads_back_the_simulated_samples():
     run, and `describe_samples` returns what `Study.sample` substitutes, sample by sample."""
     if not STUDIES:
         pytest.skip("fojax.studies is not available in this version")
+    # private: the drawn samples are checked
     from fojax.cli._study_samples import (
         describe_samples,
         make_study,
@@ -422,6 +423,7 @@ def test_study_tunes_on_the_mean_ise_by_default(runs):
         pytest.skip("fojax study with tuning is not available in this version")
     import jax
 
+    # private: the drawn samples are checked
     import fojax.cli._study_samples as ss
     from fojax.studies import study_loss
     from fojax.tuning import initial_parameters
@@ -630,6 +632,7 @@ def test_a_signal_during_a_checkpoint_write_takes_effect_after_it(tmp_path):
     simulated signal (`_thread.interrupt_main`) did not interrupt: the sleep ran to its end."""
     import inspect
 
+    # private: the checkpoint writer is patched to stop the run
     import fojax.tuning._loop as tune_module
     from fojax.cli._signals import Interrupts as _Interrupts
 

@@ -137,6 +137,7 @@ def test_study_json(tmp_path, capsys):
 
 
 def test_design_without_matplotlib_writes_everything_but_the_figures(tmp_path, capsys, monkeypatch):
+    # private: Matplotlib's absence is simulated in the plots module
     import fojax.results._plots as plots
 
     monkeypatch.setattr(plots, "matplotlib_available", lambda: False)

@@ -250,6 +250,7 @@ class _SignalInFinalizer:
 
 
 def test_an_interruption_swallowed_by_a_finalizer_is_raised_again(default_handlers, capfd):
+    # private: the signal handling is tested itself
     from fojax.cli._signals import Interrupts
 
     with Interrupts() as interrupts, pytest.raises(KeyboardInterrupt):
@@ -268,6 +269,7 @@ def test_an_interruption_is_not_raised_inside_the_unraisable_hook(default_handle
     KeyboardInterrupt landed in the hook, was swallowed as well ("Exception ignored in
     sys.unraisablehook") and the command ran on. Here the main thread is held in the hook for
     0.3 s, as a descheduled one would be; the helper now waits until it has left."""
+    # private: the signal handling is tested itself
     from fojax.cli._signals import Interrupts
 
     start = threading.Thread.start
@@ -289,6 +291,7 @@ def test_an_interruption_is_not_raised_inside_the_unraisable_hook(default_handle
 def test_a_command_that_got_a_signal_never_exits_0(default_handlers, monkeypatch, capsys):
     """Even if the command runs on to its end (its interruption swallowed somewhere
     `Interrupts` cannot see), `main` returns 128 + signum with one line."""
+    # private: a command is replaced to swallow the interruption
     from fojax.cli import _check, main
 
     def examples(quiet=False):
@@ -321,6 +324,7 @@ def test_ctrl_c_during_an_scs_solve_is_a_keyboard_interrupt():
     `LMIInfeasibleError` ('solver_error') and Python never saw the Ctrl-C."""
     import cvxpy as cp
 
+    # private: the solver wrapper is tested itself
     from fojax.design import _lmi
 
     rng = np.random.default_rng(0)

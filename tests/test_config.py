@@ -260,6 +260,7 @@ def test_balance_key_reaches_the_unknown_input_design(tmp_path):
     """``balance = true`` on an ``unknown-input`` observer reaches
     `design_unknown_input_observer` through the CLI's design step (the design is the unit-free
     one: ``solver["balance"]`` holds the factors)."""
+    # private: the CLI's per-observer design step is tested itself
     from fojax.cli._design import _design_observer
 
     d = base()
@@ -390,6 +391,7 @@ def test_valid_names_and_the_default_model_name(tmp_path):
     assert load_config(write(tmp_path, d, "my model (v2).toml")).name == "my_model_v2_"
     assert load_config(write(tmp_path, d, "..toml")).name == "model"
     assert load_config(write(tmp_path, d, "con.toml")).name == "con_"
+    # private: the file-name rule is tested itself
     from fojax._io import name_problem
 
     assert name_problem("a\\b") == "it contains a path separator ('/' or '\\')"

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+# private: the kernel's parts are tested themselves
 from fojax.simulation._exponential import _matvec_batch, phi_functions
 
 

@@ -485,6 +485,7 @@ def test_plots_without_matplotlib_name_the_extra(monkeypatch):
 @pytest.mark.skipif(os.name != "posix", reason="POSIX permission bits")
 @pytest.mark.parametrize("umask", [0o022, 0o027, 0o077], ids=["022", "027", "077"])
 def test_files_get_the_mode_the_umask_gives(tmp_path, umask):
+    # private: the runner's writer is tested itself
     from fojax.studies._runner import _atomic_write
 
     old = os.umask(umask)
@@ -502,6 +503,7 @@ def test_files_get_the_mode_the_umask_gives(tmp_path, umask):
 
 
 def test_nothing_is_written_outside_a_results_folder(tmp_path, design):
+    # private: the runner's writer is tested itself
     from fojax.studies._runner import _atomic_write
 
     folder = new_results_folder(tmp_path / "out", name="run")
@@ -604,6 +606,7 @@ def test_load_design_of_a_config_file_says_what_it_is(tmp_path):
 
 
 def test_a_continued_run_keeps_the_manifest_of_the_first(tmp_path):
+    # private: the manifest writer is tested itself
     from fojax._io import register_results_folder
 
     folder = new_results_folder(tmp_path, name="run")

@@ -17,6 +17,8 @@ from test_study_exponential import make_study, OBSERVER, oracle, SETTLE_TOL
 
 import fojax
 from fojax.studies import SimConfig, study_loss
+
+# private: the no-retrace check
 from fojax.studies._exponential import TRACE_COUNTS
 
 
@@ -105,6 +107,7 @@ def test_traced_study_with_resolved_schedule_equals_the_concrete_path_and_does_n
 def test_traced_study_without_schedule_does_not_take_the_exponential_engine(study):
     # without resolve_engine a traced study cannot be checked on the host: exponential_metrics_traced
     # refuses it (study_loss then falls back to vmap(simulate))
+    # private: tested itself
     from fojax.studies._exponential import exponential_metrics_traced
 
     seen = []

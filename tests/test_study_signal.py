@@ -24,6 +24,8 @@ import scipy.linalg
 
 import fojax
 from fojax import studies as S
+
+# private: the batch kernel's signal handling is tested itself
 from fojax.simulation import _batch
 
 

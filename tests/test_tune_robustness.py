@@ -34,6 +34,8 @@ import fojax
 from fojax import studies as S, tuning
 from fojax.design import design_functional_observer, Disk
 from fojax.errors import InputError
+
+# private: TRACE_COUNTS: the no-retrace check
 from fojax.tuning import _tune
 
 
@@ -197,6 +199,7 @@ robustness = { hinf = 2, h2 = 0.5 }
 def test_config_key_and_the_study_command_helpers(scalar_runs):
     import tomllib
 
+    # private: the CLI's robustness lines are tested
     from fojax.cli._study import _robustness_line, _robustness_terms
     from fojax.config import parse_config
     from fojax.errors import ConfigError

@@ -18,6 +18,8 @@ from helpers import uncertain_plant_3_3_7
 import fojax
 from fojax import studies as S, tuning
 from fojax.design import design_functional_observer, Disk
+
+# private: TRACE_COUNTS: the no-retrace check
 from fojax.studies import _exponential
 from fojax.tuning import _tune
 
@@ -62,6 +64,7 @@ def test_tune_over_several_devices_refuses_a_study_off_the_exact_engine(setup):
     patrick-kidger/diffrax#765): measured on this study and on the Takagi–Sugeno robot arm
     before the check. `tune` now refuses before compiling anything, naming `devices`, and
     `fojax study` passes one device for such a study."""
+    # private: the device rule is tested itself
     from fojax.cli import _distributed
 
     d, study = setup
