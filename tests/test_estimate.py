@@ -118,23 +118,23 @@ def test_new_data_does_not_recompile():
 
 def test_errors_are_typed_and_clear():
     design, ts, u, y, _ = _record(T=21, horizon=1.0)
-    with pytest.raises(fojax.ShapeError, match=r"y has shape \(20, 2\), expected \(21, 2\)"):
+    with pytest.raises(fojax.errors.ShapeError, match=r"y has shape \(20, 2\), expected \(21, 2\)"):
         fojax.estimate(design, ts, u, y[:-1])
-    with pytest.raises(fojax.ShapeError, match=r"u has shape \(21, 3\), expected \(21, 2\)"):
+    with pytest.raises(fojax.errors.ShapeError, match=r"u has shape \(21, 3\), expected \(21, 2\)"):
         fojax.estimate(design, ts, np.hstack([u, u[:, :1]]), y)
     bad = y.copy()
     bad[7, 1] = np.nan
-    with pytest.raises(fojax.NonFiniteError, match=r"y contains 1 non-finite.*first at index \(7, 1\)"):
+    with pytest.raises(fojax.errors.NonFiniteError, match=r"y contains 1 non-finite.*first at index \(7, 1\)"):
         fojax.estimate(design, ts, u, bad)
     t2 = ts.copy()
     t2[5] = t2[4]
-    with pytest.raises(fojax.InputError, match=r"strictly increasing; ts\[5\]"):
+    with pytest.raises(fojax.errors.InputError, match=r"strictly increasing; ts\[5\]"):
         fojax.estimate(design, t2, u, y)
-    with pytest.raises(fojax.InputError, match="interpolation"):
+    with pytest.raises(fojax.errors.InputError, match="interpolation"):
         fojax.estimate(design, ts, u, y, interpolation="cubic")
-    with pytest.raises(fojax.InputError, match="at least two samples"):
+    with pytest.raises(fojax.errors.InputError, match="at least two samples"):
         fojax.estimate(design, ts[:1], u[:1], y[:1])
-    with pytest.raises(fojax.InputError, match="observer or a design"):
+    with pytest.raises(fojax.errors.InputError, match="observer or a design"):
         fojax.estimate("observer", ts, u, y)
     # traced data: the same checks inside XLA
     with pytest.raises(Exception, match="strictly increasing"):
@@ -161,5 +161,5 @@ def test_discrete_time_observer_runs_its_recursion():
     # the same as the continuous observer with a zero-order hold on the same grid
     np.testing.assert_allclose(fojax.estimate(obs, ts, u, y),
                                fojax.estimate(design, ts, u, y, interpolation="zoh"), rtol=1e-9, atol=1e-10)
-    with pytest.raises(fojax.InputError, match="dt apart"):
+    with pytest.raises(fojax.errors.InputError, match="dt apart"):
         fojax.estimate(obs, ts[::2], u[::2], y[::2])

@@ -92,7 +92,7 @@ def test_feedthrough_in_simulation_and_in_augment_faults():
         np.testing.assert_allclose(sol.ys, sol.xs @ np.asarray(sys_.C).T + sol.us @ D.T, atol=1e-10)
         e = np.abs(np.asarray(sol.estimates[0] - sol.xs @ L.T))
         assert e[-1].max() < 1e-3 * e[0].max()
-    aug = fojax.augment_faults(sys_, Fs=np.eye(3)[:, :1])
+    aug = fojax.plant.augment_faults(sys_, Fs=np.eye(3)[:, :1])
     np.testing.assert_array_equal(np.asarray(aug.D), D)
 
 
@@ -116,9 +116,9 @@ def test_descriptor_export_is_its_exact_state_space_equivalent():
 def test_impulsive_and_irregular_systems_are_refused():
     E = np.array([[0.0, 1.0], [0.0, 0.0]])
     A = np.eye(2)
-    with pytest.raises(fojax.ImpulsiveSystemError):
+    with pytest.raises(fojax.errors.ImpulsiveSystemError):
         to_control(fojax.DescriptorSystem(E, A, np.ones((2, 1)), np.ones((1, 2))))
-    with pytest.raises(fojax.IrregularSystemError):
+    with pytest.raises(fojax.errors.IrregularSystemError):
         to_control(fojax.DescriptorSystem(np.diag([1.0, 0.0]), np.diag([1.0, 0.0]), np.ones((2, 1))))
 
 
@@ -161,26 +161,26 @@ def test_every_observer_kind_exports_with_inputs_u_y():
 def test_takagi_sugeno_observer_export_names_the_rule_fix():
     ex = fojax.models.robot_arm_ts()
     d = fojax.design_ts_observer(ex.system, np.asarray(ex.system.C)[:1])
-    with pytest.raises(fojax.InputError, match=r"observer\.rule\(i\)"):
+    with pytest.raises(fojax.errors.InputError, match=r"observer\.rule\(i\)"):
         to_control(d)
     assert to_control(d.observer.rule(0)).ninputs == ex.system.m + ex.system.p
 
 
 def test_wrong_objects_get_clear_errors():
     P, _ = _plant()
-    with pytest.raises(fojax.InputError, match="from_control"):
+    with pytest.raises(fojax.errors.InputError, match="from_control"):
         fojax.DescriptorSystem(P)
-    with pytest.raises(fojax.InputError, match="from_control"):
+    with pytest.raises(fojax.errors.InputError, match="from_control"):
         fojax.DescriptorSystem.from_state_space(P)
-    with pytest.raises(fojax.InputError, match="from_scipy"):
+    with pytest.raises(fojax.errors.InputError, match="from_scipy"):
         fojax.DescriptorSystem.from_state_space(sig.StateSpace(P.A, P.B, P.C, P.D))
-    with pytest.raises(fojax.InputError, match="from_scipy"):
+    with pytest.raises(fojax.errors.InputError, match="from_scipy"):
         from_control(sig.StateSpace(P.A, P.B, P.C, P.D))
-    with pytest.raises(fojax.InputError, match="from_control"):
+    with pytest.raises(fojax.errors.InputError, match="from_control"):
         from_scipy(P)
-    with pytest.raises(fojax.ShapeError, match="D has shape"):
+    with pytest.raises(fojax.errors.ShapeError, match="D has shape"):
         fojax.DescriptorSystem(np.eye(2), np.eye(2), np.ones((2, 1)), np.ones((1, 2)), np.ones((2, 1)))
-    with pytest.raises(fojax.InputError, match="DescriptorSystem"):
+    with pytest.raises(fojax.errors.InputError, match="DescriptorSystem"):
         to_control("not a model")
 
 
@@ -207,18 +207,18 @@ def test_load_mat_reads_any_case_and_defaults(tmp_path):
 def test_load_mat_errors_name_the_variable(tmp_path):
     f = tmp_path / "bad.mat"
     scipy.io.savemat(f, {"A": -np.eye(2), "C": np.ones((1, 2))})
-    with pytest.raises(fojax.InputError, match=r"no variable 'B'.*it has: A, C"):
+    with pytest.raises(fojax.errors.InputError, match=r"no variable 'B'.*it has: A, C"):
         load_mat(f)
     scipy.io.savemat(f, {"A": -np.eye(2), "a": -np.eye(2), "B": np.ones((2, 1)), "C": np.ones((1, 2))})
-    with pytest.raises(fojax.InputError, match="both 'A' and 'a'"):
+    with pytest.raises(fojax.errors.InputError, match="both 'A' and 'a'"):
         load_mat(f)
     scipy.io.savemat(f, {"A": -np.eye(2), "B": np.ones((3, 1)), "C": np.ones((1, 2))})
-    with pytest.raises(fojax.ShapeError, match="B has shape"):
+    with pytest.raises(fojax.errors.ShapeError, match="B has shape"):
         load_mat(f)
-    with pytest.raises(fojax.InputError, match="no .mat file"):
+    with pytest.raises(fojax.errors.InputError, match="no .mat file"):
         load_mat(tmp_path / "missing.mat")
     (tmp_path / "text.mat").write_text("not a mat file")
-    with pytest.raises(fojax.InputError, match="not a readable MATLAB"):
+    with pytest.raises(fojax.errors.InputError, match="not a readable MATLAB"):
         load_mat(tmp_path / "text.mat")
 
 
@@ -264,13 +264,13 @@ def test_config_model_from_a_mat_file(tmp_path):
     for k in "EABCD":
         np.testing.assert_array_equal(np.asarray(getattr(s, k)), mats[k])
     cfg.write_text('[model]\nmat = "plant.mat"\nA = [[1.0]]\nL = [[1.0, 0.0, 0.0]]\n')
-    with pytest.raises(fojax.ConfigError, match="model.A.*inline and as variable"):
+    with pytest.raises(fojax.errors.ConfigError, match="model.A.*inline and as variable"):
         fojax.load_config(cfg)
     cfg.write_text('[model]\nmat = "nope.mat"\nL = [[1.0, 0.0, 0.0]]\n')
-    with pytest.raises(fojax.ConfigError, match="model.mat.*no .mat file"):
+    with pytest.raises(fojax.errors.ConfigError, match="model.mat.*no .mat file"):
         fojax.load_config(cfg)
     cfg.write_text("[model]\nE = [[1.0]]\nA = [[-1.0]]\nB = [[1.0]]\nC = [[1.0]]\nD = [[1.0, 2.0]]\nL = [[1.0]]\n")
-    with pytest.raises(fojax.ConfigError, match=r"model.D.*expected \(1, 1\)"):
+    with pytest.raises(fojax.errors.ConfigError, match=r"model.D.*expected \(1, 1\)"):
         fojax.load_config(cfg)
 
 
@@ -302,8 +302,8 @@ def test_saved_design_with_D_round_trips_and_tunes_with_the_fold(tmp_path):
 def test_closed_loops_refuse_a_plant_with_feedthrough():
     sys0, L, _, _ = random_descriptor(3)
     design = fojax.design_functional_observer(sys0, np.ones((1, 5)))
-    with pytest.raises(fojax.InputError, match="feedthrough"):
-        fojax.closed_loop(sys0.replace(D=np.ones((3, 1))), design)
+    with pytest.raises(fojax.errors.InputError, match="feedthrough"):
+        fojax.control.closed_loop(sys0.replace(D=np.ones((3, 1))), design)
 
 
 def test_study_of_a_plant_with_feedthrough():
@@ -328,7 +328,7 @@ def test_study_of_a_plant_with_feedthrough():
 def test_system_zeros_use_the_feedthrough():
     """Invariant zeros of a model with D: python-control's `control.zeros` as oracle."""
     P, _ = _plant(seed=9, m=1, p=1)
-    zeros = fojax.system_zeros(from_control(P)).invariant_zeros
+    zeros = fojax.analysis.system_zeros(from_control(P)).invariant_zeros
     want = control.zeros(P)
     assert len(want) == 4 and len(zeros) == 4  # D != 0: n finite zeros
     assert_eigenvalues_match(zeros, want, rtol=1e-8)

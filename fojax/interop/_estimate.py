@@ -7,7 +7,7 @@ Between two samples $t_k < t_{k+1}$ (step $h_k$) the signal $v = [u; y]$ is take
 - ``interpolation="zoh"`` (zero-order hold): the constant $v_k$.
 
 For that signal the observer $\dot\xi = A_o\xi + B_o v$, $\hat z = C_o\xi + D_o v$
-(`fojax.AbstractObserver.linear_matrices`, $B_o = [B_u\;B_y]$, $D_o = [D_u\;D_y]$) is
+(`fojax.observer.AbstractObserver.linear_matrices`, $B_o = [B_u\;B_y]$, $D_o = [D_u\;D_y]$) is
 stepped exactly:
 
 $$\xi_{k+1} = e^{A_o h_k}\xi_k + \int_0^{h_k} e^{A_o(h_k - s)} B_o\, v(t_k + s)\,\mathrm ds,$$
@@ -87,8 +87,8 @@ def estimate(observer, ts, u, y, *, xi0=None, interpolation: str = "linear"):
 
     **Returns:** ``(T, q)`` estimates $\hat z(t_k)$.
 
-    **Raises:** `fojax.ShapeError` (lengths or widths that do not match ``ts`` and the
-    observer), `fojax.NonFiniteError` (NaN or infinite samples), `fojax.InputError`
+    **Raises:** `fojax.errors.ShapeError` (lengths or widths that do not match ``ts`` and the
+    observer), `fojax.errors.NonFiniteError` (NaN or infinite samples), `fojax.errors.InputError`
     (times not strictly increasing, fewer than two samples, a nonlinear observer, an
     unknown interpolation). With traced data (under ``jit``/``vmap``) the value checks
     run inside XLA as `equinox` runtime errors with the same messages.

@@ -62,9 +62,9 @@ def load_mat(path) -> tuple[DescriptorSystem, np.ndarray | None]:
     **Returns:** ``(system, L)``: the `fojax.DescriptorSystem` and ``L`` as a float64
     array (``None`` when the file has none).
 
-    **Raises:** `fojax.InputError` naming a missing variable (and listing the ones the
+    **Raises:** `fojax.errors.InputError` naming a missing variable (and listing the ones the
     file has), a file that is not a .mat file, or two spellings of one name;
-    `fojax.ShapeError` / `fojax.NonFiniteError` for matrices of the wrong shape or with
+    `fojax.errors.ShapeError` / `fojax.errors.NonFiniteError` for matrices of the wrong shape or with
     non-finite entries (as `fojax.DescriptorSystem`).
 
     !!! example
@@ -132,7 +132,7 @@ def save_mat(path, design_or_system, *, overwrite: bool = False) -> pathlib.Path
     **Arguments:**
 
     - `path`: the file (conventionally ``*.mat``); its directory must exist. Inside a
-      results folder the path must stay inside it (`fojax.UnsafePathError`).
+      results folder the path must stay inside it (`fojax.errors.UnsafePathError`).
     - `design_or_system`: a `fojax.DescriptorSystem` (``E, A, B, C, D``), an observer
       (its matrices, e.g. ``N, J, F, H, S, G, M, P, Q, Wu, Wy``, and ``Ao, Bo, Co, Do``:
       the observer as one state-space system with inputs ``[u; y]`` and output ``ẑ``)

@@ -22,14 +22,14 @@ with $E = I$ unless an ``(n, n)`` `E` is given.
     y = (C_1 - C_2\tilde A_{22}^{-1}\tilde A_{21})x_1 + (D - C_2\tilde A_{22}^{-1}\tilde B_2)u,$$
 
   whose transfer function equals $C(sE - A)^{-1}B + D$ at every $s$ (the fast
-  subsystem contributes the static feedthrough). It is `fojax.reduce_index1`
+  subsystem contributes the static feedthrough). It is `fojax.simulation.reduce_index1`
   (``As, Bs, Cs, Ds``); its state is $x_1 = V_1^\top x$. A singular pencil raises
-  `fojax.IrregularSystemError`, an impulsive one `fojax.ImpulsiveSystemError`.
+  `fojax.errors.IrregularSystemError`, an impulsive one `fojax.errors.ImpulsiveSystemError`.
 - every linear observer (generalized, proportional, PI, unknown-input, the
   finite-time observer's running estimate, a design's observer) as the system with
   inputs $[u; y]$ and output the estimate $\hat z$:
   $\dot\xi = A_o\xi + [B_u\;B_y][u; y]$, $\hat z = C_o\xi + [D_u\;D_y][u; y]$
-  (`fojax.AbstractObserver.linear_matrices`). A Takagi–Sugeno observer is not linear:
+  (`fojax.observer.AbstractObserver.linear_matrices`). A Takagi–Sugeno observer is not linear:
   export one rule (`observer.rule(i)`).
 """
 
@@ -71,8 +71,8 @@ def from_control(sys, E=None) -> DescriptorSystem:
     **Returns:** the `fojax.DescriptorSystem` with the model's $A, B, C, D$ (its `dt`
     carried over when fojax supports discrete time).
 
-    **Raises:** `fojax.InputError` when `sys` is not a python-control LTI model;
-    `fojax.ShapeError` for an `E` of the wrong shape.
+    **Raises:** `fojax.errors.InputError` when `sys` is not a python-control LTI model;
+    `fojax.errors.ShapeError` for an `E` of the wrong shape.
 
     !!! example
 
@@ -105,7 +105,7 @@ def from_scipy(sys, E=None) -> DescriptorSystem:
 
     **Returns:** the `fojax.DescriptorSystem`.
 
-    **Raises:** `fojax.InputError` for anything else.
+    **Raises:** `fojax.errors.InputError` for anything else.
     """
     from scipy import signal
 
@@ -128,11 +128,11 @@ def state_space(obj) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     **Arguments:**
 
     - `obj`: a `fojax.DescriptorSystem` (``E = I``, or regular and impulse-free: its exact
-      state-space equivalent), a linear `fojax.AbstractObserver` (inputs ``[u; y]``,
+      state-space equivalent), a linear `fojax.observer.AbstractObserver` (inputs ``[u; y]``,
       output ``ẑ``) or a design result (its observer).
 
-    **Raises:** `fojax.IrregularSystemError`, `fojax.ImpulsiveSystemError` (a descriptor
-    system without a state-space equivalent); `fojax.InputError` for a nonlinear or
+    **Raises:** `fojax.errors.IrregularSystemError`, `fojax.errors.ImpulsiveSystemError` (a descriptor
+    system without a state-space equivalent); `fojax.errors.InputError` for a nonlinear or
     time-varying observer or another object.
     """
     from ..observer._base import AbstractObserver
