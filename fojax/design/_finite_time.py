@@ -16,8 +16,8 @@ from .._errors import (
     RegionError,
 )
 from .._linalg import row_space
-from ..observer._finite_time import FiniteTimeObserver
-from ..plant._descriptor import DescriptorSystem
+from ..observer import FiniteTimeObserver
+from ..plant import DescriptorSystem
 from . import _lmi
 from ._base import AbstractDesign, with_feedthrough
 from ._conditions import check_detectability, unobservable_modes
@@ -249,7 +249,7 @@ def design_finite_time_observer(
         return with_feedthrough(_design_ft(sys, L, R=None, q0=None, **kw), sys.D)
     except (*LMI_FAILURES, DesignVerificationError, ExistenceConditionError) as first:
         E, A, C = (np.asarray(x) for x in (sys.E, sys.A, sys.C))
-        from ..analysis._pencil import e_perp  # analysis decides the rank of E (balanced)
+        from ..analysis import e_perp  # analysis decides the rank of E (balanced)
 
         Ep = e_perp(E)
         R_full = row_space(np.vstack([E, Ep @ A, C]))

@@ -224,7 +224,7 @@ def observer_structure(
     if psi == "output":
         Ep = jnp.zeros((0, n))
     elif Eperp is None:
-        from ..analysis._pencil import e_perp  # analysis decides the rank of E (balanced)
+        from ..analysis import e_perp  # analysis decides the rank of E (balanced)
 
         Ep = jnp.asarray(e_perp(np.asarray(E)))
     else:

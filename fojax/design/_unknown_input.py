@@ -102,8 +102,8 @@ from .._errors import (
     ShapeError,
 )
 from .._linalg import canonical_row_space, rank
-from ..observer._unknown_input import UnknownInputObserver
-from ..plant._descriptor import check_functional, DescriptorSystem
+from ..observer import UnknownInputObserver
+from ..plant import check_functional, DescriptorSystem
 from . import _ladder, _lmi
 from ._base import with_feedthrough
 from ._conditions import (
@@ -451,7 +451,7 @@ def _balanced_design(E, A, B, C, D, L, R, **kw) -> UnknownInputObserverDesign:
 
 def _design(E, A, B, C, D, L, R, *, region, q0, q1, margin, solver) -> UnknownInputObserverDesign:
     """The design on the data as given (`design_unknown_input_observer`, after its checks of the input)."""
-    from ..analysis._pencil import (
+    from ..analysis import (
         e_perp,  # analysis decides rank [E D] (balanced, blocks normalised)
     )
 

@@ -1,6 +1,8 @@
-"""Models, designs and data from and to other tools: python-control and SciPy
-state-space models (`from_control`, `to_control`, `from_scipy`, `to_scipy`), MATLAB
-``.mat`` files (`load_mat`, `save_mat`) and recorded ``(u, y)`` logs (`estimate`); sampled-data equivalents (`discretize`)."""
+"""Models, designs and data from and to other tools: python-control, SciPy, MATLAB ``.mat``
+files, recorded ``(u, y)`` logs (`estimate`) and sampled-data equivalents (`discretize`).
+
+State-space models: `from_control`, `to_control`, `from_scipy`, `to_scipy`, `state_space`;
+``.mat`` files: `load_mat`, `save_mat`."""
 
 from ._discretize import discretize as discretize
 from ._estimate import estimate as estimate

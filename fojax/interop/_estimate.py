@@ -38,7 +38,7 @@ INTERPOLATIONS = ("linear", "zoh")
 
 
 def _observer(obj):
-    from ..observer._base import AbstractObserver
+    from ..observer import AbstractObserver
 
     obs = obj if isinstance(obj, AbstractObserver) else getattr(obj, "observer", None)
     if not isinstance(obs, AbstractObserver):

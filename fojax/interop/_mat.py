@@ -17,7 +17,7 @@ import pathlib
 import numpy as np
 
 from .._errors import InputError
-from ..plant._descriptor import DescriptorSystem
+from ..plant import DescriptorSystem
 
 
 #: The model variables `load_mat` reads; the first three are required.
@@ -90,7 +90,7 @@ def load_mat(path) -> tuple[DescriptorSystem, np.ndarray | None]:
     system = DescriptorSystem(E, A, get("B"), get("C"), get("D"))
     L = get("L")
     if L is not None:
-        from ..plant._descriptor import check_functional
+        from ..plant import check_functional
 
         L = np.asarray(check_functional(system, L))
     return system, L
@@ -98,7 +98,7 @@ def load_mat(path) -> tuple[DescriptorSystem, np.ndarray | None]:
 
 def mat_variables(obj) -> dict[str, np.ndarray]:
     """The variables `save_mat` writes for `obj` (a plant, an observer or a design)."""
-    from ..observer._base import AbstractObserver
+    from ..observer import AbstractObserver
     from ._state_space import state_space
 
     out: dict[str, np.ndarray] = {}

@@ -38,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._errors import InputError
-from ..plant._descriptor import DescriptorSystem
+from ..plant import DescriptorSystem
 
 
 def _np(x) -> np.ndarray:
@@ -135,14 +135,14 @@ def state_space(obj) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     system without a state-space equivalent); `fojax.errors.InputError` for a nonlinear or
     time-varying observer or another object.
     """
-    from ..observer._base import AbstractObserver
+    from ..observer import AbstractObserver
 
     obj = getattr(obj, "observer", obj) if not isinstance(obj, DescriptorSystem | AbstractObserver) else obj
     if isinstance(obj, DescriptorSystem):
         E = _np(obj.E)
         if np.array_equal(E, np.eye(E.shape[0])):
             return _np(obj.A), _np(obj.B), _np(obj.C), _np(obj.D)
-        from ..simulation._reduction import reduce_index1
+        from ..simulation import reduce_index1
 
         red = reduce_index1(obj)
         return _np(red.As), _np(red.Bs), _np(red.Cs), _np(red.Ds)
@@ -162,7 +162,7 @@ def state_space(obj) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
 
 def _names(obj):
     """``(inputs, outputs)`` signal names of an observer export, else ``(None, None)``."""
-    from ..observer._base import AbstractObserver
+    from ..observer import AbstractObserver
 
     obs = getattr(obj, "observer", obj)
     if not isinstance(obs, AbstractObserver) or isinstance(obj, DescriptorSystem):
