@@ -531,7 +531,7 @@ DT_REFUSED = [
 @pytest.mark.parametrize("changes,key,what", DT_REFUSED, ids=[d[1] + ":" + d[2][:16] for d in DT_REFUSED])
 def test_discrete_model_keys_are_checked(tmp_path, changes, key, what):
     p = write(tmp_path, _discrete(**changes))
-    with pytest.raises(fojax.ConfigError, match=what) as info:
+    with pytest.raises(fojax.errors.ConfigError, match=what) as info:
         load_config(p)
     assert info.value.key == key
 
