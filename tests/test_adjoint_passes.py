@@ -15,6 +15,8 @@ import pytest
 
 import fojax
 from fojax import studies as S
+
+# private: the adjoint passes of the exact kernel are tested themselves
 from fojax.studies import _adjoint, _exact
 from tests.helpers import small_step_input_study
 

@@ -334,6 +334,7 @@ def test_example_4_1_3_in_tiny_units_of_x4_is_regular_again():
     import tomllib
     from importlib.resources import files
 
+    # private: design's own regularity check is compared with analysis's
     from fojax.design._conditions import check_regular
 
     d = tomllib.loads(files("fojax.examples").joinpath("example_4_1_3.toml").read_text())

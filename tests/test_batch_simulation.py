@@ -29,6 +29,8 @@ from helpers import count_equations
 
 import fojax
 from fojax.simulation import simulate_lti_batch
+
+# private: TRACE_COUNTS, the no-retrace check, and the kernel's parts
 from fojax.simulation._batch import TRACE_COUNTS
 
 
@@ -226,6 +228,7 @@ def test_output_coordinates_path_matches_scipy(batch_result):
     # y - xi (2 rows)): the kernel steps in output coordinates; check against SciPy.
     params, x0, out, _ = batch_result
     few = {"iae_x": ("iae", MX), "ise_e": ("ise", ME)}
+    # private: tested itself
     from fojax.simulation._batch import _output_basis
 
     # the path is really taken: rows 0, 1, 2 of |x| and both error rows are independent

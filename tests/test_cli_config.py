@@ -427,6 +427,8 @@ def test_study_tunes_on_the_mean_ise_by_default(runs):
     import fojax.cli._study_samples as ss
     from fojax.studies import study_loss
     from fojax.tuning import initial_parameters
+
+    # private: the barrier's default is checked
     from fojax.tuning._tune import _DEFAULT_BARRIER
 
     r = runs["study"]

@@ -295,6 +295,7 @@ def test_a_command_that_got_a_signal_never_exits_0(default_handlers, monkeypatch
     from fojax.cli import _check, main
 
     def examples(quiet=False):
+        # private: the running command's interruption state is set
         import fojax.cli._signals as sigs
 
         sigs._current._raised = True  # as if the KeyboardInterrupt had been swallowed

@@ -1025,6 +1025,7 @@ def test_infeasible_status_is_refused(sys413, monkeypatch):
 def test_one_infeasibility_certificate_decides_the_ladder():
     """`combined_failure`: a ladder whose rungs all failed is infeasible when one rung showed
     infeasibility, else it stopped short."""
+    # private: tested itself
     from fojax._errors import combined_failure
 
     short = fojax.errors.SolverStoppedShortError("x", "optimal_inaccurate", {})

@@ -320,6 +320,7 @@ def test_simulate_vmap_and_grad():
 
 
 def test_new_numbers_do_not_recompile():
+    # private: TRACE_COUNTS, the no-retrace check
     from fojax.simulation._discrete import TRACE_COUNTS
 
     ts = H * jnp.arange(20)

@@ -12,6 +12,8 @@ from jax.sharding import Mesh, PartitionSpec
 import fojax
 from fojax import studies as S
 from fojax.design import design_functional_observer, Disk
+
+# private: the implicit solver is tested itself
 from fojax.simulation._implicit import (
     default_implicit_solver,
     lu_factor_small,

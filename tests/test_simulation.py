@@ -28,6 +28,8 @@ from scipy.integrate import solve_ivp
 
 import fojax
 from fojax.observer import AbstractObserver, LinearObserverMatrices
+
+# private: TRACE_COUNTS, the no-retrace check
 from fojax.simulation._simulate import TRACE_COUNTS
 
 

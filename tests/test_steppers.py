@@ -27,6 +27,8 @@ from closed_loop_413 import ACL, AO, B0, BY, C0, DA, E, LTIObserver, X0
 import fojax
 from fojax import studies as S
 from fojax.plant import as_signal
+
+# private: the kernels' internals are checked
 from fojax.simulation import _batch, _simulate, simulate_lti_batch
 from fojax.simulation._save import error_metrics, METRIC_NAMES
 from fojax.studies._runner import SimConfig
@@ -332,6 +334,8 @@ class _Model:
 
 def test_one_uniform_grid_test_for_every_entry():
     from fojax.simulation import simulate_batch_exponential
+
+    # private: tested itself
     from fojax.simulation._steppers import grid_deviation
 
     assert grid_deviation(np.linspace(0.0, 1.0, 11))[0] <= 1e-12

@@ -11,6 +11,8 @@ from helpers import uncertain_plant_3_3_7
 import fojax
 from fojax import studies as S
 from fojax.design import design_functional_observer, Disk
+
+# private: the runner's band quantiles, metrics and TRACE_COUNTS are checked
 from fojax.studies import _runner
 
 
@@ -130,6 +132,7 @@ def test_compiled_samplers_draw_the_eager_bits_and_compile_once_per_shape():
     (issue 13: eagerly every jax.random primitive compiled on its own). Oracle: the same
     jax.random calls made eagerly here, compared byte for byte (the sign of zero included);
     new ranges and keys do not compile again."""
+    # private: the families' internals are checked
     from fojax.studies import _families
 
     def eager_faults(key, count, nf, magnitude, onset, rise, which):

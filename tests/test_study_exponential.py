@@ -21,6 +21,8 @@ import fojax
 from fojax import studies as S
 from fojax.errors import InputError
 from fojax.plant import FaultProfile, FaultyPlant
+
+# private: the exponential kernel is tested itself
 from fojax.simulation import _batch, _exponential
 from fojax.studies._exponential import exponential_problem
 from fojax.studies._families import Family

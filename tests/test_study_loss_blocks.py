@@ -16,6 +16,8 @@ import pytest
 
 import fojax
 from fojax import studies as S
+
+# private: the exact study kernel is tested itself
 from fojax.studies import _exact
 from tests.helpers import small_step_input_study
 

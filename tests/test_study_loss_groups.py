@@ -18,6 +18,8 @@ import pytest
 import fojax
 from fojax import studies as S
 from fojax.design import design_functional_observer, Disk
+
+# private: the traced index-1 split is compared
 from fojax.simulation._reduction import svd_split
 from fojax.studies import _exact
 from tests.helpers import small_step_input_study

@@ -511,6 +511,8 @@ def test_uio_lmi_certifies_the_error_matrix_of_the_returned_observer(uio, rng):
     differed by ~1e-6 (ε·1e10 in different directions); now 𝔸1 - 𝕐𝔸2 is the observer's
     error matrix [N J Δ; S G 0; Φ Λ 0] to rounding, for the designed Z and for that one."""
     from fojax.design import unknown_input_error_dynamics
+
+    # private: the LMI data are checked
     from fojax.design._unknown_input import _lmi_data
 
     s, D, p = uio.structure, uio.D, uio.params

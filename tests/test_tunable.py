@@ -205,6 +205,7 @@ def test_host_margin_is_one_compiled_program(hand_designs):
     structure, shared with `SteinDisk.__init__`'s check; new numbers and another
     parameterization of the same shapes do not compile again (issue 13: eagerly it cost ~0.1 s
     a call). Oracle: the eager margin, and the sign from NumPy's eigenvalues (the disk test)."""
+    # private: MARGIN_TRACES, the no-retrace check
     from fojax.design import _tunable
 
     d = hand_designs["generalized"]

@@ -18,6 +18,8 @@ from helpers import uncertain_plant_3_3_7
 import fojax
 from fojax import studies as S, tuning
 from fojax.design import design_functional_observer, Disk, HalfPlane, region_from_dict, Sector
+
+# private: the exact study kernel is tested itself
 from fojax.studies import _exact
 from fojax.tuning import _tune
 

@@ -10,6 +10,8 @@ from helpers import uncertain_plant_3_3_7, WeightedPenalty
 import fojax
 from fojax import studies as S, tuning
 from fojax.design import design_functional_observer, Disk
+
+# private: TRACE_COUNTS, the no-retrace check
 from fojax.tuning import _tune
 
 
@@ -147,6 +149,7 @@ def test_resume_refuses_the_checkpoint_of_another_run(tmp_path):
     # A checkpoint is the state of one run: resuming it with another optimizer (another state
     # layout) or other coordinates must say so, not fail on a missing array or load the wrong
     # arrays into the state.
+    # private: the checkpoint pair is tested itself
     from fojax.tuning._loop import load_checkpoint, save_checkpoint
 
     path = str(tmp_path / "ckpt")
@@ -234,6 +237,7 @@ def test_shared_optimizer_keeps_untraceable_hyperparameters_as_constants(monkeyp
     # data: `shared_optimizer` then hands tune the object itself (one program per value)
     import optax as _optax
 
+    # private: the optimizer spec is tested itself
     from fojax.tuning import _optimizer
 
     def branching(learning_rate):

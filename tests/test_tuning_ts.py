@@ -24,6 +24,8 @@ from fojax.design import (
 from fojax.models import example_3_3_7, robot_arm, robot_arm_ts
 from fojax.studies import parameter_uncertainty, run_study, SimConfig, Study, study_loss
 from fojax.tuning import tune
+
+# private: TRACE_COUNTS, the no-retrace check
 from fojax.tuning._tune import TRACE_COUNTS
 
 

@@ -33,6 +33,8 @@ from helpers import assert_eigenvalues_match
 import fojax
 from fojax.analysis import unit_scaling
 from fojax.design import design_functional_observer, Disk, live_parameters, observer_matrices
+
+# private: the observer builder is tested itself
 from fojax.design._functional import build_observer
 
 
@@ -92,6 +94,7 @@ def test_unit_scaling_is_computed_once_per_model_and_returned_as_copies(monkeypa
     # `certify` checks every tuning iterate in the unit-free frame: the least-squares solve
     # runs once per model. Oracle: the uncached computation; a caller mutating its result
     # must not change what the next caller gets; another model is computed anew.
+    # private: the balancing internals are checked
     from fojax.analysis import _balance
 
     m = lc_filter.lc_filter()
@@ -221,6 +224,7 @@ def test_default_balance_redesigns_unit_free_after_any_failed_verification():
     the balanced design fails as well, the raw error is raised with both reasons."""
     import dataclasses
 
+    # private: tested itself
     from fojax.design._functional import unit_free_fallback
 
     @dataclasses.dataclass
@@ -432,6 +436,7 @@ def test_live_count_makes_no_batched_lapack_call(lc_designs):
     import jax
     import jax.numpy as jnp
 
+    # private: tested itself
     from fojax.design._tunable import _matrices_and_jacobian
     from fojax.tuning import make_parameterization
 

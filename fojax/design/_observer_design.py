@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ..observer._generalized import GeneralizedFunctionalObserver
+from ..observer import GeneralizedFunctionalObserver
 from ._base import AbstractDesign
 from ._conditions import unit_free_structure
 from ._parameterization import (
@@ -239,7 +239,7 @@ def verify_balanced(sb, params, balance: dict, region, X, *, extra=None, checks=
     (`balanced_design`): in the unit-free frame of `sb`, then a.–d. on the model as given
     ($E = D_l^{-1}E_bD_r^{-1}$, …, $E^\perp = E_b^\perp D_l$, $T = T_bD_l$, $K = K_b$); the
     returned report is the latter, with the former's relative residual in its notes.
-    Raises `fojax.DesignVerificationError` when either fails."""
+    Raises `fojax.errors.DesignVerificationError` when either fails."""
     dl, dr = np.asarray(balance["row_factors"], float), np.asarray(balance["state_factors"], float)
     mats, rep_b = verify_structure_design(sb, params, region, X, extra=extra, checks=checks)
     so = model_structure(sb, dl, dr)

@@ -122,7 +122,7 @@ METHODS = ("auto", "riccati", "lmi")
 
 
 def check_method(method) -> str:
-    """`method` if it is one of `METHODS`, else `fojax.InputError` listing them."""
+    """`method` if it is one of `METHODS`, else `fojax.errors.InputError` listing them."""
     if method in METHODS:
         return method
     raise InputError(
