@@ -286,6 +286,7 @@ def index1_system(n, p, q, n_alg, seed):
 
 def test_choose_route_rule():
     """The documented rule of `choose_route` (its docstring), case by case."""
+    # private: the route rule is tested itself
     from fojax.design._functional import AUTO_LMI_MAX_ORDER, choose_route, SMALL_ORDER
 
     assert AUTO_LMI_MAX_ORDER > SMALL_ORDER
@@ -327,6 +328,7 @@ def test_default_call_at_moderate_n_verifies(kind):
 def test_auto_falls_back_to_the_lmi_route(monkeypatch):
     """method='auto': a refused Riccati route (forced) gives the LMI route's verified design,
     and the report says the Riccati route was refused."""
+    # private: the Riccati route is forced to refuse
     from fojax.design import _riccati
 
     def refuse(*a, **k):
@@ -348,6 +350,7 @@ def test_unobservable_modes_staircase_agrees_with_the_pbh_loop():
     """Above `PBH_SCREEN_MIN` the candidates come from SLICOT's staircase form; oracle: hidden
     modes placed by construction (an orthogonally hidden block the output never sees) and
     the PBH rank test of every eigenvalue with NumPy's matrix_rank."""
+    # private: the staircase screen's threshold is read
     from fojax.design import _conditions
 
     n, k = _conditions.PBH_SCREEN_MIN + 12, 5

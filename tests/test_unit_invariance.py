@@ -285,6 +285,7 @@ def test_certify_checks_the_unit_free_frame_as_verify_does(monkeypatch):
     to what its ``verify()`` computes; and when that check fails (made to, here: the
     parameterization keeps a.–d. exact by construction, so no honest parameter set fails
     it on this model), certify raises `DesignVerificationError` naming it and the fix."""
+    # private: the unit-free check is made to fail
     from fojax.design import _observer_design, certify, SteinDisk
 
     m0 = lc_filter.lc_filter(False)
