@@ -24,6 +24,8 @@ import sympy
 
 import fojax
 from fojax import analysis as fa
+
+# private: the balancing internals and rank helpers are tested themselves
 from fojax.analysis._balance import _ward_exponents, tg01ad_scaling
 from fojax.analysis._common import as_system, deflate
 from fojax.analysis._observability import _i_ctrl, _i_obs, _r_ctrl, _r_obs
@@ -258,6 +260,7 @@ def test_every_layer_takes_the_analysis_verdict_on_a_badly_scaled_ode():
     and simulation called it impulsive. Now the host split is analysis's: 2 slow states;
     simulation, whose traced split cannot balance, refuses with a typed InputError naming
     the scaling instead of simulating a wrong model."""
+    # private: design's own regularity check is compared with analysis's
     from fojax.design._conditions import check_regular
     from fojax.simulation._reduction import check_index1_host, reduce_host
 

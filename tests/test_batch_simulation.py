@@ -289,6 +289,7 @@ def test_forward_kernel_graph_does_not_grow_with_n():
     # Issue 16 item 2: the forward time loop (`_multistep_block`: m steps per pass as batched
     # matrix products) has a graph of the same size for every N (the former batch-last matvec
     # was unrolled over N columns, so compile time grew with n: 12 / 24 / 52 s at n = 16 / 32 / 64)
+    # private: the kernel is tested itself
     from fojax.simulation._batch import _block_kernel
     from fojax.simulation._lti_batch import _ModelProblem
 

@@ -12,6 +12,7 @@ import pytest
 import scipy.linalg
 from helpers import count_equations
 
+# private: the matrix exponentials are tested themselves
 from fojax.simulation._expm import expm_small, expm_stack
 
 
@@ -42,6 +43,7 @@ def test_batched_grad_and_vmap(rng):
 
 @pytest.mark.parametrize("size", [3, 6, 14])  # unrolled column FMAs, fori_loop rank-1 updates, einsum
 def test_expm_last_matches_scipy(rng, size):
+    # private: tested itself
     from fojax.simulation._expm import _MM_LOOP_MAX, _MM_UNROLL_MAX, expm_last
 
     assert [size <= _MM_UNROLL_MAX, _MM_UNROLL_MAX < size <= _MM_LOOP_MAX, size > _MM_LOOP_MAX].count(True) == 1
@@ -70,6 +72,7 @@ def test_expm_last_reverse_mode_matches_scipy_frechet(rng, size):
     # d/dM <C, expm(M)> = L(Mᵀ, C) (scipy.linalg.expm_frechet), per sample, with 0 ... 7
     # squarings in one block (each sample squares only as often as its own norm asks); a
     # sample beyond max_squarings is NaN with a zero cotangent, and its neighbours are exact.
+    # private: tested itself
     from fojax.simulation._expm import expm_last
 
     Ms = [s * rng.standard_normal((size, size)) + np.triu(5 * s * rng.standard_normal((size, size)), 1)
@@ -99,6 +102,7 @@ def test_expm_first_matches_scipy_full_and_block_triangular(rng):
     # `expm_first` (batch-first degree-15 Taylor, the discretisation of
     # `_multistep_block`), full and in block lower-triangular form [[M11, 0], [M21, M22]].
     # Oracle: scipy.linalg.expm of the full matrices. Norms 1e-3 ... 8: 0 ... 4 squarings.
+    # private: tested itself
     from fojax.simulation._expm import expm_first
 
     k, q = 5, 3
@@ -125,6 +129,7 @@ def test_expm_first_matches_scipy_full_and_block_triangular(rng):
 def test_expm_last_graph_does_not_grow_with_n():
     # The fori_loop and einsum forms of the batch-last products have a graph of the same
     # size for every N in their range (the compile does not grow with N).
+    # private: tested itself
     from fojax.simulation._expm import _MM_LOOP_MAX, _MM_UNROLL_MAX, expm_last
 
     def count(N):

@@ -33,6 +33,8 @@ from closed_loop_413 import (  # the §4.1.3 loop shared with test_batch_simulat
 import fojax
 from fojax.plant import FaultyPlant
 from fojax.simulation import simulate_batch_exponential, simulate_lti_batch
+
+# private: the exponential kernel's set-up and TRACE_COUNTS
 from fojax.simulation._exponential_setup import _ModelSetup, prepare, TRACE_COUNTS
 
 

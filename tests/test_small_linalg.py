@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from helpers import count_equations
 
+# private: tested itself
 from fojax._small_linalg import solve_small, SOLVE_UNROLL_MAX
 
 

@@ -31,7 +31,7 @@ from fojax.plant import as_signal
 # private: the kernels' internals are checked
 from fojax.simulation import _batch, _simulate, simulate_lti_batch
 from fojax.simulation._save import error_metrics, METRIC_NAMES
-from fojax.studies._runner import SimConfig
+from fojax.studies import SimConfig
 
 
 # bit-for-bit equality of different programs (the stepper objects against the earlier entry points, metric subsets): compiled as users get it

@@ -20,6 +20,8 @@ from helpers import uncertain_plant_3_3_7
 import fojax
 from fojax import studies as S
 from fojax.design import design_functional_observer, Disk
+
+# private: the exact kernel and its driver are tested themselves
 from fojax.simulation import _batch, _driver
 from fojax.studies import _exact
 

@@ -24,8 +24,8 @@ from fojax.plant import FaultProfile, FaultyPlant
 
 # private: the exponential kernel is tested itself
 from fojax.simulation import _batch, _exponential
+from fojax.studies import Family
 from fojax.studies._exponential import exponential_problem
-from fojax.studies._families import Family
 
 
 FA = np.array([[0.3], [0.0], [-0.2], [0.5]])  # row 4: the fault moves the algebraic x4

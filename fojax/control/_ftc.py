@@ -48,8 +48,7 @@ from .._errors import ExistenceConditionError
 from ..design import design_functional_observer, FunctionalObserverDesign
 from ..design._conditions import check_impulse_free
 from ..observer import AbstractObserver
-from ..plant import AbstractSignal, augment_faults, DescriptorSystem, Stack, Zero
-from ..plant._signals import as_signal
+from ..plant import AbstractSignal, as_signal, augment_faults, DescriptorSystem, Stack, Zero
 from ..simulation._discretize import simulate_lti
 from ._feedback import design_state_feedback, StateFeedbackDesign
 from ._loop import assemble, LoopMaps, refuse_feedthrough

@@ -119,7 +119,7 @@ def step_exact(Phi, W, c, w0, ts, h, u):
 
 
 def grid_step(ts) -> float:
-    """The step of a concrete uniform grid (`fojax.InputError` otherwise)."""
+    """The step of a concrete uniform grid (`fojax.errors.InputError` otherwise)."""
     if isinstance(ts, jax.core.Tracer):
         raise InputError("the exact stepper needs concrete output times ts (not traced).")
     t = np.asarray(ts, dtype=float)
@@ -169,7 +169,7 @@ def simulate_lti(system, x0, ts, u):
 
     **Arguments:** `system`, `x0` ``(n,)`` (its slow part $V_1^\top x_0$ is kept; the
     algebraic part is recomputed — the same projection as `fojax.simulate`), `ts`
-    (uniform, concrete), `u` (a `fojax.AbstractSignal` of size ``system.m``).
+    (uniform, concrete), `u` (a `fojax.plant.AbstractSignal` of size ``system.m``).
 
     **Returns:** ``(xs, us)`` on the grid. Works under `jax.vmap` over `x0` and `u`.
     """

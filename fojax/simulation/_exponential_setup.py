@@ -68,8 +68,8 @@ def _parse_model_output(out, with_input: bool = True):
         if len(out) == 3:
             u = out[2]
     else:
-        forms = ("a fojax.AbstractPlant, a tuple (plant, observers) or a tuple (plant, observers, u) with u a "
-                 "fojax.AbstractSignal") if with_input else "a fojax.AbstractPlant or a tuple (plant, observers)"
+        forms = ("a fojax.plant.AbstractPlant, a tuple (plant, observers) or a tuple (plant, observers, u) with u a "
+                 "fojax.plant.AbstractSignal") if with_input else "a fojax.plant.AbstractPlant or a tuple (plant, observers)"
         raise InputError(f"model(params) must return {forms}; got {type(out).__name__}.")
     if obs is None:
         obs = ()
@@ -78,12 +78,12 @@ def _parse_model_output(out, with_input: bool = True):
     obs = tuple(obs)
     for i, o in enumerate(obs):
         if not isinstance(o, AbstractObserver):
-            raise InputError(f"model(...)[1][{i}] is a {type(o).__name__}, not a fojax.AbstractObserver.")
+            raise InputError(f"model(...)[1][{i}] is a {type(o).__name__}, not a fojax.observer.AbstractObserver.")
     if not with_input:
         return plant, obs
     if u is not None and not isinstance(u, AbstractSignal):
         raise InputError(
-            f"model(...)[2] (the input) must be a fojax.AbstractSignal or None, got {type(u).__name__}."
+            f"model(...)[2] (the input) must be a fojax.plant.AbstractSignal or None, got {type(u).__name__}."
         )
     return plant, obs, as_signal(u, plant.m)
 
@@ -502,7 +502,7 @@ def _affinity_mismatch(model, p, terms, outputs, t_rand, s_rand, u_rand, w_rand)
 
 
 def check_affine(model, first, data, A0, outputs, t0, t1, ns, m, who="simulate_batch_exponential"):
-    """Host: refuse (`fojax.InputError`) a decomposition of sample ``first`` (its `data`,
+    """Host: refuse (`fojax.errors.InputError`) a decomposition of sample ``first`` (its `data`,
     no batch axis) that misses the plant's own vector field or outputs."""
     rng = np.random.default_rng(20261121)
     t_rand = jnp.asarray(t0 + 0.3719 * (t1 - t0))

@@ -252,8 +252,8 @@ def simulate_lti_batch(
 
     **Returns:** a dict ``name -> (B,)`` or ``(B, k)`` array (float64).
 
-    **Raises:** `fojax.InputError` (non-LTI model, unknown metric kind, non-uniform
-    grid, bad sizes), `fojax.ShapeError`; index-1 checks run on the host for the first
+    **Raises:** `fojax.errors.InputError` (non-LTI model, unknown metric kind, non-uniform
+    grid, bad sizes), `fojax.errors.ShapeError`; index-1 checks run on the host for the first
     sample when the inputs are concrete. Samples whose plant is impulsive give non-finite
     metrics. Not differentiable in reverse mode (the block loop has a data-dependent
     trip count); use `fojax.simulate` under `jax.grad`.

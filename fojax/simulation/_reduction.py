@@ -53,10 +53,15 @@ from .._errors import ImpulsiveSystemError, InputError, IrregularSystemError, Sh
 from .._linalg import rank as _host_rank, RANK_ATOL, RANK_RTOL
 from .._small_linalg import solve_small
 from ..analysis._traced import svd_split as svd_split, SVDSplit as SVDSplit
-from ..plant import AbstractPlant, AbstractSignal, as_signal
-from ..plant._descriptor import DescriptorSystem
-from ..plant._signals import Constant, Zero
-from ..plant._uncertain import UncertainDescriptorSystem
+from ..plant import (
+    AbstractPlant,
+    AbstractSignal,
+    as_signal,
+    Constant,
+    DescriptorSystem,
+    UncertainDescriptorSystem,
+    Zero,
+)
 
 
 #: Newton iterations inside the vector field, before the final differentiable step
@@ -114,7 +119,7 @@ def check_index1_host(E, J, *, jacobian_name: str = "A", where: str = "") -> Non
     `is_regular`, `nilpotency_index` on the balanced pencil), so simulation, design and
     analysis agree.
     """
-    from ..analysis._split import index1_split
+    from ..analysis import index1_split
 
     E = np.asarray(E, dtype=float)
     J = np.asarray(J, dtype=float)
@@ -488,7 +493,7 @@ def host_initial_checks(plant, x0, t0, u: AbstractSignal, *, strict: bool, tol: 
         name = "∂f/∂x"
         where = f" at the initial point (t0 = {float(t0):g}, given x0)"
     check_index1_host(E, J, jacobian_name=name, where=where)
-    from ..analysis._split import index1_split
+    from ..analysis import index1_split
 
     sp = index1_split(E, J, fname="consistency_residual")
     if sp.rank == E.shape[0]:
@@ -552,9 +557,9 @@ def reduce_host(E, A, B):
     $\dot z_1 = A_s z_1 + B_s v$ in the SVD coordinates of ``E`` ($X = V[z_1; z_2]$) and
     $X = T_x z_1 + T_u v$, computed with `fojax.analysis`'s index-1 split.
 
-    Raises `fojax.ImpulsiveSystemError` when $\tilde A_{22}$ is singular (index > 1).
+    Raises `fojax.errors.ImpulsiveSystemError` when $\tilde A_{22}$ is singular (index > 1).
     """
-    from ..analysis._split import index1_split
+    from ..analysis import index1_split
 
     E, A, B = (np.asarray(x, dtype=float) for x in (E, A, B))
     n = E.shape[0]

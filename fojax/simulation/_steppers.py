@@ -34,7 +34,7 @@ import equinox as eqx
 import numpy as np
 
 from .._errors import InputError
-from ..plant._uncertain import UncertainDescriptorSystem
+from ..plant import UncertainDescriptorSystem
 from ._reduction import is_concrete, lti_matrices
 
 

@@ -12,9 +12,9 @@ from jaxtyping import Array
 
 from .._errors import InputError
 from ..observer import AbstractObserver
+from ..simulation import Exponential
 from ..simulation._discrete import discrete_stepper
 from ..simulation._save import error_metrics
-from ..simulation._steppers import Exponential
 from ._exact import exact_refusal, sample_metrics_traced
 from ._exponential import exponential_metrics_traced, exponential_schedule
 from ._runner import _indices, sample_errors, SimConfig, Study
@@ -72,7 +72,7 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     observer's size, the plant's trajectory being independent of the observer,
     checkpointed, so memory does not grow with the number of time steps; like `jax.grad`,
     it takes the derivative of $|e|$ as $\mathrm{sign}(e)$, 0 at 0; differentiating with
-    respect to the study's arrays raises `fojax.InputError`: use
+    respect to the study's arrays raises `fojax.errors.InputError`: use
     ``cfg=SimConfig(stepper=fojax.Diffrax())`` for that). With ``cfg.stepper`` `Auto` (or
     `Exponential`), no
     ``cfg.devices`` and a *concrete* study whose samples vary in time only through signals
