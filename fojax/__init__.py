@@ -4,19 +4,19 @@ The names a notebook needs first are here; everything else lives in one subpacka
 **The public API, one rule.** At most 60 names at the top (submodules included): the
 plants, faults and signals, the ``design_*`` functions and the regions, the observers,
 `simulate` with its steppers and save objects, `Study`/`run_study`, `tune`,
-`save_design`/`load_design`, `structure_report`, `load_config` and the base error
-`FojaxError`. Every other public name has exactly one home, a subpackage
-(`fojax.analysis.is_regular`, `fojax.errors.InputError`, `fojax.design.verify`, ...); a
-top-level name is the same object as its home's name (``fojax.simulate is
-fojax.simulation.simulate``). No object has two names, no name two homes, and every
-public name is documented (``tests/test_public_api.py`` checks all three).
+`save_design`/`load_design`, `structure_report`, `load_config`, `estimate`, `discretize`
+and the base error `FojaxError`. Every other public name has exactly one home, a
+subpackage (`fojax.analysis.is_regular`, `fojax.errors.InputError`,
+`fojax.design.verify`, ...); a top-level name is the same object as its home's name
+(``fojax.simulate is fojax.simulation.simulate``). No object has two names, no name two
+homes, and every public name is documented (``tests/test_public_api.py`` checks all three).
 
 Floors (each imports only the floors below it): ``plant`` (plants, signals, faults) and
 ``models`` (the thesis's examples) → ``analysis`` (structure) → ``observer`` → ``design``
-(LMIs, verified) → ``simulation`` → ``studies`` (Monte Carlo) and ``control`` → ``tuning``
-(optax) → ``results`` (files, reports, figures) → ``config`` (TOML) → ``cli`` (the
-``fojax`` program, which the library never imports). ``errors`` is the ground floor;
-``interop`` trades models, designs and data with python-control, SciPy and MATLAB files.
+(LMIs, verified) → ``simulation`` → ``studies`` (Monte Carlo), ``control`` and ``interop``
+(python-control, SciPy, MATLAB files, recorded data) → ``tuning`` (optax) → ``results``
+(files, reports, figures) → ``config`` (TOML) → ``cli`` (the ``fojax`` program, which the
+library never imports). ``errors`` is the ground floor.
 """
 
 import importlib.metadata as _metadata
