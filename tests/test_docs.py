@@ -170,3 +170,20 @@ if __name__ == "__main__":  # python tests/test_docs.py: the lab notes left, per
     print(len(found), dict(collections.Counter(k for _, _, k, _ in found)))
     for f, n in collections.Counter(f for f, _, _, _ in found).most_common():
         print(f"{n:4d} {f}")
+
+
+# ------------------------------------------------------------------------------ the site
+def test_the_site_builds_strictly(tmp_path):
+    """``mkdocs build --strict`` (mkdocs-material, mkdocstrings, mkdocs-jupyter: the ``docs``
+    extra, part of ``test``): every page, cross-reference and API directive resolves."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NO_MKDOCS_2_WARNING="1")
+    r = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--quiet",
+                        "--site-dir", str(tmp_path / "site")],
+                       cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+    assert (tmp_path / "site" / "index.html").exists()
+    assert (tmp_path / "site" / "api" / "index.html").exists()
