@@ -49,7 +49,7 @@ Two more designs per kind:
   of a noisy study costs minutes).
 
 Every design's ‖T‖∞ (SLICOT AB13DD), a certified γ ≥ ‖T‖∞ (``gamma_riccati``:
-`fojax.design._hinf.riccati_gamma`) and ‖T‖₂ (SciPy; ``inf`` with a feedthrough) of
+`fojax.design._certify.riccati_gamma`) and ‖T‖₂ (SciPy; ``inf`` with a feedthrough) of
 d = [w; ν] → ẑ − z are recorded per design (``norms`` in the rows; `fojax.design._hinf.error_norms`,
 the computations that verify the H∞/H2 designs); for the tuned designs there is no LMI certificate.
 

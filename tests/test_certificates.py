@@ -77,7 +77,7 @@ def test_h2_nu_is_the_returned_observers_own_bound():
 def test_observer_gamma_on_a_closed_form():
     """First-order lag 1/(s + a) with feedthrough 0: ‖T‖∞ = 1/a at ω = 0."""
     # private: tested itself on a closed form
-    from fojax.design._hinf import observer_gamma
+    from fojax.design._certify import observer_gamma
 
     a = 2.0
     g, X, top = observer_gamma(np.array([[-a]]), np.ones((1, 1)), np.ones((1, 1)), np.zeros((1, 1)), 1 / a)

@@ -146,7 +146,7 @@ def test_config_cli_and_file(tmp_path, capsys):
 def test_certificate_is_checked_in_float64():
     """ẋ = -x + d, e = x: L_o = 1/2 (closed form), ‖T‖₂ = √(1/2). A certificate X below L_o
     cannot satisfy the Lyapunov inequality and is rejected; X = 0.6 certifies ν = √0.6."""
-    from fojax.design._hinf import certify_nu, h2_norm  # private: tested themselves
+    from fojax.design._certify import certify_nu, h2_norm  # private: tested themselves
     from fojax.errors import DesignVerificationError
 
     A, B, C = -np.eye(1), np.eye(1), np.eye(1)

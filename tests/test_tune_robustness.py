@@ -13,7 +13,7 @@ Oracles, independent of the code under test:
   $\max_k\sigma_k \le \|T\|_\infty$;
 - **central finite differences** (step 1e-6) for the gradients, under `jax.jit`, `jax.vmap`;
 - **a dense frequency sweep** of the tuned observer's joint system: below the γ reported for
-  the tuned design (`fojax.design._hinf.riccati_gamma`), and equal to its AB13DD norm;
+  the tuned design (`fojax.design._certify.riccati_gamma`), and equal to its AB13DD norm;
 - **a closed form** for the tuning test: for $\dot x = ax + w$, $y = x + \nu$, $z = x$ every
   LTI estimator has $\|T\|_\infty \ge 1/\sqrt{1 + a^2}$ (`tests/test_hinf.py`'s module docstring),
   so every tuned design's AB13DD norm must respect it.

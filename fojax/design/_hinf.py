@@ -77,7 +77,7 @@ constraints of the design LMI — the multi-objective approach of Chilali & Gahi
 Scherer, Gahinet & Chilali (1997): its $\gamma$ may exceed the smallest $\|T\|_\infty$
 attainable in the region and the returned observer's own $\|T\|_\infty$. The returned bound
 is therefore certified for the returned observer *alone*, with no region constraint: the
-bounded-real Riccati equation with the observer fixed (`observer_gamma`; H2: the
+bounded-real Riccati equation with the observer fixed (`fojax.design._certify`: `observer_gamma`; H2: the
 observability Gramian, `observer_nu`) gives a certificate within a relative gap of
 $10^{-9}$–$10^{-2}$ (the first that verifies) of the AB13DD norm, and the smaller of that
 bound and the design LMI's is returned. Every design reports ``tightness = γ / ‖T‖∞``
@@ -137,6 +137,16 @@ import numpy as np
 from .._errors import DesignVerificationError, InputError, ShapeError, SolverStoppedShortError
 from .._linalg import RANK_RTOL
 from . import _ladder, _lmi
+from ._certify import (
+    brl_matrix,
+    certify_gamma,
+    certify_nu,
+    h2_norm,
+    hinf_norm,
+    observer_gamma,
+    observer_nu,
+    riccati_gamma,
+)
 from ._parameterization import observer_matrices, pieces, split_Y
 
 
@@ -302,30 +312,6 @@ def _dcal(s, Bw, Dv, xp=np):
     return xp.concatenate([top, bot], axis=0)
 
 
-def hinf_norm(A, B, C, D) -> tuple[float, float]:
-    """``(‖T‖∞, peak frequency)`` of a standard state-space system by SLICOT ``AB13DD``
-    (slycot), the independent norm every H∞ design is checked against."""
-    import slycot
-
-    n, m, p = A.shape[0], B.shape[1], C.shape[0]
-    if n == 0:
-        return float(np.linalg.norm(D, 2)) if D.size else 0.0, 0.0
-    g, f = slycot.ab13dd("C", "I", "S", "D", n, m, p, A, np.eye(n), B, C, D)
-    return float(g), float(f)
-
-
-def brl_matrix(X, A, B, C, D, gamma):
-    """The bounded-real-lemma matrix at ``(X, γ)`` (float64, symmetrised)."""
-    m, p = B.shape[1], C.shape[0]
-    XA, XB = X @ A, X @ B
-    out = np.block([
-        [XA + XA.T, XB, C.T],
-        [XB.T, -gamma * np.eye(m), D.T],
-        [C, D, -gamma * np.eye(p)],
-    ])
-    return 0.5 * (out + out.T)
-
-
 @dataclasses.dataclass(frozen=True)
 class _AffinePieces:
     """The affine error system of the module docstring (channels divided by ``scale``)."""
@@ -478,56 +464,6 @@ def _range_projector(M):
     return U[:, :r] @ U[:, :r].T
 
 
-def certify_gamma(X, A, B, C, D, gamma) -> tuple[float, float]:
-    """The smallest ``γ' ∈ {γ, γ(1+1e-9·10^k)}`` at which the BRL holds at `X` in float64
-    (strictly, relative to its scale), and the BRL's max eigenvalue there. Raises
-    `DesignVerificationError` if even ``1.01 γ`` fails."""
-    for bump in (0.0, 1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2):
-        g = gamma * (1.0 + bump)
-        M = brl_matrix(X, A, B, C, D, g)
-        top = float(np.linalg.eigvalsh(M).max())
-        if top < -1e-12 * max(1.0, float(np.abs(M).max())):
-            return g, top
-    raise DesignVerificationError(
-        f"the bounded-real LMI re-checked in float64 at the certificate X fails for γ up to "
-        f"{1.01 * gamma:.6g} (max eigenvalue {top:.3e}): the solver's γ is not certified")
-
-
-def h2_norm(A, B, C) -> float:
-    r"""$\|T\|_2 = \sqrt{\operatorname{tr}(C P C^\top)}$, $AP + PA^\top + BB^\top = 0$ (SciPy
-    ``solve_continuous_lyapunov``): the independent norm every H2 design is checked against
-    (`A` Hurwitz, no feedthrough)."""
-    import scipy.linalg as sla
-
-    if A.shape[0] == 0 or B.shape[1] == 0 or C.shape[0] == 0:
-        return 0.0
-    P = sla.solve_continuous_lyapunov(A, -B @ B.T)
-    return float(np.sqrt(max(float(np.trace(C @ (0.5 * (P + P.T)) @ C.T)), 0.0)))
-
-
-def lyapunov_matrix(X, A, C):
-    r"""$\begin{bmatrix}\operatorname{He}(XA) & C^\top\\ C & -I\end{bmatrix}$ (float64, symmetrised)."""
-    XA = X @ A
-    out = np.block([[XA + XA.T, C.T], [C, -np.eye(C.shape[0])]])
-    return 0.5 * (out + out.T)
-
-
-def certify_nu(X, A, B, C) -> tuple[float, float]:
-    r"""``(ν, max eig)``: the smallest ``t ∈ {1, 1 + 1e-9·10^k}`` at which the Lyapunov
-    inequality holds at ``tX`` in float64 (strictly, relative to its scale, with ``tX ≻ 0``),
-    and the certified $\nu = \sqrt{\operatorname{tr}(B^\top tX B)}$. Raises
-    `DesignVerificationError` if even ``t = 1.01`` fails."""
-    for bump in (0.0, 1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2):
-        Xt = (1.0 + bump) * X
-        M = lyapunov_matrix(Xt, A, C)
-        top = float(np.linalg.eigvalsh(M).max())
-        if top < -1e-12 * max(1.0, float(np.abs(M).max())) and float(np.linalg.eigvalsh(Xt).min()) > 0:
-            return float(np.sqrt(max(float(np.trace(B.T @ Xt @ B)), 0.0))), top
-    raise DesignVerificationError(
-        f"the H2 Lyapunov inequality He(X𝔸) + ℂᵀℂ ≺ 0 re-checked in float64 at the certificate X "
-        f"fails even at 1.01 X (max eigenvalue {top:.3e}): the solver's H2 bound is not certified")
-
-
 def _feedthrough(mats, Y3, Dcal) -> float:
     r"""$\|\mathbb D\|_2 = \|Q\mathcal D\|_2$ relative to the norms of its terms,
     $(\|Q_0\|_2 + \|Y_3\|_2\|F_3\|_2)\|\mathcal D\|_2$ ($Q = Q_0 - Y_3F_3$); 0 if it is zero."""
@@ -634,7 +570,6 @@ def base_mats(s, params):
     return observer_matrices(s, **{k: np.asarray(v) for k, v in params.items()}, xp=np)
 
 
-
 def error_norms(s, params, Bw, Dv) -> dict:
     r"""The norms of $d = [w;\nu]\mapsto\hat z - z$ for the observer of `params` (host, float64),
     by the same independent computations every H∞/H2 design is verified with:
@@ -653,86 +588,3 @@ def error_norms(s, params, Bw, Dv) -> dict:
     h2 = h2_norm(A, B, C) if ft <= FEEDTHROUGH_RTOL else float("inf")
     return {"hinf_norm": g, "peak_frequency": f, "gamma": riccati_gamma(A, B, C, D, g), "h2_norm": h2,
             "feedthrough": ft}
-
-
-#: Relative gaps between the AB13DD norm and the γ0 at which `observer_gamma` tries to certify
-#: (the smallest that passes is returned; `certify_gamma` may add up to 1 % more).
-RICCATI_GAPS = (1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)
-
-
-def observer_gamma(A, B, C, D, norm):
-    r"""The tightest certified bound γ ≥ ‖T‖∞ of a fixed error system, with its certificate:
-    ``(γ, X, max eig)`` or ``None``.
-
-    The observer is fixed, so the bounded-real lemma needs no region constraint and no
-    shared certificate: the stabilizing solution $Y$ of the bounded-real Riccati equation at
-    $\gamma_0 = $ `norm` ``·(1 + gap)`` (`RICCATI_GAPS`, smallest first),
-    $A^\top Y + YA + C^\top C + \epsilon I + (YB + C^\top D)(\gamma_0^2I - D^\top D)^{-1}
-    (B^\top Y + D^\top C) = 0$ (SciPy ``solve_continuous_are`` with the negative definite
-    weight $-(\gamma_0^2I - D^\top D)$), gives $X = Y/\gamma_0$ at which the BRL matrix
-    (`brl_matrix`) is negative definite (Schur complement); `certify_gamma` re-checks it in
-    float64. The first gap whose certificate passes is used, so γ exceeds the AB13DD norm
-    by at most that gap (plus `certify_gamma`'s bump). ``None`` when no gap certifies."""
-    import warnings
-
-    import scipy.linalg as sla
-
-    if not (np.isfinite(norm) and norm > 0) or A.shape[0] == 0:
-        return None
-    # the Riccati data in units where the bound is 1: B, D divided by norm (X is unchanged
-    # by that scaling up to the factor applied below)
-    Bs, Ds = B / norm, D / norm
-    Q = C.T @ C
-    Q = Q + 1e-9 * max(1.0, float(np.abs(Q).max())) * np.eye(A.shape[0])
-    for gap in RICCATI_GAPS:  # the Riccati equation is ill-conditioned as γ0 → ‖T‖∞: widen the gap
-        g0 = 1.0 + gap
-        Rt = g0 * g0 * np.eye(B.shape[1]) - Ds.T @ Ds
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                Y = sla.solve_continuous_are(A, Bs, Q, -Rt, s=C.T @ Ds)
-            if np.all(np.isfinite(Y)):
-                # BRL of (A, Bs, C, Ds) at (Y/g0, g0) ⇔ BRL of (A, B, C, D) at (Y/(g0·norm), g0·norm)
-                X = 0.5 * (Y + Y.T) / (g0 * norm)
-                gamma, top = certify_gamma(X, A, B, C, D, g0 * norm)
-                return float(gamma), X, top
-        except (np.linalg.LinAlgError, ValueError, DesignVerificationError):
-            pass
-    return None
-
-
-def riccati_gamma(A, B, C, D, norm) -> float | None:
-    """A certified bound γ ≥ ‖T‖∞ for a system without an LMI certificate (a tuned design):
-    `observer_gamma`'s γ, ``None`` when it fails (reported as "not certified")."""
-    out = observer_gamma(A, B, C, D, norm)
-    return None if out is None else out[0]
-
-
-def observer_nu(A, B, C, norm):
-    r"""The tightest certified bound ν ≥ ‖T‖₂ of a fixed error system without feedthrough:
-    ``(ν, X, max eig)`` or ``None``.
-
-    With the observability Gramian $L_o$ ($A^\top L_o + L_oA + C^\top C = 0$) and $P_1$
-    ($A^\top P_1 + P_1A + I = 0$), $X = L_o + \delta P_1$ satisfies
-    $\operatorname{He}(XA) + C^\top C = -\delta I \prec 0$, and
-    $\nu^2 = \operatorname{tr}(B^\top XB) = \|T\|_2^2 + \delta\operatorname{tr}(B^\top P_1B)$.
-    δ grows from $10^{-10}$ of the data's scale until `certify_nu` passes in float64."""
-    import scipy.linalg as sla
-
-    if A.shape[0] == 0 or not np.isfinite(norm):
-        return None
-    try:
-        Lo = sla.solve_continuous_lyapunov(A.T, -C.T @ C)
-        P1 = sla.solve_continuous_lyapunov(A.T, -np.eye(A.shape[0]))
-    except (np.linalg.LinAlgError, ValueError):
-        return None
-    Lo, P1 = 0.5 * (Lo + Lo.T), 0.5 * (P1 + P1.T)
-    size = max(float(np.abs(C.T @ C).max()), float(np.abs(Lo @ A).max()), 1e-300)
-    for rel in (1e-10, 1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4):
-        X = Lo + rel * size * P1
-        try:
-            nu, top = certify_nu(X, A, B, C)
-        except DesignVerificationError:
-            continue
-        return nu, X, top
-    return None
