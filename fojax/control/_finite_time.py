@@ -39,9 +39,9 @@ the carry of one `lax.scan`.
 
 **Accuracy.** The only approximation is the Hermite interpolation of $\xi(\cdot - h)$:
 local error $\le \Delta t^4\max|\xi^{(4)}|/384$ per step, global $O(\Delta t^4)$;
-everything else is exact to round-off. Measured on Simulation 1 over $[0, 5]$ s
-(tests/test_control.py), maximal state error relative to $\max|x|$: $3.5\cdot10^{-9}$
-with $\Delta t = h/25 = 20$ ms, $3.1\cdot10^{-10}$ with $h/50$ (ratio 11, fourth order);
+everything else is exact to round-off. On Simulation 1 over $[0, 5]$ s
+(tests/test_control.py) the maximal state error relative to $\max|x|$: $3.5\cdot10^{-9}$
+with $\Delta t = h/25 = 20$ ms and $3.1\cdot10^{-10}$ with $h/50$ (ratio 11, fourth order);
 with $h/250 = 2$ ms the difference to an independent method-of-steps reference (SciPy
 `solve_ivp`, DOP853, rtol 1e-13, the previous interval's dense output as history) is
 $1.2\cdot10^{-10}$, the reference's own accuracy. Documented tolerance: $10^{-8}$.

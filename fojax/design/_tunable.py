@@ -382,7 +382,7 @@ def _channel_weights(f0: np.ndarray) -> np.ndarray:
 
 def _live(observer_fn, params, kind: str, error_matrices) -> LiveParameters:
     # the observer's matrices and their Jacobian are compiled (built op by op, the observer
-    # compiles ~100 primitives, 30-60 s under load); a parameterization's bound `observer` is a
+    # compiles ~100 primitives, slow to compile); a parameterization's bound `observer` is a
     # pytree, so a second call with the same shapes reuses the program
     names = tuple(sorted((k, tuple(np.shape(v))) for k, v in params.items()))
     flat0 = jnp.concatenate([jnp.ravel(jnp.asarray(params[k])) for k, _ in names]) if names else jnp.zeros(0)

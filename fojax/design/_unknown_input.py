@@ -537,7 +537,7 @@ def _preconditioner(A1: np.ndarray, A2: np.ndarray, region: AbstractRegion) -> n
     if isinstance(region, Disk):
         # the one Stein certificate, of the transposed dynamics: Ã P Ãᵀ - P + I = 0 with
         # Ã = (A0 - αI)/τ; X0 = P⁻¹ is a disk certificate of A0 (the dual form, by a Schur
-        # complement), the one this preconditioner was measured with
+        # complement), the one this preconditioner is tested with
         X0 = np.linalg.inv(host_stein_certificate(A0.T, region.center, region.radius))
     else:
         X0 = scipy.linalg.solve_continuous_lyapunov(A0.T, -np.eye(A0.shape[0]))

@@ -421,11 +421,11 @@ def _matvec_batch(M, v):
     The primal is `matvec_last` (unrolled over ``j``: the fastest forward step). Its
     automatic reverse mode transposes each slice ``M[:, j, :]`` into a zero-padded copy of
     the whole ``(N, N, b)`` array, ``N`` of them per product, and in a time loop they are
-    accumulated at every step: measured on the §3.3.7 study (N ≈ 20, 100 samples, 1,140
-    steps) the gradient of `fojax.studies.study_loss` cost 14× its forward pass. The
-    tangent is written as broadcast products instead, ``Σ_j dM[:, j] v[j] + M[:, j] dv[j]``,
-    whose transposes are one outer product ``ct[:, None] v[None]`` and one reduction: the
-    same numbers (to round-off), the same linear map."""
+    accumulated at every step, so the gradient of `fojax.studies.study_loss` would cost
+    many forward passes. The tangent is written as broadcast products instead,
+    ``Σ_j dM[:, j] v[j] + M[:, j] dv[j]``, whose transposes are one outer product
+    ``ct[:, None] v[None]`` and one reduction: the same numbers (to round-off), the same
+    linear map."""
     return matvec_last(M, v)
 
 
@@ -516,11 +516,11 @@ def simulate_batch_exponential(
     tests), so the global error behaves like
     $C h^4$ where $C$ grows with the time derivatives of $g$ along the solution — the
     signal frequencies and amplitudes, and the fast modes of $A_0$ the perturbation
-    couples into. Check by halving the step (the error should drop ~16×). Measured on
+    couples into. Check by halving the step (the error should drop ~16×). On
     the time-varying §4.1.3 loop of ``benchmarks/time_varying.py`` ($|\delta| \le 0.3$,
-    $\omega \le 5$ rad/s, fastest pole −39.8; worst of 100 samples): metrics to ~2e-9
-    relative with one step per 0.01 s, ~2e-10 with 2 and ~4e-11 with 3 substeps (NumPy RK4
-    with $h = 10^{-3}$: ~1e-10). Signals should be smooth between
+    $\omega \le 5$ rad/s, fastest pole −39.8; worst of 100 samples) the metrics are
+    accurate to ~2e-9 relative with one step per 0.01 s, ~2e-10 with 2 and ~4e-11 with 3
+    substeps. Signals should be smooth between
     steps: a jump (a `fojax.Step`, `fojax.PiecewiseConstant`) costs $O(h)$ locally unless it
     falls on a step boundary.
 
@@ -530,7 +530,7 @@ def simulate_batch_exponential(
     have decayed — in the loop above almost the whole error is made in the first
     ~0.05 s. ``startup=(k, s)`` integrates the first ``k`` grid intervals with ``s`` steps
     each and the rest with `substeps`; take $k\,\Delta t \approx 5/|\lambda_{\max}(A_0)|$.
-    Measured on that loop (worst of 100 samples): ``substeps=2, startup=(13, 4)`` gives
+    On that loop (worst of 100 samples) ``substeps=2, startup=(13, 4)`` gives
     ~2e-11 with 2,026 steps, better than uniform ``substeps=3`` (3,000 steps); with
     ``substeps=1`` after the same start-up the bulk step limits (~3e-10: signals up to
     5 rad/s).

@@ -15,7 +15,7 @@ lineax 0.1.1):
    Same shapes, same dtypes, "different" structures. It does not depend on the plant
    (any diffrax-path study fails; a `FaultyPlant` is simply never LTI, so its studies
    always take the diffrax path) and is reproduced by ``jax.shard_map(jax.vmap(f))``
-   of a scalar Kvaerno5 solve. Known upstream: lineax issue #185 ("Issue with
+   of a scalar Kvaerno5 solve. Known upstream: lineax bug report 185 ("Issue with
    shard_map", open).
 2. **Under `jax.vmap`** the LU factorisation is a batched LAPACK ``getrf`` call, which
    can deadlock jaxlib 0.10.2's CPU thread pool (see `fojax._small_linalg`).

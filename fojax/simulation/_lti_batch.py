@@ -247,7 +247,7 @@ def simulate_lti_batch(
       output maps of a block, ``8 (N² + k N) · block`` bytes, should fit in the CPU's
       L2 cache; it is capped by `block_for`: for ``N ≥ 10`` 64 at ``N = 64``, 16 at
       ``N = 128``; below, ``Φ`` within 64 KiB (128 at ``N = 6 … 8``, 64 at ``N = 9``).
-      (Unrolling the time loop was measured slower.)
+      (The time loop is not unrolled: unrolling is slower.)
     - `devices`: the devices to spread the blocks over (default `jax.local_devices()`).
 
     **Returns:** a dict ``name -> (B,)`` or ``(B, k)`` array (float64).

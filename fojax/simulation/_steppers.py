@@ -156,8 +156,8 @@ class Exponential(AbstractStepper):
       intervals) are this many times smaller (default 2).
     - `substeps`: fix ``s`` instead of choosing it from `step_rate` (default ``None``).
 
-    Fixed steps, no error control: the accuracy is measured (module docstring of
-    `fojax.studies._exponential`), not bounded.
+    Fixed steps, no error control: the accuracy is checked by halving the step (module
+    docstring of `fojax.studies._exponential`), not bounded.
     """
 
     step_rate: float = eqx.field(static=True, default=0.5)

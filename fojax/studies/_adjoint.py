@@ -50,31 +50,25 @@ backward recomputes one segment at a time (storing its $S$ states) and then runs
 adjoint through it. Memory is $O(2\sqrt n\, N b)$ instead of $O(n N b)$; the cost is one
 extra forward pass (the last segment is shorter when $S \nmid n$).
 
-**Where the reverse pass spends its time** (`study_loss` on the default §3.3.7 study,
-``q = 10`` observer states, ``m = 9`` plant states, ``K = 5`` outputs, blocks of ``b = 32``
-samples, 1,000 steps, B = 2,048; CPU seconds measured under load 3-11, issue 13): the
-forward 0.085 s; in the backward the segment recompute about 0.1 s, the λ scan 0.12 s,
-the outer-product sums (``q·N + K·N`` FMAs per sample and step, as many as a forward step)
-0.14 s, the outputs' cotangents 0.05 s. For problems whose ``update`` adds a function of
-``(o, k, ts)`` (``problem.additive``: `fojax.studies._exact.LossProblem`) the outputs'
-cotangents of a segment are taken at once and the λ scan carries only
-$\Phi_{\xi\xi}^\top\lambda$; other problems take the per-step VJP. Tried and not kept:
-unrolling the scans (2-8x slower on XLA CPU), one scan running the λ steps of a segment
-together with the recompute of the previous one (no faster), the outer-product sums as
-unrolled FMAs or batch-first einsums, or over a whole block (slower), blocks of 16 or 64.
+**The reverse pass.** Per segment the backward recomputes the states, runs the λ scan
+and forms the outer-product sums (``q·N + K·N`` FMAs per sample and step, as many as a
+forward step) and the outputs' cotangents; with the one extra forward pass, a gradient
+costs a small multiple of a forward run (timings: ``benchmarks/study_profile.py``, its
+results in ``benchmarks/results/study_profile_latest.json``). For problems whose
+``update`` adds a function of ``(o, k, ts)`` (``problem.additive``:
+`fojax.studies._exact.LossProblem`) the outputs' cotangents of a segment are taken at
+once and the λ scan carries only $\Phi_{\xi\xi}^\top\lambda$; other problems take the
+per-step VJP. The scans are not unrolled (unrolled scans are slower on XLA CPU).
 
-**Passes** (issue 13, `pass_recurrence_reduce`): the loss without jumps (what `tune`
-trains) runs the same split loop on passes of ``S = 8`` grid steps, $\Phi^S$ and the
-stacked rows $[G\Phi; \dots; G\Phi^S]$: the state's update, the λ scan and the λ outer
-products $S$ times fewer. Measured on the default study (B = 2,048, under load 4-5):
-value-and-gradient 0.42 s instead of 0.71 s, of which the set-up (joint exponential and
-its VJP, the plant's exponential, the pass matrices) is about 0.2 s. The shared observer
-block $e^{N h}$ (the same for every sample) was profiled first and not used: the loss's
-gradient must be formed per sample (`fojax.studies._sharding`: the sum over samples in one
-order on any split), so the cotangent of $e^{Nh}$ cannot be one sum over the block, and
-the per-sample $\Phi_{\xi p}$ still needs the joint exponential; the λ outer products
-were 0.22 s and the λ scan 0.13 s of the 0.56 s loop, and as one GEMM over the block
-the observers' outer products were no faster (0.568 s against 0.561 s).
+**Passes** (`pass_recurrence_reduce`): the loss without jumps (what `tune` trains) runs
+the same split loop on passes of ``S = 8`` grid steps, $\Phi^S$ and the stacked rows
+$[G\Phi; \dots; G\Phi^S]$: the state's update, the λ scan and the λ outer products $S$
+times fewer, at the price of a per-sample set-up (the joint exponential and its VJP, the
+plant's exponential, the pass matrices). The observer block $e^{N h}$, the same for every
+sample, is not shared across the block: the loss's gradient is formed per sample
+(`fojax.studies._sharding`: the sum over samples in one order on any split), so the
+cotangent of $e^{Nh}$ cannot be one sum over the block, and the per-sample
+$\Phi_{\xi p}$ still needs the joint exponential.
 
 Only the observers' arrays (and ``ts``) are differentiated; ``update`` and ``init`` must depend on
 the problem's own arrays only through non-differentiable quantities (the settling
@@ -142,9 +136,8 @@ def _split_step(problem, plant, diff, kon, p, xi, acc, k):
 
 def _split_layout(T: int, segment: int | None):
     """``(n, S, full, tail)``: ``n = T − 1`` steps in ``full`` segments of ``S`` steps and
-    one of ``tail < S`` steps. (A padded last segment whose extra steps are skipped with
-    selects made XLA CPU's step 40x slower, measured, so the segments have exact
-    lengths.)"""
+    one of ``tail < S`` steps. (The segments have exact lengths: a padded last segment whose
+    extra steps are skipped with selects slows every step on XLA CPU.)"""
     n = T - 1
     S = max(1, math.ceil(math.sqrt(n))) if segment is None else int(segment)
     return n, S, n // S, n % S
@@ -180,7 +173,7 @@ PASS_MAX = 8
 #: segment (its states: ``(2 dim p + dim ξ + 2 S K) · 8 · 32`` bytes per pass and block,
 #: 3 MB for the 124 passes of a 1,000-step grid at ``S = 8``), instead of ``⌈√n⌉``-pass
 #: checkpoint segments and a shorter last one: the same run time, and one segment body
-#: less to compile (the tuning step's compile, CPU seconds under load: 9.1 s against 9.5-10.4 s).
+#: less to compile.
 PASS_SEGMENT_MAX = 256
 
 
@@ -199,8 +192,8 @@ def _pass_matrices(Ppp, Poo, Pop, Go, Gp, S: int):
     $i = 1, \dots, S$ (stacked step-major: row $(i-1)K + k$), of the block lower-triangular
     $\Phi = [[\Phi_{pp}, 0], [\Phi_{\xi p}, \Phi_{\xi\xi}]]$ and $G = [G_p, G_\xi]$, by
     doubling: $R_{w+1..2w} = R_{1..w}\Phi^w$, $\Phi^{2w} = \Phi^w\Phi^w$ ($S$ a power of
-    two), as batched batch-first products (measured: the batch-last einsums compiled
-    1 s slower; `jax.lax.scan`s of the steps 2 s slower).
+    two), as batched batch-first products (they compile faster than batch-last einsums or
+    a `jax.lax.scan` of the steps).
     Returns ``(Φ^S_pp, Φ^S_ξp, Φ^S_ξξ, R_p, R_ξ)``."""
 
     Pp, Pxx, Pxp, Go, Gp = (jnp.moveaxis(X, -1, 0) for X in (Ppp, Poo, Pop, Go, Gp))  # batch first: batched GEMMs

@@ -414,9 +414,8 @@ class LossProblem(eqx.Module):
 #: block of this fixed width runs the whole time loop (and its adjoint) before the next,
 #: so its per-sample matrices (``Φ``, ``G``: ``8 (N² + K N) · 32`` bytes, 92 KB at
 #: ``N = 19``) stay in the L2 cache instead of being streamed from memory at every step.
-#: Measured on the forward recurrence (``N = 19``, ``K = 5``, 512 samples, 1,000 steps,
-#: CPU time per sample and step): one block of 512: 266 ns; 128: 110 ns; 32: 52 ns;
-#: 8: 51 ns. The width is fixed (not derived from ``B`` or the number of devices), so each
+#: Wider blocks spill out of the cache and cost several times more per sample and step;
+#: narrower ones gain nothing. The width is fixed (not derived from ``B`` or the number of devices), so each
 #: sample's arithmetic, and the loss's bits, do not depend on how samples are split.
 DIFF_BLOCK = 32
 
@@ -588,9 +587,9 @@ def sample_metrics_traced(study, observers, settle_tol, mesh=None, metric: str |
 
     def local(shared, p):
         # at least two groups per block: with one, XLA lowers the groups' batch-of-one
-        # products as plain matrix products, whose bits then depended on the process
-        # layout (measured: 1 δ × 32 scenarios, 2 processes × 2 devices: the tuning
-        # gradient differed from one process by 7e-18)
+        # products as plain matrix products, whose bits then depend on the process
+        # layout (the tuning gradient on 2 processes × 2 devices would differ from one
+        # process in the last bits)
         return blocked(lambda q: block(shared, q), p, DIFF_BLOCK if reps == 1 else max(2, DIFF_BLOCK // reps))
 
     if reps == 1:

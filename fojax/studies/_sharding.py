@@ -91,8 +91,8 @@ def _broadcast_fwd(leaves, rows, real, mesh):
 def sum_rows(a):
     """``a[0] + a[1] + ...`` in this order (a `jax.lax.scan`): a reduction XLA neither
     reassociates nor fuses into its producer differently in one- and many-device
-    programs (``jnp.sum`` did: measured, the §3.3.7 tuning gradient on 4 devices over 2
-    processes differed from one device by up to 5.6e-17). `a` may be a pytree of arrays
+    programs (``jnp.sum`` may: its sum on 4 devices over 2 processes can differ from one
+    device in the last bits). `a` may be a pytree of arrays
     with the same leading length: one loop sums every leaf (the observers' cotangents: one
     loop instead of one per matrix, fewer kernels to compile)."""
     zeros = jax.tree.map(lambda x: jnp.zeros(x.shape[1:], x.dtype), a)

@@ -25,26 +25,21 @@ reach $\hat z$). The optimizer moves $\xi$ with $\theta = \theta_0 + B\xi$:
 - ``"project"``: $B = V_rV_r^\top$ (every dead direction projected out).
 - ``"whiten"``: $B = V_r\,\mathrm{diag}(1/\max(\sigma_i, 0.1\,\sigma_1))$: one unit of each
   coordinate moves the response comparably, whatever the scaling of the plant's states
-  and equations (measured: the hand example of ``tests/test_tunable.py`` with rows and
-  states rescaled by 1e-3…1e3 tunes to the same held-out IAE to 9 digits; with ``"none"``
-  the rescaled twin barely moves, 0.4989 against 0.0643 after 30 steps). On the §3.3.7
-  benchmark at learning rate 0.1 it reached 8.8 % in 30 steps against 15.1 % for
-  ``"none"``/``"live"``: its step size needs its own learning rate.
+  and equations (``tests/test_tunable.py``: the hand example with rows and states
+  rescaled by 1e-3…1e3 tunes to the same held-out IAE as the original (within 5 %); with ``"none"``
+  the rescaled twin barely moves). Its step size differs from the raw parameters', so it
+  needs its own learning rate.
 - ``"none"``: the raw parameters (the behaviour before this option).
 
-Which default: on the LC-filter benchmark (``benchmarks/tuning_circuit.py``, 100 Adam steps at
-learning rate 0.1 from the centred LMI design, held-out samples of another seed) with the raw
-designs ``"live"`` and ``"whiten"`` gave −20.4 % and −18.9 % held-out IAE on the plain
-model and the twin (rows and states rescaled by 1e-3…1e3) ended 6.2 % / 6.1 % above it:
-whitening makes the *steps* unit-free, but the raw start is not (``default_R`` and the LMI
-solution depend on the units). **Unit-free start:** design with
+Which default: whitening makes the *steps* unit-free, but a raw start is not (``default_R``
+and the LMI solution depend on the units). **Unit-free start:** design with
 ``design_functional_observer(..., balance=True)``; its `structure` and parameters are
-unit-free, so the model and its twin start from the same observer in the same coordinates.
-Measured (under load, ``benchmarks/results/tuning_circuit_latest.json``): ``"live"``
-−21.9 % on both, final held-out IAE equal to 1.4e-9 relative; ``"whiten"`` −17.5 % (plain)
-and −20.1 % (twin), the twin 3.1 % below (not bit-equal: not investigated; the whitened
-basis is computed from the same singular values). A tuned ``balance=True`` design keeps
-``T`` in the model's units and is re-verified in both frames. ``"live"`` stays the default.
+unit-free, so a model and its rescaled twin start from the same observer in the same
+coordinates, and ``"live"`` then tunes both to the same held-out IAE (the LC-filter
+benchmark ``benchmarks/tuning_circuit.py``, results in
+``benchmarks/results/tuning_circuit_latest.json``, compares the modes on the model and its
+twin). A tuned ``balance=True`` design keeps ``T`` in the model's units and is re-verified
+in both frames. ``"live"`` is the default.
 
 In every mode the count is reported (`TuneResult.live_parameters`, the design's
 ``solver["tuning"]``).
@@ -330,10 +325,8 @@ def tune(
     - `barrier`: weight of the parameterization's barrier (default 1e-3 for ``SteinDisk``,
       1e-4 for ``CommonCertificate``, 0 for ``FixedCertificateDisk``). With ``barrier=0`` the
       iterate can reach the region's boundary; the step rule then slides along it
-      (`fojax.tuning._loop.backtracked_update`). Measured on the LC filter of
-      ``benchmarks/tuning_circuit.py`` (100 steps): ``barrier=0`` −21.6 % held-out IAE, 0 steps
-      rejected (before the tangential step: 79 rejected, −15.2 %); the default −21.9 %, its
-      slow pole held at −1.05 in ``Disk(-3, 2)``.
+      (`fojax.tuning._loop.backtracked_update`), so steps are not rejected at the boundary
+      (``benchmarks/tuning_circuit.py`` compares both settings).
     - `precondition`: ``"live"`` (default), ``"project"``, ``"whiten"`` or ``"none"`` (module docstring).
     - `min_margin`, `max_backtracks`: acceptance rule of a step (backtracking).
     - `eval_every`: held-out evaluation period (steps).
