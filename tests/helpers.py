@@ -346,3 +346,39 @@ class WeightedPenalty(eqx.Module):
 
     def __call__(self, obs, p):
         return self.weight * self.of(obs, p)
+
+
+NOTEBOOKS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "notebooks")
+
+
+@dataclasses.dataclass
+class ExecutedNotebook:
+    """A notebook after `execute_notebook`: the node, the text it printed (streams and
+    ``text/plain`` results of the code cells, in order) and how many PNG figures it drew."""
+
+    nb: object
+    text: str
+    figures: int
+
+    @property
+    def errors(self) -> list:
+        return [o for c in self.nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+                if o.get("output_type") == "error"]
+
+
+def execute_notebook(name: str, *, timeout: int = 600) -> ExecutedNotebook:
+    """Execute ``notebooks/<name>`` top to bottom in a fresh ``python3`` kernel (nbclient),
+    in the notebooks' folder, and return what it printed and drew."""
+    import nbclient
+    import nbformat
+
+    path = os.path.join(NOTEBOOKS, name)
+    nb = nbformat.read(path, as_version=4)
+    nbclient.NotebookClient(nb, timeout=timeout, kernel_name="python3",
+                            resources={"metadata": {"path": NOTEBOOKS}}).execute()
+    cells = [c.get("outputs", []) for c in nb.cells if c.cell_type == "code"]
+    text = "\n".join(
+        "".join(o["text"] if o.get("output_type") == "stream" else o.get("data", {}).get("text/plain", "")
+                for o in outputs)
+        for outputs in cells)
+    return ExecutedNotebook(nb, text, sum("image/png" in o.get("data", {}) for outputs in cells for o in outputs))

@@ -5,34 +5,15 @@ tests read the numbers it prints. (It used to run at import: pytest-xdist import
 test module in every worker to collect it, so each CI run executed it twice, untimed.)
 """
 
-import pathlib
 import re
-from typing import NamedTuple
 
-import nbclient
-import nbformat
 import pytest
-
-
-PATH = pathlib.Path(__file__).parents[1] / "notebooks" / "control_and_ftc.ipynb"
-
-
-class Executed(NamedTuple):
-    nb: nbformat.NotebookNode
-    output: str
-    figures: int
+from helpers import execute_notebook, ExecutedNotebook
 
 
 @pytest.fixture(scope="module")
-def executed() -> Executed:
-    nb = nbformat.read(PATH, as_version=4)
-    nbclient.NotebookClient(
-        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(PATH.parent)}}
-    ).execute()
-    code = [c for c in nb.cells if c.cell_type == "code"]
-    output = "".join(o.get("text", "") for c in code for o in c.get("outputs", []))
-    figures = sum("image/png" in o.get("data", {}) for c in code for o in c.get("outputs", []))
-    return Executed(nb, output, figures)
+def executed() -> ExecutedNotebook:
+    return execute_notebook("control_and_ftc.ipynb")
 
 
 def number(output: str, pattern: str) -> float:
@@ -43,12 +24,7 @@ def number(output: str, pattern: str) -> float:
 
 def test_runs_and_draws_the_figures(executed):
     nb, figures = executed.nb, executed.figures
-    assert not any(
-        o.get("output_type") == "error"
-        for c in nb.cells
-        if c.cell_type == "code"
-        for o in c.get("outputs", [])
-    )
+    assert not executed.errors
     assert figures >= 6
     for fig in (
         "4.2",
@@ -68,14 +44,14 @@ def test_runs_and_draws_the_figures(executed):
 
 
 def test_separation_and_printed_poles(executed):
-    output = executed.output
+    output = executed.text
     gaps = [float(g) for g in re.findall(r"separation gap ([0-9.e+-]+)", output)]
     assert len(gaps) == 2 and max(gaps) < 1e-8
     assert "printed gains, loop poles:    [-39.781, -4.477, -2.211, -2.000, -2.000" in output
 
 
 def test_fault_tolerance_numbers(executed):
-    output = executed.output
+    output = executed.text
     assert number(output, r"FTC: max\|x\| on \[13, 15\] s = ([0-9.e+-]+)") < 1e-4
     assert number(output, r"not FT = ([0-9.e+-]+)") > 0.05
     assert number(output, r"fojax  : max ‖x − x_d‖ on \[11, 15\] s = ([0-9.e+-]+)") <= 1e-3

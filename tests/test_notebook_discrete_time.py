@@ -4,32 +4,11 @@ Oracles: the notebook's own printed checks — eig(N_d) against exp(λh) compute
 the float64 verification reports, and the estimation error against z = Lx on the samples.
 """
 
-import pathlib
-
-import nbformat
-from nbclient import NotebookClient
-
-
-NOTEBOOK = pathlib.Path(__file__).resolve().parents[1] / "notebooks" / "discrete_time.ipynb"
-
-
-def _text(cell) -> str:
-    out = []
-    for o in cell.get("outputs", []):
-        if o.get("output_type") == "stream":
-            out.append(o["text"])
-        elif "data" in o and "text/plain" in o["data"]:
-            out.append(o["data"]["text/plain"])
-    return "".join(out)
+from helpers import execute_notebook
 
 
 def test_discrete_time_notebook_executes():
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    client = NotebookClient(
-        nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOK.parent)}}
-    )
-    client.execute()
-    text = "\n".join(_text(c) for c in nb.cells if c.cell_type == "code")
+    text = execute_notebook("discrete_time.ipynb", timeout=300).text
     assert "discrete-time (dt = 0.05)" in text and "causal            yes" in text
     assert text.count("verification PASSED") == 2  # the continuous and the discrete-time design
     gap = float(text.split("max |eig(N_d) - exp(λh)| = ")[1].split()[0])

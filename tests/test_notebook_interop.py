@@ -3,33 +3,13 @@
 Oracles inside the notebook: SciPy's `lsim` (the recorded log), python-control's
 `forced_response` of the exported observer, `scipy.io.loadmat` of the written file."""
 
-import pathlib
-
-import nbformat
-from nbclient import NotebookClient
-
-
-NOTEBOOK = pathlib.Path(__file__).resolve().parents[1] / "notebooks" / "interop.ipynb"
-
-
-def _text(cell) -> str:
-    out = []
-    for o in cell.get("outputs", []):
-        if o.get("output_type") == "stream":
-            out.append(o["text"])
-        elif "data" in o and "text/plain" in o["data"]:
-            out.append(o["data"]["text/plain"])
-    return "".join(out)
+from helpers import execute_notebook
 
 
 def test_interop_notebook_executes():
-    nb = nbformat.read(NOTEBOOK, as_version=4)
+    run = execute_notebook("interop.ipynb", timeout=300)
+    nb, text = run.nb, run.text
     assert len(nb.cells) < 30
-    client = NotebookClient(
-        nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOK.parent)}}
-    )
-    client.execute()
-    text = "\n".join(_text(c) for c in nb.cells if c.cell_type == "code")
     assert "verification PASSED" in text
     assert "poles in the disk: True" in text
     line = next(ln for ln in text.splitlines() if ln.startswith("relative difference to control.forced_response"))

@@ -1,20 +1,10 @@
 """notebooks/observers.ipynb executes without errors (issue 3)."""
 
-import pathlib
-
-import nbclient
-import nbformat
+from helpers import execute_notebook
 
 
 def test_observers_notebook_executes():
-    path = pathlib.Path(__file__).parents[1] / "notebooks" / "observers.ipynb"
-    nb = nbformat.read(path, as_version=4)
-    client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                                     resources={"metadata": {"path": str(path.parent)}})
-    client.execute()
-    outputs = "".join(
-        o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
-    )
+    outputs = execute_notebook("observers.ipynb").text
     assert "max |ẑ_ft - z| for t >= h:" in outputs
     assert "IAE (Table 3.2 analogue)" in outputs
     # §4: the model-file routes (finite-time exact after h, unknown input estimated)
