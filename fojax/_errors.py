@@ -7,6 +7,7 @@ inspect them programmatically, and a message that names the offending matrix
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 
@@ -355,3 +356,32 @@ class DistributedError(FojaxError, RuntimeError):
     Raised on every process that is still alive: the message says which process and what
     the runtime reported (a collective that lost its peer, a heartbeat timeout), and how
     to continue (restart every process; ``fojax study --resume FOLDER``)."""
+
+
+#: The keywords a stepper object replaced (``simulate``, ``run_study``, ``tune``, ``SimConfig``)
+#: and what to pass instead; `removed_keywords` turns them into a `TypeError` naming it.
+REMOVED_KEYWORDS = {
+    "method": "stepper=fojax.Auto() | fojax.Exact() | fojax.Exponential() | fojax.Diffrax(...)",
+    "solver": "stepper=fojax.Diffrax(solver) (or fojax.Auto(diffrax=fojax.Diffrax(solver)))",
+    "rtol": "stepper=fojax.Diffrax(rtol=...) (or fojax.Auto(diffrax=fojax.Diffrax(rtol=...)))",
+    "atol": "stepper=fojax.Diffrax(atol=...) (or fojax.Auto(diffrax=fojax.Diffrax(atol=...)))",
+    "max_steps": "stepper=fojax.Diffrax(max_steps=...) (or fojax.Auto(diffrax=fojax.Diffrax(max_steps=...)))",
+}
+
+
+def removed_keywords(fn, who: str | None = None):
+    """`fn`, raising `TypeError` when called with a keyword of `REMOVED_KEYWORDS`; the message
+    names the stepper to pass instead."""
+    name = who or fn.__name__
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        bad = [k for k in REMOVED_KEYWORDS if k in kwargs]
+        if bad:
+            raise TypeError(
+                f"{name}() got the removed keyword(s) {', '.join(k + '=' for k in bad)}; the stepper object "
+                "replaces them: " + "; ".join(f"instead of {k}= pass {REMOVED_KEYWORDS[k]}" for k in bad) + "."
+            )
+        return fn(*args, **kwargs)
+
+    return wrapper

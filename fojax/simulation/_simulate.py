@@ -66,7 +66,7 @@ import numpy as np
 from jax import lax
 
 from .._dtype import as_float_array
-from .._errors import InputError, ShapeError
+from .._errors import InputError, removed_keywords, ShapeError
 from .._small_linalg import solve_small
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal
@@ -93,7 +93,6 @@ from ._steppers import (  # noqa: F401
     _breakpoints,
     AbstractStepper,
     grid_deviation_traced,
-    removed_keywords,
     resolve_stepper,
     UNIFORM_GRID_RTOL,
 )

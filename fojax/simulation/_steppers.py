@@ -27,7 +27,6 @@ pass instead (`removed_keywords`).
 from __future__ import annotations
 
 import abc
-import functools
 from typing import ClassVar
 
 import equinox as eqx
@@ -285,35 +284,6 @@ def capabilities(plant, observers, ts, u) -> dict:
             k = (b - t0) / h
             on_grid = bool(np.all(np.abs(k - np.round(k)) <= 1e-9 * np.maximum(1.0, k)))
     return dict(lti=lti, observers_lti=obs_lin, uniform=uniform, on_grid=on_grid, deviation=dev)
-
-
-#: The keywords a stepper object replaced (``simulate``, ``run_study``, ``tune``, ``SimConfig``)
-#: and what to pass instead; `removed_keywords` turns them into a `TypeError` naming it.
-REMOVED_KEYWORDS = {
-    "method": "stepper=fojax.Auto() | fojax.Exact() | fojax.Exponential() | fojax.Diffrax(...)",
-    "solver": "stepper=fojax.Diffrax(solver) (or fojax.Auto(diffrax=fojax.Diffrax(solver)))",
-    "rtol": "stepper=fojax.Diffrax(rtol=...) (or fojax.Auto(diffrax=fojax.Diffrax(rtol=...)))",
-    "atol": "stepper=fojax.Diffrax(atol=...) (or fojax.Auto(diffrax=fojax.Diffrax(atol=...)))",
-    "max_steps": "stepper=fojax.Diffrax(max_steps=...) (or fojax.Auto(diffrax=fojax.Diffrax(max_steps=...)))",
-}
-
-
-def removed_keywords(fn, who: str | None = None):
-    """`fn`, raising `TypeError` when called with a keyword of `REMOVED_KEYWORDS`; the message
-    names the stepper to pass instead."""
-    name = who or fn.__name__
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        bad = [k for k in REMOVED_KEYWORDS if k in kwargs]
-        if bad:
-            raise TypeError(
-                f"{name}() got the removed keyword(s) {', '.join(k + '=' for k in bad)}; the stepper object "
-                "replaces them: " + "; ".join(f"instead of {k}= pass {REMOVED_KEYWORDS[k]}" for k in bad) + "."
-            )
-        return fn(*args, **kwargs)
-
-    return wrapper
 
 
 def resolve_stepper(stepper, *, who: str) -> AbstractStepper:

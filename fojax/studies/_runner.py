@@ -61,7 +61,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Float
 from tqdm import tqdm
 
-from .._errors import InputError, ShapeError
+from .._errors import InputError, removed_keywords, ShapeError
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal, FaultyPlant
 from ..simulation import simulate
@@ -75,7 +75,7 @@ from ..simulation._save import (
     resolve_save,
     UNSET,
 )
-from ..simulation._steppers import AbstractStepper, Exponential, removed_keywords, resolve_stepper
+from ..simulation._steppers import AbstractStepper, Exponential, resolve_stepper
 from ._exact import exact_problem
 from ._exponential import exponential_problem
 from ._families import Family

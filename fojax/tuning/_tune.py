@@ -74,7 +74,7 @@ import numpy as np
 import optax
 
 from .._background import in_background
-from .._errors import InputError
+from .._errors import InputError, removed_keywords
 from ..design import (
     AbstractParameterization,
     CommonCertificate,
@@ -85,7 +85,7 @@ from ..design import (
     TakagiSugenoObserverDesign,
     unflatten,
 )
-from ..simulation._steppers import removed_keywords, resolve_stepper
+from ..simulation import resolve_stepper
 from ..studies import (
     check_same_on_every_process,
     distributed_errors,
