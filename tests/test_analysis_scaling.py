@@ -340,7 +340,7 @@ def test_example_4_1_3_in_tiny_units_of_x4_is_regular_again():
     # private: design's own regularity check is compared with analysis's
     from fojax.design._conditions import check_regular
 
-    d = tomllib.loads(files("fojax.examples").joinpath("example_4_1_3.toml").read_text())
+    d = tomllib.loads(files("fojax").joinpath("examples", "example_4_1_3.toml").read_text())
     E, A = (np.array(d["model"][k], float) for k in ("E", "A"))
     dr = np.array([1.0, 1.0, 1.0, 2.0**-34])
     assert not fa.is_regular(E * dr, A * dr, balance=False)  # the old verdict

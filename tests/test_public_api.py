@@ -24,8 +24,11 @@ def _public(namespace):
 
 
 def _subpackages():
-    """The public subpackages and modules of fojax: ``{"fojax.design": module, ...}``."""
-    return {f"fojax.{n}": getattr(fojax, n) for n in _public(fojax) if isinstance(getattr(fojax, n), types.ModuleType)}
+    """The public subpackages and modules of fojax: ``{"fojax.design": module, ...}``. A data
+    folder that some test opened as a namespace package (``importlib.resources.files
+    ("fojax.examples")`` adds ``fojax.examples``, with no ``__file__``) is not one."""
+    return {f"fojax.{n}": m for n in _public(fojax)
+            if isinstance(m := getattr(fojax, n), types.ModuleType) and getattr(m, "__file__", None)}
 
 
 def _objects_with_identity(module):
