@@ -19,6 +19,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._dtype import as_matrix
+from .._errors import ShapeError
 
 
 class LinearObserverMatrices(NamedTuple):
@@ -95,11 +96,36 @@ class AbstractFunctionalObserver(AbstractObserver):
         return self.Wu @ u + self.Wy @ y
 
 
-def measurement_maps(Wu, Wy) -> tuple[Array, Array]:
-    """`Wu` ``(nw, m)`` and `Wy` ``(nw, p)`` as float64 matrices with the same number of rows
-    (a `ShapeError` naming `Wu` otherwise)."""
+def functional_gains(N, J, F, H, S, G, M, P, Q, Wu, Wy, matrix=None) -> tuple[Array, ...]:
+    r"""`(N, J, F, H, S, G, M, P, Q, Wu, Wy)` as float64 arrays whose trailing axes fit one
+    another: `N` ``(q0, q0)``, `J` ``(q0, q1)``, `F` ``(q0, nw)``, `H` ``(q0, m)``, `S`
+    ``(q1, q0)``, `G` ``(q1, q1)``, `M` ``(q1, nw)``, `P` ``(q, q0)``, `Q` ``(q, nw)``, `Wu`
+    ``(nw, m)`` and `Wy` ``(nw, p)`` (a `ShapeError` naming the first matrix that does not fit).
+
+    `matrix(name, x, rows, cols)` reads one gain (``None``: `as_matrix`, a single 2-d matrix; the
+    Takagi–Sugeno observer passes one that stacks a leading rule axis)."""
+    if matrix is None:
+        def matrix(name, x, rows, cols):
+            return as_matrix(name, x, rows=rows, cols=cols)
+
+    N = matrix("N", N, None, None)
+    q0 = N.shape[-2]
+    if N.shape[-1] != q0:
+        raise ShapeError("N", tuple(N.shape[:-2]) + (q0, q0), tuple(N.shape))
     Wy = as_matrix("Wy", Wy)
-    return as_matrix("Wu", Wu, rows=Wy.shape[0]), Wy
+    Wu = as_matrix("Wu", Wu, rows=Wy.shape[0])
+    nw, m = Wu.shape
+    G = matrix("G", G, None, None)
+    q1 = G.shape[-2]
+    J = matrix("J", J, q0, q1)
+    F = matrix("F", F, q0, nw)
+    H = matrix("H", H, q0, m)
+    S = matrix("S", S, q1, q0)
+    G = matrix("G", G, q1, q1)
+    M = matrix("M", M, q1, nw)
+    P = matrix("P", P, None, q0)
+    Q = matrix("Q", Q, P.shape[-2], nw)
+    return N, J, F, H, S, G, M, P, Q, Wu, Wy
 
 
 def fold_feedthrough(observer: AbstractObserver, D) -> AbstractObserver:

@@ -6,10 +6,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._dtype import as_matrix
-from .._errors import ShapeError
 from ..plant._descriptor import check_dt
-from ._base import AbstractFunctionalObserver, LinearObserverMatrices, measurement_maps
+from ._base import AbstractFunctionalObserver, functional_gains, LinearObserverMatrices
 
 
 class GeneralizedFunctionalObserver(AbstractFunctionalObserver):
@@ -56,25 +54,8 @@ class GeneralizedFunctionalObserver(AbstractFunctionalObserver):
     dt: float | None = eqx.field(static=True)
 
     def __init__(self, N, J, F, H, S, G, M, P, Q, Wu, Wy, kind: str = "generalized", *, dt=None):
-        N = as_matrix("N", N)
-        q0 = N.shape[0]
-        if N.shape[1] != q0:
-            raise ShapeError("N", (q0, q0), tuple(N.shape))
-        Wu, Wy = measurement_maps(Wu, Wy)
-        nw, m = Wu.shape
-        G = as_matrix("G", G)
-        q1 = G.shape[0]
-        self.N = N
-        self.J = as_matrix("J", J, rows=q0, cols=q1)
-        self.F = as_matrix("F", F, rows=q0, cols=nw)
-        self.H = as_matrix("H", H, rows=q0, cols=m)
-        self.S = as_matrix("S", S, rows=q1, cols=q0)
-        self.G = as_matrix("G", G, rows=q1, cols=q1)
-        self.M = as_matrix("M", M, rows=q1, cols=nw)
-        P = as_matrix("P", P, cols=q0)
-        self.P = P
-        self.Q = as_matrix("Q", Q, rows=P.shape[0], cols=nw)
-        self.Wu, self.Wy = Wu, Wy
+        (self.N, self.J, self.F, self.H, self.S, self.G, self.M, self.P, self.Q,
+         self.Wu, self.Wy) = functional_gains(N, J, F, H, S, G, M, P, Q, Wu, Wy)
         if kind not in ("generalized", "PI", "proportional"):
             raise ValueError(f"kind must be 'generalized', 'PI' or 'proportional', got {kind!r}")
         self.kind = kind

@@ -9,7 +9,7 @@ from jaxtyping import Array, Float
 from .._dtype import as_float_array, as_matrix
 from .._errors import ShapeError
 from ..plant import AbstractMembership
-from ._base import AbstractFunctionalObserver, measurement_maps
+from ._base import AbstractFunctionalObserver, functional_gains
 from ._generalized import GeneralizedFunctionalObserver
 
 
@@ -76,25 +76,11 @@ class TakagiSugenoObserver(AbstractFunctionalObserver):
                 f"membership must be a fojax.plant.AbstractMembership (the plant's), got {type(membership).__name__}."
             )
         k = membership.num_rules
-        N = _stack("N", N, k, None, None)
-        q0 = N.shape[1]
-        if N.shape[2] != q0:
-            raise ShapeError("N", (k, q0, q0), tuple(N.shape))
-        Wu, Wy = measurement_maps(Wu, Wy)
-        nw, m = Wu.shape
-        G = _stack("G", G, k, None, None)
-        q1 = G.shape[1]
-        self.N = N
-        self.J = _stack("J", J, k, q0, q1)
-        self.F = _stack("F", F, k, q0, nw)
-        self.H = _stack("H", H, k, q0, m)
-        self.S = _stack("S", S, k, q1, q0)
-        self.G = _stack("G", G, k, q1, q1)
-        self.M = _stack("M", M, k, q1, nw)
-        self.P = _stack("P", P, k, None, q0)
-        self.Q = _stack("Q", Q, k, self.P.shape[1], nw)
-        self.Wu, self.Wy = Wu, Wy
-        self.T = as_matrix("T", T, rows=q0)
+        (self.N, self.J, self.F, self.H, self.S, self.G, self.M, self.P, self.Q,
+         self.Wu, self.Wy) = functional_gains(
+            N, J, F, H, S, G, M, P, Q, Wu, Wy,
+            lambda name, x, rows, cols: _stack(name, x, k, rows, cols))
+        self.T = as_matrix("T", T, rows=self.N.shape[1])
         self.membership = membership
         if kind not in _KINDS:
             raise ValueError(f"kind must be one of {_KINDS}, got {kind!r}")

@@ -6,8 +6,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._dtype import as_matrix
-from .._errors import ShapeError
-from ._base import AbstractFunctionalObserver, LinearObserverMatrices, measurement_maps
+from ._base import AbstractFunctionalObserver, functional_gains, LinearObserverMatrices
 
 
 class UnknownInputObserver(AbstractFunctionalObserver):
@@ -57,31 +56,14 @@ class UnknownInputObserver(AbstractFunctionalObserver):
     Wy: Float[Array, "nw p"]
 
     def __init__(self, N, J, F, H, Delta, S, G, M, Phi, Lambda, W, P, Q, Wu, Wy):
-        N = as_matrix("N", N)
-        q0 = N.shape[0]
-        if N.shape[1] != q0:
-            raise ShapeError("N", (q0, q0), tuple(N.shape))
-        Wu, Wy = measurement_maps(Wu, Wy)
-        nw, m = Wu.shape
-        G = as_matrix("G", G)
-        q1 = G.shape[0]
-        Delta = as_matrix("Delta", Delta, rows=q0)
-        l = Delta.shape[1]
-        self.N = N
-        self.J = as_matrix("J", J, rows=q0, cols=q1)
-        self.F = as_matrix("F", F, rows=q0, cols=nw)
-        self.H = as_matrix("H", H, rows=q0, cols=m)
-        self.Delta = Delta
-        self.S = as_matrix("S", S, rows=q1, cols=q0)
-        self.G = as_matrix("G", G, rows=q1, cols=q1)
-        self.M = as_matrix("M", M, rows=q1, cols=nw)
+        (self.N, self.J, self.F, self.H, self.S, self.G, self.M, self.P, self.Q,
+         self.Wu, self.Wy) = functional_gains(N, J, F, H, S, G, M, P, Q, Wu, Wy)
+        q0, q1, nw = self.N.shape[0], self.G.shape[0], self.Wu.shape[0]
+        self.Delta = as_matrix("Delta", Delta, rows=q0)
+        l = self.Delta.shape[1]
         self.Phi = as_matrix("Phi", Phi, rows=l, cols=q0)
         self.Lambda = as_matrix("Lambda", Lambda, rows=l, cols=q1)
         self.W = as_matrix("W", W, rows=l, cols=nw)
-        P = as_matrix("P", P, cols=q0)
-        self.P = P
-        self.Q = as_matrix("Q", Q, rows=P.shape[0], cols=nw)
-        self.Wu, self.Wy = Wu, Wy
 
     # ------------------------------------------------------------------ sizes
     @property

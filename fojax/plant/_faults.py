@@ -1,5 +1,5 @@
-r"""Faults and output noise: plant wrappers (`FaultyPlant`, `NoisyPlant`) and the fault
-signal `FaultProfile`.
+r"""Faults and output noise: plant wrappers (`FaultyPlant`, `NoisyPlant`, on the delegating
+base `AbstractPlantWrapper`) and the fault signal `FaultProfile`.
 
 They change *what* is simulated without touching the simulator: a wrapped plant is
 still an `fojax.plant.AbstractPlant` (and every leaf can carry a batch axis).
@@ -7,6 +7,7 @@ still an `fojax.plant.AbstractPlant` (and every leaf can carry a batch axis).
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -52,7 +53,31 @@ class FaultProfile(AbstractSignal):
         return jnp.stack([self.onset, self.onset + self.rise])
 
 
-class FaultyPlant(AbstractPlant):
+class AbstractPlantWrapper(AbstractPlant):
+    """A plant that adds signals to another plant, `base`: it keeps the base's `E`, input and
+    output sizes and `linear_in_state`; each final wrapper says what it adds in `rhs` and
+    `output`."""
+
+    base: eqx.AbstractVar[AbstractPlant]
+
+    @property
+    def E(self):
+        return self.base.E
+
+    @property
+    def m(self):
+        return self.base.m
+
+    @property
+    def p(self):
+        return self.base.p
+
+    @property
+    def linear_in_state(self):  # type: ignore[override]
+        return self.base.linear_in_state
+
+
+class FaultyPlant(AbstractPlantWrapper):
     r"""A plant with additive actuator/process and sensor faults:
 
     $$E\dot x = f(t, x, u) + F_a\,\phi(t), \qquad y = g(t, x, u) + F_s\,\phi(t).$$
@@ -76,22 +101,6 @@ class FaultyPlant(AbstractPlant):
         self.Fs = jnp.zeros((p, nf)) if Fs is None else as_matrix("Fs", Fs, rows=p, cols=nf)
         self.fault = fault
 
-    @property
-    def E(self):
-        return self.base.E
-
-    @property
-    def m(self):
-        return self.base.m
-
-    @property
-    def p(self):
-        return self.base.p
-
-    @property
-    def linear_in_state(self):  # type: ignore[override]
-        return self.base.linear_in_state
-
     def rhs(self, t, x, u):
         return self.base.rhs(t, x, u) + self.Fa @ self.fault(t)
 
@@ -102,7 +111,7 @@ class FaultyPlant(AbstractPlant):
         return self.fault.breakpoints()
 
 
-class NoisyPlant(AbstractPlant):
+class NoisyPlant(AbstractPlantWrapper):
     r"""Measurement noise on the output: $y = g(t, x, u) + \nu(t)$.
 
     `noise` is any signal of size ``p``; `fojax.studies.output_noise` draws seeded zero-order-hold
@@ -117,22 +126,6 @@ class NoisyPlant(AbstractPlant):
         if noise.size != base.p:
             raise ShapeError("noise", f"a signal of size p = {base.p}", f"size {noise.size}")
         self.base, self.noise = base, noise
-
-    @property
-    def E(self):
-        return self.base.E
-
-    @property
-    def m(self):
-        return self.base.m
-
-    @property
-    def p(self):
-        return self.base.p
-
-    @property
-    def linear_in_state(self):  # type: ignore[override]
-        return self.base.linear_in_state
 
     def rhs(self, t, x, u):
         return self.base.rhs(t, x, u)
