@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ..plant import AbstractPlant
+from ..plant import AbstractPlant, augment_faults, DescriptorSystem
 
 
 def _freeze(value):
@@ -111,3 +111,18 @@ class ThesisExample:
             f"{type(s).__name__}(n={s.n}, m={s.m}, p={s.p}), "
             f"quantities={list(self.quantities)}, {len(self.notes)} notes)"
         )
+
+
+def linear_example(name: str, section: str, notes: tuple[str, ...], E, A, B, C, *,
+                   system: AbstractPlant | None = None, faults: Mapping[str, Any] | None = None,
+                   **quantities) -> ThesisExample:
+    """The `ThesisExample` of a linear model $(E, A, B, C)$: `system` is
+    ``DescriptorSystem(E, A, B, C)`` unless given, and the quantities are `E`, `A`, `B`, `C`,
+    then `quantities` in their order, then, with `faults` (the fault directions, keywords of
+    `fojax.plant.augment_faults`), ``augmented``: the system with its faults as states."""
+    system = DescriptorSystem(E, A, B, C) if system is None else system
+    quantities = dict(E=E, A=A, B=B, C=C, **quantities)
+    if faults is not None:
+        quantities["augmented"] = augment_faults(system, **faults)
+    return ThesisExample(name=name, section=section, system=system, notes=notes,
+                         quantities=quantities)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..plant import augment_faults, DescriptorSystem
-from ._base import _array, ThesisExample
+from ..plant import DescriptorSystem
+from ._base import _array, linear_example, ThesisExample
 
 
 def example_3_1_2() -> ThesisExample:
@@ -52,27 +52,13 @@ def example_3_1_2() -> ThesisExample:
         "so L is stored as printed.",
         "x0 = [-0.5, 1, 2.5, -1] satisfies the algebraic row 3x1 - x2 + x3 = 0.",
     )
-    return ThesisExample(
-        name="example_3_1_2",
-        section="3.1.2",
-        system=DescriptorSystem(E, A, B, C),
-        notes=notes,
-        quantities=dict(
-            E=E,
-            A=A,
-            A_printed=A_printed,
-            B=B,
-            C=C,
-            L=L,
-            eig_EA=np.array([3.06, -4.03 - 6.0j, -4.03 + 6.0j]),
-            eig_EA_BL=np.array([-5.02, -10.84, -274.643]),
-            alpha1=-5.0,
-            tau1=0.5,
-            alpha2=-2.0,
-            tau2=0.5,
-            h=0.5,
-            x0=_array([-0.5, 1, 2.5, -1]),
-        ),
+    return linear_example(
+        "example_3_1_2", "3.1.2", notes, E, A, B, C,
+        A_printed=A_printed, L=L,
+        eig_EA=np.array([3.06, -4.03 - 6.0j, -4.03 + 6.0j]),
+        eig_EA_BL=np.array([-5.02, -10.84, -274.643]),
+        alpha1=-5.0, tau1=0.5, alpha2=-2.0, tau2=0.5, h=0.5,
+        x0=_array([-0.5, 1, 2.5, -1]),
     )
 
 
@@ -118,26 +104,12 @@ def example_3_1_3() -> ThesisExample:
         "position keeps (A, B) controllable, so nothing printed decides further.",
         "Standard system (E = I, eq. 3.59): the observer uses F y, not [-E_perp B u; y].",
     )
-    return ThesisExample(
-        name="example_3_1_3",
-        section="3.1.3",
+    return linear_example(
+        "example_3_1_3", "3.1.3", notes, _array(np.eye(5)), A, B, C,
         system=DescriptorSystem.from_state_space(A, B, C),
-        notes=notes,
-        quantities=dict(
-            E=_array(np.eye(5)),
-            A=A,
-            B=B,
-            B_printed=B_printed,
-            C=C,
-            L=L,
-            R=R,
-            alpha1=-7.0,
-            tau1=2.0,
-            alpha2=-1.0,
-            tau2=0.5,
-            h=0.5,
-            x0=_array([2, 1.5, -1, 0, 1]),
-        ),
+        B_printed=B_printed, L=L, R=R,
+        alpha1=-7.0, tau1=2.0, alpha2=-1.0, tau2=0.5, h=0.5,
+        x0=_array([2, 1.5, -1, 0, 1]),
     )
 
 
@@ -184,36 +156,22 @@ def example_3_3_7() -> ThesisExample:
     L_aug = np.zeros((5, 9))
     L_aug[:2, :6] = L
     L_aug[2:, 6:] = np.eye(3)
-    system = DescriptorSystem(E, A, B, C)
     notes = (
         "delta(t) is only shown in Figure 3.7, which is not available: not recorded.",
         "In the rank condition after eq. 3.196 the block 'C  F_a' should read 'C  F_s', and "
         "'C^+ A^+ = [E_perp A  E_perp F_a]' is garbled; neither affects the data.",
         "No observer gains, disks or delay are printed for this example.",
     )
-    return ThesisExample(
-        name="example_3_3_7",
-        section="3.3.7",
-        system=system,
-        notes=notes,
-        quantities=dict(
-            E=E,
-            A=A,
-            dA=dA,
-            B=B,
-            C=C,
-            Fa=Fa,
-            Fs=Fs,
-            L=L,
-            L_aug=L_aug,
-            augmented=augment_faults(system, Fa, Fs),
-            IAE={
-                "FGDO": _array([8.33, 4.88, 8.35, 24.21, 4.81]),
-                "PO": _array([34.4, 21.99, 6.91, 160.68, 5.67]),
-            },
-            ISE={
-                "FGDO": _array([19.35, 5.15, 30.39, 131.86, 15.92]),
-                "PO": _array([163.58, 69.98, 271.0, 4097.1, 192.0]),
-            },
-        ),
+    return linear_example(
+        "example_3_3_7", "3.3.7", notes, E, A, B, C,
+        faults=dict(Fa=Fa, Fs=Fs),
+        dA=dA, Fa=Fa, Fs=Fs, L=L, L_aug=L_aug,
+        IAE={
+            "FGDO": _array([8.33, 4.88, 8.35, 24.21, 4.81]),
+            "PO": _array([34.4, 21.99, 6.91, 160.68, 5.67]),
+        },
+        ISE={
+            "FGDO": _array([19.35, 5.15, 30.39, 131.86, 15.92]),
+            "PO": _array([163.58, 69.98, 271.0, 4097.1, 192.0]),
+        },
     )

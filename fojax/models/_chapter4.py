@@ -17,8 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..plant import augment_faults, DescriptorSystem
-from ._base import _array, ThesisExample
+from ._base import _array, linear_example, ThesisExample
 
 
 # The plant shared by §4.1.3 and §4.3.2.
@@ -30,7 +29,7 @@ def _plant_4a():
     B = _array([[1.0, 0], [0.5, -1.0], [0, 1.0], [0, 0]])
     C = _array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
     L = _array([[-8.95, -26.07, 12.1, -4.85], [1.71, 1.31, -3.51, -0.16]])
-    return E, A, B, C, L
+    return dict(E=E, A=A, B=B, C=C, L=L)
 
 
 # The plant shared by §4.2.2 and §4.4.2.
@@ -41,7 +40,20 @@ def _plant_4b():
     C = _array([[1, 0, 0], [0, 0, 1]])
     Fs = _array(np.eye(2))
     L = _array([[2.61, 1.09, -1.38], [-0.43, 0.04, 0.02]])
-    return E, A, B, C, Fs, L
+    return dict(E=E, A=A, B=B, C=C, Fs=Fs, L=L)
+
+
+def _sensor_fault_example(name, section, notes, **quantities) -> ThesisExample:
+    r"""An example on the plant of §4.2.2 and §4.4.2 with its sensor faults as states: `augmented`
+    (its $\bar E^\perp = e_3^T$) and the consistent ``x0 = [1, -1, -1]``, besides `quantities`."""
+    plant = _plant_4b()
+    return linear_example(
+        name, section, notes, **plant,
+        faults=dict(Fs=plant["Fs"]),
+        **quantities,
+        E_perp=_array([[0, 0, 1, 0, 0]]),
+        x0=_array([1, -1, -1]),
+    )
 
 
 def example_4_1_3() -> ThesisExample:
@@ -72,7 +84,6 @@ def example_4_1_3() -> ThesisExample:
     `alpha` = -2, `tau` = 1, `x0`, and the printed eigenvalues `eig_EA`,
     `eig_EA_BL`, `eig_loop` (finite poles of $(\mathcal E, \mathcal A)$).
     """
-    E, A, B, C, L = _plant_4a()
     gains = dict(
         N=_array([[-3.24, -4.26], [-0.1, -2.33]]),
         J=_array([[2.94, 2.94], [0.3, 0.3]]),
@@ -95,26 +106,16 @@ def example_4_1_3() -> ThesisExample:
         "Eqs. 4.4/4.11/4.12: 'J(t)' means J v(t), the second 'S v(t)' means G v(t); "
         "epsilon = zeta - T E x (printed T E z).",
     )
-    return ThesisExample(
-        name="example_4_1_3",
-        section="4.1.3",
-        system=DescriptorSystem(E, A, B, C),
-        notes=notes,
-        quantities=dict(
-            E=E,
-            A=A,
-            B=B,
-            C=C,
-            L=L,
-            E_perp=_array([[0, 0, 0, 1]]),
-            **gains,
-            alpha=-2.0,
-            tau=1.0,
-            x0=_array([16, -1, 3, 7]),
-            eig_EA=np.array([1.79, -4.4 - 1.72j, -4.4 + 1.72j]),
-            eig_EA_BL=np.array([-1.7 + 1.99j, -1.7 - 1.99j, -39.78]),
-            eig_loop=np.array([-1.7 + 1.99j, -1.7 - 1.99j, -39.78, -2.0, -2.0, -2.2, -4.47]),
-        ),
+    return linear_example(
+        "example_4_1_3", "4.1.3", notes, **_plant_4a(),
+        E_perp=_array([[0, 0, 0, 1]]),
+        **gains,
+        alpha=-2.0,
+        tau=1.0,
+        x0=_array([16, -1, 3, 7]),
+        eig_EA=np.array([1.79, -4.4 - 1.72j, -4.4 + 1.72j]),
+        eig_EA_BL=np.array([-1.7 + 1.99j, -1.7 - 1.99j, -39.78]),
+        eig_loop=np.array([-1.7 + 1.99j, -1.7 - 1.99j, -39.78, -2.0, -2.0, -2.2, -4.47]),
     )
 
 
@@ -145,8 +146,6 @@ def example_4_2_2() -> ThesisExample:
     `C`, `Fs`, `L`, `Lbar`, `augmented`, `E_perp` (of the augmented system), gains
     `N, J, F, S, G, M, P, Q` and `x0` $= [1, -1, -1]$ (consistent).
     """
-    E, A, B, C, Fs, L = _plant_4b()
-    system = DescriptorSystem(E, A, B, C)
     gains = dict(
         N=_array([[-4.92, 0.26], [0.08, -4.74]]),
         J=_array([[0.22, 0.22], [0.22, 0.22]]),
@@ -165,24 +164,10 @@ def example_4_2_2() -> ThesisExample:
         "printed and nearly hold (3.3 half-units, residual 0.03) with the sign of F flipped.",
         "x0 = [1, -1, -1] satisfies the algebraic row -x1 - 2x2 + x3 = 0.",
     )
-    return ThesisExample(
-        name="example_4_2_2",
-        section="4.2.2",
-        system=system,
-        notes=notes,
-        quantities=dict(
-            E=E,
-            A=A,
-            B=B,
-            C=C,
-            Fs=Fs,
-            L=L,
-            Lbar=_array(np.hstack([L, np.zeros((2, 2))])),
-            augmented=augment_faults(system, Fs=Fs),
-            E_perp=_array([[0, 0, 1, 0, 0]]),
-            **gains,
-            x0=_array([1, -1, -1]),
-        ),
+    return _sensor_fault_example(
+        "example_4_2_2", "4.2.2", notes,
+        Lbar=_array(np.hstack([_plant_4b()["L"], np.zeros((2, 2))])),
+        **gains,
     )
 
 
@@ -216,10 +201,9 @@ def example_4_3_2() -> ThesisExample:
     `C`, `Fa` (= `B`), `L`, `Lbar`, `Lbar_printed`, `R` (3x6), `augmented`,
     `E_perp`, gains `N, J, F, H, S, G, M, P, Q` and `x0`.
     """
-    E, A, B, C, L = _plant_4a()
-    system = DescriptorSystem(E, A, B, C)
+    plant = _plant_4a()
     Lbar_printed = _array([[-8.95, -267, 12.1, -4.85, -1, 0], [1.71, 1.31, -3.51, -0.16, 0, -1]])
-    Lbar = _array(np.hstack([L, -np.eye(2)]))
+    Lbar = _array(np.hstack([plant["L"], -np.eye(2)]))
     gains = dict(
         N=_array([[1.04, 8.32, 11.95], [-21.76, -34.94, -43.03], [12.09, 16.63, 18.9]]),
         J=_array([[0.05, 0.05, 0.05], [-0.17, -0.17, -0.17], [0.1, 0.1, 0.1]]),
@@ -248,26 +232,16 @@ def example_4_3_2() -> ThesisExample:
         "x0 = [1, -1, 3, 1] violates the algebraic row -x1 - 2x2 + x4 = 0 (residual 2); a "
         "consistent completion keeping x1..x3 is x4 = -1.",
     )
-    return ThesisExample(
-        name="example_4_3_2",
-        section="4.3.2",
-        system=system,
-        notes=notes,
-        quantities=dict(
-            E=E,
-            A=A,
-            B=B,
-            C=C,
-            Fa=B,
-            L=L,
-            Lbar=Lbar,
-            Lbar_printed=Lbar_printed,
-            R=_array([[1, 1, 0, 0, 1, 1], [1, 1, 1, 1, 0, 1], [0, 1, 0, 0, 1, 0]]),
-            augmented=augment_faults(system, Fa=B),
-            E_perp=_array([[0, 0, 0, 1, 0, 0]]),
-            **gains,
-            x0=_array([1, -1, 3, 1]),
-        ),
+    return linear_example(
+        "example_4_3_2", "4.3.2", notes, **plant,
+        faults=dict(Fa=plant["B"]),
+        Fa=plant["B"],
+        Lbar=Lbar,
+        Lbar_printed=Lbar_printed,
+        R=_array([[1, 1, 0, 0, 1, 1], [1, 1, 1, 1, 0, 1], [0, 1, 0, 0, 1, 0]]),
+        E_perp=_array([[0, 0, 0, 1, 0, 0]]),
+        **gains,
+        x0=_array([1, -1, 3, 1]),
     )
 
 
@@ -295,8 +269,6 @@ def example_4_4_2() -> ThesisExample:
     `Lbar` (4x5, resolved), `Lbar_printed`, `augmented`, `E_perp`, gains
     `N, J, F, H, S, G, M, P, Q` and `x0` $= [1, -1, -1]$ (consistent).
     """
-    E, A, B, C, Fs, L = _plant_4b()
-    system = DescriptorSystem(E, A, B, C)
     Lbar_printed = _array(
         [[2.61, 1.09, -1.38, -1, 0], [-0.43, 0.04, 0.02, 0, 0], [0, 0, 0, 1, 0], [0, 0, 0, 0, 1]]
     )
@@ -354,23 +326,6 @@ def example_4_4_2() -> ThesisExample:
         "S row 3 ~ 0 but M row 3 = [-0.71, 0.24, 0.96]); a, b, d are consistent.",
         "x0 = [1, -1, -1] satisfies the algebraic row.",
     )
-    return ThesisExample(
-        name="example_4_4_2",
-        section="4.4.2",
-        system=system,
-        notes=notes,
-        quantities=dict(
-            E=E,
-            A=A,
-            B=B,
-            C=C,
-            Fs=Fs,
-            L=L,
-            Lbar=Lbar,
-            Lbar_printed=Lbar_printed,
-            augmented=augment_faults(system, Fs=Fs),
-            E_perp=_array([[0, 0, 1, 0, 0]]),
-            **gains,
-            x0=_array([1, -1, -1]),
-        ),
+    return _sensor_fault_example(
+        "example_4_4_2", "4.4.2", notes, Lbar=Lbar, Lbar_printed=Lbar_printed, **gains
     )

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..plant import DescriptorSystem
-from ._base import _array, physical_parameters, ThesisExample
+from ._base import _array, linear_example, physical_parameters, ThesisExample
 
 
 #: per-unit defaults of `flexible_drive` (see its docstring)
@@ -95,10 +94,5 @@ def flexible_drive(k_2_uncertainty: float = 0.5, **params) -> ThesisExample:
     notes = ("Not from the thesis: a model of our choice for the tuning benchmarks (a second model "
              "besides the LC filter of benchmarks/lc_filter.py).",
              "Per-unit values chosen by us (a slow, lightly damped drive), not measured on a rig.")
-    return ThesisExample(
-        name="flexible_drive",
-        section="",
-        system=DescriptorSystem(E, A, B, C),
-        notes=notes,
-        quantities=dict(params=p, states=DRIVE_STATES, E=E, A=A, B=B, C=C, L=L, dA=dA),
-    )
+    return linear_example("flexible_drive", "", notes, E, A, B, C,
+                          params=p, states=DRIVE_STATES, L=L, dA=dA)

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import numpy as np
-
-from ..plant import DescriptorSystem
-from ._base import _array, ThesisExample
+from ._base import _array, linear_example, ThesisExample
 
 
 def electrical_motor(
@@ -64,10 +61,4 @@ def electrical_motor(
         "DC-motor speed example with a 2:1 gear (plausible values, not the thesis's).",
         "The thesis gives no output matrix; default y = omega_2 (load speed).",
     )
-    return ThesisExample(
-        name="electrical_motor",
-        section="2.1.1",
-        system=DescriptorSystem(E, A, B, C),
-        notes=notes,
-        quantities=dict(params=params, E=E, A=A, B=B, C=np.asarray(C)),
-    )
+    return linear_example("electrical_motor", "2.1.1", notes, E, A, B, C, params=params)

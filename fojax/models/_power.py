@@ -6,8 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..plant import DescriptorSystem
-from ._base import _array, physical_parameters, ThesisExample
+from ._base import _array, linear_example, physical_parameters, ThesisExample
 
 
 #: per-unit defaults of `two_area_power` (see its docstring)
@@ -152,10 +151,5 @@ def two_area_power(inertia_uncertainty: float = 0.4, **params) -> ThesisExample:
     E, A, B, C = _array(E), _array(A), _array(B), _array(C)
     notes = ("Not from the thesis: a two-area load-frequency-control system with an "
              "uncertain area inertia (values of Saadat's textbook example, as commonly reproduced).",)
-    return ThesisExample(
-        name="two_area_power",
-        section="",
-        system=DescriptorSystem(E, A, B, C),
-        notes=notes,
-        quantities=dict(params=p, states=POWER_STATES, E=E, A=A, B=B, C=C, L=L, dA=_array(dA)),
-    )
+    return linear_example("two_area_power", "", notes, E, A, B, C,
+                          params=p, states=POWER_STATES, L=L, dA=_array(dA))
