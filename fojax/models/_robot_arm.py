@@ -106,14 +106,24 @@ def _printed_gains() -> dict:
     )  # fmt: skip
 
 
-def _common_quantities() -> dict:
-    return dict(
-        L=_array([[0, 1, 0, 0, 0], [0, 0, 0, 1, 0], [0, 0, 0, 0, 1]]),
-        R=_array([[0, 1, 0, 0, 0], [0, 1, 0, 1, 0], [1, 0, 0, 0, 1]]),
-        x0=_array([math.pi / 12, 0, math.pi / 6, 0, 0.09]),
-        delta_k=0.04,
-        omega_k=1.0,
-        **_printed_gains(),
+def _arm_example(name: str, system, notes: tuple[str, ...], params: dict, **quantities) -> ThesisExample:
+    """A §3.3.5 example of the arm: `params`, `quantities`, then what both forms share (`L`, `R`,
+    `x0`, the uncertainty of $k$ and the printed gains, with their notes)."""
+    return ThesisExample(
+        name=name,
+        section="3.3.5",
+        system=system,
+        notes=notes + _GAIN_NOTES,
+        quantities=dict(
+            params=params,
+            **quantities,
+            L=_array([[0, 1, 0, 0, 0], [0, 0, 0, 1, 0], [0, 0, 0, 0, 1]]),
+            R=_array([[0, 1, 0, 0, 0], [0, 1, 0, 1, 0], [1, 0, 0, 0, 1]]),
+            x0=_array([math.pi / 12, 0, math.pi / 6, 0, 0.09]),
+            delta_k=0.04,
+            omega_k=1.0,
+            **_printed_gains(),
+        ),
     )
 
 
@@ -210,14 +220,8 @@ def robot_arm(
         "Table 3.1 prints the mass unit as 'm' (it is kg) and has no g; g = 9.81 m/s^2.",
         "x5 is called d_y in eq. 2.7 and P_y in eq. 3.188: the tip height l sin(x3); "
         "x0[4] = 0.09 = 0.18 sin(pi/6) is consistent.",
-    ) + _GAIN_NOTES
-    return ThesisExample(
-        name="robot_arm",
-        section="3.3.5",
-        system=system,
-        notes=notes,
-        quantities=dict(params=params, **_common_quantities()),
     )
+    return _arm_example("robot_arm", system, notes, params)
 
 
 def ts_matrices(params: dict | None = None, x3_bound: float | None = None) -> dict:
@@ -343,19 +347,6 @@ def robot_arm_ts(
             if x3_bound is None
             else f"(|x3| <= {x3_bound})."
         ),
-    ) + _GAIN_NOTES
-    return ThesisExample(
-        name="robot_arm_ts",
-        section="3.3.5",
-        system=system,
-        notes=notes,
-        quantities=dict(
-            params=params,
-            rho_min=rho_min,
-            rho_max=rho_max,
-            A1=A1,
-            A2=A2,
-            rule_of_printed=(1, 0),
-            **_common_quantities(),
-        ),
     )
+    return _arm_example("robot_arm_ts", system, notes, params, rho_min=rho_min, rho_max=rho_max,
+                        A1=A1, A2=A2, rule_of_printed=(1, 0))
