@@ -27,6 +27,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from .._dtype import as_float_array
 from .._errors import InputError, ShapeError
 from ._batch import _block_kernel, block_for, TRACE_COUNTS
+from ._problem import _joint_of, AbstractBatchProblem, eval_shape_cached
 from ._reduction import is_concrete
 from ._steppers import grid_deviation, grid_deviation_traced, UNIFORM_GRID_RTOL
 
@@ -41,7 +42,8 @@ def _device_kernel(problem, p, nvalid, h, ts, basis, dev):
     nb = jax.tree.leaves(p)[0].shape[0]
     take = lambda a, i: lax.dynamic_index_in_dim(a, i, keepdims=False)  # noqa: E731
     # a problem with its own stepping (the exponential integrator) brings its block kernel
-    kernel = getattr(problem, "block_kernel", None) or (lambda q, h, ts, basis: _block_kernel(problem, q, h, ts, basis))
+    kernel = problem.block_kernel if isinstance(problem, AbstractBatchProblem) else (
+        lambda q, h, ts, basis: _block_kernel(problem, q, h, ts, basis))
     shape = jax.eval_shape(lambda q: kernel(q, h, ts, basis), jax.tree.map(lambda a: a[0], p))
     # block i's output (..., b) goes to out[..., i, :]: blocks next to each other along the
     # batch, so that `_chunk_core`'s reordering to (..., bc) is a reshape on one device
@@ -68,7 +70,7 @@ def _chunk_core(problem, p, nreal, h, ts, block, basis, mesh):
     (balanced within one block); each device computes only its blocks that hold real
     samples. Returns the problem's reduction with the batch as the last axis ``bc``.
     """
-    TRACE_COUNTS[getattr(problem, "trace_name", type(problem).__name__)] += 1
+    TRACE_COUNTS[problem.trace_name] += 1
     bc = jax.tree.leaves(p)[0].shape[0]
     D = 1 if mesh is None else mesh.devices.size
     nb = bc // (block * D)
@@ -101,38 +103,6 @@ def _chunk_core(problem, p, nreal, h, ts, block, basis, mesh):
         return o.reshape(rest + (bc,))
 
     return gather_across_processes(jax.tree.map(unarrange, out), mesh)
-
-
-#: `eval_shape_cached`'s results by structure (cleared when it holds `_SHAPE_CACHE_MAX`).
-_SHAPE_CACHE: dict = {}
-
-
-_SHAPE_CACHE_MAX = 256
-
-
-def eval_shape_cached(fn, *args):
-    """``eqx.filter_eval_shape(fn, *args)``, cached by ``fn`` and the structure of `args`
-    (tree structure, shapes and dtypes of the array leaves, the other leaves by value).
-
-    A shape evaluation traces ``fn`` in Python every time, and `run_study` asks for three
-    or four of them per call (the study's plant and observers, the joint system), a visible
-    part of its fixed cost for small systems. What they return depends only on that key, so a second call with new numbers reuses it. ``fn`` must be a stable object (a
-    module-level function); arguments with unhashable non-array leaves are not cached."""
-    leaves, treedef = jax.tree.flatten(args)
-    key = (fn, treedef) + tuple((x.shape, x.dtype) if eqx.is_array(x) else x for x in leaves)
-    try:
-        hit = key in _SHAPE_CACHE
-    except Exception:  # an unhashable or array-valued leaf: no cache
-        return eqx.filter_eval_shape(fn, *args)
-    if not hit:
-        if len(_SHAPE_CACHE) >= _SHAPE_CACHE_MAX:
-            _SHAPE_CACHE.clear()
-        _SHAPE_CACHE[key] = eqx.filter_eval_shape(fn, *args)
-    return _SHAPE_CACHE[key]
-
-
-def _joint_of(problem, p):
-    return problem.joint(p)
 
 
 def spans_processes(mesh) -> bool:
@@ -179,9 +149,11 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
     # block has the shapes of a one-process run and its samples the same bits (batched
     # products of other widths differed by ~1e-15 on a study with fault onsets)
     Dw = 1 if spans_processes(mesh) else D
-    if getattr(problem, "block_kernel", None) is None:  # the batch kernel's own stepping: block by N
-        one = jax.tree.map(lambda a: a[0], p)
-        block = block_for(eval_shape_cached(_joint_of, problem, one)[0].shape[0], int(block))
+    if isinstance(problem, AbstractBatchProblem):  # the exact kernel: block by N; own stepping: N is None
+        block = block_for(problem.joint_size(p), int(block))
+    else:
+        block = block_for(eval_shape_cached(_joint_of, problem, jax.tree.map(lambda a: a[0], p))[0].shape[0],
+                          int(block))
     block = max(1, min(int(block), -(-min(int(chunk_size), Bn) // Dw)))
     unit = block * D
     bc = -(-int(chunk_size) // unit) * unit

@@ -105,6 +105,7 @@ from ._exponential_setup import (
     TRACE_COUNTS,
 )
 from ._lti_batch import _check_metrics, _ModelProblem, METRIC_KINDS
+from ._problem import AbstractBatchProblem
 from ._reduction import (
     host_initial_checks,
     is_concrete,
@@ -217,9 +218,9 @@ def _etd_matrices(phis, h, rows, Pi):
     return E, L0, L1, L2, L3
 
 
-class ExponentialProblem(eqx.Module):
+class ExponentialProblem(AbstractBatchProblem):
     r"""A problem of the batch kernel (`fojax.simulation._driver.run_batched`) stepped by
-    ETDRK4 instead of exact matrix exponentials.
+    ETDRK4 instead of exact matrix exponentials (a final `AbstractBatchProblem`).
 
     A sample is ``p_k = (s_k, d_k)``: ``setup.signals(s_k)`` gives its signals ``(plant
     signals, input)``, ``d_k`` its part of `kernel_inputs` (``w0`` and the per-sample terms
@@ -249,8 +250,25 @@ class ExponentialProblem(eqx.Module):
     schedule: tuple = eqx.field(static=True)
 
     @property
-    def keep(self) -> bool:
+    def keep(self) -> int:
         return self.reducer.keep
+
+    @property
+    def computed(self) -> tuple[str, ...]:
+        return self.reducer.computed
+
+    def joint_size(self, p) -> None:
+        return None  # its own stepping: the block width is the driver's
+
+    # the reduction is the reducer's
+    def init(self, o0):
+        return self.reducer.init(o0)
+
+    def update(self, acc, o, k, ts):
+        return self.reducer.update(acc, o, k, ts)
+
+    def final(self, acc, o0, o_end, ts, h, ok):
+        return self.reducer.final(acc, o0, o_end, ts, h, ok)
 
     def block_kernel(self, p, h_grid, ts, basis=None, checkpoint: bool = False):
         """One block (leading axis ``b`` of every leaf of ``p``): the reducer's result

@@ -48,9 +48,9 @@ from ..simulation._batch import (
     _output_basis,
     repeat_groups,
 )
-from ..simulation._driver import eval_shape_cached
 from ..simulation._expm import DIFF_MAX_SQUARINGS, expm_last
 from ..simulation._joint import Exogenous, joint_matrices
+from ..simulation._problem import AbstractBatchProblem, eval_shape_cached
 from ..simulation._reduction import (
     check_index1_host,
     is_concrete,
@@ -154,10 +154,10 @@ def _blkdiag(*ms):
     return out
 
 
-class StudyProblem(eqx.Module):
+class StudyProblem(AbstractBatchProblem):
     """The samples of a study as a problem of the batch kernel (see module docstring):
     per index pair ``(i, j)`` the joint loop of plant, observers and exosystem, and the
-    metrics of `run_study` accumulated along the grid."""
+    metrics of `run_study` accumulated along the grid (a final `AbstractBatchProblem`)."""
 
     study: object
     observers: tuple
@@ -328,7 +328,7 @@ SAME_E_BATCH = 256
 def _structure(fn, *args):
     """The output structure of ``fn(*args)`` without computing it (``None`` stays ``None``,
     module types are kept, arrays become shapes); cached by structure
-    (`fojax.simulation._driver.eval_shape_cached`: `fn` is one of the module-level
+    (`fojax.simulation._problem.eval_shape_cached`: `fn` is one of the module-level
     functions below)."""
     return eval_shape_cached(fn, *args)
 
@@ -371,9 +371,10 @@ def exact_problem(study, observers, settle_tol: float, keep: int, kinds: tuple[s
     return (problem, basis, (jnp.asarray(iu), jnp.asarray(jf))), None
 
 
-class LossProblem(eqx.Module):
+class LossProblem(AbstractBatchProblem):
     """The `StudyProblem` of `study_loss`: the same samples, but only the one metric the
-    loss reads (``"iae"`` or ``"ise"``) is accumulated along the grid.
+    loss reads (``"iae"`` or ``"ise"``) is accumulated along the grid (a final
+    `AbstractBatchProblem`).
 
     `StudyProblem` carries five accumulators (IAE, ISE, ITAE, peak, last index above the
     settling threshold); the loss reads one, yet the adjoint recurrence differentiates the
@@ -386,11 +387,15 @@ class LossProblem(eqx.Module):
 
     study: StudyProblem
     metric: str = eqx.field(static=True)
-    keep = False
+    keep: int = eqx.field(static=True, default=0)
     # `update` adds a function of the step's outputs to the accumulator: the adjoint of
     # `fojax.studies._adjoint.split_recurrence_reduce` takes the outputs' cotangents of a
     # whole checkpoint segment at once
     additive = True
+
+    @property
+    def computed(self) -> tuple[str, ...]:
+        return (self.metric,)
 
     def joint(self, p):
         return self.study.joint(p)

@@ -646,7 +646,7 @@ def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
     else:
         mets, ok = out
     mets, ok = np.asarray(mets), np.asarray(ok)  # (len(computed), K, B), (B,)
-    computed = getattr(problem, "reducer", problem).computed  # the metrics the kernel accumulated
+    computed = problem.computed  # the metrics the kernel accumulated
     Nu, Nf, q, n_obs = study.num_uncertainty, study.num_scenarios, study.num_signals, len(names)
     metrics = {}
     for k, name in enumerate(computed):
