@@ -7,7 +7,7 @@ norms of its own terms). Perturbations: all ones, standard normal, and a random 
 direction (``Z``: outside the range of $\Pi_Z(I - \Gamma\Gamma^+)$; ``Y_i``: rows in the
 range of $\Sigma = [R;\Psi]$; computed here by SVD), scaled to max-entry 1. Sizes 1e0 … 1e13.
 
-Models: the hand example of ``tests/test_tunable.py`` in generic coordinates (``[R; C]`` of
+Models: the hand example of ``tests/test_parameterization.py`` in generic coordinates (``[R; C]`` of
 full row rank), the thesis's example 3.3.7 (Σ rank deficient), the LC filter of
 ``lc_filter.py`` (``q0 = 3``) and its badly scaled twin.
 

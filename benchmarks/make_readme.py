@@ -1036,7 +1036,7 @@ is decided by rounding, so R — and the default design — could change with th
 power-of-two rescaling of the model wherever R takes part of a block (the flexible drive at
 q0 = 2: R's row space moved by 0.30–0.38 under rotations of the SVD basis). The bases are now
 canonical (`fojax._linalg.canonical_row_space`: pivots chosen from the Gram matrix, invariant
-under any rotation of the basis; ≤ 1.4e-14 under the same rotations; `tests/test_default_R_canonical.py`).
+under any rotation of the basis; ≤ 1.4e-14 under the same rotations; `tests/test_default_R.py`).
 The thesis examples are unchanged (their default R is L itself).
 
 **Designs that do not depend on units.** `design_functional_observer(..., balance=True)`

@@ -189,7 +189,7 @@ HEAVY_FIRST = (
     "test_study_exact.py",
     "test_batch_simulation.py",
     "test_cli_devices.py",
-    "test_tunable.py",
+    "test_parameterization.py",
     "test_exponential.py",
     "test_adjoint.py",
     "test_tuning.py",

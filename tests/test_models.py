@@ -1,6 +1,7 @@
-"""Thesis examples (`fojax.models`): printed numbers against independent computations.
+"""The models of `fojax.models` (the thesis's examples, `flexible_drive`, `two_area_power`):
+their printed numbers and derivations against independent computations.
 
-Every eigenvalue check uses `scipy.linalg.eigvals(A, E)` (finite values only), never
+**Thesis examples.** Every eigenvalue check uses `scipy.linalg.eigvals(A, E)` (finite values only), never
 fojax's analysis layer. The printed observer gains are checked against the design
 conditions of the thesis,
 
@@ -25,9 +26,41 @@ Findings (also in each example's `notes`; t in half-units of the last printed di
 - §3.3.6 PO: (zeta1, zeta2) -> (z1, z2) exact with F_a1 paired with the printed A1
   (rho = rho_max), t = 320 swapped; z3 = x5 is structurally impossible (residual 1).
 - §3.3.6 GDO: b, c, d exact for z1, z2; a has no solution (t = 26.7, residual 5.45).
+
+
+**`flexible_drive`** (not from the thesis), against an independent derivation.
+
+Oracles:
+- the ODE written directly from Newton's and Kirchhoff's laws with the algebraic variables
+  substituted by hand ($i = (u - K_b\\omega_m)/R$, $\\tau_1 = k_1\\varphi_1 + c_1(\\omega_m/N - \\omega_1)$,
+  $\\tau_2 = k_2\\varphi_2 + c_2(\\omega_1 - \\omega_2)$): its eigenvalues (NumPy) are the finite
+  poles of the pencil (SciPy QZ), matched one to one, at the defaults and at other parameters;
+- the closed-form steady state for a constant voltage (all speeds equal after the gear,
+  $\\tau_2 = b_2\\omega_2$): equals $L(-A)^{-1}B\\,u$ of the descriptor model;
+- index 1 by closed form: the algebraic block is diag(-R, -1, -1), so rank E = 5 finite poles
+  and `fojax.analysis.nilpotency_index` = 1;
+- exact ranks in rational arithmetic (sympy) for the observer structure's rank conditions on
+  the badly scaled twin.
+
+
+**`two_area_power`** (not from the thesis), against an independent derivation.
+
+Oracles:
+- the classical 7-state load-frequency-control ODE written by hand (swing equations with
+  $\\Delta P_{12} = P_s\\Delta\\delta_{12}$ and $\\Delta P_{ei} = D_i\\Delta\\omega_i \\pm \\Delta P_{12}$
+  substituted, governor and turbine lags): its eigenvalues (NumPy) are the finite poles of the
+  pencil (SciPy QZ), matched one to one, at the defaults and at other parameters;
+- the closed-form steady state for a constant set point (the textbook
+  $\\Delta\\omega = \\Delta P_{\\text{ref}}/(\\beta_1 + \\beta_2)$, $\\beta_i = 1/R_i + D_i$):
+  equals $(-A)^{-1}Bu$ of the descriptor model;
+- index 1 by closed form (the algebraic block has determinant -1): rank E = 7 finite poles and
+  `fojax.analysis.nilpotency_index` = 1;
+- the uncertainty: $A + \\delta\\,\\Delta A$ is the model rebuilt with $H_1/(1 + a\\delta)$.
 """
 
 import itertools
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -683,3 +716,198 @@ def test_chapter4_gain_dimensions(name):
     np.testing.assert_array_equal(ex.E_perp @ E, 0)
     np.testing.assert_array_equal(ex.E_perp @ np.asarray(sys.B), 0)  # the -E_perp B u entry is 0
     assert ex.x0.shape == (ex.system.n,)
+
+
+# ==================================================================================================
+# `fojax.models.flexible_drive` (issue 14's second model, not from the thesis) against an
+# independent derivation.
+# ==================================================================================================
+
+
+#: the model's per-unit defaults (the hand-derived ODE below is checked at these values)
+DRIVE_PARAMS = dict(fm.flexible_drive().params)
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _drive_finite_poles(A, E):
+    w = sl.eigvals(np.asarray(A), np.asarray(E))
+    return w[np.isfinite(w)]
+
+
+def _drive_hand_ode(p):
+    """(A_ode, b_ode) of x = (w_m, phi_1, w_1, phi_2, w_2) from the physics, algebraic variables substituted."""
+    Jm, bm, Kt, Kb, R, N = p["J_m"], p["b_m"], p["K_t"], p["K_b"], p["R"], p["N"]
+    k1, c1, J1, b1, k2, c2, J2, b2 = p["k_1"], p["c_1"], p["J_1"], p["b_1"], p["k_2"], p["c_2"], p["J_2"], p["b_2"]
+    # tau_1 = [c1/N, k1, -c1, 0, 0] . x ; tau_2 = [0, 0, c2, k2, -c2] . x ; i = (u - Kb w_m) / R
+    tau1 = np.array([c1 / N, k1, -c1, 0, 0])
+    tau2 = np.array([0, 0, c2, k2, -c2])
+    e = np.eye(5)
+    A = np.vstack([
+        (-Kt * Kb / R * e[0] - bm * e[0] - tau1 / N) / Jm,
+        e[0] / N - e[2],
+        (tau1 - tau2 - b1 * e[2]) / J1,
+        e[2] - e[4],
+        (tau2 - b2 * e[4]) / J2,
+    ])
+    b = np.array([Kt / R / Jm, 0, 0, 0, 0])
+    return A, b
+
+
+DRIVE_OTHER = dict(J_m=0.3, b_m=0.02, K_t=0.7, K_b=0.9, R=2.5, N=5.0, k_1=10.0, c_1=0.3, J_1=2.0, b_1=0.1,
+             k_2=0.8, c_2=0.01, J_2=4.0, b_2=0.2)
+
+
+@pytest.mark.parametrize("params", [{}, DRIVE_OTHER], ids=["defaults", "other"])
+def test_drive_finite_poles_are_the_hand_reduced_odes(params):
+    ex = fm.flexible_drive(**params)
+    p = {**DRIVE_PARAMS, **params}
+    A_ode, _ = _drive_hand_ode(p)
+    poles = _drive_finite_poles(ex.A, ex.E)
+    assert poles.size == 5 == np.linalg.matrix_rank(ex.E)  # index 1: rank E finite poles
+    assert_eigenvalues_match(poles, np.linalg.eigvals(A_ode), rtol=1e-9)
+    assert poles.real.max() < 0  # damped: a study's samples stay bounded
+    assert fojax.analysis.nilpotency_index(ex.system) == 1
+
+
+def test_defaults_poles_as_documented():
+    ex = fm.flexible_drive()
+    documented = [-0.876, -0.201 + 1.567j, -0.201 - 1.567j, -0.174 + 2.880j, -0.174 - 2.880j]
+    assert_eigenvalues_match(_drive_finite_poles(ex.A, ex.E), documented, atol=1e-3, rtol=0.0)
+
+
+@pytest.mark.parametrize("params", [{}, DRIVE_OTHER], ids=["defaults", "other"])
+def test_steady_state_torque_closed_form(params):
+    ex = fm.flexible_drive(**params)
+    p = {**DRIVE_PARAMS, **params}
+    # constant u: w_m = N w, w_1 = w_2 = w; tau_2 = b_2 w; tau_1 = (b_1 + b_2) w;
+    # K_t (u - K_b N w) / R = b_m N w + tau_1 / N
+    w = p["K_t"] / p["R"] / (p["K_t"] * p["K_b"] * p["N"] / p["R"] + p["b_m"] * p["N"] + (p["b_1"] + p["b_2"]) / p["N"])
+    x_ss = np.linalg.solve(-ex.A, ex.B[:, 0])
+    np.testing.assert_allclose(ex.L @ x_ss, [p["b_2"] * w], rtol=1e-12)
+    np.testing.assert_allclose(x_ss[[0, 2, 4]], [p["N"] * w, w, w], rtol=1e-12)
+    # the hand ODE has the same steady state (its B enters through the current)
+    A_ode, b_ode = _drive_hand_ode(p)
+    np.testing.assert_allclose(np.linalg.solve(-A_ode, b_ode), x_ss[:5], rtol=1e-10, atol=1e-14)
+
+
+def test_uncertainty_is_the_output_shaft_stiffness():
+    a, delta = 0.5, -0.6
+    ex = fm.flexible_drive(k_2_uncertainty=a)
+    softer = fm.flexible_drive(k_2=DRIVE_PARAMS["k_2"] * (1 + a * delta))
+    np.testing.assert_allclose(ex.A + delta * ex.dA, softer.A, rtol=0, atol=1e-15)
+    assert np.count_nonzero(ex.dA) == 1
+    assert ex.states[int(np.argmax(ex.L[0]))] == "tau_2" and ex.C.shape == (2, 8)
+
+
+def test_drive_bad_parameters_are_named():
+    with pytest.raises(ValueError, match="k_2 must be positive"):
+        fm.flexible_drive(k_2=0.0)
+    with pytest.raises(TypeError, match="unknown parameters \\['J3'\\]"):
+        fm.flexible_drive(J3=1.0)
+
+
+def test_structure_rank_decisions_are_unit_free():
+    """Regression (issue 14): on the drive rescaled by 1e-3…1e3 (`benchmarks/tuning_circuit.py`'s
+    twin) the rank conditions of the observer structure were decided on the raw data: rank Γ =
+    rank [E; E⊥A; C] came out 7 and the default R failed "rank [R; Γ] = rank Γ". Oracle: exact
+    ranks of the twin's own float matrices in rational arithmetic (sympy)."""
+    import sympy
+
+    from fojax.design import check_structure, observer_structure
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from lc_filter import rescaled
+    from tuning_circuit import DRIVE_TWIN_ROWS, DRIVE_TWIN_STATES
+
+    ex = fm.flexible_drive()
+    m = rescaled({k: np.asarray(getattr(ex, k)) for k in ("E", "A", "B", "C", "L", "dA")},
+                 DRIVE_TWIN_ROWS, DRIVE_TWIN_STATES)
+    # R: z = tau_2 and the two twists, written in the twin's states (rows in the row space of Γ)
+    R = np.zeros((3, 8))
+    R[0, 7], R[1, 1], R[2, 3] = 1.0, 1.0, 1.0
+    R = R @ m["Dc"]
+    def exact_rank(M):  # of the float values themselves (Rational(float) is exact)
+        return sympy.Matrix([[sympy.Rational(float(v)) for v in row] for row in M]).rank()
+
+    gamma = np.vstack([m["E"], m["A"][5:], m["C"]])  # E⊥ = the algebraic rows (rows 6-8 of E are zero)
+    assert exact_rank(gamma) == 8 and exact_rank(np.vstack([R, gamma])) == 8
+    s = observer_structure(m["E"], m["A"], m["B"], m["C"], m["L"], R, q1=3)
+    check_structure(s)  # raised RankConditionError (rank [R; E; Ψ] = 8 but rank [E; Ψ] = 7) before
+
+
+# ==================================================================================================
+# `fojax.models.two_area_power` (issue 14's third model, not from the thesis) against an independent
+# derivation.
+# ==================================================================================================
+
+
+#: the model's per-unit defaults (the hand-derived ODE below is checked at these values)
+POWER_PARAMS = dict(fm.two_area_power().params)
+
+
+def _power_finite_poles(A, E):
+    w = sl.eigvals(np.asarray(A), np.asarray(E))
+    return w[np.isfinite(w)]
+
+
+def _power_hand_ode(p):
+    """A of x = (w1, d12, w2, Pm1, Pv1, Pm2, Pv2), the algebraic powers substituted by hand."""
+    H1, D1, R1, tg1, tt1 = p["H_1"], p["D_1"], p["R_1"], p["tau_g1"], p["tau_t1"]
+    H2, D2, R2, tg2, tt2, Ps = p["H_2"], p["D_2"], p["R_2"], p["tau_g2"], p["tau_t2"], p["P_s"]
+    return np.array([
+        [-D1 / (2 * H1), -Ps / (2 * H1), 0, 1 / (2 * H1), 0, 0, 0],
+        [1, 0, -1, 0, 0, 0, 0],
+        [0, Ps / (2 * H2), -D2 / (2 * H2), 0, 0, 1 / (2 * H2), 0],
+        [0, 0, 0, -1 / tt1, 1 / tt1, 0, 0],
+        [-1 / (R1 * tg1), 0, 0, 0, -1 / tg1, 0, 0],
+        [0, 0, 0, 0, 0, -1 / tt2, 1 / tt2],
+        [0, 0, -1 / (R2 * tg2), 0, 0, 0, -1 / tg2],
+    ])
+
+
+POWER_OTHER = dict(H_1=3.0, D_1=1.0, R_1=0.04, tau_g1=0.1, tau_t1=0.4, H_2=6.0, D_2=0.5, R_2=0.08, tau_g2=0.25,
+             tau_t2=0.7, P_s=1.2)
+
+
+@pytest.mark.parametrize("params", [{}, POWER_OTHER], ids=["defaults", "other"])
+def test_power_finite_poles_are_the_hand_reduced_odes(params):
+    ex = fm.two_area_power(**params)
+    poles = _power_finite_poles(ex.A, ex.E)
+    assert poles.size == 7 == np.linalg.matrix_rank(ex.E)  # index 1: rank E finite poles
+    assert_eigenvalues_match(poles, np.linalg.eigvals(_power_hand_ode({**POWER_PARAMS, **params})), rtol=1e-9)
+    assert poles.real.max() < 0
+    assert fojax.analysis.nilpotency_index(ex.system) == 1
+
+
+@pytest.mark.parametrize("params", [{}, POWER_OTHER], ids=["defaults", "other"])
+def test_steady_state_closed_form(params):
+    ex = fm.two_area_power(**params)
+    p = {**POWER_PARAMS, **params}
+    u = 0.1
+    w = u / (1 / p["R_1"] + p["D_1"] + 1 / p["R_2"] + p["D_2"])
+    pm1, pm2 = u - w / p["R_1"], -w / p["R_2"]
+    p12 = pm1 - p["D_1"] * w
+    expected = [w, p12 / p["P_s"], w, pm1, pm1, pm2, pm2, p12, pm1, pm2]
+    x_ss = np.linalg.solve(-ex.A, ex.B[:, 0] * u)
+    np.testing.assert_allclose(x_ss, expected, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(ex.L @ x_ss, [pm1], rtol=1e-12)
+
+
+def test_uncertainty_is_the_inverse_inertia_of_area_1():
+    a, delta = 0.4, -0.7
+    ex = fm.two_area_power(inertia_uncertainty=a)
+    other = fm.two_area_power(H_1=POWER_PARAMS["H_1"] / (1 + a * delta))
+    np.testing.assert_allclose(ex.A + delta * ex.dA, other.A, rtol=0, atol=1e-15)
+    assert np.linalg.matrix_rank(ex.dA) == 1 and np.count_nonzero(ex.dA[1:]) == 0
+    assert ex.states[int(np.argmax(ex.L[0]))] == "P_m1" and ex.C.shape == (3, 10)
+
+
+def test_power_bad_parameters_are_named():
+    with pytest.raises(ValueError, match="H_1 must be positive"):
+        fm.two_area_power(H_1=0.0)
+    with pytest.raises(ValueError, match="inertia_uncertainty must be in"):
+        fm.two_area_power(inertia_uncertainty=1.0)
+    with pytest.raises(TypeError, match="unknown parameters \\['H3'\\]"):
+        fm.two_area_power(H3=1.0)

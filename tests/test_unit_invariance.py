@@ -17,7 +17,7 @@ Oracles:
   ($k < 2d + 1$, NumPy, no JAX) for the live-parameter count: the rank of that Jacobian,
   read off a gap of > 1e4 in its singular values.
 - *A closed form* for the count: the minimum-order observer of the hand example of
-  ``tests/test_tunable.py`` has exactly one live direction (derived there).
+  ``tests/test_parameterization.py`` has exactly one live direction (derived there).
 - *Exact equivariance* (derived in `fojax.analysis.unit_scaling`'s docstring) for the
   unit-free scaling: the scaled matrices of a model and of any diagonal rescaling agree
   to round-off.
@@ -367,7 +367,7 @@ def test_live_count_is_equal_on_model_and_twin_generalized(lc_designs):
 
 
 def test_live_count_closed_form_on_the_rescaled_hand_example():
-    """The minimum-order observer of tests/test_tunable.py's hand example (one live direction,
+    """The minimum-order observer of tests/test_parameterization.py's hand example (one live direction,
     derived there), written with equations scaled by (1e-3, 1, 1e3) and states by (1e3, 1e-3, 1)."""
     A = np.array([[-1.0, 0.0, 0.0], [1.0, -2.0, 0.0], [0.0, 1.0, -3.0]])
     B, C, L = np.array([[1.0], [0.0], [0.0]]), np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]])

@@ -65,7 +65,7 @@ only $\epsilon(\|ZW\| + \|\eta\|)$, so what enters the conditions is of the size
 part (plus $\epsilon^2\|Z\|$), and so is their residual — relative to terms of that size it
 stays at rounding for any size of the parameters (tested up to $10^{13}$ in every
 block: at the unperturbed design's own level, ≤ 2e-15 on 3.3.7 and on the hand example of
-``tests/test_tunable.py``, and on the LC filter of ``benchmarks/lc_filter.py``; $Y_i$ needs no second product: $\hat Y_i$ is multiplied by
+``tests/test_parameterization.py``, and on the LC filter of ``benchmarks/lc_filter.py``; $Y_i$ needs no second product: $\hat Y_i$ is multiplied by
 $P_\Sigma$ again inside $N_3, F_3$). The observer is that of the projected parameters
 (`project_parameters`) up to rounding of their size. What cannot be recovered is the
 live part's own rounding in a huge parameter: $\|\eta\|\approx\epsilon\|Z\|$, i.e. a

@@ -111,7 +111,7 @@ def two_area_power(inertia_uncertainty: float = 0.4, **params) -> ThesisExample:
     $H_1 = 5$ s, $\tau_{g1} = 0.2$ s, $\tau_{t1} = 0.5$ s; $R_2 = 0.0625$, $D_2 = 0.9$,
     $H_2 = 4$ s, $\tau_{g2} = 0.3$ s, $\tau_{t2} = 0.6$ s; $P_s = 2$ pu; as commonly
     reproduced — we did not check them against the printed book). The model's poles are
-    checked against the 7-state ODE derived by hand in ``tests/test_power_model.py``.
+    checked against the 7-state ODE derived by hand in ``tests/test_models.py``.
 
     **Arguments:** `inertia_uncertainty` ($a$ above, in $[0, 1)$) and any of `POWER_PARAMS`
     by name.

@@ -25,7 +25,7 @@ reach $\hat z$). The optimizer moves $\xi$ with $\theta = \theta_0 + B\xi$:
 - ``"project"``: $B = V_rV_r^\top$ (every dead direction projected out).
 - ``"whiten"``: $B = V_r\,\mathrm{diag}(1/\max(\sigma_i, 0.1\,\sigma_1))$: one unit of each
   coordinate moves the response comparably, whatever the scaling of the plant's states
-  and equations (``tests/test_tunable.py``: the hand example with rows and states
+  and equations (``tests/test_parameterization.py``: the hand example with rows and states
   rescaled by 1e-3…1e3 tunes to the same held-out IAE as the original (within 5 %); with ``"none"``
   the rescaled twin barely moves). Its step size differs from the raw parameters', so it
   needs its own learning rate.
