@@ -18,13 +18,15 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 
+#: XLA's flag for the number of CPU host devices (XLA's name, as in tests/conftest.py).
+HOST_DEVICES_FLAG = "--xla_force_host_platform_device_count"
+
+
 def child_xla_flags(devices: int | None = None) -> str:
     """``XLA_FLAGS`` for a child process: this process's (e.g. the suite's compile flag,
     tests/conftest.py) without its host-device count, and with `devices` host devices if given."""
-    from fojax.cli._devices import FLAG  # private: the program's flag
-
-    kept = [f for f in os.environ.get("XLA_FLAGS", "").split() if FLAG not in f]
-    return " ".join(kept + ([] if devices is None else [f"{FLAG}={devices}"]))
+    kept = [f for f in os.environ.get("XLA_FLAGS", "").split() if HOST_DEVICES_FLAG not in f]
+    return " ".join(kept + ([] if devices is None else [f"{HOST_DEVICES_FLAG}={devices}"]))
 
 
 def _fmt(z: np.ndarray) -> str:
@@ -335,7 +337,7 @@ class WeightedPenalty(eqx.Module):
     and to its gradient: the objective exactly) and its extra-loss test with another weight,
     and its tuning step, the module's largest program, compiles once. The
     ``extra_loss=None`` branch is exercised by the other tuning modules (e.g.
-    tests/test_tune_retrace.py, tests/test_tunable.py) and the CLI studies."""
+    tests/test_tune_retrace.py, tests/test_parameterization.py) and the CLI studies."""
 
     weight: jax.Array
     of: object = eqx.field(static=True)

@@ -40,11 +40,11 @@ def ab13dd(A, B, C, D):
 
 
 def error_system(design, Bw, Dv):
-    # private: the error system's blocks, rebuilt here as the oracle's input
-    from fojax.design._hinf import base_mats, error_system as es
+    # private: the observer's base matrices, the oracle's input
+    from fojax.design._hinf import base_mats
 
     s = design.structure
-    return es(s, base_mats(s, design.params), Bw, Dv)
+    return fojax.design.error_system(s, base_mats(s, design.params), Bw, Dv)
 
 
 # ------------------------------------------------------------------ tight certificates
@@ -199,9 +199,9 @@ def test_extreme_pencils_get_the_right_verdict_without_warnings(rows):
 
 def test_balancing_that_cannot_be_represented_names_the_matrix():
     # private: tested itself
-    from fojax.analysis._balance import apply_scaling, Scaling
+    from fojax.analysis._balance import apply_scaling
 
-    s = Scaling(np.array([60]), np.array([0]), "ward")
+    s = fojax.analysis.Scaling(np.array([60]), np.array([0]), "ward")
     with pytest.raises(fojax.errors.DataRangeError, match="largest entry of E") as ei:
         apply_scaling(s, np.array([[1e300]]), np.array([[1.0]]))
     assert ei.value.name == "E" and ei.value.magnitude == 1e300

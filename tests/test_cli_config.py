@@ -1,4 +1,10 @@
-"""The `fojax check` / `fojax design` / `fojax study` commands, run as subprocesses."""
+"""`fojax check` / `fojax design` / `fojax study` (``--resume``) on model files, run as subprocesses.
+
+Oracles: the library called in this process on the same file (`fojax.load_config`, the design's
+float64 verification, `save_design`/`load_design` bit for bit); the results folders' listings
+and the JSON/NPZ files read back; a study resumed after an interruption equals the
+uninterrupted one bit for bit; and the expected ConfigError line for each malformed file.
+"""
 
 import json
 import os

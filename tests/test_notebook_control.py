@@ -1,4 +1,6 @@
-"""notebooks/control_and_ftc.ipynb executes (issue 4) and prints what Chapter 4 claims.
+"""notebooks/control_and_ftc.ipynb executes top to bottom and prints what Chapter 4 claims.
+
+Oracles: the thesis's Chapter 4 figures and printed numbers, read from what the notebook prints.
 
 The notebook is executed once per module, in a fixture (nbclient, kernel ``python3``); the
 tests read the numbers it prints. (It used to run at import: pytest-xdist imports every

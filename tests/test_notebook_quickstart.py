@@ -1,4 +1,9 @@
-"""notebooks/quickstart.ipynb executes top to bottom (nbclient) and shows what it claims."""
+"""notebooks/quickstart.ipynb executes top to bottom (nbclient) and shows what it claims.
+
+Oracles: the notebook's printed verification reports (design conditions in float64), the
+estimation errors it prints (below 1 % of the initial error at t = 6), the bit-identical
+reload of a saved design, and the held-out IAE before and after tuning.
+"""
 
 from helpers import execute_notebook
 

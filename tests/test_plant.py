@@ -1,4 +1,12 @@
-"""Model layer: validation messages, float64 policy, fault augmentation, signals."""
+"""`fojax.plant`: plants (validation messages, the float64 policy, sparse input), fault
+augmentation, signals, memberships and uncertain systems.
+
+Oracles: hand-written matrices (eq. 3.196's block structure of `augment_faults`, identity E of
+``from_state_space``), closed forms of the signals (step, ramp, sine, piecewise constant,
+intermittent, their sums) and of the sector membership (ρ = sin(y)/y as a convex
+combination), the uncertain matrix A + δ(t) ΔA written out, and the typed error's
+message for each bad input (a fresh 32-bit interpreter for the float64 policy).
+"""
 
 import subprocess
 import sys
