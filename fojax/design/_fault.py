@@ -3,6 +3,7 @@ r"""Simultaneous estimation of a functional and of faults (thesis §3.3.7, eq. 3
 from __future__ import annotations
 
 import dataclasses
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -30,25 +31,12 @@ class FaultEstimatorDesign(AbstractDesign):
     n_faults: int
     ramp: bool
 
-    @property
-    def observer(self):
-        return self.design.observer
-
-    @property
-    def report(self):
-        return self.design.report
-
-    @property
-    def region(self):
-        return self.design.region
-
-    @property
-    def certificate(self):
-        return self.design.X
-
-    @property
-    def kind(self) -> str:
-        return self.design.kind
+    # what every design has is that of the design on the augmented system
+    observer = property(attrgetter("design.observer"))
+    report = property(attrgetter("design.report"))
+    region = property(attrgetter("design.region"))
+    certificate = property(attrgetter("design.X"))
+    kind = property(attrgetter("design.kind"))
 
     def verify(self):
         """Re-run the float64 verification of the augmented design

@@ -24,14 +24,13 @@ from ._conditions import check_detectability, unobservable_modes
 from ._discrete import continuous_only
 from ._functional import (
     _as_system,
-    build_observer,
     check_kind,
     FunctionalObserverDesign,
+    lmi_params,
     prepare_structure,
     solve_gains,
-    split_Y,
     TIGHTEN,
-    verify_structure_design,
+    verified_design,
 )
 from ._parameterization import observer_structure, pieces
 from ._regions import as_region, Disk
@@ -259,22 +258,9 @@ def design_finite_time_observer(
             raise first from None
 
 
-def _design_ft(
-    sys: DescriptorSystem,
-    L,
-    *,
-    h: float,
-    regions=((-5.0, 0.5), (-2.0, 0.5)),
-    kind: str = "generalized",
-    R=None,
-    q0: int | None = None,
-    q1: int | None = None,
-    margin: float = 1e-3,
-    solver: str = _lmi.DEFAULT_SOLVER,
-    method: str = "auto",
-    seed: int = 0,
-) -> FiniteTimeObserverDesign:
-    """Implementation of `design_finite_time_observer` for a given R (or q0)."""
+def _design_ft(sys, L, *, h, regions, kind, R, q0, q1, margin, solver, method, seed) -> FiniteTimeObserverDesign:
+    """Implementation of `design_finite_time_observer` for a given R (or q0); the arguments
+    (all given by it) are its own."""
     sys = _as_system(sys)
     continuous_only(sys, "design_finite_time_observer")
     h = float(h)
@@ -322,30 +308,13 @@ def _design_ft(
             "method": "pole placement",
             "lmi_status": None if lmi_error is None else lmi_error.status,
         }
-    c = s.q0 + s.nw
     designs = []
     for Ys, X, reg, info in ((Ys1, X1, r1, info1), (Ys2, X2, r2, info2)):
-        b = split_Y(Ys[0], s.q0, c)
-        params = {"Z": Z, "Y1": b["Y1"], "Y2": b["Y2"], "Y3": np.zeros((s.q, c)), "J": b["J"], "G": b["G"]}
         route = (info["lmi"]["route"] if "lmi" in info else "pole placement" + (
             f" (LMI refused: {info['lmi_status']})" if info["lmi_status"] else ""))
-        # the unit-free check as in every functional-observer design (and in its verify())
-        mats, report = verify_structure_design(s, params, reg, X, extra={"LMI route": route}, unit_free=UNIT_FREE_FIX)
-        designs.append(
-            FunctionalObserverDesign(
-                observer=build_observer(s, mats, kind=kind),
-                kind=kind,
-                region=reg,
-                structure=s,
-                params={k: np.asarray(v) for k, v in params.items()},
-                T=np.asarray(mats.T),
-                K=np.asarray(mats.K),
-                Z_eff=np.asarray(mats.Z_eff),
-                X=X,
-                report=report,
-                solver=info,
-            )
-        )
+        # verified as every functional-observer design (the unit-free check included, as in its verify())
+        designs.append(verified_design(s, reg, kind, lmi_params(s, Z, Ys), X, info, {"LMI route": route},
+                                       unit_free=UNIT_FREE_FIX))
     A1, A2 = designs[0].error_matrix, designs[1].error_matrix
     G_now, G_del, rcond = reconstruction_matrices(A1, A2, s.q0, h)
     resid = reconstruction_residual(A1, A2, s.q0, h, G_now, G_del, seed) if rcond >= RECONSTRUCTION_RCOND else np.nan

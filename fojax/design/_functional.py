@@ -36,13 +36,13 @@ from ._conditions import (
     UNIT_FREE_CHECK_MAX as UNIT_FREE_CHECK_MAX,
 )
 from ._observer_design import (  # noqa: F401  (names used from here by the other design modules)
+    AbstractStructureDesign,
     build_observer,
     carried_extra,
     COMPUTED_EXTRA,
     condition_scales,
     FunctionalObserverDesign,
     model_structure,
-    StructureDesignMixin,
     unit_free_check,
     unit_free_failure,
     UNIT_FREE_FIX,
@@ -93,6 +93,16 @@ def check_kind(kind) -> str:
         f"structure); got {kind!r}.{hint}"
     )
 
+
+def check_q1(kind: str, q1: int | None) -> int | None:
+    """`q1` for an observer of `kind`: 0 for a proportional observer (which has no integral
+    part; another `q1` is an `InputError`), else `q1` as given (``None``: ``q0``)."""
+    if kind != "proportional":
+        return q1
+    if q1 not in (None, 0):
+        raise InputError(f"a proportional observer has q1 = 0 (no integral part); got q1 = {q1}. "
+                         "Omit q1, or use kind='PI' or 'generalized'.")
+    return 0
 
 
 def _as_system(sys) -> DescriptorSystem:
@@ -295,11 +305,7 @@ def design_functional_observer(
     sys = _as_system(sys)
     region = _discrete.time_region(sys, region, objective)  # discrete time: inside the unit disk
     region = as_region(region if region is not None else Disk(-2.0, 1.0))
-    if kind == "proportional":
-        if q1 not in (None, 0):
-            raise InputError(f"a proportional observer has q1 = 0 (no integral part); got q1 = {q1}. "
-                             "Omit q1, or use kind='PI' or 'generalized'.")
-        q1 = 0
+    q1 = check_q1(kind, q1)
     s = prepare_structure(sys, L, R=R, q0=q0, q1=0, region=region)
     if q1 is None:
         q1 = s.q0
@@ -424,7 +430,7 @@ def balanced_design(s, region, *, kind, margin, solver, method="lmi", centre=Fal
 
 
 
-def _lmi_params(s, Z, Ys) -> dict:
+def lmi_params(s, Z, Ys) -> dict:
     """The free parameters of an LMI (or Riccati) solution ``(Z, Ys)`` (``Y3 = 0``)."""
     c = s.q0 + s.nw
     blocks = split_Y(Ys[0], s.q0, c)
@@ -440,8 +446,8 @@ def _performance_design(s, region, *, kind, margin, solver, Bw, Dv, objective, m
     out = design_hinf(s, region, base=base, kind=kind, solver=solver, Bw=Bw, Dv=Dv, tighten=TIGHTEN,
                       objective=objective, verify=lambda *a, **k: verify_structure_design(*a, **k, unit_free=UNIT_FREE_FIX))
     mats = out.pop("mats")
-    return FunctionalObserverDesign(observer=build_observer(s, mats, kind=kind), kind=kind, region=region, structure=s,
-                                    T=np.asarray(mats.T), K=np.asarray(mats.K), Z_eff=np.asarray(mats.Z_eff), **out)
+    return FunctionalObserverDesign.from_matrices(s, mats, out.pop("params"), observer=build_observer(s, mats, kind=kind),
+                                                  kind=kind, region=region, **out)
 
 
 def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, method="lmi", centre=False):
@@ -482,7 +488,7 @@ def _centred_gains(s, region, *, kind, margin, solver, tighten):
         # the tightened region in float64 (an 'optimal' solver status alone is not enough)
         out = solve_gains(s, reg, kind=kind, margin=margin, solver=solver)
         ev = np.linalg.eigvals(np.asarray(error_dynamics(
-            observer_matrices(s, **_lmi_params(s, out[1], out[2]), xp=np), xp=np))[0])
+            observer_matrices(s, **lmi_params(s, out[1], out[2]), xp=np), xp=np))[0])
         if not reg.contains(ev):
             raise LMIInfeasibleError("region LMI (centre bisection step)", "optimal, but the float64 error "
                                      f"eigenvalues are outside the tightened region (max margin violation "
@@ -500,20 +506,15 @@ def _centred_gains(s, region, *, kind, margin, solver, tighten):
 
 def _finish(s, region, kind, X, Z, Ys, info, extra):
     """Verify the gains ``(X, Z, Ys)`` of a route in float64 and build the design."""
-    params = _lmi_params(s, Z, Ys)
     route_key = "LMI route" if info["lmi"]["method"] == "lmi" else "design route"
-    mats, report = verify_structure_design(s, params, region, X, extra={route_key: info["lmi"]["route"], **extra},
-                                           unit_free=UNIT_FREE_FIX)
-    return FunctionalObserverDesign(
-        observer=build_observer(s, mats, kind=kind),
-        kind=kind,
-        region=region,
-        structure=s,
-        params={k: np.asarray(v) for k, v in params.items()},
-        T=np.asarray(mats.T),
-        K=np.asarray(mats.K),
-        Z_eff=np.asarray(mats.Z_eff),
-        X=X,
-        report=report,
-        solver=info,
-    )
+    return verified_design(s, region, kind, lmi_params(s, Z, Ys), X, info, {route_key: info["lmi"]["route"], **extra})
+
+
+def verified_design(s, region, kind: str, params: dict, X, solver: dict, extra: dict,
+                    unit_free: str = UNIT_FREE_FIX) -> FunctionalObserverDesign:
+    """The design of the free parameters `params` on `s` with certificate `X`, verified in
+    float64 (`verify_structure_design`, with the unit-free check whose failure names the fix
+    `unit_free`; `extra`: the report's notes); `solver` is stored as its solver information."""
+    mats, report = verify_structure_design(s, params, region, X, extra=extra, unit_free=unit_free)
+    return FunctionalObserverDesign.from_matrices(s, mats, params, observer=build_observer(s, mats, kind=kind),
+                                                  kind=kind, region=region, X=X, report=report, solver=solver)

@@ -29,10 +29,35 @@ from ._regions import AbstractRegion
 from ._verify import relative_residual, RESIDUAL_RTOL, VerificationReport, verify
 
 
-class StructureDesignMixin:
-    """``R`` and ``L`` of a design object that holds a `FunctionalObserverStructure`."""
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class AbstractStructureDesign(AbstractDesign):
+    """The fields of a design made on a `FunctionalObserverStructure` (functional,
+    Takagi–Sugeno and unknown-input designs), and its ``R``, ``L`` and ``certificate``.
+
+    Attributes:
+        structure: the `FunctionalObserverStructure` (plant, L, R, E⊥).
+        params: the free parameters (numpy arrays).
+        T, K, Z_eff: the matrices of ``T E + K Ψ = R``; ``Z_eff`` is the Z of eq. 3.17.
+        X: the LMI certificate (Lyapunov matrix) of the error dynamics.
+        report: the float64 `VerificationReport`.
+        solver: solver information (status, iterations, LMI steps).
+    """
 
     structure: FunctionalObserverStructure
+    params: dict
+    T: np.ndarray
+    K: np.ndarray
+    Z_eff: np.ndarray
+    X: np.ndarray
+    report: VerificationReport
+    solver: dict
+
+    @classmethod
+    def from_matrices(cls, structure, mats, params: dict, **fields):
+        """The design of the free parameters `params` on `structure`, with ``T``, ``K`` and
+        ``Z_eff`` from their observer matrices `mats`; `fields`: the other fields."""
+        return cls(structure=structure, params={k: np.asarray(v) for k, v in params.items()}, T=np.asarray(mats.T),
+                   K=np.asarray(mats.K), Z_eff=np.asarray(mats.Z_eff), **fields)
 
     def _state_factors(self):
         b = (getattr(self, "solver", None) or {}).get("balance")
@@ -60,19 +85,14 @@ COMPUTED_EXTRA = ("lyapunov_max_eig", "H∞")
 
 
 @dataclasses.dataclass(frozen=True)
-class FunctionalObserverDesign(StructureDesignMixin, AbstractDesign):
+class FunctionalObserverDesign(AbstractStructureDesign):
     """A verified functional-observer design.
 
-    Attributes:
+    Attributes (besides those of `AbstractStructureDesign`: `structure`, `params` ``Z, Y1,
+    Y2, Y3, J, G``, `T`, `K`, `Z_eff`, `X`, `report`, `solver`):
         observer: the `GeneralizedFunctionalObserver` (proportional/PI are special cases).
         kind: ``"generalized"``, ``"PI"`` or ``"proportional"``.
         region: the pole region the error dynamics were placed in.
-        structure: the `FunctionalObserverStructure` (plant, L, R, E⊥).
-        params: the free parameters ``Z, Y1, Y2, Y3, J, G`` (numpy arrays).
-        T, K, Z_eff: the matrices of ``T E + K Ψ = R``; ``Z_eff`` is the Z of eq. 3.17.
-        X: the LMI certificate (Lyapunov matrix) of the error dynamics.
-        report: the float64 `VerificationReport`.
-        solver: solver information (status, iterations, LMI steps).
         hinf: the `fojax.design.HinfCertificate` (γ, the independent norm) of an
             ``objective="hinf"`` design, else ``None``.
         h2: the `fojax.design.H2Certificate` (ν, the independent norm) of an
@@ -82,14 +102,6 @@ class FunctionalObserverDesign(StructureDesignMixin, AbstractDesign):
     observer: GeneralizedFunctionalObserver
     kind: str
     region: AbstractRegion
-    structure: FunctionalObserverStructure
-    params: dict
-    T: np.ndarray
-    K: np.ndarray
-    Z_eff: np.ndarray
-    X: np.ndarray
-    report: VerificationReport
-    solver: dict
     hinf: Any = None
     h2: Any = None
 

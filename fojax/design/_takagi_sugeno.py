@@ -51,57 +51,46 @@ from .._dtype import require_x64
 from .._errors import (
     FunctionalObservabilityError,
     ImpulseObservabilityError,
-    InputError,
 )
 from .._linalg import row_space
 from ..observer import TakagiSugenoObserver
 from ..plant import check_functional, TakagiSugenoSystem
 from . import _lmi
-from ._base import AbstractDesign
 from ._conditions import check_regular
 from ._functional import (
+    AbstractStructureDesign,
     carried_extra,
     check_kind,
+    check_q1,
     prepare_structure,
     solve_gains,
     split_Y,
-    StructureDesignMixin,
     TIGHTEN,
     verify_structure_design,
 )
-from ._parameterization import FunctionalObserverStructure, observer_structure
+from ._parameterization import observer_structure
 from ._regions import AbstractRegion, as_region, Disk
 from ._verify import VerificationReport
 
 
 @dataclasses.dataclass(frozen=True)
-class TakagiSugenoObserverDesign(StructureDesignMixin, AbstractDesign):
+class TakagiSugenoObserverDesign(AbstractStructureDesign):
     """A verified Takagi–Sugeno functional-observer design.
 
-    Attributes:
+    Attributes (besides those of `fojax.design._observer_design.AbstractStructureDesign`):
         observer: the `TakagiSugenoObserver` (per-rule matrices, common T, the plant's membership).
         kind: ``"generalized"``, ``"PI"`` or ``"proportional"``.
         region: the pole region of every rule's (and every convex combination's) error dynamics.
-        structure: the `FunctionalObserverStructure` (``psi="output"``, rule-stacked A, B).
-        params: ``Z`` (common) and ``Y1, Y2, Y3, J, G`` with a leading rule axis (numpy).
-        T, K, Z_eff: common matrices of ``T E + K C = R``.
-        X: the common LMI certificate.
-        report: the float64 `VerificationReport` (all rules; ``extra`` holds the
-            Lyapunov re-check ``lyapunov_max_eig``).
-        solver: solver information.
+
+    Here `structure` has ``psi="output"`` and rule-stacked A, B; `params` are ``Z`` (common)
+    and ``Y1, Y2, Y3, J, G`` with a leading rule axis; `T`, `K`, `Z_eff` are the common
+    matrices of ``T E + K C = R``; `X` is the common LMI certificate; `report` covers all
+    rules (``extra`` holds the Lyapunov re-check ``lyapunov_max_eig``).
     """
 
     observer: TakagiSugenoObserver
     kind: str
     region: AbstractRegion
-    structure: FunctionalObserverStructure
-    params: dict
-    T: np.ndarray
-    K: np.ndarray
-    Z_eff: np.ndarray
-    X: np.ndarray
-    report: VerificationReport
-    solver: dict
 
     @property
     def num_rules(self) -> int:
@@ -230,11 +219,7 @@ def design_ts_observer(
     require_x64("observer design")
     check_kind(kind)
     region = as_region(region if region is not None else Disk(-2.0, 1.0))
-    if kind == "proportional":
-        if q1 not in (None, 0):
-            raise InputError(f"a proportional observer has q1 = 0 (no integral part); got q1 = {q1}. "
-                             "Omit q1, or use kind='PI' or 'generalized'.")
-        q1 = 0
+    q1 = check_q1(kind, q1)
     E, A, B, C = (np.asarray(x, float) for x in (ts_sys.E, ts_sys.A, ts_sys.B, ts_sys.C))
     L = np.asarray(check_functional(ts_sys, L))
     for i, Ai in enumerate(A):  # every rule's pencil, as fojax.analysis.is_regular decides
@@ -267,16 +252,5 @@ def design_ts_observer(
         mats.N, mats.J, mats.F, mats.H, mats.S, mats.G, mats.M, mats.P, mats.Q,
         Wu, Wy, mats.T, ts_sys.membership, kind=kind,
     )  # fmt: skip
-    return TakagiSugenoObserverDesign(
-        observer=obs,
-        kind=kind,
-        region=region,
-        structure=s,
-        params=params,
-        T=np.asarray(mats.T),
-        K=np.asarray(mats.K),
-        Z_eff=np.asarray(mats.Z_eff),
-        X=np.asarray(X),
-        report=report,
-        solver=info,
-    )
+    return TakagiSugenoObserverDesign.from_matrices(s, mats, params, observer=obs, kind=kind, region=region,
+                                                    X=np.asarray(X), report=report, solver=info)

@@ -266,12 +266,9 @@ class AbstractParameterization(eqx.Module):
         return build_observer(self.structure, mats, kind=self.kind)
 
     def _design(self, p, mats, X, report):
-        return FunctionalObserverDesign(
-            observer=build_observer(self.structure, mats, kind=self.kind), kind=self.kind, region=self.region,
-            structure=self.structure, params=p, T=np.asarray(mats.T), K=np.asarray(mats.K),
-            Z_eff=np.asarray(mats.Z_eff), X=X, report=report,
-            solver={"parameterization": type(self).__name__},
-        )  # fmt: skip
+        return FunctionalObserverDesign.from_matrices(
+            self.structure, mats, p, observer=self._observer_of(mats), kind=self.kind, region=self.region, X=X,
+            report=report, solver={"parameterization": type(self).__name__})
 
     def certify(self, params):
         """The verified design of `params` (host, float64): the checks of the design's own

@@ -318,8 +318,6 @@ class CommonCertificate(AbstractParameterization):
         mats, report = verify_structure_design(self.structure, p, self.region, X, common_lyapunov=True)
         obs = TakagiSugenoObserver(mats.N, mats.J, mats.F, mats.H, mats.S, mats.G, mats.M, mats.P, mats.Q,
                                    np.asarray(self.Wu), np.asarray(self.Wy), mats.T, self.membership, kind=self.kind)
-        return TakagiSugenoObserverDesign(
-            observer=obs, kind=self.kind, region=self.region, structure=self.structure, params=p,
-            T=np.asarray(mats.T), K=np.asarray(mats.K), Z_eff=np.asarray(mats.Z_eff), X=X, report=report,
-            solver={"parameterization": type(self).__name__},
-        )  # fmt: skip
+        return TakagiSugenoObserverDesign.from_matrices(self.structure, mats, p, observer=obs, kind=self.kind,
+                                                        region=self.region, X=X, report=report,
+                                                        solver={"parameterization": type(self).__name__})

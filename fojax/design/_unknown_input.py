@@ -497,19 +497,8 @@ def _design(E, A, B, C, D, L, R, *, region, q0, q1, margin, solver) -> UnknownIn
         mats.N, mats.J, mats.F, mats.H, mats.Delta, mats.S, mats.G, mats.M, mats.Phi,
         mats.Lambda, mats.W, mats.P, mats.Q, Wu, Wy,
     )  # fmt: skip
-    return UnknownInputObserverDesign(
-        observer=obs,
-        region=region,
-        structure=s,
-        D=D,
-        params={k: np.asarray(v) for k, v in params.items()},
-        T=np.asarray(mats.T),
-        K=np.asarray(mats.K),
-        Z_eff=np.asarray(mats.Z_eff),
-        X=X,
-        report=report,
-        solver=info,
-    )
+    return UnknownInputObserverDesign.from_matrices(s, mats, params, observer=obs, region=region, D=D, X=X,
+                                                    report=report, solver=info)
 
 
 def _target_poles(region: AbstractRegion, k: int) -> np.ndarray:

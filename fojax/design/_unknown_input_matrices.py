@@ -11,15 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..observer import UnknownInputObserver
-from ._base import AbstractDesign
 from ._conditions import (
     unit_free_structure,
 )
 from ._functional import (
+    AbstractStructureDesign,
     carried_extra,
     condition_scales,
     model_structure,
-    StructureDesignMixin,
     unit_free_failure,
 )
 from ._parameterization import (
@@ -165,32 +164,22 @@ def unit_free_check(s: FunctionalObserverStructure, D, params) -> tuple | None:
 
 
 @dataclasses.dataclass(frozen=True)
-class UnknownInputObserverDesign(StructureDesignMixin, AbstractDesign):
+class UnknownInputObserverDesign(AbstractStructureDesign):
     """A verified unknown-input functional-observer design.
 
-    Attributes:
+    Attributes (besides those of `fojax.design._observer_design.AbstractStructureDesign`):
         observer: the `UnknownInputObserver` (state ``[ζ; v; d̂]``).
         region: the pole region of 𝔸 = [N J Δ; S G 0; Φ Λ 0].
-        structure: the `FunctionalObserverStructure` (E⊥ annihilates ``[E D]``).
         D: the unknown-input matrix.
-        params: ``Z, Y1, Y2, Y3, J, G, Y4, Lambda`` (numpy).
-        T, K, Z_eff: matrices of ``T E + K Ψ = R``.
-        X: the (full) LMI certificate of 𝔸.
-        report: float64 `VerificationReport` (residuals ``a``–``f``, eigenvalues, LMI).
-        solver: solver information (``step1``: choice of Z, ``lmi``).
+
+    Here `structure`'s E⊥ annihilates ``[E D]``; `params` are ``Z, Y1, Y2, Y3, J, G, Y4,
+    Lambda``; `X` is the (full) LMI certificate of 𝔸; `report` has the residuals
+    ``a``–``f``; `solver` holds ``step1`` (the choice of Z) and ``lmi``.
     """
 
     observer: UnknownInputObserver
     region: AbstractRegion
-    structure: FunctionalObserverStructure
     D: np.ndarray
-    params: dict
-    T: np.ndarray
-    K: np.ndarray
-    Z_eff: np.ndarray
-    X: np.ndarray
-    report: VerificationReport
-    solver: dict
 
     @property
     def error_matrix(self) -> np.ndarray:
