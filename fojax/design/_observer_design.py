@@ -88,8 +88,9 @@ COMPUTED_EXTRA = ("lyapunov_max_eig", "H∞")
 class FunctionalObserverDesign(AbstractStructureDesign):
     """A verified functional-observer design.
 
-    Attributes (besides those of `AbstractStructureDesign`: `structure`, `params` ``Z, Y1,
-    Y2, Y3, J, G``, `T`, `K`, `Z_eff`, `X`, `report`, `solver`):
+    Attributes (besides `structure`, `params` (``Z, Y1, Y2, Y3, J, G``), `T`, `K`, `Z_eff`,
+    `X`, `report` and `solver`, which every design on a `FunctionalObserverStructure` has,
+    `AbstractStructureDesign`):
         observer: the `GeneralizedFunctionalObserver` (proportional/PI are special cases).
         kind: ``"generalized"``, ``"PI"`` or ``"proportional"``.
         region: the pole region the error dynamics were placed in.

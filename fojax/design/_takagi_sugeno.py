@@ -77,7 +77,8 @@ from ._verify import VerificationReport
 class TakagiSugenoObserverDesign(AbstractStructureDesign):
     """A verified Takagi–Sugeno functional-observer design.
 
-    Attributes (besides those of `fojax.design._observer_design.AbstractStructureDesign`):
+    Attributes (besides `structure`, `params`, `T`, `K`, `Z_eff`, `X`, `report` and `solver`,
+    which every design on a `FunctionalObserverStructure` has):
         observer: the `TakagiSugenoObserver` (per-rule matrices, common T, the plant's membership).
         kind: ``"generalized"``, ``"PI"`` or ``"proportional"``.
         region: the pole region of every rule's (and every convex combination's) error dynamics.

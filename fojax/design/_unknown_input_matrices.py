@@ -167,7 +167,8 @@ def unit_free_check(s: FunctionalObserverStructure, D, params) -> tuple | None:
 class UnknownInputObserverDesign(AbstractStructureDesign):
     """A verified unknown-input functional-observer design.
 
-    Attributes (besides those of `fojax.design._observer_design.AbstractStructureDesign`):
+    Attributes (besides `structure`, `params`, `T`, `K`, `Z_eff`, `X`, `report` and `solver`,
+    which every design on a `FunctionalObserverStructure` has):
         observer: the `UnknownInputObserver` (state ``[ζ; v; d̂]``).
         region: the pole region of 𝔸 = [N J Δ; S G 0; Φ Λ 0].
         D: the unknown-input matrix.
