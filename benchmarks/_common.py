@@ -508,6 +508,22 @@ def machine_lines(info: dict) -> list[str]:
     ]
 
 
+def stop_and_failure_lines(d: dict, label) -> list[str]:
+    """Markdown lines closing a result table: why the run stopped (``d["stopped"]``) and a
+    ``## Failures`` list with the first line of the error of every row whose status is not
+    ``ok``, each row named by ``label(row)``."""
+    lines = []
+    if d["stopped"]:
+        lines += ["", "Stopped: " + "; ".join(f"{k}: {v}" for k, v in d["stopped"].items())]
+    errs = [r for r in d["rows"] if r.get("status") != "ok"]
+    if errs:
+        lines += ["", "## Failures", ""]
+        for r in errs:
+            msg = (r.get("error") or "").strip().splitlines()
+            lines.append(f"- {label(r)}: {r.get('status')} — {msg[0][:300] if msg else ''}")
+    return lines
+
+
 def write_result(path, result: dict) -> None:
     """Write a benchmark's result JSON atomically (a temporary file, then `os.replace`)."""
     out = Path(path)

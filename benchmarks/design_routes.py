@@ -226,14 +226,7 @@ def render_markdown(d: dict) -> str:
             f"{fmt(r.get('cpu_s'), '.3g')} | {fmt(r.get('peak_rss_mib'), '.0f')} | {fmt(r.get('rss_before_mib'), '.0f')} | "
             f"{fmt(r.get('cvxpy_canonicalisation_s'), '.3g')} | {fmt(r.get('cvxpy_solver_s'), '.3g')} | "
             f"{r.get('verified', '—')} | {fmt((r.get('load_average_before') or [None])[0], '.2f')} |")
-    if d["stopped"]:
-        lines += ["", "Stopped: " + "; ".join(f"{k}: {v}" for k, v in d["stopped"].items())]
-    errs = [r for r in d["rows"] if r.get("status") != "ok"]
-    if errs:
-        lines += ["", "## Failures", ""]
-        for r in errs:
-            msg = (r.get("error") or "").strip().splitlines()
-            lines.append(f"- n = {r['n']}, {r['shape']}, {r['method']}: {r.get('status')} — {msg[0][:300] if msg else ''}")
+    lines += _common.stop_and_failure_lines(d, lambda r: f"n = {r['n']}, {r['shape']}, {r['method']}")
     return "\n".join(lines) + "\n"
 
 

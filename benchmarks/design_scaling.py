@@ -370,14 +370,7 @@ def render_markdown(d: dict) -> str:
         for a in d["agreement"]:
             lines.append(f"- n = {a['n']}, {a['kind']}: both verified = {a['both_verified']}, "
                          f"speedup {fmt(a.get('speedup'), '.3g')}")
-    if d["stopped"]:
-        lines += ["", "Stopped: " + "; ".join(f"{k}: {v}" for k, v in d["stopped"].items())]
-    errs = [r for r in d["rows"] if r.get("status") != "ok"]
-    if errs:
-        lines += ["", "## Failures", ""]
-        for r in errs:
-            msg = (r.get("error") or "").strip().splitlines()
-            lines.append(f"- n = {r['n']}, {r['kind']}, {r.get('method', 'lmi')}: {r.get('status')} — {msg[0][:300] if msg else ''}")
+    lines += _common.stop_and_failure_lines(d, lambda r: f"n = {r['n']}, {r['kind']}, {r.get('method', 'lmi')}")
     return "\n".join(lines) + "\n"
 
 

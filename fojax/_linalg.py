@@ -53,24 +53,23 @@ def left_null_space(M, tol: float | None = None) -> np.ndarray:
     For an ``(r, c)`` matrix of rank ``k`` the result is ``(r - k, r)``; an empty
     ``(0, r)`` array when `M` has full row rank.
     """
-    M = np.asarray(M, dtype=float)
-    r = M.shape[0]
-    if M.size == 0:
-        return np.eye(r)
-    U, s, _ = np.linalg.svd(M, full_matrices=True)
-    k = int(np.sum(s > _threshold(s, tol)))
-    return U[:, k:].T.copy()
+    return _null_basis(M, tol, side=0)
 
 
 def null_space(M, tol: float | None = None) -> np.ndarray:
     """Orthonormal columns `V` with ``M @ V = 0`` (``(c, c - k)``)."""
+    return _null_basis(M, tol, side=1)
+
+
+def _null_basis(M, tol: float | None, side: int) -> np.ndarray:
+    """Orthonormal basis of the left (``side=0``, as rows) or right (``side=1``, as
+    columns) null space of `M`, from one full SVD and the rank rule."""
     M = np.asarray(M, dtype=float)
-    c = M.shape[1]
     if M.size == 0:
-        return np.eye(c)
-    _, s, Vt = np.linalg.svd(M, full_matrices=True)
+        return np.eye(M.shape[side])
+    U, s, Vt = np.linalg.svd(M, full_matrices=True)
     k = int(np.sum(s > _threshold(s, tol)))
-    return Vt[k:].T.copy()
+    return U[:, k:].T.copy() if side == 0 else Vt[k:].T.copy()
 
 
 def row_space(M, tol: float | None = None) -> np.ndarray:

@@ -46,6 +46,14 @@ def _unit(M: np.ndarray) -> tuple[np.ndarray, float]:
     return M / nrm, nrm
 
 
+def balanced_units(E, A, B, C, balance: bool):
+    """The power-of-two balancing of ``(E, A, B, C)`` (`scaling_of`) and each balanced block
+    divided by its spectral norm: ``(scaling, ((En, ‖E‖), (An, ‖A‖), (Bn, ‖B‖), (Cn, ‖C‖)))``
+    (a zero or empty block keeps norm ``1``)."""
+    sc = scaling_of(E, A, B, C, balance=balance)
+    return sc, tuple(_unit(M) for M in apply_scaling(sc, E, A, B, C))
+
+
 @dataclass(frozen=True)
 class Pencil:
     """Host copy of a system: raw (``E``...), and balanced then normalised (``En``...).
@@ -130,12 +138,7 @@ def as_pencil(sys, A=None, *, fname: str = "this function", balance: bool = True
         B = np.zeros((n, 0))
         C = np.zeros((0, n))
         has_io = False
-    sc = scaling_of(E, A_, B, C, balance=balance)
-    Eb, Ab, Bb, Cb = apply_scaling(sc, E, A_, B, C)
-    En, e = _unit(Eb)
-    An, a = _unit(Ab)
-    Bn, _ = _unit(Bb)
-    Cn, _ = _unit(Cb)
+    sc, ((En, e), (An, a), (Bn, _), (Cn, _)) = balanced_units(E, A_, B, C, balance)
     return Pencil(E, A_, B, C, En, An, Bn, Cn, a / e, has_io, sc, dt)
 
 

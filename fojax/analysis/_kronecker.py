@@ -26,8 +26,8 @@ from .._dtype import as_matrix, to_numpy
 from .._errors import InputError
 from .._linalg import RANK_RTOL
 from ..plant import DescriptorSystem
-from ._balance import apply_scaling, Scaling, scaling_of
-from ._common import _host, _unit
+from ._balance import Scaling
+from ._common import _host, balanced_units
 
 
 @dataclass(frozen=True)
@@ -112,12 +112,7 @@ def _ag08bd(E, A, B, C, D, tol: float | None):
 
 def _normalised(E, A, B, C, D, balance: bool):
     """Balanced, block-normalised data and the eigenvalue factor ``‖A‖/‖E‖``."""
-    sc = scaling_of(E, A, B, C, balance=balance)
-    Eb, Ab, Bb, Cb = apply_scaling(sc, E, A, B, C)
-    En, e = _unit(Eb)
-    An, a = _unit(Ab)
-    Bn, b = _unit(Bb)
-    Cn, c = _unit(Cb)
+    sc, ((En, e), (An, a), (Bn, b), (Cn, c)) = balanced_units(E, A, B, C, balance)
     # [An - mu En, Bn; Cn, Dn] = diag(I/a, I/c) [A - lam E, B; C, D] diag(I, a/b I), lam = mu a/e
     Dn = D * (a / (b * c)) if D.size else D
     return En, An, Bn, Cn, Dn, a / e, sc

@@ -64,20 +64,21 @@ def _poles_for(p: Pencil, tol, fname, unstable_only=False, axis_tol=AXIS_TOL):
     return z
 
 
-def _r_obs(p: Pencil, tol, fname, **kw) -> bool:
+def _pbh(p: Pencil, tol, fname, stack, X, **kw) -> bool:
+    """``rank stack([sE - A, X]) = n`` at every test point (`_test_points`) of the poles."""
     n = p.n
     for s in _test_points(_poles_for(p, tol, fname, **kw)):
-        if crank(np.vstack([s * p.En - p.An, p.Cn]), tol) < n:
+        if crank(stack([s * p.En - p.An, X]), tol) < n:
             return False
     return True
+
+
+def _r_obs(p: Pencil, tol, fname, **kw) -> bool:
+    return _pbh(p, tol, fname, np.vstack, p.Cn, **kw)
 
 
 def _r_ctrl(p: Pencil, tol, fname, **kw) -> bool:
-    n = p.n
-    for s in _test_points(_poles_for(p, tol, fname, **kw)):
-        if crank(np.hstack([s * p.En - p.An, p.Bn]), tol) < n:
-            return False
-    return True
+    return _pbh(p, tol, fname, np.hstack, p.Bn, **kw)
 
 
 def _i_obs(p: Pencil, tol) -> bool:
@@ -113,6 +114,23 @@ def _prep(sys, fname, tol, balance=True) -> Pencil:
     return p
 
 
+def _decide(sys, notion: str, dual: bool, fname: str, tol, balance, impulse=True, **kw) -> bool:
+    """One notion of the module table, in its observability column or (``dual``) its
+    controllability column: ``"r"``, ``"i"``, ``"c"``, ``"s"``, or ``"d"`` (detectability /
+    stabilizability: I when `impulse`, and R at the poles selected by `kw`)."""
+    p = _prep(sys, fname, tol, balance)
+    stack, X, i_test = (np.hstack, p.Bn, _i_ctrl) if dual else (np.vstack, p.Cn, _i_obs)
+    if notion == "r":
+        return _pbh(p, tol, fname, stack, X)
+    if notion == "i":
+        return i_test(p, tol)
+    if notion == "c":
+        return crank(stack([p.En, X]), tol) == p.n and _pbh(p, tol, fname, stack, X)
+    if impulse and not i_test(p, tol):  # "s" and "d"
+        return False
+    return _pbh(p, tol, fname, stack, X, **kw)
+
+
 _ARGS = """
     **Arguments:**
 
@@ -132,8 +150,7 @@ def is_r_observable(sys: DescriptorSystem, *, tol: float | None = None, balance:
     equivalently at every finite pole; equivalently the slow subsystem $(A_1, C_1)$ of
     the Weierstrass form is observable. True when there are no finite poles. Host-only.
     """
-    p = _prep(sys, "is_r_observable", tol, balance)
-    return _r_obs(p, tol, "is_r_observable")
+    return _decide(sys, "r", False, "is_r_observable", tol, balance)
 
 
 def is_i_observable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
@@ -144,8 +161,7 @@ def is_i_observable(sys: DescriptorSystem, *, tol: float | None = None, balance:
     orders the block rows as $[E, A; 0, C; 0, E]$, which has the same rank). Every
     impulse-free system is I-observable. Host-only.
     """
-    p = _prep(sys, "is_i_observable", tol, balance)
-    return _i_obs(p, tol)
+    return _decide(sys, "i", False, "is_i_observable", tol, balance)
 
 
 def is_c_observable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
@@ -154,14 +170,12 @@ def is_c_observable(sys: DescriptorSystem, *, tol: float | None = None, balance:
     R-observable and $\mathrm{rank}\begin{bmatrix}E\\C\end{bmatrix} = n$ (the latter is
     observability of the fast subsystem $(N, C_2)$). Implies S-observability. Host-only.
     """
-    p = _prep(sys, "is_c_observable", tol, balance)
-    return crank(np.vstack([p.En, p.Cn]), tol) == p.n and _r_obs(p, tol, "is_c_observable")
+    return _decide(sys, "c", False, "is_c_observable", tol, balance)
 
 
 def is_s_observable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""S-observability (strong observability): R-observable and I-observable. Host-only."""
-    p = _prep(sys, "is_s_observable", tol, balance)
-    return _i_obs(p, tol) and _r_obs(p, tol, "is_s_observable")
+    return _decide(sys, "s", False, "is_s_observable", tol, balance)
 
 
 def is_r_controllable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
@@ -170,8 +184,7 @@ def is_r_controllable(sys: DescriptorSystem, *, tol: float | None = None, balanc
     $\mathrm{rank}[sE-A,\;B] = n$ at every finite pole; equivalently $(A_1, B_1)$ is
     controllable. True when there are no finite poles. Host-only.
     """
-    p = _prep(sys, "is_r_controllable", tol, balance)
-    return _r_ctrl(p, tol, "is_r_controllable")
+    return _decide(sys, "r", True, "is_r_controllable", tol, balance)
 
 
 def is_i_controllable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
@@ -181,8 +194,7 @@ def is_i_controllable(sys: DescriptorSystem, *, tol: float | None = None, balanc
     Holds iff some state feedback $u = Kx$ makes $(E, A+BK)$ impulse-free. Every
     impulse-free system is I-controllable. Host-only.
     """
-    p = _prep(sys, "is_i_controllable", tol, balance)
-    return _i_ctrl(p, tol)
+    return _decide(sys, "i", True, "is_i_controllable", tol, balance)
 
 
 def is_c_controllable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
@@ -190,14 +202,12 @@ def is_c_controllable(sys: DescriptorSystem, *, tol: float | None = None, balanc
 
     R-controllable and $\mathrm{rank}[E,\;B] = n$. Host-only.
     """
-    p = _prep(sys, "is_c_controllable", tol, balance)
-    return crank(np.hstack([p.En, p.Bn]), tol) == p.n and _r_ctrl(p, tol, "is_c_controllable")
+    return _decide(sys, "c", True, "is_c_controllable", tol, balance)
 
 
 def is_s_controllable(sys: DescriptorSystem, *, tol: float | None = None, balance: bool = True) -> bool:
     r"""S-controllability (strong controllability): R- and I-controllable. Host-only."""
-    p = _prep(sys, "is_s_controllable", tol, balance)
-    return _i_ctrl(p, tol) and _r_ctrl(p, tol, "is_s_controllable")
+    return _decide(sys, "s", True, "is_s_controllable", tol, balance)
 
 
 def is_detectable(
@@ -219,10 +229,7 @@ def is_detectable(
     ``impulse=False`` only the finite-mode condition (Dai's plain "detectable") is tested.
     Host-only.
     """
-    p = _prep(sys, "is_detectable", tol, balance)
-    if impulse and not _i_obs(p, tol):
-        return False
-    return _r_obs(p, tol, "is_detectable", unstable_only=True, axis_tol=axis_tol)
+    return _decide(sys, "d", False, "is_detectable", tol, balance, impulse, unstable_only=True, axis_tol=axis_tol)
 
 
 def is_stabilizable(
@@ -239,10 +246,7 @@ def is_stabilizable(
     $\mathrm{Re}\,s \ge 0$, and (default `impulse=True`) I-controllability; together they
     are equivalent to the existence of $K$ with $(E, A + BK)$ admissible. Host-only.
     """
-    p = _prep(sys, "is_stabilizable", tol, balance)
-    if impulse and not _i_ctrl(p, tol):
-        return False
-    return _r_ctrl(p, tol, "is_stabilizable", unstable_only=True, axis_tol=axis_tol)
+    return _decide(sys, "d", True, "is_stabilizable", tol, balance, impulse, unstable_only=True, axis_tol=axis_tol)
 
 
 for _f in (

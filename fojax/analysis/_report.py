@@ -159,6 +159,17 @@ class StructureReport:
         return "\n".join(lines)
 
 
+def _missing(impulsive: bool, finite: bool, notion: str) -> str:
+    """Why detectability (`notion` ``"observable"``) or stabilizability (``"controllable"``)
+    fails: the impulsive modes, the unstable finite modes, or both."""
+    missing = []
+    if not impulsive:
+        missing.append(f"impulsive modes are not {notion}")
+    if not finite:
+        missing.append(f"some unstable finite mode is un{notion}")
+    return " and ".join(missing)
+
+
 def _verdict(r: dict, fd: bool | None, fs: bool | None) -> str:
     if not r["regular"]:
         s = (
@@ -193,21 +204,11 @@ def _verdict(r: dict, fd: bool | None, fs: bool | None) -> str:
             "not S-observable but detectable (impulse-observable, unstable modes observable)"
         )
     else:
-        missing = []
-        if not r["i_observable"]:
-            missing.append("impulsive modes are not observable")
-        if not fd:
-            missing.append("some unstable finite mode is unobservable")
-        parts.append("NOT detectable: " + " and ".join(missing))
+        parts.append("NOT detectable: " + _missing(r["i_observable"], fd, "observable"))
     if r["stabilizable"]:
         parts.append("stabilizable by state feedback (a K with (E, A+BK) admissible exists)")
     else:
-        missing = []
-        if not r["i_controllable"]:
-            missing.append("impulsive modes are not controllable")
-        if not fs:
-            missing.append("some unstable finite mode is uncontrollable")
-        parts.append("NOT stabilizable by state feedback: " + " and ".join(missing))
+        parts.append("NOT stabilizable by state feedback: " + _missing(r["i_controllable"], fs, "controllable"))
     if r["functionally_observable"] is not None:
         parts.append(_functional_sentence(r))
     return "; ".join(parts) + "."

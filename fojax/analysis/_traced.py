@@ -56,6 +56,15 @@ def _check_square(name, M, n=None):
         )
 
 
+def _square_pair(E, A):
+    """``(E, A)`` as JAX arrays, both checked to be ``(n, n)`` with the same ``n``."""
+    E = jnp.asarray(E)
+    A = jnp.asarray(A)
+    _check_square("E", E)
+    _check_square("A", A, E.shape[0])
+    return E, A
+
+
 def _svd_blocks(E, r):
     """Left/right singular bases of E split at the structural rank ``r``."""
     U, s, Vt = jnp.linalg.svd(E, full_matrices=True)
@@ -78,10 +87,7 @@ def impulse_free_margin(E, A, rank_E: int | None = None):
 
     **Returns:** a float64 scalar.
     """
-    E = jnp.asarray(E)
-    A = jnp.asarray(A)
-    _check_square("E", E)
-    _check_square("A", A, E.shape[0])
+    E, A = _square_pair(E, A)
     n = E.shape[0]
     r = _rank_e(E, rank_E, "impulse_free_margin")
     if r == n:
@@ -101,10 +107,7 @@ def slow_matrix_index1(E, A, rank_E: int | None = None):
 
     **Returns:** an ``(r, r)`` array with ``r = rank_E``.
     """
-    E = jnp.asarray(E)
-    A = jnp.asarray(A)
-    _check_square("E", E)
-    _check_square("A", A, E.shape[0])
+    E, A = _square_pair(E, A)
     n = E.shape[0]
     r = _rank_e(E, rank_E, "slow_matrix_index1")
     if r == n:
@@ -152,13 +155,10 @@ def functional_observability_gap(E, A, C, L, rank_E: int | None = None):
 
     **Returns:** a float64 scalar in ``[0, 1]``.
     """
-    E = jnp.asarray(E)
-    A = jnp.asarray(A)
+    E, A = _square_pair(E, A)
     C = jnp.asarray(C)
     L = jnp.asarray(L)
-    _check_square("E", E)
     n = E.shape[0]
-    _check_square("A", A, n)
     if C.ndim != 2 or C.shape[1] != n:
         raise ShapeError("C", ("p", n), tuple(C.shape), "C needs one column per state.")
     if L.ndim != 2 or L.shape[1] != n:
@@ -181,10 +181,7 @@ def regularity_margin_at(E, A, s):
     Positive (above rounding) proves that the pencil is regular and that $s$ is not a
     pole. ``0`` for the zero matrix; ``1`` for ``n = 0``.
     """
-    E = jnp.asarray(E)
-    A = jnp.asarray(A)
-    _check_square("E", E)
-    _check_square("A", A, E.shape[0])
+    E, A = _square_pair(E, A)
     if E.shape[0] == 0:
         return jnp.asarray(1.0, dtype=A.dtype)
     sv = jnp.linalg.svd(s * E - A, compute_uv=False)
@@ -201,10 +198,7 @@ def regular_at(E, A, s):
     either a singular pencil or that `s` is (numerically) a pole. For the host decision
     see `fojax.analysis.is_regular`.
     """
-    E = jnp.asarray(E)
-    A = jnp.asarray(A)
-    _check_square("E", E)
-    _check_square("A", A, E.shape[0])
+    E, A = _square_pair(E, A)
     if E.shape[0] == 0:
         return jnp.asarray(True)
     sv = jnp.linalg.svd(s * E - A, compute_uv=False)

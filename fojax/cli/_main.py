@@ -239,6 +239,16 @@ def _run(argv: list[str] | None) -> int:
     as_json.add_argument("--json", action="store_true",
                          help="print one JSON document with the results on stdout (messages to stderr)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    def add_out(p):
+        p.add_argument("--out", metavar="DIR", default=None,
+                       help="parent directory of the results folder (default: ./fojax-results)")
+
+    def command(name, help, description, epilog):
+        """A command taking -q/-v/--json whose `epilog` (its examples) prints as written."""
+        return sub.add_parser(name, parents=[quiet, as_json], help=help, description=description,
+                              epilog=epilog, formatter_class=raw)
+
     sub.add_parser(
         "demo",
         parents=[quiet],
@@ -253,9 +263,8 @@ def _run(argv: list[str] | None) -> int:
     )
     from ._check import PROPERTIES
 
-    p = sub.add_parser(
+    p = command(
         "check",
-        parents=[quiet, as_json],
         help="structural analysis report of the model in CONFIG",
         description="Regularity, index, poles, impulse-freeness, admissibility, observability "
         "and controllability notions and functional observability of L (Assumption 1), with a "
@@ -265,16 +274,14 @@ def _run(argv: list[str] | None) -> int:
         epilog="examples: fojax check example_3_3_7   (a shipped example; see `fojax examples`)\n"
         "          fojax check my.toml --require detectable --require functionally_observable\n"
         "          fojax check --json example_3_3_7 | python -m json.tool",
-        formatter_class=raw,
     )
     p.add_argument("config", metavar="CONFIG", nargs="+",
                    help="TOML model file(s), or shipped example names")
     p.add_argument("--require", metavar="PROPERTY", action="append", default=[], choices=PROPERTIES,
                    help="a property the model must have besides admissibility (repeatable): "
                    + ", ".join(PROPERTIES) + "; one the analysis cannot decide counts as failed")
-    p = sub.add_parser(
+    p = command(
         "design",
-        parents=[quiet, as_json],
         help="design, verify and save the observers requested in CONFIG",
         description="Design every [[observer]] of CONFIG by LMI, verify it in float64, and "
         "save it (fojax.results.load_design reads it back bit-exactly) with a pole plot and a "
@@ -284,12 +291,10 @@ def _run(argv: list[str] | None) -> int:
         "designed and saved, and the exit code is 1.",
         epilog="example: fojax design example_4_1_3 --out runs\n"
         "         python -c \"import fojax.results as r; print(r.load_design('runs/<folder>/generalized.npz'))\"",
-        formatter_class=raw,
     )
     p.add_argument("config", metavar="CONFIG", nargs="+",
                    help="TOML model file(s), or shipped example names (one results folder each)")
-    p.add_argument("--out", metavar="DIR", default=None,
-                   help="parent directory of the results folder (default: ./fojax-results)")
+    add_out(p)
     p.add_argument("--name", metavar="NAME", default=None,
                    help="results folder name, a plain file name (letters, digits, '.', '_', '-'; "
                    "default: design-<model name>-<UTC timestamp>)")
@@ -297,21 +302,18 @@ def _run(argv: list[str] | None) -> int:
                    help="replace the previous fojax run in an existing --name folder: the files "
                    "it wrote (listed in its fojax-manifest.json) are removed first, except any you "
                    "changed since; files fojax did not write stay untouched")
-    p = sub.add_parser(
+    p = command(
         "study",
-        parents=[quiet, as_json],
         help="Monte Carlo robustness study (default: the built-in §3.3.7 benchmark)",
         description="Design, Monte Carlo study, tuning and comparison of the observers of "
         "CONFIG (default: the §3.3.7 benchmark), in a NEW results folder. Ctrl-C (or SIGTERM) "
         "stops it with the folder consistent; --resume FOLDER continues it.",
         epilog="example: fojax study --samples 64 --steps 50 --out runs\n"
         "         fojax study --resume runs/study-example_3_3_7-<UTC time>",
-        formatter_class=raw,
     )
     p.add_argument("config", metavar="CONFIG", nargs="?", default=None,
                    help="TOML model/study file (default: the built-in §3.3.7 benchmark)")
-    p.add_argument("--out", metavar="DIR", default=None,
-                   help="parent directory of the results folder (default: ./fojax-results)")
+    add_out(p)
     p.add_argument("--samples", type=int, default=None, help="override [study] samples")
     p.add_argument("--horizon", type=float, default=None, help="override [study] horizon (s)")
     p.add_argument("--steps", type=int, default=None,

@@ -190,36 +190,12 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
 
     study = None
     if "study" in data:
-        s = v.table("study", data["study"], _STUDY)
-        kw = {}
-        if "samples" in s:
-            kw["samples"] = v.number("study.samples", s["samples"], integer=True, positive=True)
-        if "horizon" in s:
-            kw["horizon"] = float(v.number("study.horizon", s["horizon"], positive=True))
-        if "dt" in s:
-            kw["dt"] = float(v.number("study.dt", s["dt"], positive=True))
-        if "seed" in s:
-            kw["seed"] = v.number("study.seed", s["seed"], integer=True, nonneg=True)
-        if "stepper" in s:
-            kw["stepper"] = v.string("study.stepper", s["stepper"], STEPPERS)
-        study = StudySpec(**kw)
+        study = StudySpec(**_read_table(v, "study", data["study"], _STUDY, _STUDY_READERS))
         if study.dt >= study.horizon:
             raise v.err("study.dt", f"is {study.dt}; expected a time step smaller than study.horizon = {study.horizon}.")
     tuning = None
     if "tuning" in data:
-        t = v.table("tuning", data["tuning"], _TUNING)
-        kw = {}
-        if "steps" in t:
-            kw["steps"] = v.number("tuning.steps", t["steps"], integer=True, positive=True)
-        if "learning_rate" in t:
-            kw["learning_rate"] = float(v.number("tuning.learning_rate", t["learning_rate"], positive=True))
-        if "loss" in t:
-            kw["loss"] = v.string("tuning.loss", t["loss"], ("ise", "iae"))
-        if "robustness" in t:
-            r = v.table("tuning.robustness", t["robustness"], {"h2", "hinf"})
-            kw["robustness"] = tuple((k, float(v.number(f"tuning.robustness.{k}", r[k], nonneg=True)))
-                                     for k in sorted(r))
-        tuning = TuningSpec(**kw)
+        tuning = TuningSpec(**_read_table(v, "tuning", data["tuning"], _TUNING, _TUNING_READERS))
 
     return Config(
         path=file, name=name, description=description, E=E, A=A, B=B, C=C, L=L,
@@ -227,6 +203,45 @@ def parse_config(data: dict, file: str = "<config>") -> Config:
         dA=dA, profile=profile, takagi_sugeno=ts, observers=observers, study=study,
         tuning=tuning, raw=data, parameter_spread=parameter_spread, x0_spread=x0_spread, D=D, dt=dt,
     )
+
+def _read_table(v: V, name: str, value, allowed: set, readers: dict) -> dict:
+    """The table ``[name]`` (keys in `allowed`) as keyword arguments: every given key checked
+    and converted by its reader ``(v, dotted key, value) -> value``, in the order of `readers`."""
+    table = v.table(name, value, allowed)
+    return {k: read(v, f"{name}.{k}", table[k]) for k, read in readers.items() if k in table}
+
+
+def _count(v: V, key: str, value) -> int:
+    return v.number(key, value, integer=True, positive=True)
+
+
+def _positive(v: V, key: str, value) -> float:
+    return float(v.number(key, value, positive=True))
+
+
+def _seed(v: V, key: str, value) -> int:
+    return v.number(key, value, integer=True, nonneg=True)
+
+
+def _robustness(v: V, key: str, value) -> tuple:
+    r = v.table(key, value, {"h2", "hinf"})
+    return tuple((k, float(v.number(f"{key}.{k}", r[k], nonneg=True))) for k in sorted(r))
+
+
+_STUDY_READERS = {
+    "samples": _count,
+    "horizon": _positive,
+    "dt": _positive,
+    "seed": _seed,
+    "stepper": lambda v, key, value: v.string(key, value, STEPPERS),
+}
+_TUNING_READERS = {
+    "steps": _count,
+    "learning_rate": _positive,
+    "loss": lambda v, key, value: v.string(key, value, ("ise", "iae")),
+    "robustness": _robustness,
+}
+
 
 def _sampling_period(v: V, model: dict, ts_raw, data: dict) -> float | None:
     """``[model] dt``: the sampling period ``h > 0`` of a discrete-time model
