@@ -83,7 +83,8 @@ class NumericallyUndecidableError(InputError):
             f"‖E‖ = ‖A‖ = 1), and fojax's deflation calls the pencil {verdict[deflation_regular]} while "
             f"SLICOT AG08BD calls it {verdict[ag08bd_regular]} (normal rank {normal_rank}). The pencil is "
             f"within about {singular_value:.0e} of a pencil with the other verdict. Decide with an explicit "
-            "tol= (larger: treat that singular value as zero; smaller: as nonzero), or check the model for "
+            "tol= (larger: treat that singular value as zero; smaller: as nonzero), with balance=False when "
+            "the entries that balancing scales up are round-off of the data as given, or check the model for "
             "an equation that is nearly a combination of others."
         )
 

@@ -7,6 +7,8 @@ Oracles, independent of the code under test:
   ‖T‖∞; **SciPy** ``solve_continuous_lyapunov`` for ‖T‖₂;
 - **SLICOT AG08BD** (slycot), called here on the pencil, for its normal rank (regular iff
   normal rank = n);
+- **exact rational arithmetic** (``fractions.Fraction`` of the stored floats): a nonzero
+  ``det(s0 E - A)`` proves the pencil regular (the published MatrixPencils.jl case below);
 - **exact equivalences**: multiplying the equations by an invertible matrix or the states
   by a diagonal one keeps the pencil regular and its finite eigenvalues (those of the
   unscaled pencil, from ``scipy.linalg.eigvals``) and keeps a disturbance with
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import sys
 import warnings
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -251,3 +254,57 @@ def test_near_threshold_verdicts_agree_with_the_reference_or_are_undecidable(see
         from fojax.analysis._common import as_pencil, deflate
 
         assert deflate(as_pencil(E, A), None).nearest[0] >= 100.0
+
+
+# MatrixPencils.jl (A. Varga), test/test_regular.jl, testset "_svdlikeAE": a 4x4 pencil A - λE
+# whose columns 1-2 of E and row 1 of A hold round-off (1e-34 .. 3e-16); the reference reduces
+# it to its SVD-like form with rank E = 2 and rank A22 = 1 (`@test ... rE == 2 && rA22 == 1`).
+_MP_A = np.array([
+    [-3.330669073875470e-16, 0, 0, 0],
+    [-5.336424998587595e-17, 4.999999999999997e-01, 0, 0],
+    [7.882634225314346e-01, 4.926646390821473e-02, 1.017643702629568e+00, 0],
+    [-7.804970910378840e-02, -5.073231091746246e-01, -3.602232247129060e-01, 1.906644727694980e+00],
+])
+_MP_E = np.array([
+    [9.708552809960075e-34, -4.715554847257422e-19, 7.905694150420953e-01, 0],
+    [-1.002546820843656e-17, -9.625586024907403e-20, 9.682458365518573e-02, 4.743416490252569e-01],
+    [-9.878387353077869e-19, 2.181405497860925e-19, -3.720759787739367e-01, 4.673827146373172e-02],
+    [1.017230340487078e-17, 7.512741891975197e-20, -6.045704470706158e-02, -4.812889603890242e-01],
+])
+
+
+def _exact_det(M) -> Fraction:
+    """Determinant in exact rational arithmetic (fraction-free elimination on Fractions)."""
+    M = [[Fraction(x) for x in row] for row in M]
+    n, det = len(M), Fraction(1)
+    for k in range(n):
+        piv = next((i for i in range(k, n) if M[i][k] != 0), None)
+        if piv is None:
+            return Fraction(0)
+        if piv != k:
+            M[k], M[piv], det = M[piv], M[k], -det
+        det *= M[k][k]
+        for i in range(k + 1, n):
+            f = M[i][k] / M[k][k]
+            M[i] = [a - f * b for a, b in zip(M[i], M[k])]
+    return det
+
+
+def test_reference_nearly_singular_pencil_is_never_called_singular():
+    """The MatrixPencils.jl pencil is regular (exactly, and far from singular: det(E - A) is
+    about 0.59); balancing lifts its round-off entries into the rank
+    decisions, where the deflation sees a singular value 5e-14. fojax must not call it
+    singular: it answers regular or undecidable, and regular on the data as given."""
+    E, A = _MP_E, _MP_A
+    assert abs(float(_exact_det(E - A))) > 0.5  # the oracle: regular, with a wide margin
+    assert np.linalg.matrix_rank(E) == 2  # the reference's rank E
+    try:
+        assert is_regular(E, A)
+    except fojax.errors.NumericallyUndecidableError as e:
+        assert e.ag08bd_regular and not e.deflation_regular and "balance=False" in str(e)
+    assert is_regular(E, A, balance=False)
+    sys_ = fojax.DescriptorSystem(E, A, np.ones((4, 1)), np.ones((1, 4)))
+    try:
+        assert structure_report(sys_).regular
+    except fojax.errors.NumericallyUndecidableError:
+        pass
