@@ -36,7 +36,7 @@ in the same call, on the same grid, from the same $x(0)$.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, TypedDict, Unpack
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -226,7 +226,37 @@ class FaultTolerantControl:
 # --------------------------------------------------------------------------- helpers
 
 
-def _feedback(sys, L, feedback_kw, fname="fault-tolerant control design"):
+class FTCOptions(TypedDict, total=False):
+    """The keyword arguments every fault-tolerant control design takes (their meaning is in each
+    design function's **Arguments**); absent ones are ``None``, except ``kind="generalized"``."""
+
+    L: Any
+    feedback: dict | None
+    region: Any
+    R: Any
+    q0: int | None
+    q1: int | None
+    kind: str
+    solver: str | None
+    observer: Any
+
+
+def _options(fname: str, sys, options: dict) -> dict:
+    """`options` with their defaults, after the checks every scheme makes on `sys` (a
+    `TypeError` naming an unknown keyword as Python would for `fname`)."""
+    for key in options:
+        if key not in FTCOptions.__optional_keys__:
+            raise TypeError(f"{fname}() got an unexpected keyword argument {key!r}")
+    if not isinstance(sys, DescriptorSystem):
+        raise TypeError(f"sys must be a fojax.DescriptorSystem, got {type(sys).__name__}.")
+    require_x64("fault-tolerant control design")
+    refuse_feedthrough(sys)
+    return {key: None for key in FTCOptions.__optional_keys__} | {"kind": "generalized"} | options
+
+
+def _feedback(sys, o: dict, fname: str):
+    """The state feedback ``(L, StateFeedbackDesign | None)``: the given `L`, checked, or designed."""
+    L = o["L"]
     if L is not None:
         L = as_matrix("L", L, rows=sys.m, cols=sys.n)
         # the schemes need (E, A + BL) admissible (module docstring): a given L must at least
@@ -236,7 +266,7 @@ def _feedback(sys, L, feedback_kw, fname="fault-tolerant control design"):
         check_impulse_free(E, A + B @ np.asarray(L, dtype=float), fname=fname,
                            what="the closed loop (E, A + BL) with the given L")
         return L, None
-    fb = design_state_feedback(sys, **(feedback_kw or {}))
+    fb = design_state_feedback(sys, **(o["feedback"] or {}))
     return fb.L, fb
 
 
@@ -259,49 +289,37 @@ def _matched(sys: DescriptorSystem, Fa) -> np.ndarray:
     return Ka
 
 
-def _observer(aug, Lbar, observer, region, R, q0, q1, kind, solver):
-    if observer is not None:
-        if isinstance(observer, FunctionalObserverDesign):
-            return observer.observer, observer
-        return observer, None
-    kw = dict(kind=kind, region=region, R=R, q0=q0, q1=q1)
-    if solver is not None:
-        kw["solver"] = solver
-    d = design_functional_observer(aug, Lbar, **kw)
-    return d.observer, d
+def _design_observer(sys, Lf, o: dict, structure: bool = True) -> FunctionalObserverDesign:
+    """`design_functional_observer` of ``Lf x`` on `sys` with the options' `kind`, `region`,
+    `solver` (and `R`, `q0`, `q1` when `structure`)."""
+    kw = dict(kind=o["kind"], region=o["region"])
+    if structure:
+        kw.update(R=o["R"], q0=o["q0"], q1=o["q1"])
+    if o["solver"] is not None:
+        kw["solver"] = o["solver"]
+    return design_functional_observer(sys, Lf, **kw)
+
+
+def _observer(aug, Lbar, o: dict):
+    """``(observer, FunctionalObserverDesign | None)``: the given `observer`, or one designed."""
+    observer = o["observer"]
+    if observer is None:
+        d = _design_observer(aug, Lbar, o)
+        return d.observer, d
+    if isinstance(observer, FunctionalObserverDesign):
+        return observer.observer, observer
+    return observer, None
 
 
 def _build(scheme, sys, Fa, Fs, L, fb, Lbar, aug, obs, odesign, select, fault_rows, comparison):
     loop, maps = assemble(sys.E, sys.A, sys.B, sys.C, obs, Fa=Fa, Fs=Fs, select=select)
-    comp, comp_maps = None, None
-    if comparison is not None:
-        comp, cm = comparison
-        comp_maps = cm
+    comp, comp_maps = (None, None) if comparison is None else comparison
+    Fa, Fs, L, Lbar, select, fault_rows = map(np.asarray, (Fa, Fs, L, Lbar, select, fault_rows))
     return FaultTolerantControl(
-        scheme=scheme,
-        plant=sys,
-        Fa=np.asarray(Fa),
-        Fs=np.asarray(Fs),
-        L=np.asarray(L),
-        Lbar=np.asarray(Lbar),
-        augmented=aug,
-        observer=obs,
-        observer_design=odesign,
-        feedback=fb,
-        select=np.asarray(select),
-        fault_rows=np.asarray(fault_rows),
-        closed_loop=loop,
-        maps=maps,
-        comparison=comp,
-        comparison_maps=comp_maps,
+        scheme=scheme, plant=sys, Fa=Fa, Fs=Fs, L=L, Lbar=Lbar, augmented=aug, observer=obs,
+        observer_design=odesign, feedback=fb, select=select, fault_rows=fault_rows,
+        closed_loop=loop, maps=maps, comparison=comp, comparison_maps=comp_maps,
     )
-
-
-def _check(sys):
-    if not isinstance(sys, DescriptorSystem):
-        raise TypeError(f"sys must be a fojax.DescriptorSystem, got {type(sys).__name__}.")
-    require_x64("fault-tolerant control design")
-    refuse_feedthrough(sys)
 
 
 _COMMON_ARGS = r"""
@@ -321,19 +339,7 @@ _COMMON_ARGS = r"""
 
 
 def design_sensor_ftc(
-    sys: DescriptorSystem,
-    Fs=None,
-    *,
-    L=None,
-    feedback: dict | None = None,
-    region: Any = None,
-    R=None,
-    q0: int | None = None,
-    q1: int | None = None,
-    kind: str = "generalized",
-    solver: str | None = None,
-    observer=None,
-    compare: bool = True,
+    sys: DescriptorSystem, Fs=None, *, compare: bool = True, **options: Unpack[FTCOptions]
 ) -> FaultTolerantControl:
     r"""Sensor fault-tolerant control (thesis §4.2, eq. 4.21–4.23).
 
@@ -356,20 +362,17 @@ def design_sensor_ftc(
 
     **Returns:** a `FaultTolerantControl`.
     """
-    _check(sys)
+    o = _options("design_sensor_ftc", sys, options)
     Fs = np.eye(sys.p) if Fs is None else np.asarray(as_matrix("Fs", Fs, rows=sys.p))
     nf = Fs.shape[1]
-    L, fb = _feedback(sys, L, feedback, "design_sensor_ftc")
+    L, fb = _feedback(sys, o, "design_sensor_ftc")
     aug = augment_faults(sys, Fs=Fs)
     Lbar = np.hstack([np.asarray(L), np.zeros((sys.m, nf))])
-    obs, od = _observer(aug, Lbar, observer, region, R, q0, q1, kind, solver)
+    obs, od = _observer(aug, Lbar, o)
     Fa = np.zeros((sys.n, nf))
     comparison = None
     if compare:
-        kw = dict(kind=kind, region=region)
-        if solver is not None:
-            kw["solver"] = solver
-        plain = design_functional_observer(sys, L, **kw).observer
+        plain = _design_observer(sys, L, o, structure=False).observer
         comp, cmaps = assemble(sys.E, sys.A, sys.B, sys.C, plain, Fa=Fa, Fs=Fs)
         comparison = (comp, (cmaps.K_X, cmaps.K_r))
     return _build("sensor", sys, Fa, Fs, L, fb, Lbar, aug, obs, od,
@@ -377,19 +380,7 @@ def design_sensor_ftc(
 
 
 def design_actuator_ftc(
-    sys: DescriptorSystem,
-    Fa=None,
-    *,
-    L=None,
-    feedback: dict | None = None,
-    region: Any = None,
-    R=None,
-    q0: int | None = None,
-    q1: int | None = None,
-    kind: str = "generalized",
-    solver: str | None = None,
-    observer=None,
-    compare: bool = True,
+    sys: DescriptorSystem, Fa=None, *, compare: bool = True, **options: Unpack[FTCOptions]
 ) -> FaultTolerantControl:
     r"""Actuator fault-tolerant control (thesis §4.3, eq. 4.24–4.27).
 
@@ -411,14 +402,14 @@ def design_actuator_ftc(
 
     **Raises:** `fojax.errors.ExistenceConditionError` when $F_a$ is not matched.
     """
-    _check(sys)
+    o = _options("design_actuator_ftc", sys, options)
     Fa = np.asarray(sys.B) if Fa is None else np.asarray(as_matrix("Fa", Fa, rows=sys.n))
     Ka = _matched(sys, Fa)
     nf = Fa.shape[1]
-    L, fb = _feedback(sys, L, feedback, "design_actuator_ftc")
+    L, fb = _feedback(sys, o, "design_actuator_ftc")
     aug = augment_faults(sys, Fa=Fa)
     Lbar = np.hstack([np.asarray(L), -Ka])
-    obs, od = _observer(aug, Lbar, observer, region, R, q0, q1, kind, solver)
+    obs, od = _observer(aug, Lbar, o)
     Fs = np.zeros((sys.p, nf))
     comparison = None
     if compare:
@@ -434,19 +425,7 @@ def design_actuator_ftc(
 
 
 def design_simultaneous_ftc(
-    sys: DescriptorSystem,
-    *,
-    Fa=None,
-    Fs=None,
-    L=None,
-    feedback: dict | None = None,
-    region: Any = None,
-    R=None,
-    q0: int | None = None,
-    q1: int | None = None,
-    kind: str = "generalized",
-    solver: str | None = None,
-    observer=None,
+    sys: DescriptorSystem, *, Fa=None, Fs=None, **options: Unpack[FTCOptions]
 ) -> FaultTolerantControl:
     r"""Simultaneous fault estimation and fault-tolerant control (thesis §4.4, eq. 4.28–4.29).
 
@@ -470,7 +449,7 @@ def design_simultaneous_ftc(
     {common}
     **Returns:** a `FaultTolerantControl` (no comparison loop).
     """
-    _check(sys)
+    o = _options("design_simultaneous_ftc", sys, options)
     if Fa is None and Fs is None:
         raise ValueError("design_simultaneous_ftc needs Fa=, Fs= or both.")
     n, m, p = sys.n, sys.m, sys.p
@@ -481,12 +460,12 @@ def design_simultaneous_ftc(
     nf = na + ns
     Fa_full = np.hstack([Fa, np.zeros((n, ns))])
     Fs_full = np.hstack([np.zeros((p, na)), Fs])
-    L, fb = _feedback(sys, L, feedback, "design_simultaneous_ftc")
+    L, fb = _feedback(sys, o, "design_simultaneous_ftc")
     aug = augment_faults(sys, Fa=Fa_full, Fs=Fs_full)
     top = np.hstack([np.asarray(L), -Ka, np.zeros((m, ns))])
     bottom = np.hstack([np.zeros((nf, n)), np.eye(nf)])
     Lbar = np.vstack([top, bottom])
-    obs, od = _observer(aug, Lbar, observer, region, R, q0, q1, kind, solver)
+    obs, od = _observer(aug, Lbar, o)
     q = m + nf
     select = np.eye(m, q)
     fault_rows = np.hstack([np.zeros((nf, m)), np.eye(nf)])
