@@ -27,6 +27,15 @@ _C = [[1, 0, 0, 0, 0], [0, 0, 1, 0, 0]]
 _X_STAR = 4.493409457909064
 
 
+def _parameters(fname: str, given: dict) -> dict:
+    """Table 3.1 with the `given` physical parameters in place of its values (a `TypeError`
+    naming an unknown one, as Python would for `fname`)."""
+    for name in given:
+        if name not in _TABLE_3_1:
+            raise TypeError(f"{fname}() got an unexpected keyword argument {name!r}")
+    return {**_TABLE_3_1, **given}
+
+
 def _sinc(x: float) -> float:
     return 1.0 if x == 0 else math.sin(x) / x
 
@@ -147,19 +156,7 @@ _GAIN_NOTES = (
 )
 
 
-def robot_arm(
-    J_m: float = 0.01,
-    J_l: float = 0.08,
-    m: float = 0.15,
-    l_c: float = 0.25,
-    k: float = 0.3,
-    beta: float = 0.05,
-    K_tau: float = 0.2,
-    l: float = 0.18,
-    g: float = 9.81,
-    *,
-    uncertain: bool = False,
-) -> ThesisExample:
+def robot_arm(*, uncertain: bool = False, **params: float) -> ThesisExample:
     r"""Flexible single-link robot arm, nonlinear descriptor model (eqs. 2.7 / 3.188).
 
     States $x = [\theta_m, \dot\theta_m, \theta_l, \dot\theta_l, P_y]$ (motor angle and
@@ -186,7 +183,8 @@ def robot_arm(
     m/s² is not in the table. The system's `theta` is a dict of these parameters as
     float64 JAX scalars (differentiable leaves).
 
-    **Arguments:** the physical parameters; `uncertain=True` makes the plant
+    **Arguments:** any of the physical parameters by name (default: Table 3.1, `PARAMETERS`);
+    `uncertain=True` makes the plant
     time-varying with $k(t) = k + 0.04\sin t$ (§3.3.6; `theta` then also holds
     ``delta_k`` and ``omega_k``).
 
@@ -202,7 +200,7 @@ def robot_arm(
       Hp1, Hp2, Pp1, Pp2, Qa1, Qa2`. The printed rule 1 is the $\rho = \bar\rho$ model
       (see `robot_arm_ts`).
     """
-    params = dict(J_m=J_m, J_l=J_l, m=m, l_c=l_c, k=k, beta=beta, K_tau=K_tau, l=l, g=g)
+    params = _parameters("robot_arm", params)
     theta = {name: as_float_array(name, value) for name, value in params.items()}
     if uncertain:
         theta["delta_k"] = as_float_array("delta_k", 0.04)
@@ -250,19 +248,7 @@ def ts_matrices(params: dict | None = None, x3_bound: float | None = None) -> di
 PARAMETERS = tuple(_TABLE_3_1)
 
 
-def robot_arm_ts(
-    J_m: float = 0.01,
-    J_l: float = 0.08,
-    m: float = 0.15,
-    l_c: float = 0.25,
-    k: float = 0.3,
-    beta: float = 0.05,
-    K_tau: float = 0.2,
-    l: float = 0.18,
-    g: float = 9.81,
-    *,
-    x3_bound: float | None = None,
-) -> ThesisExample:
+def robot_arm_ts(*, x3_bound: float | None = None, **params: float) -> ThesisExample:
     r"""Takagi–Sugeno form of `robot_arm` (eqs. 2.9–2.12 / 3.189–3.192).
 
     With the premise $\rho = \sin x_3 / x_3$ (known from the output: $x_3 = y_2$) the nonlinear
@@ -302,12 +288,15 @@ def robot_arm_ts(
       (the proportional observer's gains satisfy the design conditions only in this
       pairing).
 
+    **Arguments:** any of `robot_arm`'s physical parameters by name (default: Table 3.1) and
+    `x3_bound`.
+
     **Returns:** a `ThesisExample` with `system` a `fojax.TakagiSugenoSystem`
     (membership ``SectorMembership(SincPremise(1), rho_min, rho_max)``), `rho_min`,
     `rho_max`, the printed `A1`, `A2`, `rule_of_printed`, `params`, and the same
     `L`, `R`, `x0`, `delta_k`, `omega_k` and printed observer gains as `robot_arm`.
     """
-    params = dict(J_m=J_m, J_l=J_l, m=m, l_c=l_c, k=k, beta=beta, K_tau=K_tau, l=l, g=g)
+    params = _parameters("robot_arm_ts", params)
     mats = ts_matrices(params, x3_bound)
     rho_min, rho_max = mats["rho_min"], mats["rho_max"]
     A = _array(mats["A"])
