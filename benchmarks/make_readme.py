@@ -1066,7 +1066,7 @@ input d = 0.7 settled at 0.356. `design_unknown_input_observer` now checks each 
 relative to its own terms and in the unit-free frame, and has the same `balance` option
 (also `balance = true` in a model file); by default it falls back to the unit-free design,
 whose error obeys σ(t) = e^{𝔸t}σ(0) against the unscaled plant to 1e-7 and whose d̂ reaches
-0.7 (`tests/test_ts_uio.py`). `balance` also applies to `objective="hinf"`/`"h2"` now (it was
+0.7 (`tests/test_unknown_input.py`). `balance` also applies to `objective="hinf"`/`"h2"` now (it was
 ignored there, and the LC filter's twin at the default order was refused by the unit-free check
 with a message pointing to `balance=True`): with the same physical disturbance, model and twin
 get the same certified bound to 1e-8 (`tests/test_unit_invariance.py`).

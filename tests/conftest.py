@@ -208,7 +208,8 @@ HEAVY_FIRST = (
     "test_notebook_monte_carlo.py",
     "test_cli.py",
     "test_control.py",
-    "test_ts_uio.py",
+    "test_unknown_input.py",
+    "test_takagi_sugeno.py",
     "test_notebook_control.py",
 )
 

@@ -1,4 +1,11 @@
-"""The default implicit solver (Kvaerno5 + SmallLU Newton step) inside vmap and shard_map (issue 5)."""
+"""The `fojax.Diffrax` stepper's default implicit solver (Kvaerno5 with the SmallLU Newton step)
+inside `jax.vmap` and `shard_map`, and the small LU it solves with.
+
+Oracles: ``numpy.linalg.solve`` (with and without transpose) and the factorisation ``PA = LU``
+checked by multiplying back; the closed form ``expm(a M) y0`` (``scipy.linalg.expm``) of a
+linear ODE solved inside ``shard_map(vmap(...))``; single `fojax.simulate` runs of the samples
+of a faulty-plant `run_study` on the Diffrax path.
+"""
 
 import diffrax
 import jax

@@ -680,7 +680,7 @@ def designs():
     ex337 = fojax.models.example_3_3_7()
     sys337 = fojax.DescriptorSystem(ex337.E, ex337.A, ex337.B, ex337.C)
     return {
-        # z = [x2, x4] of the robot arm (x5 is refused by the T-S observer, see test_ts_uio)
+        # z = [x2, x4] of the robot arm (x5 is refused by the T-S observer, see test_takagi_sugeno)
         "ts": design_ts_observer(arm, np.eye(5)[[1, 3]], kind="generalized"),
         "uio": design_unknown_input_observer(closed, np.eye(4)[:, [2]], L),
         "finite_time": design_finite_time_observer(
