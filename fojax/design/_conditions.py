@@ -27,6 +27,20 @@ def gamma_matrix(E, A, C, Eperp) -> np.ndarray:
     return np.vstack([E, Ep @ A, C])
 
 
+def require_equal_rank(condition: str, lhs: int, rhs: int, detail: str, fix: str) -> None:
+    """`RankConditionError` (``"<condition> fails: <detail> <fix>"``, with `lhs`, `rhs`) unless
+    the two compared ranks (or orders) `lhs` and `rhs` are equal."""
+    if lhs != rhs:
+        raise RankConditionError(condition, detail, fix, lhs=lhs, rhs=rhs)
+
+
+def check_order(R, q0: int | None) -> None:
+    """A given `q0` must be the number of rows of the given `R` (the observer order)."""
+    if q0 is not None:
+        require_equal_rank("observer order", q0, R.shape[0], f"q0 = {q0} but R has {R.shape[0]} rows.",
+                           "Give either R or q0.")
+
+
 def check_regular(E, A, *, fname: str, what: str = "the plant") -> None:
     r"""Refuse a singular pencil before any LMI: `fojax.errors.IrregularSystemError` with the numbers.
 
@@ -188,36 +202,21 @@ def check_structure(s: FunctionalObserverStructure) -> None:
     Ep, C, E, R, L = (np.asarray(x) for x in (s.Eperp, s.C, s.E, s.R, s.L))
     Psi = np.vstack([Ep @ As[0], C])
     Gam = np.vstack([E, Psi])
-    if rank(R) != R.shape[0]:
-        raise RankConditionError(
-            "full row rank of R",
-            f"R is {R.shape[0]} x {n} but has rank {rank(R)}.",
-            "Remove dependent rows of R (the observer order q0 is the number of rows of R).",
-            lhs=rank(R),
-            rhs=R.shape[0],
-        )
+    rR = rank(R)
+    require_equal_rank("full row rank of R", rR, R.shape[0], f"R is {R.shape[0]} x {n} but has rank {rR}.",
+                       "Remove dependent rows of R (the observer order q0 is the number of rows of R).")
     rG, rRG = rank(Gam), rank(np.vstack([R, Gam]))
-    if rRG != rG:
-        raise RankConditionError(
-            "rank [R; Γ] = rank Γ",
-            f"rank [R; E; Ψ] = {rRG} but rank [E; Ψ] = {rG}: some rows of R are not in the row "
-            "space of Γ = [E; Ψ], so T E + K Ψ = R has no solution.",
-            "Choose R with rows in the row space of [E; E⊥A; C] (or let fojax choose R).",
-            lhs=rRG,
-            rhs=rG,
-        )
+    require_equal_rank("rank [R; Γ] = rank Γ", rRG, rG,
+                       f"rank [R; E; Ψ] = {rRG} but rank [E; Ψ] = {rG}: some rows of R are not in the row "
+                       "space of Γ = [E; Ψ], so T E + K Ψ = R has no solution.",
+                       "Choose R with rows in the row space of [E; E⊥A; C] (or let fojax choose R).")
     Sig = np.vstack([R, Psi])
     rS, rSL = rank(Sig), rank(np.vstack([Sig, L]))
-    if rSL != rS:
-        raise RankConditionError(
-            "rank [Σ; L] = rank Σ",
-            f"rank [R; Ψ; L] = {rSL} but rank Σ = rank [R; Ψ] = {rS}: conditions c.–d. have no "
-            "solution (L is not a combination of R and the measured signals).",
-            "Add the missing directions of L to R (a larger observer order q0), or let fojax "
-            "choose R.",
-            lhs=rSL,
-            rhs=rS,
-        )
+    require_equal_rank("rank [Σ; L] = rank Σ", rSL, rS,
+                       f"rank [R; Ψ; L] = {rSL} but rank Σ = rank [R; Ψ] = {rS}: conditions c.–d. have no "
+                       "solution (L is not a combination of R and the measured signals).",
+                       "Add the missing directions of L to R (a larger observer order q0), or let fojax "
+                       "choose R.")
     rel = s.solvability_residual
     if rel > SOLVABILITY_RTOL:
         raise RankConditionError(

@@ -18,7 +18,6 @@ from .._errors import (
     InputError,
     LMI_FAILURES,
     LMIInfeasibleError,
-    RankConditionError,
     ShapeError,
     SolverStoppedShortError,
 )
@@ -30,6 +29,7 @@ from ._conditions import (
     check_data_range,
     check_detectability,
     check_functional_observability,
+    check_order,
     check_regular,
     check_structure,
     default_R,
@@ -140,9 +140,7 @@ def prepare_structure(sys: DescriptorSystem, L, *, R=None, q0=None, q1=0, region
         R = np.asarray(R, dtype=float)
         if R.ndim != 2 or R.shape[1] != E.shape[0]:
             raise ShapeError("R", ("q0", E.shape[0]), tuple(R.shape), "R needs one column per state.")
-        if q0 is not None and q0 != R.shape[0]:
-            raise RankConditionError("observer order", f"q0 = {q0} but R has {R.shape[0]} rows.",
-                                     "Give either R or q0.", lhs=q0, rhs=R.shape[0])
+        check_order(R, q0)
     s = observer_structure(E, A, B, C, L, R, q1=q1, psi=psi, Eperp=Eperp)
     if not checked:
         check_structure(s)

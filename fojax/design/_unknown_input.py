@@ -109,9 +109,11 @@ from ._base import with_feedthrough
 from ._conditions import (
     check_data_range,
     check_detectability,
+    check_order,
     check_regular,
     check_structure,
     default_R,
+    require_equal_rank,
     unobservable_modes,
 )
 from ._discrete import continuous_only
@@ -144,15 +146,10 @@ def _check_D(D: np.ndarray) -> None:
     if l == 0:
         raise ShapeError("D", ("n", "l >= 1"), tuple(D.shape), "Give at least one unknown-input direction.")
     r = rank(D)
-    if r != l:
-        raise RankConditionError(
-            "full column rank of D",
-            f"D is {D.shape[0]} x {l} but has rank {r}: the unknown inputs are not distinguishable "
-            "(some combination of them does not act on the plant), so d cannot be estimated.",
-            "Remove dependent columns of D (merge unknown inputs that enter along the same direction).",
-            lhs=r,
-            rhs=l,
-        )
+    require_equal_rank("full column rank of D", r, l,
+                       f"D is {D.shape[0]} x {l} but has rank {r}: the unknown inputs are not distinguishable "
+                       "(some combination of them does not act on the plant), so d cannot be estimated.",
+                       "Remove dependent columns of D (merge unknown inputs that enter along the same direction).")
 
 
 def _check_functional_observability(E, A, C, L, Ep, D) -> None:
@@ -459,9 +456,8 @@ def _design(E, A, B, C, D, L, R, *, region, q0, q1, margin, solver) -> UnknownIn
     _check_functional_observability(E, A, C, L, Ep, D)
     if R is None:
         R = _choose_R(E, A, B, C, L, D, Ep, region, q0)
-    elif q0 is not None and q0 != R.shape[0]:
-        raise RankConditionError("observer order", f"q0 = {q0} but R has {R.shape[0]} rows.",
-                                 "Give either R or q0.", lhs=q0, rhs=R.shape[0])
+    else:
+        check_order(R, q0)
     s = observer_structure(E, A, B, C, L, R, q1=0, psi="descriptor", Eperp=Ep)
     check_structure(s)
     check_detectability(s, region)
