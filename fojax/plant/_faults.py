@@ -7,6 +7,8 @@ still an `fojax.plant.AbstractPlant` (and every leaf can carry a batch axis).
 
 from __future__ import annotations
 
+from operator import attrgetter
+
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -60,21 +62,10 @@ class AbstractPlantWrapper(AbstractPlant):
 
     base: eqx.AbstractVar[AbstractPlant]
 
-    @property
-    def E(self):
-        return self.base.E
-
-    @property
-    def m(self):
-        return self.base.m
-
-    @property
-    def p(self):
-        return self.base.p
-
-    @property
-    def linear_in_state(self):  # type: ignore[override]
-        return self.base.linear_in_state
+    E = property(attrgetter("base.E"))
+    m = property(attrgetter("base.m"))
+    p = property(attrgetter("base.p"))
+    linear_in_state = property(attrgetter("base.linear_in_state"))  # type: ignore[assignment]
 
 
 class FaultyPlant(AbstractPlantWrapper):

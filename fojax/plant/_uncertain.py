@@ -2,6 +2,7 @@ r"""Descriptor systems with structured (affine) parametric uncertainty."""
 
 from __future__ import annotations
 
+from operator import attrgetter
 from typing import ClassVar
 
 import jax.numpy as jnp
@@ -73,17 +74,10 @@ class UncertainDescriptorSystem(AbstractPlant):
             raise ShapeError("delta", f"a signal of size {k}", f"size {delta.size}")
         self.delta = delta
 
-    @property
-    def E(self):
-        return self.nominal.E
-
-    @property
-    def m(self):
-        return self.nominal.m
-
-    @property
-    def p(self):
-        return self.nominal.p
+    # the nominal system's matrix E and sizes
+    E = property(attrgetter("nominal.E"))
+    m = property(attrgetter("nominal.m"))
+    p = property(attrgetter("nominal.p"))
 
     def matrices(self, t):
         d = self.delta(t)
