@@ -400,6 +400,13 @@ def test_actuator_ftc():
         design_actuator_ftc(ex.system, Fa=np.eye(4)[:, :1] + np.eye(4)[:, 3:], L=ex.L)
 
 
+def test_ftc_designs_name_an_unknown_keyword():
+    ex = fm.example_4_2_2()
+    for design in (design_sensor_ftc, design_actuator_ftc, design_simultaneous_ftc):
+        with pytest.raises(TypeError, match=f"{design.__name__}\\(\\) got an unexpected keyword argument 'regoin'"):
+            design(ex.system, regoin=Disk(-3.0, 2.0))
+
+
 def test_simultaneous_ftc():
     ex = fm.example_4_4_2()
     ftc = design_simultaneous_ftc(ex.system, Fs=ex.Fs, L=ex.L, region=Disk(-4.0, 2.0))

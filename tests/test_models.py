@@ -406,6 +406,15 @@ def test_robot_arm_x0_and_uncertainty():
     assert (ex.delta_k, ex.omega_k) == (0.04, 1.0)
 
 
+def test_robot_arm_parameters_default_to_table_3_1_and_unknown_ones_are_named():
+    table = dict(J_m=0.01, J_l=0.08, m=0.15, l_c=0.25, k=0.3, beta=0.05, K_tau=0.2, l=0.18, g=9.81)
+    assert fm.robot_arm().params == table and fm.robot_arm_ts().params == table
+    assert fm.robot_arm(k=0.5).params == {**table, "k": 0.5}
+    for make in (fm.robot_arm, fm.robot_arm_ts):
+        with pytest.raises(TypeError, match=f"{make.__name__}\\(\\) got an unexpected keyword argument 'K'"):
+            make(K=0.5)
+
+
 def _arm_gain_sets(ex, pairing, po):
     """Printed gains per rule, for the outputs z1 = x2, z2 = x4 (rows 0, 1 of L).
 

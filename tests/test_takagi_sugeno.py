@@ -234,3 +234,19 @@ def test_ts_nonlinear_arm_fojax_simulation_matches_scipy(uncertain_arm_runs):
     assert _rel(sol.xs, ref_x) <= 1e-6
     for zh, ref in zip(sol.estimates, ref_zh):
         assert _rel(zh, ref) <= 1e-6
+
+
+def test_ts_observer_shape_errors_name_the_matrix_and_the_rule_axis(arm_ts):
+    """Eq. 3.152's gains stacked over the k = 2 rules: N_i is q0×q0, Q_i is q×nw."""
+    membership = arm_ts.system.membership
+    z = np.zeros
+    mats = dict(N=z((2, 3, 3)), J=z((2, 3, 1)), F=z((2, 3, 2)), H=z((2, 3, 1)), S=z((2, 1, 3)),
+                G=z((2, 1, 1)), M=z((2, 1, 2)), P=z((2, 2, 3)), Q=z((2, 2, 2)), Wu=z((2, 1)),
+                Wy=np.eye(2), T=z((3, 5)), membership=membership)
+    fojax.observer.TakagiSugenoObserver(**mats)
+    with pytest.raises(fojax.errors.ShapeError, match=r"N has shape \(2, 3, 4\), expected \(2, 3, 3\)"):
+        fojax.observer.TakagiSugenoObserver(**{**mats, "N": z((2, 3, 4))})
+    with pytest.raises(fojax.errors.ShapeError, match=r"Q has shape \(2, 2, 3\), expected \(2, 2, 2\)"):
+        fojax.observer.TakagiSugenoObserver(**{**mats, "Q": z((2, 2, 3))})
+    with pytest.raises(fojax.errors.ShapeError, match=r"J has shape \(3, 3, 1\).*one J_i per rule"):
+        fojax.observer.TakagiSugenoObserver(**{**mats, "J": z((3, 3, 1))})

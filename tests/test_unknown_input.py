@@ -371,3 +371,28 @@ def test_uio_needs_an_observer_order_at_least_the_number_of_unknown_inputs(plant
     R = np.array([[1.0, 0.0, 0.0, 0.0]])
     with pytest.raises(fojax.errors.DetectabilityError, match=r"observer order q0 \(now 1; at least l = 2 is needed\)"):
         design_unknown_input_observer(sys, D, R, R=R)
+
+
+def _uio_matrices(q0=2, q1=1, l=1, nw=3, m=1, p=2, q=1):
+    """Zero matrices of the sizes of the unknown-input observer (§3.2: N q0×q0, J q0×q1, F q0×nw,
+    H q0×m, Δ q0×l, S q1×q0, G q1×q1, M q1×nw, Φ l×q0, Λ l×q1, W l×nw, P q×q0, Q q×nw,
+    Wu nw×m, Wy nw×p)."""
+    z = np.zeros
+    return dict(N=z((q0, q0)), J=z((q0, q1)), F=z((q0, nw)), H=z((q0, m)), Delta=z((q0, l)),
+                S=z((q1, q0)), G=z((q1, q1)), M=z((q1, nw)), Phi=z((l, q0)), Lambda=z((l, q1)),
+                W=z((l, nw)), P=z((q, q0)), Q=z((q, nw)), Wu=z((nw, m)), Wy=z((nw, p)))
+
+
+@pytest.mark.parametrize("name, shape, expected", [
+    ("N", (2, 3), (2, 2)), ("J", (3, 1), (2, 1)), ("F", (2, 4), (2, 3)), ("H", (2, 2), (2, 1)),
+    ("S", (1, 3), (1, 2)), ("M", (1, 2), (1, 3)), ("Q", (1, 2), (1, 3)), ("Wu", (2, 1), (3, 1)),
+    ("Delta", (3, 1), (2, 1)), ("Phi", (1, 3), (1, 2)), ("Lambda", (1, 2), (1, 1)),
+    ("W", (1, 2), (1, 3)),
+])
+def test_uio_shape_errors_name_the_matrix(name, shape, expected):
+    mats = _uio_matrices()
+    fojax.UnknownInputObserver(**mats)  # the sizes of the docstring fit
+    mats[name] = np.zeros(shape)
+    with pytest.raises(fojax.errors.ShapeError, match=rf"{name} has shape \({shape[0]}, {shape[1]}\), "
+                       rf"expected \({expected[0]}, {expected[1]}\)"):
+        fojax.UnknownInputObserver(**mats)
