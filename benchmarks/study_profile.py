@@ -3,7 +3,7 @@
 1. **Quantile bands** of `run_study` on the default §3.3.7 study (`study_default.build`):
    process CPU seconds of the exact kernel (`run_batched` on `exact_problem`, what
    `run_study` calls) without and with the band trajectories (``keep = 0`` / the default
-   band stride 5, and 16), at chunk sizes 2,048 (what `_run_exact` uses when
+   band stride 5, and 16), at chunk sizes 2,048 (what `_run_batch` uses when
    bands are kept) and 4,096; then the host's ``band_quantiles`` (one ``np.sort``) against
    ``np.partition`` on only the needed order statistics (the same numbers: checked equal
    here) on the same ``(201, 2, 5, B)`` errors.

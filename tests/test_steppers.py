@@ -162,9 +162,11 @@ def test_auto_picks_exact_for_lti_and_diffrax_otherwise_and_exact_refuses_nonlin
         fojax.Exact().select(nonlinear_plant(), (), ts, as_signal(None, 1))
     with pytest.raises(fojax.errors.InputError, match=r"stepper Exact\(\).*uniform grid"):
         fojax.Exact().select(lti_plant(), (), jnp.asarray(TS ** 2), as_signal(None, 2))
-    # the study engines, in the order run_study tries them
-    assert fojax.Auto.engines == ("exact-batch", "exponential-batch", "vmap-simulate")
-    assert fojax.Exponential.engines == ("exponential-batch",)
+    # the batch kernels, in the order run_study tries them (then every sample through simulate)
+    assert auto.batch_candidates == (fojax.Exact(), fojax.Exponential()) and auto.simulates
+    assert fojax.Exponential(substeps=2).batch_candidates == (fojax.Exponential(substeps=2),)
+    assert not fojax.Exponential.simulates  # an explicit Exponential has no simulate path
+    assert fojax.Diffrax().batch_candidates == () and fojax.Diffrax().simulates
 
 
 # --------------------------------------------------------------------------- simulate

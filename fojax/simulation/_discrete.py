@@ -60,11 +60,10 @@ class Discrete(AbstractStepper):
     Needs a linear time-invariant discrete-time `fojax.DescriptorSystem`, observers with
     the same ``dt`` (designed on the discrete model, or `fojax.discretize`d) and
     ``ts = t0 + h * jnp.arange(T)``. In `run_study` it runs every sample through
-    `fojax.simulate` (the ``"vmap-simulate"`` engine).
+    `fojax.simulate` (no batch candidates).
     """
 
     method: ClassVar[str] = "discrete"
-    engines: ClassVar[tuple[str, ...]] = ("vmap-simulate",)
 
     def select(self, plant, observers, ts, u) -> AbstractStepper:
         dt = plant_dt(plant)

@@ -5,19 +5,21 @@ takes its solver (and lineax's ``linear_solve`` its ``AutoLinearSolver``): one e
 several final classes of one abstract base, options as static fields (hashable: a stepper
 is part of the compile key, and an equal stepper never recompiles).
 
-| stepper | exact for | `simulate` | `run_study` engine(s), tried in order |
+| stepper | exact for | `simulate` | `run_study`: batch candidates, tried in order, then |
 |---|---|---|---|
-| `Exact()` | LTI plant and observers, uniform grid, input breakpoints on the grid | ✓ | ``"exact-batch"``, else ``"vmap-simulate"`` with `Exact()` |
-| `Exponential(...)` | LTI observers; signals (δ(t), faults, inputs) entering the differential equations affinely, breakpoints on the step grid | ✗ (studies only) | ``"exponential-batch"`` |
-| `Diffrax(solver, rtol, atol, max_steps)` | any index-1 plant (nonlinear, Takagi–Sugeno, noise) to its tolerances | ✓ | ``"vmap-simulate"`` |
-| `Auto(diffrax=Diffrax())` | picks the first of the above that is exact for the model | ✓ | ``"exact-batch"``, ``"exponential-batch"``, ``"vmap-simulate"`` |
+| `Exact()` | LTI plant and observers, uniform grid, input breakpoints on the grid | ✓ | ``(Exact(),)``, else every sample through `simulate` with `Exact()` |
+| `Exponential(...)` | LTI observers; signals (δ(t), faults, inputs) entering the differential equations affinely, breakpoints on the step grid | ✗ (studies only) | ``(self,)``, else `fojax.errors.InputError` |
+| `Diffrax(solver, rtol, atol, max_steps)` | any index-1 plant (nonlinear, Takagi–Sugeno, noise) to its tolerances | ✓ | every sample through `simulate` |
+| `Auto(diffrax=Diffrax())` | picks the first of the above that is exact for the model | ✓ | ``(Exact(), Exponential())``, else every sample through `simulate` with this `Auto` |
 
 `Auto` decides from the plant's *capabilities* (`linear_matrices()` of the plant and the
 observers, the grid, the signals' `breakpoints()`), in one place: `Auto.select` for one
-simulation, `AbstractStepper.engines` for the order in which `run_study` tries its
-batch engines (each engine checks on the host whether the study qualifies and says why
-not). An explicit stepper that is not exact for the model raises `fojax.errors.InputError`
-naming the stepper and the reason.
+simulation, `AbstractStepper.batch_candidates` for the batch kernels a study tries, in
+order (each checks on the host whether the study qualifies and says why not:
+`fojax.studies._engines`, keyed by stepper class, since this floor does not know
+studies), and `AbstractStepper.simulates` for whether the samples may then run through
+`simulate`. An explicit stepper that is not exact for the model raises
+`fojax.errors.InputError` naming the stepper and the reason.
 
 The stepper is the only way to choose the method: the keywords it replaced (``method=``,
 ``solver=``, ``rtol=``, ``atol=``, ``max_steps=``) raise a `TypeError` naming the stepper to
@@ -47,8 +49,16 @@ class AbstractStepper(eqx.Module):
 
     #: the name of this stepper's method (recorded in ``StudyResult.attrs`` and `Solution.method`)
     method: ClassVar[str]
-    #: `run_study`'s engines this stepper may run on, in the order they are tried
-    engines: ClassVar[tuple[str, ...]]
+    #: whether a study's samples may each run through `fojax.simulate` with this stepper
+    #: when none of its `batch_candidates` takes the study
+    simulates: ClassVar[bool] = True
+
+    @property
+    def batch_candidates(self) -> tuple[AbstractStepper, ...]:
+        """The steppers whose batch kernels `run_study` and `fojax.studies.study_loss` try,
+        in order, before every sample runs through `fojax.simulate` (`simulates`); what
+        each does with a study is `fojax.studies._engines`, keyed by the stepper's class."""
+        return ()
 
     @property
     def diffrax_options(self) -> Diffrax:
@@ -80,7 +90,6 @@ class Diffrax(AbstractStepper):
     max_steps: int = eqx.field(static=True, default=100_000)
 
     method: ClassVar[str] = "diffrax"
-    engines: ClassVar[tuple[str, ...]] = ("vmap-simulate",)
 
     def __check_init__(self):
         for name in ("rtol", "atol"):
@@ -110,7 +119,10 @@ class Exact(AbstractStepper):
     """
 
     method: ClassVar[str] = "exact"
-    engines: ClassVar[tuple[str, ...]] = ("exact-batch", "vmap-simulate")
+
+    @property
+    def batch_candidates(self) -> tuple[AbstractStepper, ...]:
+        return (self,)
 
     def select(self, plant, observers, ts, u) -> AbstractStepper:
         cap = capabilities(plant, observers, ts, u)
@@ -164,7 +176,11 @@ class Exponential(AbstractStepper):
     substeps: int | None = eqx.field(static=True, default=None)
 
     method: ClassVar[str] = "exponential"
-    engines: ClassVar[tuple[str, ...]] = ("exponential-batch",)
+    simulates: ClassVar[bool] = False  # no `simulate` path: a study it cannot run is refused
+
+    @property
+    def batch_candidates(self) -> tuple[AbstractStepper, ...]:
+        return (self,)
 
     def __check_init__(self):
         if isinstance(self.step_rate, bool) or not isinstance(self.step_rate, int | float) or not self.step_rate > 0:
@@ -211,7 +227,10 @@ class Auto(AbstractStepper):
     diffrax: Diffrax = eqx.field(static=True, default=Diffrax())
 
     method: ClassVar[str] = "auto"
-    engines: ClassVar[tuple[str, ...]] = ("exact-batch", "exponential-batch", "vmap-simulate")
+
+    @property
+    def batch_candidates(self) -> tuple[AbstractStepper, ...]:
+        return (Exact(), Exponential())
 
     def __check_init__(self):
         if not isinstance(self.diffrax, Diffrax):

@@ -60,7 +60,7 @@ from ..simulation._reduction import (
     SVDSplit,
 )
 from ..simulation._save import METRIC_NAMES
-from ..simulation._steppers import grid_deviation, UNIFORM_GRID_RTOL
+from ..simulation._steppers import Exact, grid_deviation, UNIFORM_GRID_RTOL
 from ._adjoint import pass_length, pass_recurrence_reduce, split_recurrence_reduce
 from ._sharding import per_sample
 
@@ -454,9 +454,9 @@ def exact_refusal(study, observers, stepper=None) -> str | None:
     check. Decided from the types and shapes of sample 0 (no arrays are computed, so it
     also works on a traced study) and from the grid when it is concrete (`grid_deviation`,
     the one uniform-grid test; a traced grid is assumed uniform, as `fojax.Auto` does).
-    With a `stepper` (`fojax.Auto`, `fojax.Exact`, ...), also refused when its engines
-    exclude ``"exact-batch"``."""
-    if stepper is not None and "exact-batch" not in stepper.engines:
+    With a `stepper` (`fojax.Auto`, `fojax.Exact`, ...), also refused when none of its
+    ``batch_candidates`` is an `fojax.Exact`."""
+    if stepper is not None and not any(isinstance(c, Exact) for c in stepper.batch_candidates):
         return f"the stepper {type(stepper).__name__} excludes the exact engine"
     if not all(_structure(_observer_lti, o) is not None for o in observers):
         return "an observer is not LTI"

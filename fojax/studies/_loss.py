@@ -12,11 +12,9 @@ from jaxtyping import Array
 
 from .._errors import InputError
 from ..observer import AbstractObserver
-from ..simulation import Exponential
 from ..simulation._discrete import discrete_stepper
 from ..simulation._save import error_metrics
-from ._exact import exact_refusal, sample_metrics_traced
-from ._exponential import exponential_metrics_traced, exponential_schedule
+from ._engines import study_engine
 from ._runner import _indices, sample_errors, SimConfig, Study
 from ._sharding import per_sample, sample_mesh, sum_rows
 
@@ -46,14 +44,11 @@ def resolve_engine(study: Study, observers, cfg: SimConfig = SimConfig()) -> Sim
     observers = tuple(observers) if isinstance(observers, (tuple, list)) else (observers,)
     if _discrete_cfg(study, cfg) is not cfg:
         return _discrete_cfg(study, cfg)
-    stepper = cfg.stepper
-    if exact_refusal(study, observers, stepper) is None:
-        return cfg
-    if "exponential-batch" not in stepper.engines or sample_mesh(cfg.devices) is not None:
-        return cfg
-    options = stepper if isinstance(stepper, Exponential) else Exponential()
-    schedule = exponential_schedule(study, observers, cfg.settle_tol, options)
-    return cfg if schedule is None else dataclasses.replace(cfg, exponential_schedule=schedule)
+    for candidate in cfg.stepper.batch_candidates:  # in order; the first that takes the study decides
+        resolved = study_engine(candidate).resolve(candidate, study, observers, cfg)
+        if resolved is not None:
+            return resolved
+    return cfg
 
 
 def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", quantile: float | None = None,
@@ -98,22 +93,13 @@ def study_loss(study: Study, observer: AbstractObserver, *, loss: str = "iae", q
     w = jnp.full((study.num_signals,), 1.0 / study.num_signals) if weights is None else jnp.asarray(weights)
     mesh = sample_mesh(cfg.devices)
     cfg = _discrete_cfg(study, cfg)
-    stepper = cfg.stepper  # its engines, in order (fojax.simulation._steppers)
-    if exact_refusal(study, (observer,), stepper) is None:
-        # the exact batch-last kernel, reverse-differentiable (fojax.studies._exact)
-        mets, _ = sample_metrics_traced(study, (observer,), cfg.settle_tol, mesh, metric=loss)
-        per = w @ mets[0]  # (B,)
-        return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
-    if "exponential-batch" in stepper.engines and mesh is None:
-        # time-varying affine samples: the exponential engine, checkpointed (fojax.studies._exponential)
-        explicit = isinstance(stepper, Exponential)
-        out = exponential_metrics_traced(study, (observer,), cfg.settle_tol,
-                                         options=stepper if explicit else Exponential(),
-                                         schedule=cfg.exponential_schedule, metric=loss)
+    stepper = cfg.stepper
+    for candidate in stepper.batch_candidates:  # its batch kernels, in order (fojax.studies._engines)
+        out = study_engine(candidate).loss_metrics(candidate, study, (observer,), cfg, mesh, loss)
         if out is not None:
             per = w @ out[0][0]  # (B,): the one metric accumulated
             return sum_rows(per) / per.shape[0] if quantile is None else jnp.quantile(per, quantile)
-    if "vmap-simulate" not in stepper.engines:
+    if not stepper.simulates:
         raise InputError(
             f"study_loss: stepper {stepper!r} cannot run this study (the exponential engine needs a concrete "
             "study of time-varying affine samples on one device; run_study(stepper=...) says why not). Use "

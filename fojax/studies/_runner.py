@@ -10,7 +10,9 @@ numbers (a new key, new observer gains) reuse the compiled code; only a new
 *structure* (types, shapes, chunk size, options) compiles again (`TRACE_COUNTS`).
 
 **Engines.** Which engine runs is the stepper's choice (`run_study`'s `stepper`, default
-`fojax.Auto()`; `fojax.simulation._steppers`). LTI studies with known signals do not
+`fojax.Auto()`; `fojax.simulation._steppers`): its ``batch_candidates`` in order, each
+through its study engine (`fojax.studies._engines`, keyed by stepper class), then every
+sample through `fojax.simulate` (this section's path). LTI studies with known signals do not
 take this path: they run on the batch-last exact kernel shared with
 `fojax.simulation.simulate_lti_batch` (`fojax.studies._exact`), which streams chunks,
 pads and shards with the same kernel code (`fojax.simulation._driver.run_batched`).
@@ -75,9 +77,8 @@ from ..simulation._save import (
     resolve_save,
     UNSET,
 )
-from ..simulation._steppers import AbstractStepper, Exponential, resolve_stepper
-from ._exact import exact_problem
-from ._exponential import exponential_problem
+from ..simulation._steppers import AbstractStepper, resolve_stepper
+from ._engines import SIMULATE_LABEL, study_engine
 from ._families import Family
 from ._sharding import (
     check_same_on_every_process,
@@ -438,8 +439,10 @@ def run_study(
       observers (checked; `fojax.errors.DistributedError` otherwise, and when another process
       dies). See ``docs/distributed.md``.
     - `stepper`: how the samples are stepped (`fojax.simulation._steppers`; default
-      `fojax.Auto()`). `run_study` tries the stepper's engines in order
-      (``attrs["engine"]`` records the one that ran):
+      `fojax.Auto()`). `run_study` tries the stepper's batch kernels in order
+      (``stepper.batch_candidates``, `fojax.studies._engines`), then, unless the stepper
+      is `Exponential`, every sample through `fojax.simulate` (``attrs["engine"]``
+      records the one that ran):
 
       - ``"exact-batch"`` (`fojax.Exact()`, `fojax.Auto()`): when every sample is an LTI
         loop driven by known signals (plant `DescriptorSystem` or
@@ -515,34 +518,21 @@ def run_study(
     if spans_processes(devices):  # a global mesh (jax.distributed): same inputs everywhere
         check_same_on_every_process((study, observers), "run_study")
     with distributed_errors("run_study"):
-        for engine in stepper.engines:  # the order is the stepper's (fojax.simulation._steppers)
-            if engine == "exact-batch":
-                prepared, _reason = exact_problem(study, observers, settle_tol, keep, kinds=save.kinds)
-                if prepared is not None:
-                    res = _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices, stride=stride,
-                                     compile_only=compile_only)
-                    return None if compile_only else _apply_save(res, save)
-            elif engine == "exponential-batch":
-                options = stepper if isinstance(stepper, Exponential) else Exponential()
-                prepared, _reason = exponential_problem(study, observers, settle_tol, keep,
-                                                        strict=isinstance(stepper, Exponential), options=options,
-                                                        kinds=save.kinds)
-                if prepared is not None:
-                    n_start, sub_start, substeps = prepared[0].schedule
-                    res = _run_exact(study, prepared, names, quantiles, cfg, chunk_size, devices,
-                                     method="exponential",
-                                     solver=f"ETDRK4, {substeps} steps per grid interval ({sub_start} in the "
-                                            f"first {n_start})", engine="exponential-batch", stride=stride,
-                                     compile_only=compile_only)
-                    return None if compile_only else _apply_save(res, save)
-            else:  # "vmap-simulate"
-                if compile_only:  # compiled by its first chunk's call (no program to compile ahead)
-                    return None
-                solver = stepper.diffrax_options.solver
-                res = _run_vmap(study, observers, names, quantiles, cfg, chunk_size, devices, keep, solver, quiet,
-                                stride)
-                return _apply_save(res, save)
-    raise AssertionError(f"stepper {stepper!r} has no engine that ran")  # every stepper ends with one
+        for candidate in stepper.batch_candidates:  # in the stepper's order (fojax.simulation._steppers)
+            engine = study_engine(candidate)  # what the candidate does with a study (fojax.studies._engines)
+            prepared, _reason = engine.problem(candidate, study, observers, settle_tol=settle_tol, keep=keep,
+                                               kinds=save.kinds, strict=not stepper.simulates)
+            if prepared is not None:
+                res = _run_batch(study, prepared, names, quantiles, cfg, chunk_size, devices, engine=engine.label,
+                                 stride=stride, compile_only=compile_only, **engine.attrs(prepared[0]))
+                return None if compile_only else _apply_save(res, save)
+        if not stepper.simulates:  # (its candidate refuses with the reason when strict)
+            raise InputError(f"stepper {stepper!r} cannot run this study.")
+        if compile_only:  # every sample through simulate: compiled by its first chunk's call (nothing ahead)
+            return None
+        solver = stepper.diffrax_options.solver
+        res = _run_vmap(study, observers, names, quantiles, cfg, chunk_size, devices, keep, solver, quiet, stride)
+        return _apply_save(res, save)
 
 
 def _apply_save(res: StudyResult, save: Metrics) -> StudyResult:
@@ -606,7 +596,7 @@ def _run_vmap(study, observers, names, quantiles, cfg: SimConfig, chunk_size, de
         axes["quantiles"] = ("observer", "quantile", "time", "signal")
     return _result(study, names, quantiles, cfg, metrics, axes, stride,
                    solver=type(solver).__name__ if solver is not None else "default", chunk_size=chunk,
-                   num_chunks=n_chunks, num_devices=int(ndev), engine="vmap-simulate")
+                   num_chunks=n_chunks, num_devices=int(ndev), engine=SIMULATE_LABEL)
 
 
 def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, stride: int, **attrs) -> StudyResult:
@@ -625,11 +615,12 @@ def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, stride: int,
     return StudyResult(metrics=metrics, axes=axes, coords=coords, attrs=merged)
 
 
-def _run_exact(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices, method="exact",
-               solver="none (exact matrix-exponential stepping)", engine="exact-batch", stride=1,
-               compile_only=False) -> StudyResult | None:
-    """`run_study` on the batch-last kernel (`run_batched`): the exact problem of
-    `fojax.studies._exact` or the exponential one of `fojax.studies._exponential`."""
+def _run_batch(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices, *, method: str, solver: str,
+               engine: str, stride=1, compile_only=False) -> StudyResult | None:
+    """`run_study` on a batch kernel (`run_batched`): the prepared problem of a study engine
+    (`fojax.studies._engines`: the exact problem of `fojax.studies._exact` or the exponential
+    one of `fojax.studies._exponential`); `method`, `solver`, `engine` are recorded in
+    ``attrs``."""
     problem, basis, idx = prepared
     B = study.num_samples
     keep = problem.keep
