@@ -29,7 +29,7 @@ import slycot
 from helpers import assert_eigenvalues_match, random_descriptor
 
 import fojax
-from fojax.analysis import algebraic_channel, is_regular, structure_report
+from fojax.analysis import algebraic_channel, is_regular, kronecker_structure, structure_report
 from fojax.design import design_functional_observer, Disk
 
 
@@ -290,21 +290,31 @@ def _exact_det(M) -> Fraction:
     return det
 
 
-def test_reference_nearly_singular_pencil_is_never_called_singular():
+def test_reference_nearly_singular_pencil_gets_the_reference_verdict():
     """The MatrixPencils.jl pencil is regular (exactly, and far from singular: det(E - A) is
-    about 0.59); balancing lifts its round-off entries into the rank
-    decisions, where the deflation sees a singular value 5e-14. fojax must not call it
-    singular: it answers regular or undecidable, and regular on the data as given."""
+    about 0.59), with rank E = 2 and, as rank A22 = 1 < n - rank E says, impulsive. Its
+    round-off entries are left out of the balancing, which would otherwise lift them into the
+    rank decisions (a deciding singular value 5e-14 of the balanced pencil)."""
     E, A = _MP_E, _MP_A
     assert abs(float(_exact_det(E - A))) > 0.5  # the oracle: regular, with a wide margin
-    assert np.linalg.matrix_rank(E) == 2  # the reference's rank E
+    assert is_regular(E, A) and is_regular(E, A, balance=False)
+    rep = structure_report(fojax.DescriptorSystem(E, A, np.ones((4, 1)), np.ones((1, 4))))
+    assert rep.regular and rep.rank_E == 2 and not rep.impulse_free
+    assert kronecker_structure(E, A).normal_rank == 4
+
+
+@pytest.mark.parametrize("k", [1e2, 1e4])
+def test_round_off_lifted_by_balancing_never_makes_a_regular_pencil_singular(k):
+    """The same pencil with its round-off entries k times larger (1e-15 .. 1e-12, too large to
+    be told from data): still exactly regular; its deciding singular values fall near the
+    threshold, where AG08BD is asked too, so the answer is regular or undecidable, and
+    regular on the data as given, as the error says."""
+    E, A = _MP_E.copy(), _MP_A.copy()
+    E[:, :2] *= k
+    A[0, 0] *= k
+    assert abs(float(_exact_det(E - A))) > 0.5
     try:
         assert is_regular(E, A)
     except fojax.errors.NumericallyUndecidableError as e:
-        assert e.ag08bd_regular and not e.deflation_regular and "balance=False" in str(e)
+        assert e.ag08bd_regular != e.deflation_regular and "balance=False" in str(e)
     assert is_regular(E, A, balance=False)
-    sys_ = fojax.DescriptorSystem(E, A, np.ones((4, 1)), np.ones((1, 4)))
-    try:
-        assert structure_report(sys_).regular
-    except fojax.errors.NumericallyUndecidableError:
-        pass

@@ -210,6 +210,16 @@ def _gauge(el, er, E, A, B, C) -> tuple[int, int]:
 IO_WEIGHT = 1e-3
 
 
+def _log2_unit(M) -> np.ndarray:
+    """``log2 |M| - log2 max |M|`` entrywise (``-inf`` at zeros)."""
+    a = np.abs(M)
+    top = a.max(initial=0.0)
+    if top == 0:
+        return np.full(a.shape, -np.inf)
+    with np.errstate(divide="ignore"):
+        return np.log2(a) - np.log2(top)
+
+
 def _ward_exponents(E, A, B, C, *, rounded: bool = True, io_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     r"""Ward's (1981) balancing as an exact least-squares problem, rounded to powers of two.
 
@@ -221,7 +231,9 @@ def _ward_exponents(E, A, B, C, *, rounded: bool = True, io_weight: float = 1.0)
     (each block is divided by its norm): so ``C`` in huge units or ``E`` in tiny ones
     does not pull the states' exponents. Exact zeros are left out and so are round-off
     entries: at most ``2^-52 max(l, n)`` times the largest entry of both their row and
-    their column within the block (a threshold relative to the whole block would drop the
+    their column within the block, or within the pencil ``[E, A]`` with each block divided
+    by its largest entry (a row or column of ``E`` can be round-off as a whole where ``A``
+    holds the data; a threshold relative to the whole block would drop the
     small entries of a badly scaled model, the ones balancing must see; one relative to
     the row and the column keeps most of them, since an exact scaling changes a row and a
     column together). This is a heuristic: no rule tells round-off from a genuinely tiny
@@ -236,15 +248,24 @@ def _ward_exponents(E, A, B, C, *, rounded: bool = True, io_weight: float = 1.0)
     L, R = slice(0, l), slice(l, l + n)
 
     tau = 2.0**-52 * max(l, n, 1)
+    # the pencil [E, A] with each block divided by its largest entry: its row and column
+    # maxima tell round-off in a block whose whole row or column is round-off (a column of
+    # E holding 1e-17 where A holds 1), which the block's own maxima cannot
+    # (in log2, so that 1e-300 next to 1e300 does not underflow)
+    pencil = np.maximum(*(_log2_unit(M) for M in (E, A))) if E.size else None
 
     def nz(M):
         # Round-off entries (at most tau times the largest entry of BOTH their row and
-        # their column in the block, e.g. 1e-19 next to 1e4 left by a product that should
-        # be zero) are left out: balancing would blow them up to the size of the data.
+        # their column in the block, or in the normalised pencil [E, A], e.g. 1e-19 next
+        # to 1e4 left by a product that should be zero) are left out: balancing would blow
+        # them up to the size of the data.
         a = np.abs(M)
         rmax = a.max(axis=1, keepdims=True)
         cmax = a.max(axis=0, keepdims=True)
         mask = (a > tau * rmax) | (a > tau * cmax) if M.ndim == 2 and M.size else a > 0
+        if (M is E or M is A) and pencil is not None:
+            u = _log2_unit(M) - np.log2(tau)
+            mask &= (u > pencil.max(axis=1, keepdims=True)) | (u > pencil.max(axis=0, keepdims=True))
         mask &= a > 0
         lg = np.where(mask, np.log2(np.where(mask, np.abs(M), 1.0)), 0.0)
         return mask.astype(float), lg

@@ -124,11 +124,9 @@ def is_regular(sys, A=None, *, tol: float | None = None, balance: bool = True) -
     **Returns:** ``True`` or ``False`` (``True`` for ``n = 0``). Never raises for a
     singular pencil.
 
-    **Raises:** `fojax.errors.NumericallyUndecidableError` when SLICOT ``AG08BD`` gives the
-    other verdict on a pencil whose verdict is in doubt: a deciding singular value within a
-    factor 100 of the tolerance (the verdict then depends on the last digits), or a
-    "singular" verdict reached after balancing, which can scale round-off entries up to
-    the size of the data (`fojax.analysis._common.deflate`).
+    **Raises:** `fojax.errors.NumericallyUndecidableError` when a deciding singular value is
+    within a factor 100 of the tolerance and SLICOT ``AG08BD`` gives the other verdict
+    (`fojax.analysis._common.deflate`): the verdict then depends on the last digits.
     """
     p = as_pencil(sys, A, fname="is_regular", balance=balance)
     return deflate(p, tol).failed is None
