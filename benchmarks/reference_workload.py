@@ -8,14 +8,13 @@ them agree on the per-sample metrics, then times them and writes a table
     python benchmarks/reference_workload.py                      # the full study
     python benchmarks/reference_workload.py --sizes 1 10 100 1000 --repeats 3
     python benchmarks/reference_workload.py --peers expm rk4 --loop-max-b 100
-    # issue 13: fojax.run_study on the workload's Study vs the raw kernel and peer (d), one device
-    python benchmarks/reference_workload.py --fojax-mode eager run-study --peers expm \
+    # issue 13: fojax.run_study on the workload's Study vs peer (d), one device
+    python benchmarks/reference_workload.py --fojax-mode run-study --peers expm \
         --sizes 1000 10000 --host-devices 1
 
 Timing rules: imports and workload construction are outside the timed region; the
 first call of every method is timed and reported separately (for fojax the JAX caches
-are cleared first, and compilation is timed on its own by ahead-of-time lowering in
-``jit`` mode, or estimated as first call - median in ``vmap`` mode; see `FojaxRunner`);
+are cleared first, and compilation is estimated as first call - median; see `FojaxRunner`);
 then the method is repeated and the median is reported, with
 ``jax.block_until_ready`` on fojax's output. The Python-loop peers (a) and (b) are run
 up to ``--loop-max-b`` samples; for larger B their time is extrapolated linearly from
@@ -69,8 +68,7 @@ SIZES = (1, 10, 100, 1_000, 10_000, 100_000)
 #: python-control and fojax are exact discretisations like (d), up to rounding.
 TOLERANCES = {"solve_ivp": 1e-4, "control": 1e-10, "rk4": 1e-8, "expm": 1e-12, "fojax": 1e-8,
               "fojax_run_study": 1e-8}
-#: Issue 13's targets for `fojax.run_study` on this workload at one device.
-TARGET_VS_KERNEL = 1.2  # t_run_study / t_kernel at most
+#: Issue 13's target for `fojax.run_study` on this workload at one device.
 TARGET_VS_EXPM = 4.0  # t_expm_peer / t_run_study at least
 #: The library versions recorded (and printed) for this study.
 VERSION_MODULES = ("numpy", "scipy", "control", "jax", "jaxlib", "equinox", "diffrax", "fojax")
@@ -85,8 +83,8 @@ def _closed_loop_jnp(A_plant):
     """The 8×8 closed-loop matrix from the printed gains, with jax.numpy (see `_workload`).
 
     Deliberately a jax.numpy twin of `_workload.closed_loop_A`, not a call to it: it is
-    traced per sample inside fojax's timed kernel (the NumPy version assigns in place and
-    cannot be traced), and `_workload` stays NumPy only.
+    traced per sample inside the ``vmap-simulate`` entry (the NumPy version assigns in place
+    and cannot be traced), and `_workload` stays NumPy only.
     """
     g = {k: jnp.asarray(getattr(wlmod, k)) for k in "B C L N J F H S G M P Q E_PERP".split()}
     # w = [-E_perp B u; y] with u = zhat = P zeta + Q w: an algebraic loop in u, but
@@ -105,76 +103,44 @@ def _closed_loop_jnp(A_plant):
     )
 
 
-def _fojax_model(Ak):
-    """One sample's 8-state closed-loop `fojax.DescriptorSystem` (module-level: a stable
-    function object, so fojax's compiled kernel is reused across calls)."""
-    import fojax
-
-    return fojax.DescriptorSystem(jnp.asarray(wlmod.E_CL), _closed_loop_jnp(Ak))
-
-
 class FojaxRunner:
-    """The fojax entry: ``(A_plant (B,4,4), x0 (B,8)) -> (B,2)`` metrics, public API only.
+    """The fojax entry: the batch's ``(B, 2)`` metrics, public API only.
 
-    Default (``mode="eager"``/``"jit"``/``"auto"``): `fojax.simulate_lti_batch`, fojax's
-    batched exact LTI path (one matrix exponential per sample, all samples stepped
-    together with the batch as the last axis, the two IAE metrics accumulated inside the
-    time loop, fixed-size chunks of `chunk` samples):
-
-    - ``mode="eager"``: called directly; fojax compiles its chunk kernel once (for every
-      B); compile time reported as first call − median.
-    - ``mode="jit"``: the whole study inside one outer `jax.jit`, AOT-compiled per batch
-      shape (compile time measured on its own); the chunks run in a `jax.lax.map`.
-    - ``mode="auto"``: ``"eager"``.
-    - ``mode="vmap-simulate"``: the previous entry, ``jax.vmap(fojax.simulate)`` with the
-      metrics computed from the stored trajectories (kept for comparison).
-    - ``mode="run-study"``: what users run, `fojax.run_study` on the workload as a
-      `fojax.Study` (`_workload_study`: the loop built by `fojax.control.closed_loop`, no
-      observers, ``save=fojax.Metrics(kinds="iae", bands=None)``, chunks of `chunk`), the
-      two metrics summed from its per-signal IAEs (inside the timed call). Its input is
-      the `Study` of the batch (built outside the timed region, like the other modes' arrays).
+    - ``mode="run-study"`` (``"auto"``): what users run, `fojax.run_study` on the workload
+      as a `fojax.Study` (`_workload_study`: the loop built by `fojax.control.closed_loop`,
+      no observers, ``save=fojax.Metrics(kinds="iae", bands=None)``, chunks of `chunk`; its
+      exact engine: one matrix exponential per sample, all samples stepped together with
+      the batch as the last axis, the metrics accumulated inside the time loop), the two
+      metrics summed from its per-signal IAEs (inside the timed call). Its input is the
+      `Study` of the batch (built outside the timed region). Compile time reported as
+      first call − median.
+    - ``mode="vmap-simulate"``: ``jax.vmap(fojax.simulate)`` on ``(A_plant (B,4,4), x0
+      (B,8))`` with the metrics computed from the stored trajectories (kept for comparison).
     """
 
     def __init__(self, chunk: int = 4096, mode: str = "auto"):
         import fojax
 
-        if not hasattr(fojax, "simulate"):
+        if not hasattr(fojax, "run_study"):
             raise FojaxUnavailable(
-                "fojax.simulate does not exist yet (the simulation layer of issue 7 is not "
-                "merged); this entry is written against "
-                "`fojax.simulate(plant, x0, ts) -> Solution(.xs (T, n))`."
+                "fojax.run_study does not exist in this checkout; this entry is written against "
+                "`fojax.run_study(study) -> StudyResult` and `fojax.simulate(plant, x0, ts) -> Solution(.xs (T, n))`."
             )
-        from fojax.simulation import simulate_lti_batch
 
         self.fojax = fojax
-        self.simulate_lti_batch = simulate_lti_batch
         self.chunk = int(chunk)
         self.requested_mode = mode
-        self.mode = "eager" if mode == "auto" else mode
+        self.mode = "run-study" if mode == "auto" else mode
         self.method = "fojax_run_study" if self.mode == "run-study" else "fojax"
         self.fallback_reason = ""
         self.E_cl = jnp.asarray(wlmod.E_CL)
         self.ts = jnp.asarray(wlmod.TS)
         self.dt = float(wlmod.DT_GRID)
-        C_full = jnp.asarray(wlmod.full_output_rows())  # (6, 8): rows of x, then of zhat - L x
-        self.Ce = C_full[4:]
-        self.metrics_spec = {"x": ("iae_l1", C_full[:4]), "e": ("iae_l1", self.Ce)}
-        self._jit_batch = jax.jit(self._batch_traced)
+        self.Ce = jnp.asarray(wlmod.full_output_rows())[4:]  # (2, 8): rows of zhat - L x
         self._metrics = jax.jit(self._metrics_from_xs)
         self._vmapped = jax.vmap(self._trajectory)
-        self._compiled: dict = {}
 
-    # -- batched exact path ----------------------------------------------------------
-    def _lti_batch(self, A_plant, x0):
-        out = self.simulate_lti_batch(
-            _fojax_model, A_plant, x0, self.ts, metrics=self.metrics_spec, chunk_size=self.chunk
-        )
-        return jnp.stack([out["x"], out["e"]], axis=-1)
-
-    def _batch_traced(self, A_plant, x0):
-        return self._lti_batch(A_plant, x0)
-
-    # -- legacy: vmap of simulate, metrics from trajectories ---------------------------
+    # -- vmap of simulate, metrics from trajectories ------------------------------------
     def _trajectory(self, Ak, x0):
         plant = self.fojax.DescriptorSystem(self.E_cl, _closed_loop_jnp(Ak))
         return self.fojax.simulate(plant, x0, self.ts).xs  # (T, 8)
@@ -203,22 +169,13 @@ class FojaxRunner:
         return _workload_study.two_metrics(res)
 
     def prepare(self, A_plant, x0=None) -> float | None:
-        """Compile for this batch shape; returns the compile time (``None`` unless jit mode)."""
-        if self.mode == "jit":
-            t0 = time.perf_counter()
-            self._compiled[A_plant.shape] = self._jit_batch.lower(A_plant, x0).compile()
-            return time.perf_counter() - t0
+        """The compile time when it is measured on its own (never here: every mode's first
+        call compiles, reported as first call − median)."""
         return None
 
     def __call__(self, A_plant, x0=None):
         if self.mode == "run-study":
             return self._run_study(A_plant)
-        if self.mode == "jit":
-            if A_plant.shape not in self._compiled:
-                self.prepare(A_plant, x0)
-            return self._compiled[A_plant.shape](A_plant, x0)
-        if self.mode == "eager":
-            return self._lti_batch(A_plant, x0)
         B = A_plant.shape[0]
         if B <= self.chunk:
             return self._metrics(self._vmapped(A_plant, x0))
@@ -237,9 +194,7 @@ class FojaxRunner:
     def label(self) -> str:
         if self.mode == "run-study":
             return "fojax.run_study (no observers)"
-        if self.mode == "vmap-simulate":
-            return "fojax.simulate (vmap)"
-        return f"fojax.simulate_lti_batch ({self.mode})"
+        return "fojax.simulate (vmap)"
 
 
 def fojax_inputs(wl: wlmod.Workload):
@@ -249,11 +204,11 @@ def fojax_inputs(wl: wlmod.Workload):
 def run_fojax(batch: wlmod.Workload, chunk: int = 4096, mode: str = "auto") -> np.ndarray:
     """fojax on the reference workload: ``(B, 2)`` metrics (IAE of |x|_1, of |zhat - Lx|_1).
 
-    Uses only fojax's public API (`fojax.DescriptorSystem`,
-    `fojax.simulation.simulate_lti_batch`) and JAX.
+    Uses only fojax's public API (`fojax.run_study` on the workload's `fojax.Study`, or
+    `jax.vmap(fojax.simulate)`) and JAX.
     """
     runner = FojaxRunner(chunk, mode)
-    return np.asarray(jax.block_until_ready(runner(*fojax_inputs(batch))))
+    return np.asarray(jax.block_until_ready(runner(*runner.inputs(batch))))
 
 
 # ================================================================================ watchdog
@@ -370,13 +325,11 @@ def main(argv=None) -> int:
     )
     ap.add_argument(
         "--fojax-mode",
-        choices=("auto", "eager", "jit", "vmap-simulate", "run-study"),
+        choices=("auto", "vmap-simulate", "run-study"),
         nargs="+",
         default=["auto"],
-        help="simulate_lti_batch called directly (eager = auto), inside an outer AOT jax.jit (jit), "
-        "or the old jax.vmap(fojax.simulate) entry (vmap-simulate); run-study: fojax.run_study on the "
-        "workload's Study (public API). Several: one kernel mode and run-study, timed on the same samples "
-        "(issue 13's ratios are then recorded)",
+        help="run-study (= auto): fojax.run_study on the workload's Study (public API); vmap-simulate: "
+        "jax.vmap(fojax.simulate) with the metrics from the trajectories. Both: timed on the same samples",
     )
     ap.add_argument("--cpu-repeats", type=int, default=5,
                     help="with run-study and peer (d): rounds of the interleaved process-CPU-time comparison "
@@ -421,7 +374,7 @@ def main(argv=None) -> int:
             fojax_msg = str(e)
             print(f"!! fojax entry skipped: {fojax_msg}")
         if len({f.method for f in fojax_fns}) != len(fojax_fns):
-            ap.error("--fojax-mode: at most one kernel mode (auto/eager/jit/vmap-simulate) and run-study")
+            ap.error("--fojax-mode: run-study (= auto) and vmap-simulate at most once each")
     if args.name is None:
         args.name = "reference_workload" + ("_run_study" if any(f.mode == "run-study" for f in fojax_fns) else "")
 
@@ -534,8 +487,6 @@ def cpu_times(wl, fojax_fns, expm_variant: str, repeats: int) -> dict:
     out = dict(best, repeats=repeats, expm_variant=expm_variant, load_average_after=_common.load_average())
     rs = best.get("fojax_run_study_s")
     if rs is not None:
-        if "fojax_s" in best:
-            out["run_study_over_kernel"] = rs / best["fojax_s"]
         out["speedup_vs_expm_peer"] = best["expm_s"] / rs
     return out
 
@@ -578,28 +529,21 @@ def write_results(state: dict, status: str, echo: bool = False) -> None:
 
 
 def issue13_targets(rows) -> list[dict]:
-    """Per B with `fojax.run_study`, the raw kernel and peer (d) measured: issue 13's two ratios
-    (``t_run_study / t_kernel`` ≤ `TARGET_VS_KERNEL`, ``t_expm / t_run_study`` ≥ `TARGET_VS_EXPM`),
-    from the medians, and the load averages after the two fojax measurements."""
+    """Per B with `fojax.run_study` and peer (d) measured: issue 13's ratio
+    ``t_expm / t_run_study`` (≥ `TARGET_VS_EXPM`) from the medians, and the load average
+    after the run_study measurement."""
     out = []
     for B in sorted({r["B"] for r in rows}):
         pick = {m: next((r for r in rows if r["method"] == m and r["B"] == B), None)
-                for m in ("fojax_run_study", "fojax", "expm")}
-        rs, kern, expm = pick["fojax_run_study"], pick["fojax"], pick["expm"]
+                for m in ("fojax_run_study", "expm")}
+        rs, expm = pick["fojax_run_study"], pick["expm"]
         if rs is None:
             continue
         row = dict(B=B, run_study_s=rs["median_s"], load_average_after_run_study=rs.get("load_average_after"))
-        if kern is not None:
-            ratio = rs["median_s"] / kern["median_s"]
-            row.update(kernel_s=kern["median_s"], run_study_over_kernel=ratio,
-                       target_run_study_over_kernel_max=TARGET_VS_KERNEL, kernel_target_met=ratio <= TARGET_VS_KERNEL,
-                       load_average_after_kernel=kern.get("load_average_after"))
         if expm is not None and not expm["extrapolated"]:
             speed = expm["median_s"] / rs["median_s"]
             row.update(expm_peer_s=expm["median_s"], speedup_vs_expm_peer=speed,
                        target_speedup_vs_expm_peer_min=TARGET_VS_EXPM, expm_target_met=speed >= TARGET_VS_EXPM)
-            if kern is not None:
-                row["kernel_speedup_vs_expm_peer"] = expm["median_s"] / kern["median_s"]
         out.append(row)
     return out
 
@@ -652,26 +596,21 @@ def render_markdown(info, agree, rows, fojax_msg, fojax_note, args, status, targ
     if cols:
         lines += _common.speedup_table(rows, cols)
     if targets:
-        lines += ["", f"## Issue 13: `fojax.run_study` on this workload (targets: ≤ {TARGET_VS_KERNEL}× the raw "
-                  f"kernel's time, ≥ {TARGET_VS_EXPM}× peer (d))", "",
-                  "| B | run_study (s) | kernel (s) | run_study / kernel | peer (d) (s) | speed-up vs (d) | "
-                  "kernel speed-up vs (d) | load avg after |", "|---:|---:|---:|---:|---:|---:|---:|---|"]
+        lines += ["", f"## Issue 13: `fojax.run_study` on this workload (target: ≥ {TARGET_VS_EXPM}× peer (d))", "",
+                  "| B | run_study (s) | peer (d) (s) | speed-up vs (d) | load avg after |", "|---:|---:|---:|---:|---|"]
         for t in targets:
             load = t.get("load_average_after_run_study")
             lines.append(
-                f"| {t['B']} | {t['run_study_s']:.4g} | {fmt(t.get('kernel_s'), '.4g')} | "
-                f"{fmt(t.get('run_study_over_kernel'), '.3g')} | {fmt(t.get('expm_peer_s'), '.4g')} | "
-                f"{fmt(t.get('speedup_vs_expm_peer'), '.3g')} | {fmt(t.get('kernel_speedup_vs_expm_peer'), '.3g')} | "
+                f"| {t['B']} | {t['run_study_s']:.4g} | {fmt(t.get('expm_peer_s'), '.4g')} | "
+                f"{fmt(t.get('speedup_vs_expm_peer'), '.3g')} | "
                 f"{'' if load is None else ', '.join(f'{x:.2f}' for x in load)} |")
         cpu = [t for t in targets if "cpu_time" in t]
         if cpu:
             lines += ["", "Process CPU time (min of interleaved repeats; robust to a busy machine's descheduling):", "",
-                      "| B | run_study (s) | kernel (s) | peer (d) (s) | run_study / kernel | speed-up vs (d) |",
-                      "|---:|---:|---:|---:|---:|---:|"]
+                      "| B | run_study (s) | peer (d) (s) | speed-up vs (d) |", "|---:|---:|---:|---:|"]
             for t in cpu:
                 c = t["cpu_time"]
-                lines.append(f"| {t['B']} | {c['fojax_run_study_s']:.4g} | {fmt(c.get('fojax_s'), '.4g')} | "
-                             f"{c['expm_s']:.4g} | {fmt(c.get('run_study_over_kernel'), '.3g')} | "
+                lines.append(f"| {t['B']} | {c['fojax_run_study_s']:.4g} | {c['expm_s']:.4g} | "
                              f"{c['speedup_vs_expm_peer']:.3g} |")
     return "\n".join(lines) + "\n"
 

@@ -26,8 +26,8 @@ be compared with what the machine allows. Results: ``results/scaling_latest.json
 
 Kernel workload (``--workload kernel``; results ``scaling_kernel_*``)
 -------------------------------------------------------------------
-The previous rows, kept and labelled as such: `simulate_lti_batch` with all K = n
-outputs per step (not what `run_study` asks for). Described below.
+`fojax.run_study` on a signal study of every state (``L = I``: all K = n outputs per step,
+not what an observer study asks for), IAE of ``‖x‖₁`` only. Described below.
 
 What is measured
 ----------------
@@ -37,9 +37,10 @@ What is measured
    horizon [0, 10] s, 0.01 s output grid (1001 points), float64; per sample one metric, the
    IAE of $\|x(t)\|_1$ (trapezoid rule on the grid). Two methods:
 
-   - fojax: `fojax.simulation.simulate_lti_batch(model, A_k, x0, ts, metrics={"x":
-     ("iae_l1", I)})` (public API only; fojax does its own index-1 reduction and exact
-     discretisation, all inside the timed call);
+   - fojax: `fojax.run_study(study, stepper=fojax.Exact(), save=fojax.Metrics(kinds="iae",
+     reduce="sum", bands=None))` on the `fojax.Study` of ``E x' = A_k x`` from ``x0_k`` with
+     ``L = I`` and no observers (public API only; fojax does its own index-1 reduction and
+     exact discretisation, all inside the timed call; the `Study` is built before it);
    - peer (d) written as `peers.py` writes it, generically: the hand reduction
      $A^{\rm s}_k$, $T$ (outside the timed region, as in `peers.py`),
      ``scipy.linalg.expm(A^s_k dt)`` for the stacked samples, a recurrence vectorised over
@@ -273,24 +274,23 @@ PEER_VARIANTS = {"batch-first": expm_batch_first, "batch-last": expm_batch_last}
 
 
 def fojax_call(loop: RandomLoop, samples: Samples, chunk_size: int | None = None):
-    """``() -> (B,)`` metrics with `fojax.simulation.simulate_lti_batch` (needs x64 on)."""
-    import jax
+    """``() -> (B,)`` metrics (IAE of ``‖x‖₁``) with `fojax.run_study` on the signal study
+    ``z = x`` of the samples (the `Study` is built here, outside the timed call; needs x64 on)."""
     import jax.numpy as jnp
 
     import fojax
-    from fojax.simulation import simulate_lti_batch
+    from fojax.studies import Family
 
-    E = jnp.asarray(loop.E)
-
-    def model(A):  # one function object per process: the compiled kernel is reused
-        return fojax.DescriptorSystem(E, A)
-
-    A, x0, ts = jnp.asarray(samples.A), jnp.asarray(samples.x0), jnp.asarray(grid())
-    metrics = {"x": ("iae_l1", jnp.eye(loop.n))}
-    kw = {} if chunk_size is None else {"chunk_size": int(chunk_size)}
+    n = loop.n
+    plant = fojax.DescriptorSystem(jnp.asarray(loop.E), jnp.asarray(loop.A), jnp.zeros((n, 1)), jnp.eye(n)[:1])
+    fams = (Family(jnp.asarray(samples.A), ("plant", "A")), Family(jnp.asarray(samples.x0), ("x0",)))
+    study = fojax.Study(plant, jnp.zeros(n), jnp.asarray(grid()), jnp.eye(n), uncertainty=fams)
+    save = fojax.Metrics(kinds="iae", reduce="sum", bands=None)
 
     def call():
-        return jax.block_until_ready(simulate_lti_batch(model, A, x0, ts, metrics=metrics, **kw)["x"])
+        res = fojax.run_study(study, stepper=fojax.Exact(), save=save, chunk_size=chunk_size, quiet=True)
+        assert res.attrs["engine"] == "exact-batch", res.attrs["engine"]
+        return res.metrics["iae"][0, :, 0]
 
     return call
 
@@ -739,8 +739,8 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=1000, help="samples B of the n study (default 1000)")
     ap.add_argument("--check-b", type=int, default=100, help="samples of the agreement check before timing")
     ap.add_argument("--workload", choices=("study", "kernel"), default="study",
-                    help="study (default): fojax.run_study, the product workload; kernel: the old "
-                         "simulate_lti_batch rows (all n outputs), written as scaling_kernel_*")
+                    help="study (default): fojax.run_study with an observer, the product workload; kernel: "
+                         "run_study on the signal study z = x (all n outputs), written as scaling_kernel_*")
     ap.add_argument("--memory-n", type=int, default=8, help="state dimension of the memory-vs-B sweep")
     ap.add_argument("--memory-sizes", type=int, nargs="*", default=None,
                     help="batch sizes of the memory-vs-B sweep (none: skip it; default: 100,000 for the "
@@ -881,7 +881,8 @@ def write(state: dict, status: str, echo: bool = False, name: str = "scaling") -
         status,
         state["info"],
         args,
-        workload=dict(horizon_s=T_END, dt=DT, points=grid().size, delta=DELTA, abscissa_bound=ABSCISSA_BOUND,
+        workload=dict(entry_point="fojax.run_study (signal study z = x)", horizon_s=T_END, dt=DT,
+                      points=grid().size, delta=DELTA, abscissa_bound=ABSCISSA_BOUND,
                       metric="IAE of |x|_1 (trapezoid on the grid)", tolerance=TOL),
         dims=state["dims"],
         memory=state["memory"],
@@ -936,7 +937,7 @@ def render_markdown(d: dict) -> str:
         "",
         f"## Time vs state dimension n (B = {s['batch']})",
         "",
-        "fojax = `simulate_lti_batch` (compile ≈ first call − median, caches cleared); (d) = "
+        "fojax = `run_study` of z = x (compile ≈ first call − median, caches cleared); (d) = "
         "`scipy.linalg.expm` per sample + vectorised recurrence (faster axis order). "
         "`t_(d)/t_fojax` > 1: fojax faster. Peak RSS = process high-water mark.",
         "",

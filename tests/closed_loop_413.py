@@ -27,17 +27,6 @@ X0 = np.array([16.0, -1.0, 3.0, 7.0])  # x4 inconsistent: projected (slow part k
 AO = np.array([[-2.0, 0.5], [0.0, -3.0]])
 BY = np.array([[1.0, 0.0, 0.2], [0.0, 1.0, -0.1]])
 
-# metrics of the joint vector [x (4); xi (2)]
-MX = np.hstack([np.eye(4), np.zeros((4, 2))])
-ME = np.hstack([C0[:2], -np.eye(2)])  # y_{1,2} - xi
-METRICS_NP = {
-    "iae_x": ("iae", MX),
-    "ise_e": ("ise", ME),
-    "l1": ("iae_l1", MX),
-    "l2": ("ise_l2", np.eye(6)),
-}
-
-
 class LTIObserver(AbstractObserver):
     """xi' = A xi + By y, output xi (2 states), started at xi0."""
 

@@ -6,8 +6,8 @@ Oracles:
 - the same call spelled another way (`Auto` where it picks `Exact`, ``quantiles=`` for
   ``save=Metrics(bands=...)``): the same code path, so the results must be equal bit for bit;
 - for the metric vocabulary, the trapezoid rule written again in NumPy on the errors of one
-  `fojax.simulate` trajectory (checked against `error_metrics`, `simulate_lti_batch`'s
-  kinds and `run_study`'s ``Metrics(reduce="sum")``);
+  `fojax.simulate` trajectory (checked against `error_metrics` and `run_study`'s
+  ``Metrics(reduce="none")`` and ``Metrics(reduce="sum")``);
 - trace counters (`fojax.simulation._simulate.TRACE_COUNTS`, `fojax.simulation._batch.TRACE_COUNTS`)
   for "no recompile when only numbers change".
 
@@ -29,7 +29,7 @@ from fojax import studies as S
 from fojax.plant import as_signal
 
 # private: the kernels' internals are checked
-from fojax.simulation import _batch, _simulate, simulate_lti_batch
+from fojax.simulation import _batch, _simulate
 from fojax.simulation._save import error_metrics, METRIC_NAMES
 from fojax.studies import SimConfig
 
@@ -257,7 +257,7 @@ def _trap(ts, v):
 
 
 def test_metric_vocabulary_is_the_same_everywhere(lti_results):
-    """`error_metrics`, `simulate_lti_batch`'s kinds and `run_study`'s `Metrics(reduce=...)`
+    """`error_metrics` and `run_study`'s `Metrics(reduce="none" | "sum")` (exact kernel)
     against the trapezoid rule in NumPy on one trajectory (sample 0 of the LTI study)."""
     st, res, _ = lti_results
     plant, x0 = st.sample(0, 0)
@@ -270,19 +270,6 @@ def test_metric_vocabulary_is_the_same_everywhere(lti_results):
     for k, v in oracle.items():
         np.testing.assert_allclose(got[k], v, rtol=1e-13, err_msg=k)
         np.testing.assert_allclose(res.metrics[k][0, 0, 0], v, rtol=1e-9, err_msg=k)  # run_study, exact kernel
-    # simulate_lti_batch: ("iae", C) per row, ("iae", C, "sum") = legacy "iae_l1", ("ise", C, "sum") = "ise_l2"
-    Ce = np.hstack([-np.asarray(st.L), np.eye(2)])  # ξ − L x on [x; ξ]
-    model = _Model()
-    p = {"delta": st.uncertainty[0].values.value[:1]}
-    out = simulate_lti_batch(model, p, jnp.asarray(x0)[None], TS, metrics={
-        "iae": ("iae", Ce), "iae_sum": ("iae", Ce, "sum"), "iae_l1": ("iae_l1", Ce),
-        "ise_sum": ("ise", Ce, "sum"), "ise_l2": ("ise_l2", Ce), "ise_rows": ("ise", Ce, "none")})
-    np.testing.assert_allclose(out["iae"][0], oracle["iae"], rtol=1e-9)
-    np.testing.assert_allclose(out["iae_sum"][0], oracle["iae"].sum(), rtol=1e-9)
-    np.testing.assert_allclose(out["ise_sum"][0], oracle["ise"].sum(), rtol=1e-9)
-    np.testing.assert_allclose(out["ise_rows"][0], oracle["ise"], rtol=1e-9)
-    np.testing.assert_array_equal(out["iae_sum"], out["iae_l1"])  # the same kernel integrand
-    np.testing.assert_array_equal(out["ise_sum"], out["ise_l2"])
     # run_study: Metrics(kinds, reduce="sum") keeps the named metrics, summed over the signals
     summed = fojax.run_study(st, OBS, stepper=fojax.Exact(), quiet=True,
                              save=fojax.Metrics(kinds=("iae", "ise"), reduce="sum", bands=None))
@@ -290,8 +277,9 @@ def test_metric_vocabulary_is_the_same_everywhere(lti_results):
     assert summed.axes["iae"] == ("observer", "uncertainty", "fault")
     for k in ("iae", "ise"):
         np.testing.assert_allclose(summed.metrics[k], res.metrics[k].sum(axis=-1), rtol=1e-14)
-    with pytest.raises(fojax.errors.InputError, match=r"\(kind, C, reduce\)"):
-        simulate_lti_batch(model, p, jnp.asarray(x0)[None], TS, metrics={"x": ("peak", Ce, "sum")})
+        np.testing.assert_allclose(summed.metrics[k][0, 0, 0], oracle[k].sum(), rtol=1e-9, err_msg=k)
+    with pytest.raises(fojax.errors.InputError, match=r"reduce='sum'.*Drop 'peak'"):
+        fojax.Metrics(kinds=("iae", "peak"), reduce="sum")
 
 
 def test_batch_engines_accumulate_only_the_requested_metrics(lti_results):
@@ -320,34 +308,19 @@ def test_batch_engines_accumulate_only_the_requested_metrics(lti_results):
     np.testing.assert_array_equal(one.metrics["success"], all_.metrics["success"])
 
 
-class _Model:
-    """``params -> (plant, observers)`` of the LTI study (a stable function object)."""
-
-    def __call__(self, p):
-        plant = fojax.UncertainDescriptorSystem(lti_plant(), dA=jnp.asarray(DA), delta=fojax.Constant(p["delta"]))
-        return plant, (OBS,)
-
-    def __eq__(self, other):
-        return isinstance(other, _Model)
-
-    def __hash__(self):
-        return 0
-
-
 def test_one_uniform_grid_test_for_every_entry():
-    from fojax.simulation import simulate_batch_exponential
-
-    # private: tested itself
+    # private: tested itself (the batch kernels' grid check and the one deviation measure)
+    from fojax.simulation._driver import _step_size
     from fojax.simulation._steppers import grid_deviation
 
     assert grid_deviation(np.linspace(0.0, 1.0, 11))[0] <= 1e-12
     assert grid_deviation(np.linspace(1.0, 0.0, 11))[0] == np.inf  # decreasing: never uniform
     bad = TS.copy()
     bad[3] += 1e-4
-    p = {"delta": jnp.zeros((1, 1))}
-    x0 = jnp.asarray(X0)[None]
-    for fn in (simulate_lti_batch, simulate_batch_exponential):
-        with pytest.raises(fojax.errors.InputError, match=rf"{fn.__name__} steps on a uniform increasing grid.*2\.00e-03"):
-            fn(_Model(), p, x0, bad, metrics={"x": ("iae", np.eye(6))})
+    with pytest.raises(fojax.errors.InputError, match=r"run_study steps on a uniform increasing grid.*2\.00e-03"):
+        _step_size(jnp.asarray(bad))
+    study = fojax.Study(uncertain_template(), X0, bad, C0[:2], uncertainty=lti_study().uncertainty)
+    with pytest.raises(fojax.errors.InputError, match=r"stepper Exponential\(\) cannot run this study: the grid is not uniform"):
+        fojax.run_study(study, OBS, stepper=fojax.Exponential(), quiet=True)
     with pytest.raises(fojax.errors.InputError, match=r"stepper Exact\(\).*not uniform \(max .* = 2\.00e-03"):
         fojax.Exact().select(lti_plant(), (), jnp.asarray(bad), as_signal(None, 2))

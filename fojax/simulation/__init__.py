@@ -2,8 +2,6 @@
 to save (`Trajectory`, `Metrics`, `Bands`), index-1 reduction and consistent initial conditions."""
 
 from ._discrete import Discrete as Discrete
-from ._exponential import simulate_batch_exponential as simulate_batch_exponential
-from ._lti_batch import simulate_lti_batch as simulate_lti_batch
 from ._reduction import (
     consistent_initial_condition as consistent_initial_condition,
     Index1Reduction as Index1Reduction,

@@ -2,8 +2,8 @@ r"""The batch kernel: many LTI plant+observer samples stepped exactly, metrics a
 in the time loop.
 
 A Monte Carlo study of a linear time-invariant loop needs per-sample *numbers*
-(integrated errors), not trajectories. A batch *problem* (`fojax.studies._exact`,
-`fojax.simulation._lti_batch`) gives each sample's joint plant+observer system
+(integrated errors), not trajectories. A batch *problem* (`fojax.studies._exact`) gives
+each sample's joint plant+observer system
 (`joint_matrices`, the one joint builder); this kernel
 
 1. reduces the joint system to its slow ODE $\dot w = \mathcal A_k w$ in the ``rank E``

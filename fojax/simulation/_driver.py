@@ -1,8 +1,8 @@
 r"""The one chunk / pad / shard driver of the batch kernels.
 
 `run_batched` runs any batch problem (the exact study problems of `fojax.studies._exact`,
-the exponential integrator's `fojax.simulation._exponential.ExponentialProblem`, the
-``model(params)`` problems of `fojax.simulation._lti_batch`) over a batch of samples:
+the exponential integrator's `fojax.simulation._exponential.ExponentialProblem`) over a
+batch of samples:
 
 1. the batch is streamed in fixed-size chunks, the last one padded with copies of the
    last sample, so one compilation serves every chunk and every batch size;
@@ -195,7 +195,7 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
     return out, layout
 
 
-def _step_size(ts, who: str = "simulate_lti_batch"):
+def _step_size(ts, who: str = "run_study"):
     """``(T, h, ts)`` of a uniform increasing grid (the batch kernels' entries; `who` names
     the caller in the error): the host test is `fojax.simulation._steppers.grid_deviation`,
     a traced grid is checked at run time."""

@@ -1,6 +1,8 @@
-r"""`simulate_batch_exponential`: many time-varying linear loops, exponential integrator, metrics only.
+r"""The exponential integrator's batch kernel: many time-varying linear loops, metrics only.
 
-Exact discretisation (`simulate_lti_batch`) needs a time-invariant loop. When the loop
+This is the stepping of `fojax.Exponential` (`fojax.run_study`, `fojax.studies.study_loss`;
+`fojax.studies._exponential` builds its problems). Exact discretisation (`fojax.Exact`)
+needs a time-invariant loop. When the loop
 varies in time — an uncertainty profile $\delta(t)$, a fault, an input signal — each
 sample's reduced slow ODE is still linear in the state and close to a *common* linear
 part,
@@ -16,8 +18,8 @@ $b$'s collect the input $u_k(t)$. The stiff, common part $A_0$ is integrated exa
 approximated. Because $A_0$ is the same for every sample, its $\varphi$-functions are
 computed once and applied to the whole batch as matrix products.
 
-**How the decomposition is found.** For every sample, ``model(params_k)`` builds the
-plant (and LTI observers, and optionally an input signal). Every `fojax.plant.AbstractSignal`
+**How the decomposition is found.** Every sample is a plant (with LTI observers and
+an input signal). Every `fojax.plant.AbstractSignal`
 inside the plant is replaced by a constant *probe* value $s$; the probed plant is
 time-invariant, is reduced to its slow ODE in the masked SVD coordinates of
 `fojax.simulation` (the reduction of `fojax.simulate`'s exact method, with the input
@@ -67,16 +69,14 @@ trajectory is stored and memory grows linearly with ``B``.
 
 **One batch kernel.** `ExponentialProblem` is a *problem* of
 `fojax.simulation._driver.run_batched` (the chunking, padding, blocking and device
-sharding of `simulate_lti_batch` and of `fojax.run_study`'s exact engine) that brings
-its own block stepping; what is reduced along the grid is another problem's
-``init``/``update``/``final`` (the integrated metrics of `simulate_batch_exponential`,
-or `fojax.run_study`'s IAE/ISE/ITAE/peak/settling time, `fojax.studies._exponential`).
+sharding of `fojax.run_study`'s exact engine) that brings its own block stepping; what
+is reduced along the grid is another problem's ``init``/``update``/``final``
+(`fojax.run_study`'s IAE/ISE/ITAE/peak/settling time, `fojax.studies._exponential`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
 
 import equinox as eqx
 import jax
@@ -84,32 +84,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from .._errors import InputError, ShapeError
-from ._batch import DEFAULT_BLOCK
-from ._driver import _step_size, DEFAULT_CHUNK, run_batched
 from ._expm import expm_stack, matvec_last
-from ._exponential_setup import (
-    _check_structure,
-    _full_plan,
-    _ModelSetup,
-    _parse_model_output,
-    _Plan,
-    _plant_signals,
-    _signal_values,
-    batch_params,
-    check_affine,
-    CstackOutputs,
-    kernel_inputs,
-    prepare,
-    setup_all,
-    TRACE_COUNTS,
-)
-from ._lti_batch import _check_metrics, _ModelProblem, METRIC_KINDS
+from ._exponential_setup import _Plan, _signal_values, TRACE_COUNTS
 from ._problem import AbstractBatchProblem
-from ._reduction import (
-    host_initial_checks,
-    is_concrete,
-)
+from ._reduction import is_concrete
 
 
 #: One-sided signal values at a step boundary ``t + h``: the last ETDRK4 stage of the step
@@ -119,19 +97,7 @@ from ._reduction import (
 #: by rounding. For a smooth signal this moves a stage by 1e-9 of a step.
 SIDE_OFFSET = 1e-9
 
-__all__ = ["METRIC_KINDS", "simulate_batch_exponential"]
-
-
-# --------------------------------------------------------------------------- model output
-
-
-# --------------------------------------------------------------------------- signal probes
-
-
-# --------------------------------------------------------------------------- decomposition
-
-
-# --------------------------------------------------------------------------- host check
+__all__ = ["ExponentialProblem", "phi_functions"]
 
 
 # --------------------------------------------------------------------------- the kernel
@@ -227,8 +193,8 @@ class ExponentialProblem(AbstractBatchProblem):
     of the affine decomposition, computed once on the host by `prepare`, so the set-up of
     the decomposition is not part of the stepping kernel's graph). ``reducer`` is a
     batch-kernel problem whose ``init``/``update``/``final`` reduce the outputs
-    $o = \sum_i c_i(t)\,(G_i w + H_i v)$ along the grid (the integrated metrics of
-    `simulate_batch_exponential`, or `run_study`'s metrics). ``shared`` (the terms equal
+    $o = \sum_i c_i(t)\,(G_i w + H_i v)$ along the grid (`run_study`'s metrics, or
+    `fojax.studies.study_loss`'s loss). ``shared`` (the terms equal
     for every sample) and the φ-functions of $A_0$ ``phis`` (kept block; bulk step and
     start-up step) are shared by every sample; ``plan`` (static, `_Plan`) says which terms
     are applied and how; ``schedule = (n_start, sub_start, substeps)``.
@@ -273,7 +239,7 @@ class ExponentialProblem(AbstractBatchProblem):
     def block_kernel(self, p, h_grid, ts, basis=None, checkpoint: bool = False):
         """One block (leading axis ``b`` of every leaf of ``p``): the reducer's result
         (and the ``(T, K, b)`` outputs when ``reducer.keep``), batch last."""
-        TRACE_COUNTS["simulate_batch_exponential"] += 1
+        TRACE_COUNTS["ExponentialProblem"] += 1
         del basis  # the exponential kernel steps the slow state itself
         plan, (n_start, sub_start, substeps) = self.plan, self.schedule
         sig_p, inp = p
@@ -472,203 +438,3 @@ def _step_table(T: int, n_start: int, sub_start: int, substeps: int) -> np.ndarr
         within = np.tile(np.arange(sub), count)
         parts.append(np.stack([interval, within, np.full_like(interval, phase), (within == sub - 1).astype(int)]))
     return np.concatenate(parts, axis=1).astype(np.int64)
-
-
-# --------------------------------------------------------------------------- public entry
-
-
-def _positive_int(name, value, what, zero=False):
-    ok = isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= (0 if zero else 1)
-    if not ok:
-        kind = "non-negative" if zero else "positive"
-        raise InputError(f"{name} must be a {kind} integer ({what}), got {value!r}.")
-    return int(value)
-
-
-def simulate_batch_exponential(
-    model: Callable,
-    params,
-    x0,
-    ts,
-    *,
-    metrics: Mapping[str, tuple],
-    reference=None,
-    substeps: int = 1,
-    startup: tuple[int, int] | None = None,
-    chunk_size: int = DEFAULT_CHUNK,
-    block: int = DEFAULT_BLOCK,
-    devices=None,
-) -> dict:
-    r"""Integrated metrics of a batch of time-varying linear descriptor loops (exponential RK4).
-
-    For every sample $k$, ``model(params_k)`` returns an index-1 plant that is linear in
-    the state and depends on time only through the `fojax.plant.AbstractSignal`\ s it contains
-    (e.g. a `fojax.UncertainDescriptorSystem` with a `fojax.Sine` uncertainty
-    $\delta_k(t)$; faults and output noise added by wrappers), optionally LTI observers
-    driven by its input and output, and optionally the input signal $u_k(t)$. The joint
-    plant+observer system is reduced to its slow ODE $\dot w = A_0 w + g_k(t, w)$ (see the
-    module docstring) and integrated with Krogstad's fourth-order exponential Runge–Kutta
-    method on the uniform grid ``ts``, `substeps` steps per grid interval. For each
-    metric ``name: (kind, C)`` with $o = C\,[x; \xi_1; \dots]$ the trapezoid rule on ``ts``
-    is accumulated during the time loop (kinds as in `simulate_lti_batch`: ``"iae"``,
-    ``"ise"`` per row → ``(B, k)``, ``("iae", C, "sum")``, ``("ise", C, "sum")`` (legacy
-    ``"iae_l1"``, ``"ise_l2"``) → ``(B,)``; the metric table of `fojax.simulation._save`).
-
-    This is the exponential stepper's batch kernel (`fojax.Exponential`): `fojax.run_study`
-    with ``stepper=Exponential()`` or ``Auto()`` runs the same ETDRK4 kernel on a `Study`
-    (choosing the substeps itself); this function is its entry for a user's own
-    ``model(params)`` with explicit `substeps`.
-
-    **The common linear part.** $A_0$ is the joint slow matrix of ``model(reference)``
-    with every signal inside its plant set to zero (for an uncertain plant: the nominal
-    $\delta = 0$ loop; inputs and faults are never part of $A_0$). Choose `reference` so
-    that this is representative of the batch — for an uncertainty with zero mean the
-    nominal is the natural choice, and it is what the default (the first sample's
-    ``params``, whose signals are zeroed) gives. $A_0$ is integrated exactly, whatever its
-    stiffness; the step size only has to resolve $g$.
-
-    **Accuracy.** Fixed step, no error control: the step $h = (t_1 - t_0)/((T-1)\,
-    \text{substeps})$ is yours to choose. The method has classical order 4 (for very stiff
-    problems with non-smooth data the analysis of Hochbruck & Ostermann 2010 guarantees
-    less in the worst case; here $g$ is smooth and the fourth order is observed, see the
-    tests), so the global error behaves like
-    $C h^4$ where $C$ grows with the time derivatives of $g$ along the solution — the
-    signal frequencies and amplitudes, and the fast modes of $A_0$ the perturbation
-    couples into. Check by halving the step (the error should drop ~16×). On
-    the time-varying §4.1.3 loop of ``benchmarks/time_varying.py`` ($|\delta| \le 0.3$,
-    $\omega \le 5$ rad/s, fastest pole −39.8; worst of 100 samples) the metrics are
-    accurate to ~2e-9 relative with one step per 0.01 s, ~2e-10 with 2 and ~4e-11 with 3
-    substeps. Signals should be smooth between
-    steps: a jump (a `fojax.Step`, `fojax.PiecewiseConstant`) costs $O(h)$ locally unless it
-    falls on a step boundary.
-
-    **Initial layer (`startup`).** An initial state off the slow manifold of $A_0$ excites
-    its fast modes; $A_0$ carries them exactly, but the perturbation couples them into
-    $g$, whose derivatives are then of the size of the fast eigenvalues until those modes
-    have decayed — in the loop above almost the whole error is made in the first
-    ~0.05 s. ``startup=(k, s)`` integrates the first ``k`` grid intervals with ``s`` steps
-    each and the rest with `substeps`; take $k\,\Delta t \approx 5/|\lambda_{\max}(A_0)|$.
-    On that loop (worst of 100 samples) ``substeps=2, startup=(13, 4)`` gives
-    ~2e-11 with 2,026 steps, better than uniform ``substeps=3`` (3,000 steps); with
-    ``substeps=1`` after the same start-up the bulk step limits (~3e-10: signals up to
-    5 rad/s).
-
-    **Arguments:**
-
-    - `model`: ``params_k -> plant``, ``(plant, observers)`` or ``(plant, observers, u)``;
-      the plant linear in the state, regular and index 1 along the trajectory, with its
-      time dependence entering its differential equations affinely through signals;
-      observers LTI (`linear_matrices()`); ``u`` a `fojax.plant.AbstractSignal` of size
-      ``plant.m`` or ``None``. Use a stable function object (not a new lambda per call) so
-      the compiled kernels are reused.
-    - `params`: pytree of arrays with a leading batch axis ``B``.
-    - `x0`: ``(B, n)`` initial plant states (made consistent by keeping their slow part, as
-      `fojax.simulate` does).
-    - `ts`: ``(T,)`` uniform increasing output grid.
-    - `metrics`: mapping ``name -> (kind, C)``, ``C`` of shape ``(k, n + Σ observer sizes)``.
-    - `reference`: params of one sample (no batch axis) defining $A_0$; ``None``: the
-      first sample's.
-    - `substeps`: integration steps per grid interval (``≥ 1``).
-    - `startup`: ``(k, s)``: the first ``k`` grid intervals with ``s`` steps each (see
-      above); ``None``: uniform.
-    - `chunk_size`: samples per compiled call (default 4096), rounded up to a multiple of
-      ``block × devices``; the last chunk is padded. Chunks, padding, blocks and devices
-      are those of the batch kernel (`fojax.simulation._driver.run_batched`, shared with
-      `simulate_lti_batch` and `fojax.run_study`): this function only brings the stepping
-      (`ExponentialProblem`).
-    - `block`: samples stepped together in one time loop (default 256).
-    - `devices`: the devices the blocks of a chunk are spread over, round-robin, with
-      `jax.shard_map` (default `jax.local_devices()`; on a CPU e.g.
-      ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` for two cores). The result
-      does not depend on the number of devices.
-
-    **Returns:** a dict ``name -> (B,)`` or ``(B, k)`` array (float64).
-
-    **Raises:** `fojax.errors.InputError` (plant not linear in the state, non-LTI observers, the
-    affine decomposition fails the host check, unknown metric kind, non-uniform grid,
-    bad `substeps`/`startup`/`reference`), `fojax.errors.ShapeError` (shapes of ``x0``, ``ts``, ``params``,
-    metric maps); index-1 checks run on the host for the first sample when the inputs
-    are concrete.
-
-    !!! example
-
-        ```python
-        def model(p):
-            nominal = fojax.DescriptorSystem(E, A, B)
-            plant = fojax.UncertainDescriptorSystem(
-                nominal, dA=dA, delta=fojax.Sine(p["a"], p["omega"], p["phase"]))
-            return plant, (), fojax.Constant(p["fault"])
-
-        out = simulate_batch_exponential(model, params, x0, jnp.linspace(0, 10, 1001),
-                                         metrics={"iae": ("iae_l1", Cx)}, substeps=3)
-        ```
-    """
-    x0, Bn = batch_params(params, x0)
-    substeps = _positive_int("substeps", substeps, "steps per grid interval")
-    if startup is None:
-        startup = (0, substeps)
-    if not (isinstance(startup, tuple | list) and len(startup) == 2):
-        raise InputError(
-            "startup must be a pair (n_intervals, substeps): the first n_intervals grid intervals "
-            f"are integrated with that many steps each; got {startup!r}."
-        )
-    n_start = _positive_int("startup[0]", startup[0], "grid intervals", zero=True)
-    sub_start = _positive_int("startup[1]", startup[1], "steps per start-up interval")
-    chunk_size = _positive_int("chunk_size", chunk_size, "samples per compiled call")
-    block = _positive_int("block", block, "samples stepped together")
-    T, h, ts = _step_size(ts, who="simulate_batch_exponential")
-    n_start = min(n_start, T - 1)
-    schedule = (n_start, sub_start, substeps)
-    params = jax.tree.map(jnp.asarray, params)
-    first = jax.tree.map(lambda a: a[0], params)
-    if reference is None:
-        reference = first
-    else:
-        ref_leaves, ref_def = jax.tree.flatten(reference)
-        if ref_def != jax.tree.structure(params) or any(
-            jnp.shape(r) != jnp.shape(p)[1:] for r, p in zip(ref_leaves, jax.tree.leaves(params))
-        ):
-            raise InputError(
-                "reference must be the params of one sample: the same pytree structure as "
-                "params, each leaf without the batch axis "
-                f"(expected shapes {[tuple(jnp.shape(p)[1:]) for p in jax.tree.leaves(params)]}, got "
-                f"{[tuple(jnp.shape(r)) for r in jax.tree.leaves(reference)]})."
-            )
-        reference = jax.tree.map(jnp.asarray, reference)
-    plant0, observers0, u0 = _parse_model_output(model(first))
-    _check_structure(plant0, observers0)
-    n = x0.shape[1]
-    if plant0.n != n:
-        raise ShapeError("x0", f"(B, {plant0.n})", tuple(x0.shape))
-    size = n + sum(o.state_size for o in observers0)
-    names, kinds, Cstack = _check_metrics(metrics, size)
-    ns = sum(sg.size for sg in _plant_signals(plant0))
-    concrete = is_concrete(params, x0, ts, reference, Cstack)
-    if concrete:
-        host_initial_checks(plant0, x0[0], ts[0], u0, strict=False, tol=0.0)
-    n_terms = 1 + ns
-    setup = _ModelSetup(model, Cstack)
-    p = (params, x0)
-    if concrete:
-        # A0, the plan of the whole batch (read in chunks) and the affine check on sample 0
-        A0, plan, per, shared, data0 = prepare(setup, p, (reference, x0[0]), chunk_size)
-        check_affine(model, first, data0, A0, CstackOutputs(Cstack), float(ts[0]), float(ts[-1]), ns, plant0.m)
-    else:  # under an outer jax.jit: every term per sample
-        data, A0 = setup_all(setup, p, (reference, x0[0]))
-        plan = _full_plan(size, n_terms)
-        per, shared = kernel_inputs(data, plan, jnp)
-    keep = np.asarray(plan.keep, dtype=int)
-    A0k = A0[keep][:, keep]
-    phis = (phi_functions(A0k, h / substeps), phi_functions(A0k, h / sub_start))
-    problem = ExponentialProblem(setup, _ModelProblem(model, Cstack, None, None, kinds), shared, phis, plan, schedule)
-    out, _ = run_batched(problem, (p, per), ts, chunk_size=chunk_size, block=block, devices=devices)
-    out = out.T
-    result, off = {}, 0
-    for name, (kind, k) in zip(names, kinds):
-        if kind in ("iae_l1", "ise_l2"):
-            result[name] = out[:, off]
-            off += 1
-        else:
-            result[name] = out[:, off : off + k]
-            off += k
-    return result

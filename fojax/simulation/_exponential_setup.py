@@ -19,7 +19,6 @@ sample's loop is made of, and the check that it is what the integrator assumes.
 from __future__ import annotations
 
 import collections
-from collections.abc import Callable
 from typing import NamedTuple
 
 import equinox as eqx
@@ -27,11 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._dtype import as_float_array
 from .._errors import InputError, ShapeError
 from .._small_linalg import solve_small
-from ..observer import AbstractObserver
-from ..plant import AbstractPlant, AbstractSignal, as_signal, Constant
+from ..plant import AbstractSignal, Constant
 from ._reduction import slow_rate, solve_fast, svd_split
 
 
@@ -56,63 +53,18 @@ AFFINE_CHECK_RTOL = 1e-8
 HOST_PASS_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
-def _parse_model_output(out, with_input: bool = True):
-    """``plant`` | ``(plant, observers)`` | ``(plant, observers, u)`` → ``(plant, observers, u)``
-    (without `with_input`: ``plant`` | ``(plant, observers)`` → ``(plant, observers)``)."""
-    u = None
-    lengths = (2, 3) if with_input else (2,)
-    if isinstance(out, AbstractPlant):
-        plant, obs = out, ()
-    elif isinstance(out, tuple) and len(out) in lengths and isinstance(out[0], AbstractPlant):
-        plant, obs = out[0], out[1]
-        if len(out) == 3:
-            u = out[2]
-    else:
-        forms = ("a fojax.plant.AbstractPlant, a tuple (plant, observers) or a tuple (plant, observers, u) with u a "
-                 "fojax.plant.AbstractSignal") if with_input else "a fojax.plant.AbstractPlant or a tuple (plant, observers)"
-        raise InputError(f"model(params) must return {forms}; got {type(out).__name__}.")
-    if obs is None:
-        obs = ()
-    if isinstance(obs, AbstractObserver):
-        obs = (obs,)
-    obs = tuple(obs)
-    for i, o in enumerate(obs):
-        if not isinstance(o, AbstractObserver):
-            raise InputError(f"model(...)[1][{i}] is a {type(o).__name__}, not a fojax.observer.AbstractObserver.")
-    if not with_input:
-        return plant, obs
-    if u is not None and not isinstance(u, AbstractSignal):
-        raise InputError(
-            f"model(...)[2] (the input) must be a fojax.plant.AbstractSignal or None, got {type(u).__name__}."
-        )
-    return plant, obs, as_signal(u, plant.m)
-
-
-def batch_params(params, x0):
-    """``(x0, B)``: `x0` as a ``(B, n)`` float array, after checking that every leaf of
-    `params` has the leading batch axis ``B`` (the ``model(params)`` batch entries)."""
-    leaves = jax.tree.leaves(params)
-    if not leaves:
-        raise InputError("params must contain at least one array with a leading batch axis.")
-    x0 = as_float_array("x0", x0, ndim=2)
-    Bn = x0.shape[0]
-    for leaf in leaves:
-        if jnp.ndim(leaf) < 1 or jnp.shape(leaf)[0] != Bn:
-            raise ShapeError("params leaves", f"leading batch axis {Bn} (= x0.shape[0])", tuple(jnp.shape(leaf)))
-    return x0, Bn
-
-
 def _check_structure(plant, observers):
     if not plant.linear_in_state:
         raise InputError(
-            "simulate_batch_exponential needs a plant that is linear in the state "
-            f"(plant.linear_in_state); {type(plant).__name__} is not. Use jax.vmap(fojax.simulate) "
+            "the exponential stepper (fojax.Exponential) needs a plant that is linear in the state "
+            f"(plant.linear_in_state); {type(plant).__name__} is not. Use stepper=fojax.Diffrax(...) "
             "for nonlinear plants."
         )
     bad = [type(o).__name__ for o in observers if o.linear_matrices() is None]
     if bad:
         raise InputError(
-            f"simulate_batch_exponential needs LTI observers (linear_matrices() not None); {bad} are not."
+            f"the exponential stepper (fojax.Exponential) needs LTI observers (linear_matrices() not None); "
+            f"{bad} are not."
         )
     for i, o in enumerate(observers):
         L = o.linear_matrices()
@@ -261,27 +213,6 @@ def setup_data(Aj, Bj, G, H, w0, mask):
     """The kernel's per-sample data from per-probe matrices (outputs $o = G w + H v$ at
     each probe): constant parts and coefficients of the signal values (`_split_terms`)."""
     return dict(A=_split_terms(Aj), B=_split_terms(Bj), G=_split_terms(G), H=_split_terms(H), w0=w0, mask=mask)
-
-
-def _sample_setup(model, p, x0k, Cstack):
-    plant, observers, u = _parse_model_output(model(p))
-    Aj, Bj, OM, OF, _, w0, mask = decompose(plant, observers, x0k)
-    data = setup_data(Aj, Bj, jnp.einsum("rj,ijn->irn", Cstack, OM), jnp.einsum("rj,ijm->irm", Cstack, OF), w0, mask)
-    return data, (_plant_signals(plant), u)
-
-
-class _ModelSetup(eqx.Module):
-    """Per-sample set-up of `simulate_batch_exponential`: ``p = (params_k, x0_k)``."""
-
-    model: Callable
-    Cstack: jax.Array
-
-    def __call__(self, p):
-        return _sample_setup(self.model, p[0], p[1], self.Cstack)
-
-    def signals(self, p):
-        plant, _, u = _parse_model_output(self.model(p[0]))
-        return _plant_signals(plant), u
 
 
 def _stats(data, ref):
@@ -447,22 +378,13 @@ def _host_plan(stats, A0) -> _Plan:
     return _Plan(as_t(keep), as_t(rows), as_t(cols), tuple(terms), tuple(fterms), gterms, hterms)
 
 
-class CstackOutputs(eqx.Module):
-    """The metric outputs of `simulate_batch_exponential`: ``C [x; ξ_1; …]``."""
-
-    Cstack: jax.Array
-
-    def __call__(self, plant, observers, t, x, xi, u_t, y):
-        return self.Cstack @ jnp.concatenate([x, xi])
-
-
 @eqx.filter_jit(compiler_options=HOST_PASS_COMPILER_OPTIONS)
 def _affinity_mismatch(model, p, terms, outputs, t_rand, s_rand, u_rand, w_rand):
     """Relative mismatch of one sample's decomposition (``terms = (A, B, G, H)``, raw: the
     constant part not reduced by ``A0``) against the plant's own slow field and against
     ``outputs(plant, observers, t, x, ξ, u, y)`` computed from the plant's own output."""
     TRACE_COUNTS["check"] += 1
-    plant, observers, u = _parse_model_output(model(p))
+    plant, observers, u = model(p)  # (plant, observers, input signal) of one sample
     A, B, G, H = terms
     split = svd_split(plant.E)
     n = plant.n
@@ -501,7 +423,7 @@ def _affinity_mismatch(model, p, terms, outputs, t_rand, s_rand, u_rand, w_rand)
     return jnp.stack([rel(D1, F1), rel(P1, O1), rel(D2, F2), rel(P2, O2)])
 
 
-def check_affine(model, first, data, A0, outputs, t0, t1, ns, m, who="simulate_batch_exponential"):
+def check_affine(model, first, data, A0, outputs, t0, t1, ns, m, who):
     """Host: refuse (`fojax.errors.InputError`) a decomposition of sample ``first`` (its `data`,
     no batch axis) that misses the plant's own vector field or outputs."""
     rng = np.random.default_rng(20261121)

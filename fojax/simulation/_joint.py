@@ -3,8 +3,7 @@ r"""The joint plant + observers system: one implementation for every stepper.
 An LTI descriptor plant reduced to its slow SVD coordinates, LTI observers driven by its
 input and output, and optionally a linear exosystem generating the known signals, as
 one linear ODE $\dot w = \mathcal A w\,(+\,\mathcal B u)$ (`joint_matrices`). Used by
-`fojax.simulate`'s exact stepper, the batch kernels of `fojax.studies._exact` and
-`fojax.simulation._lti_batch`.
+`fojax.simulate`'s exact stepper and the batch kernels of `fojax.studies._exact`.
 """
 
 from __future__ import annotations

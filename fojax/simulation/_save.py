@@ -9,13 +9,13 @@ signal on the grid $t_0 < \dots < t_{T-1}$, integrals by the trapezoidal rule on
 `error_metrics` is the definition, the batch kernels accumulate the same sums inside the
 time loop):
 
-| name | per signal (``reduce="none"``) | ``reduce="sum"`` (over signals) | `simulate_lti_batch` kind |
-|---|---|---|---|
-| ``"iae"`` | $\int \lvert e_i\rvert\,dt$ | $\int \lVert e\rVert_1\,dt$ | ``("iae", C)`` / ``("iae", C, "sum")`` (legacy ``"iae_l1"``) |
-| ``"ise"`` | $\int e_i^2\,dt$ | $\int \lVert e\rVert_2^2\,dt$ | ``("ise", C)`` / ``("ise", C, "sum")`` (legacy ``"ise_l2"``) |
-| ``"itae"`` | $\int (t - t_0)\lvert e_i\rvert\,dt$ | $\int (t-t_0)\lVert e\rVert_1\,dt$ | – |
-| ``"peak"`` | $\max_k \lvert e_i(t_k)\rvert$ | – (not a sum) | – |
-| ``"settling_time"`` | first $t_k - t_0$ after which $\lvert e_i\rvert \le$ `settle_tol` for good ($0$ if never above, $+\infty$ if above at $t_{T-1}$) | – | – |
+| name | per signal (``reduce="none"``) | ``reduce="sum"`` (over signals) |
+|---|---|---|
+| ``"iae"`` | $\int \lvert e_i\rvert\,dt$ | $\int \lVert e\rVert_1\,dt$ |
+| ``"ise"`` | $\int e_i^2\,dt$ | $\int \lVert e\rVert_2^2\,dt$ |
+| ``"itae"`` | $\int (t - t_0)\lvert e_i\rvert\,dt$ | $\int (t-t_0)\lVert e\rVert_1\,dt$ |
+| ``"peak"`` | $\max_k \lvert e_i(t_k)\rvert$ | – (not a sum) |
+| ``"settling_time"`` | first $t_k - t_0$ after which $\lvert e_i\rvert \le$ `settle_tol` for good ($0$ if never above, $+\infty$ if above at $t_{T-1}$) | – |
 
 The sums are exact identities of the per-signal values (the trapezoid rule is linear), so
 ``reduce="sum"`` equals summing the per-signal metrics over the signal axis.

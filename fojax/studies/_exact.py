@@ -1,4 +1,4 @@
-r"""The exact path of `run_study`: LTI samples on the batch-last kernel of `simulate_lti_batch`.
+r"""The exact path of `run_study`: LTI samples on the batch-last kernel of `fojax.simulation._batch`.
 
 A study qualifies when every sample is a linear time-invariant loop driven by *known*
 signals: the plant is a `fojax.DescriptorSystem` or an `fojax.UncertainDescriptorSystem`

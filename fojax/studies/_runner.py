@@ -13,9 +13,9 @@ numbers (a new key, new observer gains) reuse the compiled code; only a new
 `fojax.Auto()`; `fojax.simulation._steppers`): its ``batch_candidates`` in order, each
 through its study engine (`fojax.studies._engines`, keyed by stepper class), then every
 sample through `fojax.simulate` (this section's path). LTI studies with known signals do not
-take this path: they run on the batch-last exact kernel shared with
-`fojax.simulation.simulate_lti_batch` (`fojax.studies._exact`), which streams chunks,
-pads and shards with the same kernel code (`fojax.simulation._driver.run_batched`).
+take this path: they run on the batch-last exact kernel (`fojax.simulation._batch`,
+`fojax.studies._exact`), which streams chunks, pads and shards with the one driver
+(`fojax.simulation._driver.run_batched`).
 Time-varying affine studies (δ(t), faults, known inputs) run on the exponential
 integrator through the same `run_batched` (`fojax.studies._exponential`).
 
@@ -449,7 +449,7 @@ def run_study(
         `UncertainDescriptorSystem` with a constant δ, possibly in a `FaultyPlant` with
         `FaultProfile` step/ramp faults at any onset; LTI observers; uniform grid; input
         zero, constant, step, ramp, sine, piecewise constant or sums of them), the exact
-        batch-last matrix-exponential kernel of `fojax.simulation.simulate_lti_batch`
+        batch-last matrix-exponential kernel of `fojax.simulation._batch`
         (`fojax.studies._exact`; the metrics accumulated inside the time loop, no
         trajectory stored unless quantile bands are asked for);
       - ``"exponential-batch"`` (`fojax.Auto()`, `fojax.Exponential(...)`): samples that
