@@ -2,10 +2,9 @@ r"""The exponential integrator's batch kernel: many time-varying linear loops, m
 
 This is the stepping of `fojax.Exponential` (`fojax.run_study`, `fojax.studies.study_loss`;
 `fojax.studies._exponential` builds its problems). Exact discretisation (`fojax.Exact`)
-needs a time-invariant loop. When the loop
-varies in time — an uncertainty profile $\delta(t)$, a fault, an input signal — each
-sample's reduced slow ODE is still linear in the state and close to a *common* linear
-part,
+needs a time-invariant loop. When the loop varies in time — an uncertainty profile
+$\delta(t)$, a fault, an input signal — each sample's reduced slow ODE is still linear in
+the state and close to a *common* linear part,
 
 $$\dot w = A_0 w + g_k(t, w),\qquad
   g_k(t, w) = (\bar A_k - A_0)\,w + \sum_{i=1}^{n_s} s_{k,i}(t)\,\big(D_{k,i} w + b_{k,i}(t)\big)
@@ -18,9 +17,8 @@ $b$'s collect the input $u_k(t)$. The stiff, common part $A_0$ is integrated exa
 approximated. Because $A_0$ is the same for every sample, its $\varphi$-functions are
 computed once and applied to the whole batch as matrix products.
 
-**How the decomposition is found.** Every sample is a plant (with LTI observers and
-an input signal). Every `fojax.plant.AbstractSignal`
-inside the plant is replaced by a constant *probe* value $s$; the probed plant is
+**How the decomposition is found.** Every sample is a plant with LTI observers and an
+input signal. Every `fojax.plant.AbstractSignal` inside the plant is replaced by a constant *probe* value $s$; the probed plant is
 time-invariant, is reduced to its slow ODE in the masked SVD coordinates of
 `fojax.simulation` (the reduction of `fojax.simulate`'s exact method, with the input
 extended by a constant 1 to carry affine terms) and joined with the observers. Doing
@@ -60,8 +58,9 @@ perturbation's non-zero rows and columns. Terms identical for every sample of a 
 stacked $\varphi$-matrices once per call, so each step is four matrix products (one per
 stage, all samples of a block at once) plus elementwise work; per-sample terms are applied
 as fused multiply–adds over the batch; terms that vanish are skipped. This *plan* is read
-on the host from the set-up of each chunk when the inputs are concrete (under an outer
-`jax.jit` every term is treated as per-sample, which is correct but slower); different
+on the host from the set-up of each chunk when the inputs are concrete (under a trace,
+`fojax.studies.study_loss` inside `fojax.tune`, every term is treated as per-sample, which
+is correct but slower); different
 plans compile different kernels, so compilation happens once per structure *and*
 sparsity pattern. All samples of a block are stepped together with the batch as the
 last axis; metrics are accumulated inside the time loop (trapezoid rule on ``ts``), so no
