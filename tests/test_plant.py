@@ -8,9 +8,12 @@ combination), the uncertain matrix A + δ(t) ΔA written out, and the typed erro
 message for each bad input (a fresh 32-bit interpreter for the float64 policy).
 """
 
+import dataclasses
 import subprocess
 import sys
+from typing import ClassVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -190,3 +193,52 @@ def test_design_accepts_a_sparse_model_and_functional():
     d = fojax.design_functional_observer(plant, sp.csr_matrix(np.asarray(ex.L)), kind="proportional",
                                          region=fojax.Disk(-2.0, 1.0))
     assert d.report.passed
+
+
+class _PropertySizes(fojax.plant.AbstractPlant):
+    """A user plant whose sizes are properties (E ẋ = A x, y = x₁, no input)."""
+
+    E: jax.Array
+    A: jax.Array
+    linear_in_state: ClassVar[bool] = True
+
+    @property
+    def m(self):
+        return 0
+
+    @property
+    def p(self):
+        return 1
+
+    def rhs(self, t, x, u):
+        return self.A @ x
+
+    def output(self, t, x, u):
+        return x[:1]
+
+
+class _FieldSizes(fojax.plant.AbstractPlant):
+    """The same plant with its sizes as static fields."""
+
+    E: jax.Array
+    A: jax.Array
+    m: int = eqx.field(static=True, default=0)
+    p: int = eqx.field(static=True, default=1)
+    linear_in_state: ClassVar[bool] = True
+
+    def rhs(self, t, x, u):
+        return self.A @ x
+
+    def output(self, t, x, u):
+        return x[:1]
+
+
+@pytest.mark.parametrize("cls", [_PropertySizes, _FieldSizes])
+def test_a_user_plant_may_define_its_sizes_as_properties_or_fields(cls):
+    # oracle: x(t) = exp(-t) x0 for A = -I, E = I (closed form)
+    plant = cls(jnp.eye(2), -jnp.eye(2))
+    assert (plant.n, plant.m, plant.p) == (2, 0, 1)
+    assert [f.name for f in dataclasses.fields(plant)][:2] == ["E", "A"]
+    ts = jnp.linspace(0.0, 1.0, 11)
+    sol = fojax.simulate(plant, jnp.array([1.0, 2.0]), ts)
+    np.testing.assert_allclose(sol.xs[-1], np.exp(-1.0) * np.array([1.0, 2.0]), rtol=1e-7)

@@ -21,14 +21,24 @@ class AbstractPlant(eqx.Module):
     """Abstract base of every plant model (see module docstring)."""
 
     E: eqx.AbstractVar[Float[Array, "n n"]]
-    #: Number of inputs and of measured outputs (a field or a property of each plant).
-    m: eqx.AbstractVar[int]
-    p: eqx.AbstractVar[int]
 
     @property
     def n(self) -> int:
         """Number of (descriptor) states."""
         return self.E.shape[0]
+
+    # m and p are abstract properties, not eqx.AbstractVar: a subclass may define them as
+    # properties or as (static) fields, and an AbstractVar would turn them into dataclass
+    # fields of a subclass that defines them as properties.
+    @property
+    @abc.abstractmethod
+    def m(self) -> int:
+        """Number of inputs."""
+
+    @property
+    @abc.abstractmethod
+    def p(self) -> int:
+        """Number of measured outputs."""
 
     @abc.abstractmethod
     def rhs(self, t, x: Float[Array, " n"], u: Float[Array, " m"]) -> Float[Array, " n"]:
