@@ -35,6 +35,7 @@ from ._conditions import (
     default_R,
     UNIT_FREE_CHECK_MAX as UNIT_FREE_CHECK_MAX,
 )
+from ._eliminated import eliminated_gains
 from ._observer_design import (  # noqa: F401  (names used from here by the other design modules)
     AbstractStructureDesign,
     build_observer,
@@ -58,7 +59,6 @@ from ._parameterization import (
 )
 from ._region_lmi import (  # noqa: F401
     choose_Z,
-    eliminated_disk_gains,
     OBJECTIVES,
     SMALL_ORDER,
     solve_gains,
@@ -466,13 +466,19 @@ def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, 
             if method == "riccati" or s.q0 + (s.q1 if kind != "proportional" else 0) > AUTO_LMI_MAX_ORDER:
                 raise
             refused = f"{type(err).__name__}: {err}"
-    order = s.q0 + (0 if kind == "proportional" else s.q1)
-    if isinstance(region, Disk) and kind != "PI" and s.num_rules == 1 and order > SMALL_ORDER:
-        X, Z, Ys, info = eliminated_disk_gains(s, region.tightened(tighten), kind=kind, margin=margin, solver=solver)
-    else:
-        X, Z, Ys, info = solve_gains(s, region.tightened(tighten), kind=kind, margin=margin, solver=solver)
-    info["lmi"]["method"] = "lmi"
     extra = {} if refused is None else {"Riccati route refused": refused[:500]}
+    order = s.q0 + (0 if kind == "proportional" else s.q1)
+    if s.num_rules == 1 and order > SMALL_ORDER:
+        # the eliminated LMI (same feasible set, `fojax.design._eliminated`); the full LMI
+        # only when its solver stopped short or its design failed verification
+        try:
+            X, Z, Ys, info = eliminated_gains(s, region.tightened(tighten), kind=kind, margin=margin, solver=solver)
+            info["lmi"]["method"] = "lmi"
+            return _finish(s, region, kind, X, Z, Ys, info, extra)
+        except (SolverStoppedShortError, DesignVerificationError) as err:
+            extra["eliminated LMI refused"] = f"{type(err).__name__}: {err}"[:500]
+    X, Z, Ys, info = solve_gains(s, region.tightened(tighten), kind=kind, margin=margin, solver=solver)
+    info["lmi"]["method"] = "lmi"
     return _finish(s, region, kind, X, Z, Ys, info, extra)
 
 

@@ -24,6 +24,10 @@ error dynamics for fixed $Z$, and gives the certificate $X$ directly. The explic
 parameterization of all admissible 𝕐 (Lemma 7/10) is in `fojax.design.region_gain`
 and `fojax.design.lemma10_gain`.
 
+Above observer order `SMALL_ORDER`, one rule's LMI is solved in the reduced form of
+`fojax.design._eliminated` (same feasible set, the gains eliminated); this full LMI is its
+fallback and serves rules, several regions and the centred and performance objectives.
+
 Every result is verified in float64 (`fojax.design.verify`) before it is returned.
 """
 
@@ -31,8 +35,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._errors import combined_failure, LMI_FAILURES, LMIInfeasibleError
-from .._linalg import null_space, row_space
+from .._errors import combined_failure, LMI_FAILURES
+from .._linalg import row_space
 from . import _ladder
 from ._conditions import unobservable_modes
 from ._lmi import check_solver, DEFAULT_SOLVER, describe_route, region_lmi, solve, value
@@ -163,8 +167,9 @@ def solve_gains(
             Phi = XA1 - Ws[i] @ A2
             Mx = region_lmi(reg, X, Phi)
             cons.append(Mx << -eps * np.eye(Mx.shape[0]))
-            if kind == "PI" and q1 and reduce and r3:
-                cons.append(Ws[i][q0:, :r3] == 0)  # S = -Y2 N3 = 0 (U_3ᵀ N3 has full row rank)
+            if kind == "PI" and q1 and reduce:
+                if r3:  # (with r3 = 0, N3 = 0 and S = 0 already)
+                    cons.append(Ws[i][q0:, :r3] == 0)  # S = -Y2 N3 = 0 (U_3ᵀ N3 has full row rank)
             elif kind == "PI" and q1:
                 cons.append(Ws[i][q0:, :c] @ N3 == 0)
         Xs.append(X)
@@ -246,68 +251,3 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
     info["route"] = describe_route(info, o) + (
         f"; refused before: {'; '.join(statuses)}" if statuses else "")
     return info
-
-
-
-def eliminated_disk_gains(s: FunctionalObserverStructure, disk, *, kind: str, margin: float = 1e-3,
-                          solver: str = DEFAULT_SOLVER):
-    r"""The region LMI of a disk with the gain eliminated (generalized or proportional
-    observer, one rule): an LMI in the certificate alone, of size $d + k_0$ instead of $2d$.
-
-    **Derivation.** With $Z$ fixed (the ε-block's Riccati gain, else `choose_Z`), $\bar A = (\mathbb A_1(Z) - \alpha I)/\tau$ and
-    $\bar C = \mathbb A_2/\tau$, the error dynamics lie in the disk $\mathcal Q(\alpha, \tau)$
-    with certificate $X$ iff $M^\top XM \prec X$, $M = \bar A - \mathbb Y\bar C$, i.e.
-    $\begin{bmatrix}X & X\bar A - \mathcal W\bar C\\ \cdot & X\end{bmatrix} \succ 0$ with
-    $\mathcal W = X\mathbb Y$ — the Chilali–Gahinet LMI of the LMI route. Every entry of
-    $\mathbb Y$ is free (generalized and proportional observers), so the elimination lemma
-    (Gahinet–Apkarian) removes $\mathcal W$: a $\mathcal W$ exists iff $X \succ 0$ and
-    $\begin{bmatrix}X & X\bar AN\\ N^\top\bar A^\top X & N^\top XN\end{bmatrix} \succ 0$, with
-    $N$ ($d\times k_0$) an orthonormal basis of the null space of $\bar C$. That LMI is solved
-    (``X ⪰ I``, margin `margin`, minimum trace). **The gain** then has a closed form: since
-    $M^\top XM \prec X \iff MPM^\top \prec P$ with $P = X^{-1}$ (both say
-    $\|X^{1/2}MX^{-1/2}\| < 1$), and $MPM^\top$ is smallest (in the Loewner order) at
-    $\mathbb Y = \bar AP\bar C^\top(\bar CP\bar C^\top)^+$, that gain meets the condition
-    whenever some gain does. The returned certificate is the Stein certificate of the closed
-    loop (`fojax.design._stein`), verified like every other.
-
-    **Returns:** ``(X, Z, [𝕐], info)`` like `solve_gains`.
-    """
-    import cvxpy as cp
-
-    from ._riccati import epsilon_block_gain
-    from ._stein import host_stein_certificate
-
-    pc = pieces(s, xp=np)
-    N1, N2, N3 = np.asarray(pc.N1)[0], np.asarray(pc.N2)[0], np.asarray(pc.N3)
-    try:  # Z from the ε-block's Riccati gain (cheap); the proportional region LMI if that fails
-        Z = epsilon_block_gain(N1, N2, N3, float(disk.center), float(disk.radius))[0]
-        zinfo = {"step1": "Z from the Riccati equation of the ε-block (fojax.design._riccati)"}
-    except LMIInfeasibleError:
-        Z, zinfo = choose_Z(s, disk, margin=margin, solver=solver)
-    q0, q1 = s.q0, (0 if kind == "proportional" else s.q1)
-    c, d = N3.shape[0], s.q0 + (0 if kind == "proportional" else s.q1)
-    alpha, tau = float(disk.center), float(disk.radius)
-    A1 = np.zeros((d, d))
-    A1[:q0, :q0] = N1 - Z @ N2
-    A2 = np.block([[N3, np.zeros((c, q1))], [np.zeros((q1, q0)), -np.eye(q1)]])
-    Ab, Cb = (A1 - alpha * np.eye(d)) / tau, A2 / tau
-    N = null_space(Cb)
-    X = cp.Variable((d, d), symmetric=True)
-    k0 = N.shape[1]
-    if k0:  # one cone: its (1,1) block carries the normalization X ⪰ I
-        XAN = X @ (Ab @ N)
-        M = cp.bmat([[X, XAN], [XAN.T, N.T @ X @ N]])
-        cons = [0.5 * (M + M.T) >> np.diag(np.r_[np.ones(d), np.full(k0, margin)])]
-    else:
-        cons = [X >> np.eye(d)]
-    info = solve_with_fallbacks(cp.trace(X), cons, f"{kind} observer (disk LMI in X, gain eliminated)",
-                                "No observer gain places the error dynamics in the disk: enlarge the region, "
-                                "or choose another R / observer order.", solver)
-    Xv = value(X)
-    P = np.linalg.inv(0.5 * (Xv + Xv.T))
-    Y = Ab @ P @ Cb.T @ np.linalg.pinv(Cb @ P @ Cb.T)
-    notes: list = []
-    Xs = host_stein_certificate(Ab - Y @ Cb, notes=notes)
-    info.update(step1=zinfo.get("step1"), lmi_size=d + N.shape[1], notes=notes)
-    info["route"] = f"{info['route']}; gain eliminated (LMI of size {d + N.shape[1]} instead of {2 * d})"
-    return Xs, Z, [Y], {"lmi": info}

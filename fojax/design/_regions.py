@@ -89,16 +89,21 @@ class Disk(AbstractRegion):
         center, radius = float(center), float(radius)
         if not (math.isfinite(center) and math.isfinite(radius)) or radius <= 0:
             raise RegionError(
-                f"Disk needs a finite center and a positive radius; got center={center}, "
+                f"{type(self).__name__} needs a finite center and a positive radius; got center={center}, "
                 f"radius={radius}."
             )
+        self._check_stable(center, radius)
+        self.center, self.radius = np.float64(center), np.float64(radius)
+
+    @staticmethod
+    def _check_stable(center: float, radius: float) -> None:
+        """Raise `RegionError` unless the disk's eigenvalues are stable (here: continuous time)."""
         if center + radius >= 0:
             raise RegionError(
                 f"Disk(center={center}, radius={radius}) reaches into the closed right half-plane "
                 f"(rightmost point {center + radius}); observer error dynamics would not be stable. "
                 "Choose center + radius < 0."
             )
-        self.center, self.radius = np.float64(center), np.float64(radius)
 
     def characteristic(self):
         a, r = self.center, self.radius
@@ -114,7 +119,7 @@ class Disk(AbstractRegion):
         return f"disk centred at {self.center:g} with radius {self.radius:g}"
 
     def tightened(self, fraction):
-        return Disk(self.center, self.radius * (1.0 - fraction))
+        return type(self)(self.center, self.radius * (1.0 - fraction))
 
     def target(self):
         return complex(self.center)
@@ -145,28 +150,17 @@ class DiscreteDisk(Disk):
         ```
     """
 
-    def __init__(self, center: float, radius: float):
-        center, radius = float(center), float(radius)
-        if not (math.isfinite(center) and math.isfinite(radius)) or radius <= 0:
-            raise RegionError(
-                f"DiscreteDisk needs a finite center and a positive radius; got center={center}, radius={radius}."
-            )
+    @staticmethod
+    def _check_stable(center: float, radius: float) -> None:
         if abs(center) + radius >= 1:
             raise RegionError(
                 f"DiscreteDisk(center={center}, radius={radius}) is not inside the open unit disk "
                 f"(|center| + radius = {abs(center) + radius:g} >= 1); discrete-time error dynamics with "
                 "eigenvalues there would not decay. Choose |center| + radius < 1."
             )
-        self.center, self.radius = np.float64(center), np.float64(radius)
 
     def describe(self):
         return f"z-plane disk centred at {self.center:g} with radius {self.radius:g}"
-
-    def tightened(self, fraction):
-        return DiscreteDisk(self.center, self.radius * (1.0 - fraction))
-
-    def target(self):
-        return complex(self.center)
 
     def to_dict(self):
         return {"type": "discrete_disk", "center": float(self.center), "radius": float(self.radius)}

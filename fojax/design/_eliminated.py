@@ -1,0 +1,325 @@
+r"""The region LMI of one rule with the gains eliminated: an LMI in the $\varepsilon$-block's
+certificate alone (generalized, PI and proportional observers; every region).
+
+`fojax.design._region_lmi.solve_gains` solves the Chilali–Gahinet LMI of the whole error
+dynamics $\mathbb A = \mathbb A_1(Z) - \mathbb Y\mathbb A_2$ (order $d = q_0 + q_1$) in
+$(X, W = X_1Z, \mathcal W = X\mathbb Y)$. `eliminated_gains` solves a smaller LMI with the
+same feasible set, in two exact reductions, and recovers the gains from its solution in closed
+form.
+
+**1. The integral block.** With $Z$, $Y_1$ given, $\mathbb A = \begin{bmatrix}A_\varepsilon & J\\
+-Y_2N_3 & G\end{bmatrix}$, $A_\varepsilon = N_1' - [Z\;Y_1]C_\varepsilon$,
+$C_\varepsilon = \begin{bmatrix}N_2'\\ N_3\end{bmatrix}$, and $J, Y_2, G$ are free (generalized;
+$Y_2 = 0$ for PI). *Claim:* gains of the kind placing the eigenvalues of $\mathbb A$ in a region
+$\mathcal R$ exist iff gains $[Z\;Y_1]$ placing those of $A_\varepsilon$ in $\mathcal R$ exist.
+($\Leftarrow$) $J = 0$, $Y_2 = 0$, $G = gI$ with $g \in \mathcal R$ real give
+$\operatorname{eig}\mathbb A = \operatorname{eig}A_\varepsilon \cup \{g\}$.
+($\Rightarrow$) PI: $\mathbb A$ is block upper triangular, so $\operatorname{eig}A_\varepsilon
+\subset \operatorname{eig}\mathbb A$. Generalized: a mode $\lambda$ of $N_1' - ZN_2'$ with
+$N_3x = 0$ is an eigenvalue of every $\mathbb A$ ($\mathbb A[x; 0] = \lambda[x; 0]$); the
+unobservable modes of $(C_\varepsilon, N_1')$ are among them, so they lie in $\mathcal R$, and
+output injection through $C_\varepsilon$ places the observable ones anywhere (pole placement;
+$\mathcal R$ meets the real axis). The proportional observer is the $\varepsilon$-block. The
+$\varepsilon$-block problem is an output-injection problem of order $q_0$ with the one gain
+$K = [Z\;Y_1]$; only $KC_\varepsilon$ matters, so with the thin SVD
+$C_\varepsilon = U_kS_kR$ ($R$ orthonormal rows, rank $k$) it is posed for the gain
+$K_r = KU_kS_k$ and the output $R$, and $K = K_rS_k^{-1}U_k^\top$ (least norm) is returned.
+The full LMI's structured certificate $\begin{bmatrix}X_1 & X_1\Pi\\ \cdot & X_2\end{bmatrix}$
+is congruent to $\operatorname{diag}(X_1, X_2 - \Pi^\top X_1\Pi)$, which certifies the block
+triangular $\begin{bmatrix}A_\varepsilon & \ast\\ 0 & g\end{bmatrix}$ for a large enough second
+block: the full LMI has the same feasible set.
+
+**2. The gain of the $\varepsilon$-block.** Let $N$ be an orthonormal basis of the null space
+of $R$. With $\Phi = XA - \mathcal W R$ ($A = N_1'$, $\mathcal W = XK_r$) the Chilali–Gahinet
+condition $L\otimes X + M\otimes\Phi^\top + M^\top\otimes\Phi \prec 0$ is solved as follows.
+
+- *Disk* $\mathcal Q(\alpha, \tau)$ (elimination lemma, Gahinet–Apkarian): with
+  $\bar A = (A - \alpha I)/\tau$ the condition is $\begin{bmatrix}X & X\bar A - \mathcal W R/\tau\\
+  \cdot & X\end{bmatrix}\succ 0$; since $\mathcal W$ is free, it holds for some $\mathcal W$ iff
+  $\begin{bmatrix}X & X\bar AN\\ N^\top\bar A^\top X & N^\top XN\end{bmatrix}\succ 0$ — one cone
+  of size $q_0 + k_0$, $k_0 = q_0 - k$. *Gain:* $M^\top XM \prec X \iff MPM^\top \prec P$
+  ($P = X^{-1}$), and $MPM^\top$ is smallest in the Loewner order at
+  $\bar K = \bar APR^\top(RPR^\top)^{-1}$ ($\bar C = R/\tau$, $K_r = \bar K$), which therefore
+  meets the condition whenever some gain does. $RPR^\top$ is $k\times k$ and positive definite
+  ($R$ has orthonormal rows), solved by Cholesky. The certificate returned is the Stein
+  certificate of the closed loop (`fojax.design._stein`).
+- *Half-planes, sectors and their intersections* ($M_j + M_j^\top \succ 0$ for every part $j$:
+  $M = 1$, resp. $M + M^\top = 2\sin\theta\,I$; Finsler's lemma): for every part,
+  $(I\otimes N)^\top F_j(X, XA)(I\otimes N) \prec 0$, where $F_j$ is the part's LMI without
+  gain — cones of sizes $q_0$ (for $X \succ 0$) and $m_jk_0$. ($\Rightarrow$) the gain terms
+  vanish on $I\otimes N$ ($RN = 0$). ($\Leftarrow$) By Finsler's lemma each part has a
+  $\rho_j$ with $F_j - \rho_jI\otimes R^\top R \prec 0$; with $\mathcal W = wR^\top$,
+  $F_j - w(M_j + M_j^\top)\otimes R^\top R \preceq F_j - w\mu_jI\otimes R^\top R$
+  ($\mu_j = \lambda_{\min}(M_j + M_j^\top) > 0$), so every $w > \max_j\rho_j^*/\mu_j$ works,
+  with $\rho_j^*$ the smallest such $\rho$: in the basis $(I\otimes N, I\otimes R^\top)$,
+  $\rho_j^* = \lambda_{\max}(F_{rr} - F_{rn}F_{nn}^{-1}F_{nr})$ (Schur complement; $F_{nn}
+  \prec 0$ by the LMI). *Gain:* $K_r = wPR^\top$ with $w = \max_j(\rho_j^* + \delta_j)/\mu_j$,
+  $\delta_j = \max(|\rho_j^*|, \epsilon)$ — twice the least value when $\rho_j^* > 0$; the
+  certificate is the LMI's $X$.
+- *Other regions* (an intersection with a disk): the $\varepsilon$-block's Chilali–Gahinet LMI
+  in $(X, \mathcal W)$ (size $mq_0$), $K_r = X^{-1}\mathcal W$.
+
+**Integral block and coupling.** $G = gI$ with $g$ the real part of the region's target
+(`AbstractRegion.target`), certificate $\operatorname{diag}(X_\varepsilon, I)$. A generalized
+observer is then coupled like the Riccati route's (`fojax.design._riccati`): $J = \kappa\Pi$,
+$Y_2 = \kappa\Pi^\top Y_1/\|Y_1\|$ (PI: $J = \kappa\Pi$ only, $S = 0$ stays). The coupling adds
+$\kappa D$ to $\mathbb A$ and $\kappa(M\otimes(XD)^\top + M^\top\otimes XD)$, of norm at most
+$2\kappa\|M\|\|XD\|$, to the region LMI at the fixed $X$; $\kappa$ is `COUPLING_SHARE` of
+$\lambda/(2\|M\|\|XD\|)$, with $-\lambda$ the largest eigenvalue of the decoupled LMI, so the
+same $X$ certifies the coupled observer.
+
+Costs: the full LMI has $d(d+1)/2 + d(k + q_1)$ scalar variables and a cone of size $md$; the
+disk's eliminated LMI $q_0(q_0+1)/2$ variables and one cone of size $q_0 + k_0$. Every design is
+verified in float64 by the caller (`fojax.design.verify`), whichever formulation produced it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._errors import LMIInfeasibleError, SolverStoppedShortError
+from ._lmi import DEFAULT_SOLVER, region_lmi, value
+from ._parameterization import FunctionalObserverStructure, pieces
+from ._regions import AbstractRegion, Disk, HalfPlane, Intersection, Sector
+
+
+#: The coupling of a generalized (J, Y2) or PI (J) design uses this share of the room its
+#: decoupled certificate leaves (module docstring).
+COUPLING_SHARE = 0.5
+HINT = ("No observer gain places the error dynamics in the region: enlarge the region, "
+        "or choose another R / observer order.")
+
+
+def formulation(region: AbstractRegion) -> str:
+    """Which LMI `eliminated_gains` solves for `region`: ``"disk"`` (elimination lemma),
+    ``"finsler"`` (every part a half-plane or a sector) or ``"full"`` (the ε-block's LMI with
+    its gain; e.g. a disk intersected with another region)."""
+    if isinstance(region, Disk):
+        return "disk"
+    parts = region.parts if isinstance(region, Intersection) else (region,)
+    if all(isinstance(p, HalfPlane | Sector) for p in parts):
+        return "finsler"
+    return "full"
+
+
+def epsilon_output(Ceps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r"""``(R, N, back)`` of the thin SVD $C_\varepsilon = U_kS_kR$: orthonormal rows `R` of the
+    row space, an orthonormal basis `N` of the null space, and ``back`` $= S_k^{-1}U_k^\top$
+    ($K = K_r\,$``back``). The rank rule is `fojax._linalg`'s."""
+    from .._linalg import null_space, row_space
+
+    q0 = Ceps.shape[1]
+    if Ceps.size == 0:
+        return np.zeros((0, q0)), np.eye(q0), np.zeros((0, Ceps.shape[0]))
+    R = row_space(Ceps)
+    N = null_space(Ceps)
+    G = Ceps @ R.T  # = U_k S_k up to round-off; full column rank k
+    back = np.linalg.pinv(G)
+    return R, N, back
+
+
+def _disk_lmi(A, R, N, disk, margin):
+    import cvxpy as cp
+    q0, k0 = A.shape[0], N.shape[1]
+    alpha, tau = float(disk.center), float(disk.radius)
+    Ab = (A - alpha * np.eye(q0)) / tau
+    X = cp.Variable((q0, q0), symmetric=True)
+    if k0:  # one cone: its (1,1) block carries the normalization X ⪰ I
+        XAN = X @ (Ab @ N)
+        Mx = cp.bmat([[X, XAN], [XAN.T, N.T @ X @ N]])
+        cons = [0.5 * (Mx + Mx.T) >> np.diag(np.r_[np.ones(q0), np.full(k0, margin)])]
+    else:
+        cons = [X >> np.eye(q0)]
+
+    def gain(Xv):
+        # K = τ Ā P Rᵀ (R P Rᵀ)⁻¹ with P = X⁻¹ (module docstring), by Cholesky solves
+        Lx = np.linalg.cholesky(Xv)
+        PRt = np.linalg.solve(Lx.T, np.linalg.solve(Lx, R.T))  # P Rᵀ
+        return tau * np.linalg.solve(R @ PRt, (Ab @ PRt).T).T if R.size else np.zeros((q0, 0))
+
+    return X, cp.trace(X), cons, gain, q0 + k0
+
+
+def _finsler_lmi(A, R, N, region, margin):
+    import cvxpy as cp
+    q0, k0 = A.shape[0], N.shape[1]
+    parts = region.parts if isinstance(region, Intersection) else (region,)
+    X = cp.Variable((q0, q0), symmetric=True)
+    cons = [X >> np.eye(q0)]
+    sizes = [q0]
+    if k0:
+        for p in parts:
+            m = p.characteristic()[0].shape[0]
+            In = np.kron(np.eye(m), N)
+            F = In.T @ region_lmi(p, X, X @ A) @ In
+            cons.append(0.5 * (F + F.T) << -margin * np.eye(m * k0))
+            sizes.append(m * k0)
+
+    def gain(Xv):
+        # 𝒲 = 𝒲0 + w Rᵀ: 𝒲0 cancels the coupling of the null-space and row-space blocks
+        # (exactly for half-planes, up to |sin 2ψ| for a sector) and the row-space block of
+        # XA; w from the Schur complement (module docstring)
+        XA = Xv @ A
+        Pnr, Prn = N.T @ XA @ R.T, R @ XA @ N
+        cos2 = np.mean([1.0 if isinstance(p, HalfPlane) else 2.0 * float(p.damping) ** 2 - 1.0 for p in parts])
+        W0 = N @ (Pnr + cos2 * Prn.T) + R.T @ (R @ XA @ R.T)
+        w = 0.0
+        for p in parts:
+            L, M = p.characteristic()
+            m = L.shape[0]
+            F = p.lmi_matrix(Xv, XA - W0 @ R)
+            In, Ir = np.kron(np.eye(m), N), np.kron(np.eye(m), R.T)
+            Fnn, Fnr, Frr = In.T @ F @ In, In.T @ F @ Ir, Ir.T @ F @ Ir
+            lam = -float(np.linalg.eigvalsh(Fnn)[-1]) if k0 else margin
+            S = Frr - Fnr.T @ np.linalg.solve(Fnn, Fnr) if k0 else Frr
+            rstar = float(np.linalg.eigvalsh(0.5 * (S + S.T))[-1]) if S.size else 0.0
+            mu = float(np.linalg.eigvalsh(M + M.T)[0])
+            w = max(w, (rstar + max(abs(rstar), lam, margin)) / mu)
+        return np.linalg.solve(Xv, W0 + w * R.T)
+
+    return X, cp.trace(X), cons, gain, sizes
+
+
+def _full_lmi(A, R, region, margin):
+    import cvxpy as cp
+    q0, k = A.shape[0], R.shape[0]
+    X = cp.Variable((q0, q0), symmetric=True)
+    W = cp.Variable((q0, k))
+    Mx = region_lmi(region, X, X @ A - W @ R)
+    cons = [X >> np.eye(q0), Mx << -margin * np.eye(Mx.shape[0])]
+
+    def gain(Xv):
+        return np.linalg.solve(Xv, value(W))
+
+    return X, cp.trace(X) + cp.norm(W, "fro"), cons, gain, Mx.shape[0]
+
+
+def epsilon_block_lmi(A, Ceps, region: AbstractRegion, *, margin: float = 1e-3, solver: str = DEFAULT_SOLVER,
+                      name: str = "ε-block region LMI"):
+    r"""Output injection by the reduced region LMI (module docstring, step 2): a gain ``K`` with
+    the eigenvalues of ``A - K Ceps`` in `region`, and the certificate.
+
+    **Returns:** ``(K, X, info)``: ``K`` ``(q, rows of Ceps)``, least norm; ``X`` the closed
+    loop's certificate (the Stein certificate for a disk, the LMI's ``X`` otherwise); ``info``
+    of `fojax.design._region_lmi.solve_with_fallbacks` plus ``formulation`` and ``lmi_size``
+    (cone sizes).
+
+    **Raises:** `fojax.errors.LMIInfeasibleError` when the solver shows the LMI infeasible
+    (equivalently: a mode of ``(A, Ceps)`` no gain can move lies outside `region`) — for an
+    intersection on which the solver stopped short, also when one part alone is shown
+    infeasible; `fojax.errors.SolverStoppedShortError` when it stops short or the certificate is
+    not finite.
+    """
+    from ._region_lmi import solve_with_fallbacks
+    from ._stein import host_stein_certificate
+
+    A, Ceps = np.asarray(A, dtype=float), np.asarray(Ceps, dtype=float)
+    R, N, back = epsilon_output(Ceps)
+    form = formulation(region)
+    if form == "disk":
+        X, obj, cons, gain, size = _disk_lmi(A, R, N, region, margin)
+    elif form == "finsler":
+        X, obj, cons, gain, size = _finsler_lmi(A, R, N, region, margin)
+    else:
+        X, obj, cons, gain, size = _full_lmi(A, R, region, margin)
+    try:
+        info = solve_with_fallbacks(obj, cons, f"{name} ({form} form)", HINT, solver)
+    except SolverStoppedShortError as err:
+        _part_infeasible(A, Ceps, region, margin, solver, name, err)
+        raise
+    Xv = value(X)
+    K = gain(0.5 * (Xv + Xv.T)) @ back
+    notes: list = []
+    if form == "disk":
+        Xv = host_stein_certificate(A - K @ Ceps, float(region.center), float(region.radius), notes=notes)
+    if not np.all(np.isfinite(Xv)):
+        raise SolverStoppedShortError(f"{name} ({form} form)", "certificate_not_finite", {"notes": notes})
+    sizes = size if isinstance(size, list) else [size]
+    info.update(formulation=form, lmi_size=sizes, notes=notes)
+    return K, 0.5 * (Xv + Xv.T), info
+
+
+def _part_infeasible(A, Ceps, region, margin, solver, name, err) -> None:
+    """Raise `LMIInfeasibleError` if one part of an intersection is shown infeasible alone (its
+    LMI is one of the intersection's constraints, with the same certificate): infeasibility of
+    the intersection is then shown, where the solver stopped short on the intersection."""
+    if not isinstance(region, Intersection):
+        return
+    for p in region.parts:
+        try:
+            epsilon_block_lmi(A, Ceps, p, margin=margin, solver=solver, name=name)
+        except LMIInfeasibleError as alone:
+            raise LMIInfeasibleError(f"{name} ({formulation(region)} form)", f"{err.status}; infeasible for "
+                                     f"{p.describe()} alone: {alone.status}", err.info, HINT) from None
+        except SolverStoppedShortError:
+            continue
+
+
+def eliminated_gains(s: FunctionalObserverStructure, region: AbstractRegion, *, kind: str,
+                     margin: float = 1e-3, solver: str = DEFAULT_SOLVER):
+    """Gains of one rule from the reduced region LMI (module docstring).
+
+    **Returns:** ``(X, Z, [𝕐], info)`` like `fojax.design._region_lmi.solve_gains`; ``info["lmi"]``
+    has the ``route`` line, the ``formulation`` and the cone sizes (``lmi_size``).
+
+    **Raises:** as `epsilon_block_lmi` (`fojax.errors.LMIInfeasibleError` only when the solver
+    shows the reduced LMI infeasible, i.e. no gain of the kind places the error eigenvalues in
+    `region`).
+    """
+    if s.num_rules != 1:
+        raise ValueError("eliminated_gains designs one rule; use solve_gains for rules")
+    pc = pieces(s, xp=np)
+    N1, N2, N3 = np.asarray(pc.N1)[0], np.asarray(pc.N2)[0], np.asarray(pc.N3)
+    q0, q1 = s.q0, (0 if kind == "proportional" else s.q1)
+    nZ, c, d = N2.shape[0], N3.shape[0], q0 + q1
+    Ceps = np.vstack([N2, N3])
+    K, Xeps, info = epsilon_block_lmi(N1, Ceps, region, margin=margin, solver=solver,
+                                      name=f"{kind} observer, ε-block region LMI")
+    Z, Y1 = K[:, :nZ], K[:, nZ:]
+    Aeps = N1 - K @ Ceps
+    Y = np.zeros((d, c + q1))
+    Y[:q0, :c] = Y1
+    X = np.zeros((d, d))
+    X[:q0, :q0] = Xeps
+    if q1:
+        # the real part of the ε-block's best-placed eigenvalue (inside: the regions are
+        # convex and symmetric about the real axis)
+        cands = np.real(np.linalg.eigvals(Aeps))
+        g = float(cands[np.argmax(region.margin(cands.astype(complex)))])
+        Y[q0:, c:] = g * np.eye(q1)  # G = g I
+        X[q0:, q0:] = np.eye(q1)
+        kappa = _couple(Y, X, Aeps, N3, region, q0, c, kind)
+        info["notes"].append(f"G = {g:.6g}·I; coupling κ = {kappa:.3g} "
+                             f"({'J, Y2' if kind == 'generalized' else 'J'})")
+    form, sizes = info["formulation"], "+".join(map(str, info["lmi_size"]))
+    how = "gain eliminated" if form in ("disk", "finsler") else "gain kept"
+    info["route"] = (f"{info['route']}; reduced to the ε-block of order {q0}, {how} "
+                     f"({form} form, cones of size {sizes}; the full LMI's cone is {_full_cone(region, d)})")
+    return X, Z, [Y], {"lmi": info}
+
+
+def _full_cone(region, d) -> int:
+    return region.characteristic()[0].shape[0] * d
+
+
+def _couple(Y, X, Aeps, N3, region, q0, c, kind) -> float:
+    """Set ``J = κΠ`` (and ``Y2 = κΠᵀY1/‖Y1‖`` for a generalized observer) in `Y` in place,
+    with κ from the room the decoupled region LMI leaves at `X` (module docstring)."""
+    d = X.shape[0]
+    q1 = d - q0
+    Pi = np.eye(q0, q1)
+    Y1 = Y[:q0, :c]
+    nY1 = float(np.linalg.norm(Y1, 2)) if Y1.size else 0.0
+    Y2 = Pi.T @ Y1 / nY1 if kind == "generalized" and nY1 > 0 else np.zeros((q1, c))
+    A0 = np.zeros((d, d))
+    A0[:q0, :q0] = Aeps
+    A0[q0:, q0:] = Y[q0:, c:]
+    D = np.zeros((d, d))
+    D[:q0, q0:] = Pi
+    D[q0:, :q0] = -Y2 @ N3
+    lam = -float(np.linalg.eigvalsh(region.lmi_matrix(X, X @ A0))[-1])
+    bound = 2.0 * float(np.linalg.norm(region.characteristic()[1], 2)) * float(np.linalg.norm(X @ D, 2))
+    kappa = COUPLING_SHARE * lam / bound if lam > 0 and bound > 0 and np.isfinite(bound) else 0.0
+    Y[:q0, c:] = kappa * Pi
+    Y[q0:, :c] = kappa * Y2
+    return kappa
