@@ -39,8 +39,9 @@ condition $L\otimes X + M\otimes\Phi^\top + M^\top\otimes\Phi \prec 0$ is solved
   $\begin{bmatrix}X & X\bar AN\\ N^\top\bar A^\top X & N^\top XN\end{bmatrix}\succ 0$ — one cone
   of size $q_0 + k_0$, $k_0 = q_0 - k$. *Gain:* $M^\top XM \prec X \iff MPM^\top \prec P$
   ($P = X^{-1}$), and $MPM^\top$ is smallest in the Loewner order at
-  $\bar K = \bar APR^\top(RPR^\top)^{-1}$ ($\bar C = R/\tau$, $K_r = \bar K$), which therefore
-  meets the condition whenever some gain does. $RPR^\top$ is $k\times k$ and positive definite
+  $\bar K = \bar AP\bar C^\top(\bar CP\bar C^\top)^{-1}$ with $\bar C = R/\tau$, i.e.
+  $K_r = \tau\bar APR^\top(RPR^\top)^{-1}$, which therefore meets the condition whenever some
+  gain does. $RPR^\top$ is $k\times k$ and positive definite
   ($R$ has orthonormal rows), solved by Cholesky. The certificate returned is the Stein
   certificate of the closed loop (`fojax.design._stein`).
 - *Half-planes, sectors and their intersections* ($M_j + M_j^\top \succ 0$ for every part $j$:
@@ -53,14 +54,21 @@ condition $L\otimes X + M\otimes\Phi^\top + M^\top\otimes\Phi \prec 0$ is solved
   ($\mu_j = \lambda_{\min}(M_j + M_j^\top) > 0$), so every $w > \max_j\rho_j^*/\mu_j$ works,
   with $\rho_j^*$ the smallest such $\rho$: in the basis $(I\otimes N, I\otimes R^\top)$,
   $\rho_j^* = \lambda_{\max}(F_{rr} - F_{rn}F_{nn}^{-1}F_{nr})$ (Schur complement; $F_{nn}
-  \prec 0$ by the LMI). *Gain:* $K_r = wPR^\top$ with $w = \max_j(\rho_j^* + \delta_j)/\mu_j$,
-  $\delta_j = \max(|\rho_j^*|, \epsilon)$ — twice the least value when $\rho_j^* > 0$; the
-  certificate is the LMI's $X$.
+  \prec 0$ by the LMI). *Gain:* $\mathcal W = \mathcal W_0 + wR^\top$, where
+  $\mathcal W_0 = N(N^\top XAR^\top + \bar c\,(RXAN)^\top) + R^\top RXAR^\top$ ($\bar c$ the mean
+  of $\cos 2\psi_j$ over the parts, $\psi_j = 0$ for a half-plane and $\psi_j = \pi/2 - \theta$
+  for a sector) cancels the row-space block of $\Phi$ and, for half-planes exactly, the coupling
+  of the two blocks, so that the multiplier needed is small; the argument above holds with
+  $F_j$ evaluated at $\mathcal W_0$, and $w = \max_j(\rho_j^* + \delta_j)/\mu_j$ with
+  $\delta_j = \max(|\rho_j^*|, \lambda_j, \epsilon)$, $-\lambda_j$ the largest eigenvalue of
+  $F_{nn}$. $K_r = X^{-1}\mathcal W$ by a symmetric solve; the certificate is the LMI's $X$.
+  Intersections on which the solver stops short are shown infeasible when one part alone is.
 - *Other regions* (an intersection with a disk): the $\varepsilon$-block's Chilali–Gahinet LMI
   in $(X, \mathcal W)$ (size $mq_0$), $K_r = X^{-1}\mathcal W$.
 
-**Integral block and coupling.** $G = gI$ with $g$ the real part of the region's target
-(`AbstractRegion.target`), certificate $\operatorname{diag}(X_\varepsilon, I)$. A generalized
+**Integral block and coupling.** $G = gI$ with $g$ the real part of the $\varepsilon$-block's
+eigenvalue deepest in the region (inside: the regions are convex and symmetric about the real
+axis), certificate $\operatorname{diag}(X_\varepsilon, I)$. A generalized
 observer is then coupled like the Riccati route's (`fojax.design._riccati`): $J = \kappa\Pi$,
 $Y_2 = \kappa\Pi^\top Y_1/\|Y_1\|$ (PI: $J = \kappa\Pi$ only, $S = 0$ stays). The coupling adds
 $\kappa D$ to $\mathbb A$ and $\kappa(M\otimes(XD)^\top + M^\top\otimes XD)$, of norm at most
@@ -161,7 +169,7 @@ def _finsler_lmi(A, R, N, region, margin):
         # XA; w from the Schur complement (module docstring)
         XA = Xv @ A
         Pnr, Prn = N.T @ XA @ R.T, R @ XA @ N
-        cos2 = np.mean([1.0 if isinstance(p, HalfPlane) else 2.0 * float(p.damping) ** 2 - 1.0 for p in parts])
+        cos2 = np.mean([1.0 if isinstance(p, HalfPlane) else 1.0 - 2.0 * float(p.damping) ** 2 for p in parts])
         W0 = N @ (Pnr + cos2 * Prn.T) + R.T @ (R @ XA @ R.T)
         w = 0.0
         for p in parts:
