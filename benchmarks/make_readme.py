@@ -358,10 +358,27 @@ def study_time_varying(d: dict, name: str) -> tuple[list[str], list[str]]:
     return out, honest
 
 
+def lmi_formulation(d: dict, name: str) -> tuple[list[str], list[str]]:
+    """`lmi_formulation.py`: the full and the reduced region LMI of the LMI route, side by side."""
+    from lmi_formulation import table
+
+    rows = d.get("rows")
+    if not (isinstance(rows, list) and rows and all(isinstance(r, dict) and "reduced" in r for r in rows)):
+        return _schema_note(name, d), []
+    out = ["### The LMI route: full region LMI vs reduced (gains eliminated)", "", source_line(d, name), "",
+           "CPU = process CPU time of the gains (LMI build, cvxpy, solver, gain recovery); speed-up = full / "
+           "reduced; canonicalisation and solver times are wall times reported by cvxpy.", ""] + table(d)
+    slow = [f"{r['kind']} in a {r['region']} at n = {r['n']} (×{fmt(r['speedup_cpu'], '.2g')})"
+            for r in rows if isinstance(r.get("speedup_cpu"), int | float) and r["speedup_cpu"] < 10]
+    honest = ["LMI formulations: the reduced LMI is less than 10× cheaper than the full one for "
+              + "; ".join(slow) + "."] if slow else []
+    return out, honest
+
+
 # The renderer of each benchmark, by the <name> of its results/<name>_latest.json.
 RENDER = {"reference_workload": reference_workload, "time_varying": time_varying, "scaling": scaling,
           "design_scaling": design_scaling, "tuning_scaling": tuning_scaling,
-          "study_time_varying": study_time_varying}
+          "study_time_varying": study_time_varying, "lmi_formulation": lmi_formulation}
 STUDIES = tuple(RENDER)  # the order of the tables
 
 
@@ -703,6 +720,23 @@ untimed n = 4 warm-up design; for each (kind, method), n stops increasing once a
 takes longer than `--budget` s (default 120). **Agreement:** observers are not unique (the
 routes choose different gains), so the routes agree when both designs pass the same
 float64 verification; `agreement` in the JSON lists this per (n, kind).
+
+## The LMI route's formulations, full vs reduced (`lmi_formulation.py`)
+
+```bash
+python benchmarks/lmi_formulation.py             # n = 24, 36, 48; three kinds; five regions
+python benchmarks/lmi_formulation.py --dims 24 36   # the shipped run
+```
+
+On the `half` shape of `design_routes.py` (q0 = n // 2, R by fojax's default), the region LMI
+of one structure solved in the two formulations of the LMI route: the full Chilali–Gahinet
+LMI of the error dynamics (`fojax/design/_region_lmi.py`, certificate of order q0 + q1, the
+gains as variables) and the reduced one that `method="lmi"` uses above observer order 12
+(`fojax/design/_eliminated.py`: the ε-block's certificate, the gain eliminated for disks,
+half-planes, sectors and their intersections, kept for a disk intersected with another
+region). Both designs go through the same float64 verification. Reported per formulation:
+process CPU time, cvxpy's canonicalisation and the solver's time (wall, per cvxpy), scalar
+variables, the largest gain entry, verification; the speed-up is the ratio of CPU times.
 
 ## One tuning step vs training batch size (`tuning_scaling.py`)
 

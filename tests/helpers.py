@@ -384,3 +384,39 @@ def execute_notebook(name: str, *, timeout: int = 600) -> ExecutedNotebook:
                 for o in outputs)
         for outputs in cells)
     return ExecutedNotebook(nb, text, sum("image/png" in o.get("data", {}) for outputs in cells for o in outputs))
+
+
+def index1_system(n, p, q, n_alg, seed):
+    """A random stable index-1 plant of a shape the benchmarks do not use (m = 3 inputs) and a
+    random functional with `q` rows."""
+    from scipy.stats import ortho_group
+
+    import fojax
+
+    rng = np.random.default_rng([seed, n, p, q])
+    r = n - n_alg
+    A0 = rng.standard_normal((n, n)) / np.sqrt(n)
+    A0[:r, :r] -= 2.0 * np.eye(r)
+    A0[r:, r:] -= 2.0 * np.eye(n_alg)
+    U, V = ortho_group.rvs(n, random_state=rng), ortho_group.rvs(n, random_state=rng)
+    E = U @ np.diag([1.0] * r + [0.0] * n_alg) @ V
+    return (fojax.DescriptorSystem(E, U @ A0 @ V, rng.standard_normal((n, 3)), rng.standard_normal((p, n))),
+            rng.standard_normal((q, n)))
+
+
+def assert_design_conditions(d, sysm, L):
+    """Conditions a.–d. of a functional-observer design recomputed with NumPy from its observer
+    matrices (``N TE + F Ψ = T A``, ``H = T B``, ``S TE + M Ψ = 0``, ``P TE + Q Ψ = L``, relative
+    to the data's scale); returns the observer's blocks and its error matrix ``[[N, J], [S, G]]``."""
+    b = {k: np.asarray(getattr(d.observer, k)) for k in "N J F H S G M P Q".split()}
+    E, A, B, C = (np.asarray(x) for x in (sysm.E, sysm.A, sysm.B, sysm.C))
+    Psi = np.vstack([np.asarray(d.structure.Eperp) @ A, C])
+    T = np.asarray(d.T)
+    TE = T @ E
+    scale = max(1.0, np.abs(A).max(), np.abs(T).max()) * max(1.0, np.abs(b["N"]).max(), np.abs(b["F"]).max())
+    assert np.abs(b["N"] @ TE + b["F"] @ Psi - T @ A).max() <= 1e-9 * scale
+    assert np.abs(b["H"] - T @ B).max() <= 1e-9 * scale
+    if b["S"].size:
+        assert np.abs(b["S"] @ TE + b["M"] @ Psi).max() <= 1e-9 * scale
+    assert np.abs(b["P"] @ TE + b["Q"] @ Psi - np.asarray(L)).max() <= 1e-9 * max(scale, np.abs(L).max())
+    return b, np.block([[b["N"], b["J"]], [b["S"], b["G"]]])

@@ -22,6 +22,7 @@ import warnings
 import numpy as np
 import pytest
 import scipy.linalg as sla
+from helpers import assert_design_conditions, index1_system
 from scipy.stats import ortho_group
 
 import fojax
@@ -173,35 +174,10 @@ def test_formulation_per_region_kind():
     assert formulation(Disk(-2, 1) & HalfPlane(1)) == "full"
 
 
-def random_index1(n, p, q, n_alg, seed):
-    """A random stable index-1 plant (m = 3 inputs) and a functional (q rows)."""
-    rng = np.random.default_rng([seed, n, p, q])
-    r = n - n_alg
-    A0 = rng.standard_normal((n, n)) / np.sqrt(n)
-    A0[:r, :r] -= 2.0 * np.eye(r)
-    A0[r:, r:] -= 2.0 * np.eye(n_alg)
-    U, V = ortho_group.rvs(n, random_state=rng), ortho_group.rvs(n, random_state=rng)
-    E = U @ np.diag([1.0] * r + [0.0] * n_alg) @ V
-    return (fojax.DescriptorSystem(E, U @ A0 @ V, rng.standard_normal((n, 3)), rng.standard_normal((p, n))),
-            rng.standard_normal((q, n)))
-
-
 def assert_design(d, sysm, L, region):
     """a.–d. with NumPy, eigenvalues by SciPy in the region, region LMI at X by hand."""
     assert d.report.passed and not d.report.failures
-    o = d.observer
-    b = {k: np.asarray(getattr(o, k)) for k in "N J F H S G M P Q".split()}
-    E, A, B, C = (np.asarray(x) for x in (sysm.E, sysm.A, sysm.B, sysm.C))
-    Psi = np.vstack([np.asarray(d.structure.Eperp) @ A, C])
-    T = np.asarray(d.T)
-    TE = T @ E
-    scale = max(1.0, np.abs(A).max(), np.abs(T).max()) * max(1.0, np.abs(b["N"]).max(), np.abs(b["F"]).max())
-    assert np.abs(b["N"] @ TE + b["F"] @ Psi - T @ A).max() <= 1e-9 * scale
-    assert np.abs(b["H"] - T @ B).max() <= 1e-9 * scale
-    if b["S"].size:
-        assert np.abs(b["S"] @ TE + b["M"] @ Psi).max() <= 1e-9 * scale
-    assert np.abs(b["P"] @ TE + b["Q"] @ Psi - np.asarray(L)).max() <= 1e-9 * max(scale, np.abs(L).max())
-    Aerr = np.block([[b["N"], b["J"]], [b["S"], b["G"]]])
+    b, Aerr = assert_design_conditions(d, sysm, L)
     assert np.all(inside(region, sla.eigvals(Aerr)) > 0)
     X = 0.5 * (d.X + d.X.T)
     assert np.linalg.eigvalsh(X).min() > 0
@@ -215,7 +191,7 @@ def test_lmi_route_designs_verify(kind, name):
     """method='lmi' above `SMALL_ORDER` (q0 = 11, order 22) takes the reduced LMI for every
     region kind; the design passes the independent checks; a generalized design is coupled
     (J ≠ 0), a PI design keeps S = 0."""
-    sysm, L = random_index1(20, 2, 3, 6, 2)
+    sysm, L = index1_system(20, 2, 3, 6, 2)
     region = REGIONS[name]
     d = design_functional_observer(sysm, L, kind=kind, region=region, method="lmi")
     assert d.observer.q0 + d.observer.q1 > 12
@@ -231,7 +207,7 @@ def test_lmi_route_designs_verify(kind, name):
 def test_proportional_reduced_and_full_designs(name):
     """A proportional observer (q0 = 14 above `SMALL_ORDER`) from the reduced LMI and from the
     full LMI: both feasible, both verify independently."""
-    sysm, L = random_index1(24, 3, 4, 6, 0)
+    sysm, L = index1_system(24, 3, 4, 6, 0)
     region = REGIONS[name]
     s = prepare_structure(sysm, L, q0=14, q1=0, region=region)
     d = design_functional_observer(sysm, L, kind="proportional", region=region, R=s.R, method="lmi")
@@ -259,7 +235,7 @@ def test_infeasible_structures_raise_from_both_formulations(kind, name):
     `LMIInfeasibleError` (infeasibility shown by the solver), the full LMI of `solve_gains`
     finds no solution either; the same structure in a region containing the fixed modes gives
     a verified design."""
-    sysm, L = random_index1(16, 2, 3, 5, 2)
+    sysm, L = index1_system(16, 2, 3, 5, 2)
     region = INFEASIBLE[name]
     s = prepare_structure(sysm, L, q1=0, region=Disk(-2.5, 1.6))
     q1 = 0 if kind == "proportional" else s.q0
@@ -291,7 +267,7 @@ def test_stopped_short_falls_back_to_the_full_lmi(monkeypatch):
         raise fojax.errors.SolverStoppedShortError("reduced LMI", "optimal_inaccurate", {})
 
     monkeypatch.setattr(_functional, "eliminated_gains", stop)
-    sysm, L = random_index1(20, 2, 3, 6, 2)
+    sysm, L = index1_system(20, 2, 3, 6, 2)
     d = design_functional_observer(sysm, L, kind="generalized", region=HalfPlane(1.0), method="lmi")
     assert "optimal_inaccurate" in d.report.extra["eliminated LMI refused"]
     assert_design(d, sysm, L, HalfPlane(1.0))

@@ -20,7 +20,7 @@ import math
 import numpy as np
 import pytest
 import scipy.linalg as sla
-from helpers import assert_eigenvalues_match
+from helpers import assert_design_conditions, assert_eigenvalues_match, index1_system
 from scipy.stats import ortho_group
 
 import fojax
@@ -66,19 +66,7 @@ def assert_riccati_design(d, sysm, L, region, method="riccati"):
     if method == "riccati":
         assert d.solver["lmi"]["route"].startswith("Riccati")
         assert "design route: Riccati" in str(d)
-    b = blocks(d)
-    E, A, B, C = (np.asarray(x) for x in (sysm.E, sysm.A, sysm.B, sysm.C))
-    Ep = np.asarray(d.structure.Eperp)
-    Psi = np.vstack([Ep @ A, C])
-    T = np.asarray(d.T)
-    TE = T @ E
-    scale = max(1.0, np.abs(A).max(), np.abs(T).max()) * max(1.0, np.abs(b["N"]).max(), np.abs(b["F"]).max())
-    assert np.abs(b["N"] @ TE + b["F"] @ Psi - T @ A).max() <= 1e-9 * scale
-    assert np.abs(b["H"] - T @ B).max() <= 1e-9 * scale
-    if b["S"].size:
-        assert np.abs(b["S"] @ TE + b["M"] @ Psi).max() <= 1e-9 * scale
-    assert np.abs(b["P"] @ TE + b["Q"] @ Psi - np.asarray(L)).max() <= 1e-9 * max(scale, np.abs(L).max())
-    Aerr = np.block([[b["N"], b["J"]], [b["S"], b["G"]]])
+    b, Aerr = assert_design_conditions(d, sysm, L)
     eigs = sla.eigvals(Aerr)
     assert np.all(inside(region, eigs) > 0), eigs
     X = 0.5 * (d.X + d.X.T)
@@ -269,19 +257,6 @@ def test_output_injection_failure_is_typed():
 
 
 # ============================================================== the default route at size
-
-
-def index1_system(n, p, q, n_alg, seed):
-    """A random stable index-1 plant of a shape the benchmarks do not use (m = 3 inputs)."""
-    rng = np.random.default_rng([seed, n, p, q])
-    r = n - n_alg
-    A0 = rng.standard_normal((n, n)) / np.sqrt(n)
-    A0[:r, :r] -= 2.0 * np.eye(r)
-    A0[r:, r:] -= 2.0 * np.eye(n_alg)
-    U, V = ortho_group.rvs(n, random_state=rng), ortho_group.rvs(n, random_state=rng)
-    E = U @ np.diag([1.0] * r + [0.0] * n_alg) @ V
-    return (fojax.DescriptorSystem(E, U @ A0 @ V, rng.standard_normal((n, 3)), rng.standard_normal((p, n))),
-            rng.standard_normal((q, n)))
 
 
 def test_choose_route_rule():

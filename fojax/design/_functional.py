@@ -35,7 +35,7 @@ from ._conditions import (
     default_R,
     UNIT_FREE_CHECK_MAX as UNIT_FREE_CHECK_MAX,
 )
-from ._eliminated import eliminated_gains
+from ._eliminated import eliminated_gains, formulation
 from ._observer_design import (  # noqa: F401  (names used from here by the other design modules)
     AbstractStructureDesign,
     build_observer,
@@ -468,9 +468,10 @@ def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, 
             refused = f"{type(err).__name__}: {err}"
     extra = {} if refused is None else {"Riccati route refused": refused[:500]}
     order = s.q0 + (0 if kind == "proportional" else s.q1)
-    if s.num_rules == 1 and order > SMALL_ORDER:
-        # the eliminated LMI (same feasible set, `fojax.design._eliminated`); the full LMI
-        # only when its solver stopped short or its design failed verification
+    if s.num_rules == 1 and order > SMALL_ORDER and (kind != "proportional" or formulation(region) != "full"):
+        # the reduced LMI (same feasible set, `fojax.design._eliminated`; for a proportional
+        # observer in a disk intersected with another region it would be the full LMI); the
+        # full LMI only when its solver stopped short or its design failed verification
         try:
             X, Z, Ys, info = eliminated_gains(s, region.tightened(tighten), kind=kind, margin=margin, solver=solver)
             info["lmi"]["method"] = "lmi"
