@@ -1,13 +1,14 @@
 r"""The one chunk / pad / shard driver of the batch kernels.
 
-`run_batched` runs any batch problem (the exact study problems of `fojax.studies._exact`,
-the exponential integrator's `fojax.simulation._exponential.ExponentialProblem`) over a
-batch of samples:
+`run_batched` runs any batch problem (`fojax.simulation._problem.AbstractBatchProblem`: the
+exact study problems of `fojax.studies._exact`, the exponential integrator's
+`fojax.simulation._exponential.ExponentialProblem`, `run_study`'s per-sample
+`fojax.studies._runner.SimulateProblem`) over a batch of samples:
 
 1. the batch is streamed in fixed-size chunks, the last one padded with copies of the
    last sample, so one compilation serves every chunk and every batch size;
 2. each chunk is grouped in blocks of samples stepped together (`_device_kernel`: the
-   problem's own ``block_kernel`` or the batch-last kernel `_block_kernel`);
+   problem's ``block_kernel``, by default the batch-last kernel `_block_kernel`);
 3. the blocks are spread round-robin over the devices with `jax.shard_map`, each device
    computing only the blocks that hold real samples; on a mesh spanning several
    processes the result is gathered on every process.
@@ -23,11 +24,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax, shard_map
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from tqdm import tqdm
 
 from .._dtype import as_float_array
 from .._errors import InputError, ShapeError
-from ._batch import _block_kernel, block_for, TRACE_COUNTS
-from ._problem import _joint_of, AbstractBatchProblem, eval_shape_cached
+from ._batch import block_for, TRACE_COUNTS
+from ._problem import AbstractBatchProblem
 from ._reduction import is_concrete
 from ._steppers import grid_deviation, grid_deviation_traced, UNIFORM_GRID_RTOL
 
@@ -41,9 +43,8 @@ def _device_kernel(problem, p, nvalid, h, ts, basis, dev):
     ``nvalid`` blocks are computed (a while loop), the others stay zero."""
     nb = jax.tree.leaves(p)[0].shape[0]
     take = lambda a, i: lax.dynamic_index_in_dim(a, i, keepdims=False)  # noqa: E731
-    # a problem with its own stepping (the exponential integrator) brings its block kernel
-    kernel = problem.block_kernel if isinstance(problem, AbstractBatchProblem) else (
-        lambda q, h, ts, basis: _block_kernel(problem, q, h, ts, basis))
+    # the problem's block kernel: the exact batch-last one, or its own (ETDRK4, simulate)
+    kernel = problem.block_kernel
     shape = jax.eval_shape(lambda q: kernel(q, h, ts, basis), jax.tree.map(lambda a: a[0], p))
     # block i's output (..., b) goes to out[..., i, :]: blocks next to each other along the
     # batch, so that `_chunk_core`'s reordering to (..., bc) is a reshape on one device
@@ -122,16 +123,23 @@ def gather_across_processes(tree, mesh):
     return jax.tree.map(lambda a: lax.with_sharding_constraint(a, rep), tree)
 
 
-def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, basis=None, host: bool = False,
-                compile_only: bool = False):
+def run_batched(problem: AbstractBatchProblem, p, ts, *, chunk_size: int, block: int | None, devices=None, basis=None, host: bool = False,
+                compile_only: bool = False, progress: bool = False):
     """Run a batch-kernel `problem` over every sample of ``p`` (leaves with a leading
     batch axis ``B``), streamed in fixed-size chunks (the last one padded with copies of
     the last sample; one compilation serves every chunk and every ``B``) and spread over
-    `devices`. ``ts`` must be a concrete uniform grid. Returns the problem's reduction
-    with the batch as the last axis ``B`` (JAX arrays; NumPy arrays with `host`), and the
-    layout used (chunk size after rounding to ``block × devices``, number of chunks,
-    devices, block). With `compile_only` it only compiles the program every chunk runs
-    (JAX's caches then give it to the later run) and returns ``(None, layout)``.
+    `devices`. ``ts`` must be a concrete uniform grid when the problem steps one
+    (``problem.uniform_grid``). Returns the problem's reduction with the batch as the
+    last axis ``B`` (JAX arrays; NumPy arrays with `host`), and the layout used (chunk
+    size after rounding to ``block × devices``, number of chunks, devices, block). With
+    `compile_only` it only compiles the program every chunk runs (JAX's caches then give
+    it to the later run) and returns ``(None, layout)``; `progress`: a progress bar over
+    the chunks.
+
+    `block`: samples per block, at most (capped by the joint size, `block_for`, and by the
+    batch); ``None``: one block per device and chunk (``ceil(chunk_size / devices)``
+    samples, not capped by the batch, e.g. `fojax.studies._runner.SimulateProblem`,
+    whose `jax.vmap`-ed adaptive loops gain nothing from blocking).
 
     **Memory.** Besides the result itself, only one chunk's work is alive at a time: with
     `host` (`run_study`) each chunk's result is copied into one preallocated NumPy array
@@ -141,7 +149,11 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
     error trajectories, ``8 · T_c · K · B`` bytes, are the one output of size ``B``).
     Without `host` the chunks' valid parts are concatenated once (two copies at the
     peak)."""
-    T, h, ts = _step_size(ts)
+    if problem.uniform_grid:
+        T, h, ts = _step_size(ts)
+    else:  # the problem's kernel takes the grid as it is (no step)
+        ts = as_float_array("ts", ts, ndim=1)
+        h = jnp.zeros((), ts.dtype)
     Bn = jax.tree.leaves(p)[0].shape[0]
     mesh = _mesh_for(devices)
     D = 1 if mesh is None else mesh.devices.size
@@ -149,12 +161,11 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
     # block has the shapes of a one-process run and its samples the same bits (batched
     # products of other widths differed by ~1e-15 on a study with fault onsets)
     Dw = 1 if spans_processes(mesh) else D
-    if isinstance(problem, AbstractBatchProblem):  # the exact kernel: block by N; own stepping: N is None
-        block = block_for(problem.joint_size(p), int(block))
+    if block is None:  # one block per device and chunk
+        block = max(1, -(-int(chunk_size) // D))
     else:
-        block = block_for(eval_shape_cached(_joint_of, problem, jax.tree.map(lambda a: a[0], p))[0].shape[0],
-                          int(block))
-    block = max(1, min(int(block), -(-min(int(chunk_size), Bn) // Dw)))
+        block = block_for(problem.joint_size(p), int(block))  # the exact kernel: by N; own stepping: N is None
+        block = max(1, min(int(block), -(-min(int(chunk_size), Bn) // Dw)))
     unit = block * D
     bc = -(-int(chunk_size) // unit) * unit
     n_chunks = -(-Bn // bc)
@@ -175,7 +186,7 @@ def run_batched(problem, p, ts, *, chunk_size: int, block: int, devices=None, ba
         for dst, src in zip(jax.tree.leaves(result), jax.tree.leaves(o)):
             dst[..., i * bc : i * bc + nv] = src[..., :nv]
 
-    for i in range(n_chunks):
+    for i in tqdm(range(n_chunks), disable=not progress or compile_only, desc="study", unit="chunk"):
         pc = jax.tree.map(lambda a, i=i: lax.slice_in_dim(a, i * bc, (i + 1) * bc), p)
         nv = min(Bn - i * bc, bc)
         if compile_only:  # one program for every chunk (the last one is padded)

@@ -12,11 +12,13 @@ with the batch as the last axis. The final classes:
 | `fojax.studies._exact.StudyProblem` | the joint LTI loop of plant, observers and exosystem of a study sample | the exact batch-last kernel (`fojax.simulation._batch`) |
 | `fojax.studies._exact.LossProblem` | the same samples, one loss metric (``"iae"`` or ``"ise"``) | the exact kernel, reverse-differentiable (`fojax.studies.study_loss`) |
 | `fojax.simulation._exponential.ExponentialProblem` | a time-varying affine sample's decomposition | ETDRK4 (its own `block_kernel`) |
+| `fojax.studies._runner.SimulateProblem` | any study sample, through `fojax.simulate` with the study's stepper | `jax.vmap` of `fojax.simulate` (its own `block_kernel`) |
 
-Every problem reduces its outputs $o_k$ (``(K, b)`` per grid point, e.g. the errors
-$\hat z - z$) along the grid with `init`, `update` (and `update_block`, several steps at
-once) and `final`, and keeps the outputs on every `keep`-th grid point when ``keep ≥ 1``
-(the quantile bands' trajectories).
+Every problem returns the metrics `computed` of its outputs $o_k$ (``(K, b)`` per grid
+point, e.g. the errors $\hat z - z$), the stepped ones reduced along the grid with
+`init`, `update` (and `update_block`, several steps at once) and `final`, and keeps the
+outputs on every `keep`-th grid point when ``keep ≥ 1`` (the quantile bands'
+trajectories).
 """
 
 # no `from __future__ import annotations`: equinox reads `eqx.AbstractVar` from the evaluated
@@ -76,15 +78,19 @@ class AbstractBatchProblem(eqx.Module):
 
     **The loss.** `init(o0)`, `update(acc, o, k, ts)` (`update_block` for ``m`` steps at
     once) and `final(acc, o0, o_end, ts, h, ok) -> (metrics, success)` reduce the
-    outputs along the grid (trapezoid rule); `additive` says that `update` adds a
-    function of the step's outputs to the accumulator (the adjoint of
-    `fojax.studies._adjoint` then takes a whole segment's output cotangents at once).
+    outputs along the grid (trapezoid rule) for the kernels that step the grid (the exact
+    kernel, ETDRK4; `SimulateProblem` takes the metrics of whole trajectories instead);
+    `additive` says that `update` adds a function of the step's outputs to the
+    accumulator (the adjoint of `fojax.studies._adjoint` then takes a whole segment's
+    output cotangents at once).
     """
 
     keep: eqx.AbstractVar[int]
 
     #: `update` adds a function of ``(o, k, ts)`` to the accumulator (a class attribute)
     additive = False
+    #: the kernel steps a uniform grid (`fojax.simulation._driver.run_batched` checks ``ts``)
+    uniform_grid = True
 
     @property
     def trace_name(self) -> str:
@@ -121,13 +127,13 @@ class AbstractBatchProblem(eqx.Module):
         first (the joint matrix is then block lower-triangular), or ``None``."""
         return None
 
-    @abc.abstractmethod
     def init(self, o0):
         """The accumulator after the first grid point's outputs ``o0`` ``(K, b)``."""
+        raise NotImplementedError(f"{type(self).__name__} does not reduce along the grid")
 
-    @abc.abstractmethod
     def update(self, acc, o, k, ts):
         """The accumulator after the outputs ``o`` ``(K, b)`` of grid point ``k``."""
+        raise NotImplementedError(f"{type(self).__name__} does not reduce along the grid")
 
     def update_block(self, acc, O, ks, ts):
         """`update` over ``m`` consecutive outputs ``O`` ``(b, K, m)`` at grid indices ``ks``."""
@@ -135,7 +141,7 @@ class AbstractBatchProblem(eqx.Module):
             acc = self.update(acc, O[:, :, j].T, ks[j], ts)
         return acc
 
-    @abc.abstractmethod
     def final(self, acc, o0, o_end, ts, h, ok):
         """``(metrics (len(computed), K, b), success (b,))`` from the accumulator, the first
         and last outputs and the samples' validity ``ok``."""
+        raise NotImplementedError(f"{type(self).__name__} does not reduce along the grid")

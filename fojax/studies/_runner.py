@@ -19,16 +19,16 @@ take this path: they run on the batch-last exact kernel (`fojax.simulation._batc
 Time-varying affine studies (δ(t), faults, known inputs) run on the exponential
 integrator through the same `run_batched` (`fojax.studies._exponential`).
 
-**Chunks and devices (one code path).** The index batch is cut into chunks of a fixed
-size (the last one padded with copies of sample 0, whose results are dropped, so the
-shape never changes), and every chunk is placed on a 1-d `jax.sharding.Mesh` over
-`devices` (default `jax.devices()`) with its batch axis sharded
-(``NamedSharding(mesh, P("batch"))``); the template, families and observers are
-replicated. Inside the compiled chunk `jax.shard_map` runs each device's slice with
-its own vmapped adaptive loop: with plain sharding propagation the batched while loop's
-"any sample still running" test becomes an all-reduce at every step, which on forced
-host devices of a busy CPU stalled for minutes. With one device this is the plain
-single-device run.
+**Chunks and devices (one code path).** Every engine runs through the one driver,
+`fojax.simulation._driver.run_batched`: the index batch is cut into chunks of a fixed
+size (the last one padded with copies of the last sample, whose results are dropped, so
+the shape never changes), and each chunk is spread over a 1-d `jax.sharding.Mesh` of
+`devices` (default `jax.devices()`) with `jax.shard_map`, each device running its own
+blocks (on this path, `SimulateProblem`: one block per device and chunk, its own
+vmapped adaptive loop; with plain sharding propagation the batched while loop's "any
+sample still running" test would become an all-reduce at every step, which on forced
+host devices of a busy CPU stalled for minutes); the template, families and observers
+are replicated. With one device this is the plain single-device run.
 
 **Metrics** (per sample, observer and estimated signal, for the error
 $e = \hat z - z$ on the grid, trapezoidal rule): IAE $\int|e|$, ISE $\int e^2$, ITAE
@@ -48,10 +48,8 @@ and compiled kernels are the ones above.
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import json
-import math
 import os
 from collections.abc import Sequence
 
@@ -59,17 +57,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Float
-from tqdm import tqdm
 
 from .._errors import InputError, removed_keywords, ShapeError
 from ..observer import AbstractObserver
 from ..plant import AbstractPlant, AbstractSignal, as_signal, FaultyPlant
 from ..simulation import simulate
-from ..simulation._batch import DEFAULT_BLOCK
+from ..simulation._batch import DEFAULT_BLOCK, TRACE_COUNTS as BATCH_TRACE_COUNTS
 from ..simulation._discrete import discrete_stepper
-from ..simulation._driver import DEFAULT_CHUNK, gather_across_processes, run_batched
+from ..simulation._driver import DEFAULT_CHUNK, run_batched
+from ..simulation._problem import AbstractBatchProblem
 from ..simulation._save import (
     error_metrics,
     METRIC_NAMES,
@@ -87,8 +84,10 @@ from ._sharding import (
 )
 
 
-#: Number of traces of the compiled study chunk and of the study loss.
-TRACE_COUNTS: collections.Counter = collections.Counter()
+#: Compilations of `run_study`'s chunk programs: the one driver's counter
+#: (`fojax.simulation._batch.TRACE_COUNTS`), keyed ``"run_study"`` for the per-sample path
+#: (`SimulateProblem`) and by the problem's class for the batch kernels.
+TRACE_COUNTS = BATCH_TRACE_COUNTS
 
 METRICS = METRIC_NAMES  # the one vocabulary: fojax.simulation._save
 
@@ -286,40 +285,49 @@ def sample_errors(study: Study, observers, i, j, cfg: SimConfig):
     return tuple(zh - z for zh in sol.estimates), sol.stats["success"]
 
 
-@eqx.filter_jit
-def _run_chunk(study, observers, iu, jf, cfg: SimConfig, keep_errors: int, mesh: Mesh):
-    """``keep_errors``: 0, or the stride ``k`` of the error trajectories kept (``ts[::k]``,
-    `band_stride`)."""
-    TRACE_COUNTS["run_study"] += 1
-    dyn, static = eqx.partition((study, observers), eqx.is_array)
+class SimulateProblem(AbstractBatchProblem):
+    """Every sample of a study through `fojax.simulate` with the stepper of `cfg` (the
+    ``"vmap-simulate"`` engine; a final `fojax.simulation._problem.AbstractBatchProblem`
+    run by the one driver, `fojax.simulation._driver.run_batched`, with one block per
+    device and chunk). A sample is an index pair ``(i, j)``; its block kernel is
+    `jax.vmap` of `sample_errors` and `error_metrics` over the block, so any plant and
+    grid the stepper takes run here (no uniform grid needed). Failed samples keep their
+    metrics and are flagged by ``success``."""
 
-    def local(dyn, iu, jf):
-        st, obs = eqx.combine(dyn, static)
+    study: Study
+    observers: tuple
+    cfg: SimConfig = eqx.field(static=True)
+    # 0, or the stride k of the error trajectories kept (ts[::k], `band_stride`)
+    keep: int = eqx.field(static=True, default=0)
+    uniform_grid = False
+
+    @property
+    def trace_name(self) -> str:
+        return "run_study"
+
+    @property
+    def computed(self) -> tuple[str, ...]:
+        return METRIC_NAMES
+
+    def joint_size(self, p) -> None:
+        return None
+
+    def block_kernel(self, p, h, ts, basis):
+        """``((metrics (5, K, b), success (b,)), errors (T_c, K, b))`` (the errors with
+        `keep` only) of the block's samples ``p = (i, j)``, ``K`` = observers × signals."""
+        del h, ts, basis  # each sample runs `fojax.simulate` on the study's own grid
+        study, observers, cfg, keep = self.study, self.observers, self.cfg, self.keep
 
         def one(i, j):
-            errs, ok = sample_errors(st, obs, i, j, cfg)
-            mets = tuple(error_metrics(st.ts, e, cfg.settle_tol) for e in errs)
-            return mets, (tuple(e[::keep_errors] for e in errs) if keep_errors else None), ok
+            errs, ok = sample_errors(study, observers, i, j, cfg)
+            mets = tuple(error_metrics(study.ts, e, cfg.settle_tol) for e in errs)
+            return mets, (tuple(e[::keep] for e in errs) if keep else None), ok
 
-        return jax.vmap(one)(iu, jf)
-
-    # shard_map: every device runs its own vmapped simulation on its slice of the batch
-    # (no cross-device collective inside the adaptive time loop).
-    batch = PartitionSpec("batch")
-    out = jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec(), batch, batch), out_specs=batch,
-                        check_vma=False)(dyn, iu, jf)
-    return gather_across_processes(out, mesh)  # a global mesh: every process gets every sample
-
-
-def _mesh(devices):
-    devices = list(jax.devices() if devices is None else devices)
-    mesh = Mesh(np.asarray(devices), ("batch",))
-    return mesh, NamedSharding(mesh, PartitionSpec("batch")), NamedSharding(mesh, PartitionSpec())
-
-
-def _replicate(tree, sharding):
-    arrays, rest = eqx.partition(tree, eqx.is_array)
-    return eqx.combine(jax.device_put(arrays, sharding), rest)
+        mets, errs, ok = jax.vmap(one)(*p)  # per observer: {name: (b, q)}, (b, T_c, q)
+        M = jnp.stack([jnp.concatenate([m[name] for m in mets], axis=1).T for name in METRIC_NAMES])
+        if not keep:
+            return M, ok
+        return (M, ok), jnp.transpose(jnp.concatenate(errs, axis=2), (1, 2, 0))
 
 
 def _indices(study: Study):
@@ -556,47 +564,14 @@ def _apply_save(res: StudyResult, save: Metrics) -> StudyResult:
 
 def _run_vmap(study, observers, names, quantiles, cfg: SimConfig, chunk_size, devices, keep, solver,
               quiet, stride) -> StudyResult:
-    """`run_study` on the ``"vmap-simulate"`` engine (`fojax.simulate` per sample)."""
-    mesh, batch_sh, rep_sh = _mesh(devices)
-    ndev = mesh.devices.size
-    B = study.num_samples
-    chunk = B if chunk_size is None else int(chunk_size)
-    chunk = max(ndev, int(math.ceil(chunk / ndev)) * ndev)
-    n_chunks = int(math.ceil(B / chunk))
-    iu, jf = _indices(study)
-    pad = n_chunks * chunk - B
-    iu = np.concatenate([iu, np.zeros(pad, dtype=iu.dtype)])
-    jf = np.concatenate([jf, np.zeros(pad, dtype=jf.dtype)])
-    study_r = _replicate(study, rep_sh)
-    obs_r = _replicate(observers, rep_sh)
-    mets, errs, oks = [], [], []
-    for c in tqdm(range(n_chunks), disable=quiet, desc="study", unit="chunk"):
-        sl = slice(c * chunk, (c + 1) * chunk)
-        a = jax.device_put(jnp.asarray(iu[sl]), batch_sh)
-        b = jax.device_put(jnp.asarray(jf[sl]), batch_sh)
-        m, e, ok = _run_chunk(study_r, obs_r, a, b, cfg, keep, mesh)
-        mets.append(jax.tree.map(np.asarray, m))
-        oks.append(np.asarray(ok))
-        if keep:
-            errs.append(tuple(np.asarray(x) for x in e))
-    Nu, Nf, q = study.num_uncertainty, study.num_scenarios, study.num_signals
-    metrics = {}
-    for name in METRICS:
-        per_obs = [np.concatenate([m[o][name] for m in mets])[:B].reshape(Nu, Nf, q) for o in range(len(names))]
-        metrics[name] = np.stack(per_obs)
-    metrics["success"] = np.concatenate(oks)[:B].reshape(Nu, Nf)
-    axes = {name: ("observer", "uncertainty", "fault", "signal") for name in METRICS}
-    axes["success"] = ("uncertainty", "fault")
-    if keep:
-        qs = []
-        for o in range(len(names)):
-            E = np.concatenate([e[o] for e in errs])[:B]  # (B, T_c, q)
-            qs.append(band_quantiles(np.moveaxis(E, 0, -1), quantiles))
-        metrics["quantiles"] = np.stack(qs)
-        axes["quantiles"] = ("observer", "quantile", "time", "signal")
-    return _result(study, names, quantiles, cfg, metrics, axes, stride,
-                   solver=type(solver).__name__ if solver is not None else "default", chunk_size=chunk,
-                   num_chunks=n_chunks, num_devices=int(ndev), engine=SIMULATE_LABEL)
+    """`run_study` on the ``"vmap-simulate"`` engine (`fojax.simulate` per sample,
+    `SimulateProblem`) through the one driver; default chunk: the whole batch."""
+    idx = tuple(jnp.asarray(a) for a in _indices(study))
+    chunk = study.num_samples if chunk_size is None else int(chunk_size)
+    return _run_batch(study, (SimulateProblem(study, tuple(observers), cfg, keep), None, idx), names, quantiles,
+                      cfg, chunk, devices, method=cfg.stepper.method,
+                      solver=type(solver).__name__ if solver is not None else "default", engine=SIMULATE_LABEL,
+                      stride=stride, block=None, progress=not quiet)
 
 
 def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, stride: int, **attrs) -> StudyResult:
@@ -616,7 +591,8 @@ def _result(study, names, quantiles, cfg: SimConfig, metrics, axes, stride: int,
 
 
 def _run_batch(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, devices, *, method: str, solver: str,
-               engine: str, stride=1, compile_only=False) -> StudyResult | None:
+               engine: str, stride=1, compile_only=False, block: int | None = DEFAULT_BLOCK,
+               progress: bool = False) -> StudyResult | None:
     """`run_study` on a batch kernel (`run_batched`): the prepared problem of a study engine
     (`fojax.studies._engines`: the exact problem of `fojax.studies._exact` or the exponential
     one of `fojax.studies._exponential`); `method`, `solver`, `engine` are recorded in
@@ -628,8 +604,8 @@ def _run_batch(study, prepared, names, quantiles, cfg: SimConfig, chunk_size, de
     default = DEFAULT_CHUNK // 2 if keep else DEFAULT_CHUNK
     chunk = min(B, default) if chunk_size is None else int(chunk_size)
     devices = jax.devices() if devices is None else devices  # all processes' devices, as `_mesh`
-    out, layout = run_batched(problem, idx, study.ts, chunk_size=chunk, block=DEFAULT_BLOCK, devices=devices,
-                              basis=basis, host=True, compile_only=compile_only)
+    out, layout = run_batched(problem, idx, study.ts, chunk_size=chunk, block=block, devices=devices,
+                              basis=basis, host=True, compile_only=compile_only, progress=progress)
     if compile_only:
         return None
     if keep:
