@@ -378,7 +378,8 @@ def lmi_formulation(d: dict, name: str) -> tuple[list[str], list[str]]:
 # The renderer of each benchmark, by the <name> of its results/<name>_latest.json.
 RENDER = {"reference_workload": reference_workload, "time_varying": time_varying, "scaling": scaling,
           "design_scaling": design_scaling, "tuning_scaling": tuning_scaling,
-          "study_time_varying": study_time_varying, "lmi_formulation": lmi_formulation}
+          "study_time_varying": study_time_varying, "lmi_formulation": lmi_formulation,
+          "lmi_formulation_n48": lmi_formulation}
 STUDIES = tuple(RENDER)  # the order of the tables
 
 
@@ -726,6 +727,7 @@ float64 verification; `agreement` in the JSON lists this per (n, kind).
 ```bash
 python benchmarks/lmi_formulation.py             # n = 24, 36, 48; three kinds; five regions
 python benchmarks/lmi_formulation.py --dims 24 36   # the shipped run
+python benchmarks/lmi_formulation.py --dims 48 --kinds PI proportional --name lmi_formulation_n48
 ```
 
 On the `half` shape of `design_routes.py` (q0 = n // 2, R by fojax's default), the region LMI
