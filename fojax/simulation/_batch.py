@@ -17,10 +17,12 @@ each sample's joint plant+observer system
    chosen by the joint size ``N``: below ``MULTISTEP_MIN_N`` with the batch as the
    **last** axis (state ``(N, b)``, ``Φ`` ``(N, N, b)``: each step is ``N²`` fused
    multiply–adds over the block, whose data stays in cache); from it on (and without
-   jumps) ``MULTISTEP`` grid steps per pass from precomputed powers, batch first: the
-   outputs ``[GΦ; …; GΦ^m] w`` and ``Φ^m w`` (`_multistep_block`; ``Φ`` by `expm_first`,
-   block lower-triangular when the problem says which states are the plant's; a graph
-   independent of ``N``); the requested reductions are accumulated *inside* the loop
+   jumps) several grid steps per pass from precomputed powers: the outputs
+   ``[GΦ; …; GΦ^m] w`` and ``Φ^m w``, batch last up to ``TRIANGULAR_MIN_N``
+   (`_multistep_last`: column FMAs over small blocks), batch first from it on
+   (`_multistep_block`; ``Φ`` by `expm_first`, block lower-triangular when the problem
+   says which states are the plant's; a graph independent of ``N``); the requested
+   reductions are accumulated *inside* the loop
    (trapezoid rule), so no ``(B, T, N)`` trajectory is ever stored and memory grows
    linearly with ``B``.
 
@@ -158,7 +160,10 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         # layout by N: several steps per pass as matrix products from MULTISTEP_MIN_N on, the
         # batch-last FMA matvec below (fastest for tiny loops), and for loops with jumps
         shapes = eqx.filter_eval_shape(problem.joint, jax.tree.map(lambda a: a[0], p))
-        if shapes[4] is None and shapes[0].shape[0] >= MULTISTEP_MIN_N:
+        N = shapes[0].shape[0]
+        if shapes[4] is None and MULTISTEP_MIN_N <= N < TRIANGULAR_MIN_N:
+            return _multistep_last(problem, p, h, ts)
+        if shapes[4] is None and N >= MULTISTEP_MIN_N:
             return _multistep_block(problem, p, h, ts)
     expm = (lambda M: expm_last(M, max_squarings=DIFF_MAX_SQUARINGS)) if differentiable else expm_last  # noqa: E731
     # the unrolled FMA matvec (N column FMAs) is the fastest forward step, but its reverse
@@ -284,9 +289,11 @@ MULTISTEP = 16
 MULTISTEP_MIN_N = 10
 
 
-#: Smallest joint size ``N`` that `_multistep_block` steps in block lower-triangular form
-#: (plant first, `StudyProblem.plant_first`); below it three small GEMMs per product cost
-#: more than one full one, above it the triangular form is faster.
+#: Smallest joint size ``N`` stepped by `_multistep_block` (batch first), which steps it in
+#: block lower-triangular form (plant first, `StudyProblem.plant_first`); below it three
+#: small GEMMs per product cost more than one full one, and the batch-last passes of
+#: `_multistep_last` are faster than both (the default §3.3.7 study, ``N = 22``: about half
+#: the time of the batch-first passes).
 TRIANGULAR_MIN_N = 32
 
 
@@ -305,15 +312,19 @@ STEP_BLOCK_BYTES = 2**16
 
 def block_for(N: int | None, block: int) -> int:
     """The block size for joint size ``N``: `block`, capped so that a block's ``Φ^m``
-    takes at most ``BLOCK_BYTES`` (at least 4 samples) when ``N ≥ MULTISTEP_MIN_N``,
-    and below it so that ``Φ`` takes at most ``STEP_BLOCK_BYTES`` (a power of two, at
-    least 64 samples). ``N ≤ 5``: 256; 6 … 8: 128; 9: 64; 22: 256 (unchanged); 64: 64;
-    128: 16; 256: 4."""
+    takes at most ``BLOCK_BYTES`` (at least 4 samples) when ``N ≥ TRIANGULAR_MIN_N``
+    (`_multistep_block`), so that ``Φ`` takes at most ``STEP_BLOCK_BYTES`` (at least 4
+    samples) from ``MULTISTEP_MIN_N`` up to it (`_multistep_last`, whose stacked output
+    rows are a few times ``Φ``), and below ``MULTISTEP_MIN_N`` so that ``Φ`` takes at most
+    ``STEP_BLOCK_BYTES`` (a power of two, at least 64 samples). ``N ≤ 5``: 256; 6 … 8:
+    128; 9: 64; 10: 81; 22: 16; 31: 8; 64: 64; 128: 16; 256: 4."""
     if N is None or N < 1:
         return block
     if N < MULTISTEP_MIN_N:
         fit = STEP_BLOCK_BYTES // (8 * N * N)
         return max(1, min(block, max(64, 1 << max(0, fit.bit_length() - 1))))
+    if N < TRIANGULAR_MIN_N:
+        return max(1, min(block, max(4, STEP_BLOCK_BYTES // (8 * N * N))))
     return max(1, min(block, max(4, BLOCK_BYTES // (8 * N * N))))
 
 
@@ -423,3 +434,80 @@ def _multistep_block(problem, p, h, ts):
     return out
 
 
+
+
+#: Grid steps per pass of `_multistep_last` (rounded up to a multiple of the bands' stride).
+MULTISTEP_LAST = 8
+
+
+def _rows_last(Phi, G, m: int):
+    r"""Batch-last twin of `_output_rows`: ``(R, Φ^m)`` with ``R`` ``(m K, N, b)`` holding the
+    rows $G\Phi^j$, ``j = 1 … m`` (block ``j − 1`` of ``K`` rows), by the same doubling
+    (`mm_last` products)."""
+    K = G.shape[0]
+    R, sq, i = mm_last(G, Phi), [Phi], 0  # sq[i] = Φ^(2^i)
+    while R.shape[0] < m * K or (1 << (i + 1)) <= m:
+        if R.shape[0] < m * K:
+            R = jnp.concatenate([R, mm_last(R[: m * K - R.shape[0]], sq[i])], axis=0)
+        if (1 << (i + 1)) <= m:
+            sq.append(mm_last(sq[i], sq[i]))
+        i += 1
+    Pm = None
+    for i, P in enumerate(sq):
+        if m >> i & 1:
+            Pm = P if Pm is None else mm_last(Pm, P)
+    return R, Pm
+
+
+def _multistep_last(problem, p, h, ts):
+    r"""The forward time loop of `_block_kernel` for problems without jumps and
+    ``MULTISTEP_MIN_N ≤ N < TRIANGULAR_MIN_N``: the passes of `_multistep_block`
+    (``m = MULTISTEP_LAST`` grid steps per pass, outputs $G\Phi^j w$ from the stacked rows
+    ``R = [GΦ; …; GΦ^m]``, then $w \leftarrow \Phi^m w$) with the batch as the **last**
+    axis: every product is the column FMAs of `matvec_last` over the block (no batched
+    matrix–vector call per sample), ``Φ`` comes from `expm_last`, and each pass's outputs
+    ``R w`` are part of the loop's carry, so that they are computed once and read by every
+    accumulator (not recomputed inside each consumer). The accumulators take the ``m``
+    outputs one step at a time (the problem's `update`, in grid order). Each sample's
+    arithmetic is elementwise over the block, so its bits do not depend on the block or
+    chunk size. The graph grows linearly with ``N`` (``N`` column FMAs per product), hence
+    the bound ``TRIANGULAR_MIN_N``. With ``problem.keep = k``, ``m`` is a multiple of
+    ``k`` and the outputs on ``ts[::k]`` are kept."""
+    T = ts.shape[0]
+    stride = int(problem.keep)
+    m = MULTISTEP_LAST if stride <= 1 else stride * -(-MULTISTEP_LAST // stride)
+    Aj, w0, G, ok, _ = jax.vmap(problem.joint)(p)  # (b,N,N), (b,N), (b,K,N), (b,)
+    K = G.shape[1]
+    Aj, G, w0 = jnp.moveaxis(Aj, 0, -1), jnp.moveaxis(G, 0, -1), w0.T  # batch last
+    R, Pm = _rows_last(expm_last(h * Aj), G, m)  # (m K, N, b), (N, N, b)
+    o0 = matvec_last(G, w0)
+    n_pass, rest = divmod(T - 1, m)
+    kept = np.flatnonzero((1 + np.arange(m)) % stride == 0) if stride else None
+
+    def step_rows(O, j):  # the outputs of the pass's j-th step, (K, b)
+        return O[j * K : (j + 1) * K]
+
+    def body(carry, q):
+        w, O, acc = carry  # O = R w: the outputs of the m steps after w
+        for j in range(m):
+            acc = problem.update(acc, step_rows(O, j), 1 + q * m + j, ts)
+        w = matvec_last(Pm, w)
+        kept_o = jnp.stack([step_rows(O, j) for j in kept]) if stride else None
+        return (w, matvec_last(R, w), acc), kept_o
+
+    (w, O, acc), traj = lax.scan(body, (w0, matvec_last(R, w0), problem.init(o0)), jnp.arange(n_pass))
+    parts = [o0[None]]
+    if stride:
+        parts.append(traj.reshape((-1,) + o0.shape))  # (n_pass · len(kept), K, b)
+    if rest:  # the last rest steps: the first rows of the carried outputs
+        for j in range(rest):
+            acc = problem.update(acc, step_rows(O, j), 1 + n_pass * m + j, ts)
+        o_end = step_rows(O, rest - 1)
+        if stride and np.any(kept < rest):
+            parts.append(jnp.stack([step_rows(O, j) for j in kept[kept < rest]]))
+    else:
+        o_end = matvec_last(G, w)
+    out = problem.final(acc, o0, o_end, ts, h, ok)
+    if stride:
+        out = (out, jnp.concatenate(parts, axis=0))  # (T_c, K, b), T_c = ceil(T / stride)
+    return out

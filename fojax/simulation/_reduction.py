@@ -104,6 +104,13 @@ def static_rank(E, rank_E: int | None) -> int:
     return _host_rank(np.asarray(E))
 
 
+#: Pencils ``(E, J)`` `check_index1_host` accepted (by their bytes; cleared when it holds
+#: `_INDEX1_PASSED_MAX`): the balanced analysis behind the verdict (a linear program for
+#: the scaling) costs about a millisecond, a visible part of a small study's fixed cost.
+_INDEX1_PASSED: set = set()
+_INDEX1_PASSED_MAX = 256
+
+
 def check_index1_host(E, J, *, jacobian_name: str = "A", where: str = "") -> None:
     """Refuse irregular or impulsive (index > 1) pencils ``(E, J)``; host (NumPy) check.
 
@@ -126,6 +133,11 @@ def check_index1_host(E, J, *, jacobian_name: str = "A", where: str = "") -> Non
     n = E.shape[0]
     if not np.all(np.isfinite(J)):
         raise InputError(f"{jacobian_name}{where} contains non-finite entries.")
+    # a pencil that passed before passes again (the verdict is a function of the numbers
+    # and the rank rule): repeated studies and simulations of one model skip the analysis
+    key = (E.shape, J.shape, E.tobytes(), J.tobytes(), RANK_RTOL, RANK_ATOL)
+    if key in _INDEX1_PASSED:
+        return
     # The verdict is fojax.analysis's (balanced, the fojax rank rule): the same as
     # fojax.analysis.is_regular / fojax.analysis.is_impulse_free on (E, J).
     sp = index1_split(E, J, fname="simulate")
@@ -142,6 +154,9 @@ def check_index1_host(E, J, *, jacobian_name: str = "A", where: str = "") -> Non
                 "(e.g. by the powers of two fojax.analysis.balance_system(E, A).scaling reports) so "
                 "that the singular values of E are comparable."
             )
+        if len(_INDEX1_PASSED) >= _INDEX1_PASSED_MAX:
+            _INDEX1_PASSED.clear()
+        _INDEX1_PASSED.add(key)
         return
     if not sp.regular:
         raise IrregularSystemError(
