@@ -328,27 +328,30 @@ def block_for(N: int | None, block: int) -> int:
     return max(1, min(block, max(4, BLOCK_BYTES // (8 * N * N))))
 
 
-def _output_rows(Phi, G, m: int):
+def _output_rows(Phi, G, m: int, row_mm=block_row_mm, mm=block_mm, axis: int = 1):
     r"""``(R, Φ^m)`` of a batch-first stack ``Φ`` (``(Φ,)`` or its lower-triangular blocks,
     see `expm_first`) and output map ``G`` (``(G,)`` or its column blocks): ``R``
     ``(b, m K, ·)`` holds the rows $G\Phi^j$, ``j = 1 … m`` (block ``j − 1`` of ``K``
     rows is $G\Phi^j$). By doubling: with the rows up to ``j`` and $\Phi^{2^i}$, the
     next ones are ``R Φ^{2^i}`` (a ``(jK × N)(N × N)`` product), then $\Phi^{2^{i+1}}$
     by one squaring; $\Phi^m$ is the product of the squares of ``m``'s binary digits
-    (``m`` static: ``⌊log₂ m⌋`` squarings, plus one product per further digit)."""
-    K = G[0].shape[1]
-    R, sq, i = block_row_mm(G, Phi), [Phi], 0  # sq[i] = Φ^(2^i)
-    while R[0].shape[1] < m * K or (1 << (i + 1)) <= m:
-        if R[0].shape[1] < m * K:
-            more = block_row_mm(tuple(x[:, : m * K - R[0].shape[1]] for x in R), sq[i])
-            R = tuple(jnp.concatenate([a, b], axis=1) for a, b in zip(R, more))
+    (``m`` static: ``⌊log₂ m⌋`` squarings, plus one product per further digit).
+
+    `row_mm`, `mm` and the rows' `axis` give the products and layout: `_multistep_last`
+    passes batch-last 1-tuples (`mm_last`, rows on axis 0)."""
+    K = G[0].shape[axis]
+    R, sq, i = row_mm(G, Phi), [Phi], 0  # sq[i] = Φ^(2^i)
+    while R[0].shape[axis] < m * K or (1 << (i + 1)) <= m:
+        if R[0].shape[axis] < m * K:
+            more = row_mm(tuple(lax.slice_in_dim(x, 0, m * K - R[0].shape[axis], axis=axis) for x in R), sq[i])
+            R = tuple(jnp.concatenate([a, b], axis=axis) for a, b in zip(R, more))
         if (1 << (i + 1)) <= m:
-            sq.append(block_mm(sq[i], sq[i]))
+            sq.append(mm(sq[i], sq[i]))
         i += 1
     Pm = None
     for i, P in enumerate(sq):
         if m >> i & 1:
-            Pm = P if Pm is None else block_mm(Pm, P)
+            Pm = P if Pm is None else mm(Pm, P)
     return R, Pm
 
 
@@ -440,25 +443,6 @@ def _multistep_block(problem, p, h, ts):
 MULTISTEP_LAST = 8
 
 
-def _rows_last(Phi, G, m: int):
-    r"""Batch-last twin of `_output_rows`: ``(R, Φ^m)`` with ``R`` ``(m K, N, b)`` holding the
-    rows $G\Phi^j$, ``j = 1 … m`` (block ``j − 1`` of ``K`` rows), by the same doubling
-    (`mm_last` products)."""
-    K = G.shape[0]
-    R, sq, i = mm_last(G, Phi), [Phi], 0  # sq[i] = Φ^(2^i)
-    while R.shape[0] < m * K or (1 << (i + 1)) <= m:
-        if R.shape[0] < m * K:
-            R = jnp.concatenate([R, mm_last(R[: m * K - R.shape[0]], sq[i])], axis=0)
-        if (1 << (i + 1)) <= m:
-            sq.append(mm_last(sq[i], sq[i]))
-        i += 1
-    Pm = None
-    for i, P in enumerate(sq):
-        if m >> i & 1:
-            Pm = P if Pm is None else mm_last(Pm, P)
-    return R, Pm
-
-
 def _multistep_last(problem, p, h, ts):
     r"""The forward time loop of `_block_kernel` for problems without jumps and
     ``MULTISTEP_MIN_N ≤ N < TRIANGULAR_MIN_N``: the passes of `_multistep_block`
@@ -479,7 +463,8 @@ def _multistep_last(problem, p, h, ts):
     Aj, w0, G, ok, _ = jax.vmap(problem.joint)(p)  # (b,N,N), (b,N), (b,K,N), (b,)
     K = G.shape[1]
     Aj, G, w0 = jnp.moveaxis(Aj, 0, -1), jnp.moveaxis(G, 0, -1), w0.T  # batch last
-    R, Pm = _rows_last(expm_last(h * Aj), G, m)  # (m K, N, b), (N, N, b)
+    last = lambda P, Q: (mm_last(P[0], Q[0]),)  # noqa: E731
+    (R,), (Pm,) = _output_rows((expm_last(h * Aj),), (G,), m, row_mm=last, mm=last, axis=0)  # (m K, N, b), (N, N, b)
     o0 = matvec_last(G, w0)
     n_pass, rest = divmod(T - 1, m)
     kept = np.flatnonzero((1 + np.arange(m)) % stride == 0) if stride else None
