@@ -343,7 +343,8 @@ def _output_rows(Phi, G, m: int, row_mm=block_row_mm, mm=block_mm, axis: int = 1
     R, sq, i = row_mm(G, Phi), [Phi], 0  # sq[i] = Φ^(2^i)
     while R[0].shape[axis] < m * K or (1 << (i + 1)) <= m:
         if R[0].shape[axis] < m * K:
-            more = row_mm(tuple(lax.slice_in_dim(x, 0, m * K - R[0].shape[axis], axis=axis) for x in R), sq[i])
+            have = R[0].shape[axis]
+            more = row_mm(tuple(lax.slice_in_dim(x, 0, min(m * K - have, have), axis=axis) for x in R), sq[i])
             R = tuple(jnp.concatenate([a, b], axis=axis) for a, b in zip(R, more))
         if (1 << (i + 1)) <= m:
             sq.append(mm(sq[i], sq[i]))
