@@ -453,9 +453,8 @@ def _multistep_last(problem, p, h, ts):
     matrix–vector call per sample), ``Φ`` comes from `expm_last`, and each pass's outputs
     ``R w`` are part of the loop's carry, so that they are computed once and read by every
     accumulator (not recomputed inside each consumer). The accumulators take the ``m``
-    outputs one step at a time (the problem's `update`, in grid order). Each sample's
-    arithmetic is elementwise over the block, so its bits do not depend on the block or
-    chunk size. The graph grows linearly with ``N`` (``N`` column FMAs per product), hence
+    outputs one step at a time (the problem's `update`, in grid order). The time loop's
+    arithmetic is elementwise over the block. The graph grows linearly with ``N`` (``N`` column FMAs per product), hence
     the bound ``TRIANGULAR_MIN_N``. With ``problem.keep = k``, ``m`` is a multiple of
     ``k`` and the outputs on ``ts[::k]`` are kept."""
     T = ts.shape[0]
