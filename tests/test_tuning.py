@@ -1,5 +1,46 @@
-"""Gradient tuning: starts at the LMI design, stays certified, improves held-out IAE, resumes exactly."""
+"""`fojax.tune`: gradient tuning of observer gains over a study. It starts at the LMI design,
+stays certified, improves the held-out IAE and resumes exactly; its step rule at the region's
+boundary; new numbers (region, δ range, key, gains) reuse the compiled step; the tuning
+package imports other packages only through their public paths.
 
+**Tuning.** Oracles: the LMI design's own observer (reproduced by `initial_parameters`),
+SciPy's Stein solver and the disk test by NumPy eigenvalues, the float64 verification of the
+tuned design and the Stein inequality of its certificate, the held-out IAE of samples never
+seen in training, the uninterrupted run for a resumed one (bit for bit), and the trace counter
+of the jitted step.
+
+**Step rule** (`fojax.tuning._loop.backtracked_update`, on the host, a private piece tested
+itself).
+Oracle: closed forms. The admissible set is the unit disk of the parameters,
+``margin(θ) = 1 − ‖θ‖²`` (gradient ``−2θ``), so which halving of an update stays inside, and
+what the update without its outward component is, follow by hand.
+
+Regression (issue 14): at an iterate on the boundary whose update points outside, every halving
+of the update is outside, the step was rejected and the next update pointed the same way — the
+iterate stopped moving (the LC filter tuned with ``barrier=0``: 79 of 100 steps rejected). Now
+the halvings of the tangential update are tried when no halving of the update is admissible.
+
+**Data are leaves.**
+Oracles: the trace counters of the jitted tuning step and of the differentiable study loss
+(`fojax._tune.TRACE_COUNTS`, `fojax.studies._exact.TRACE_COUNTS`), and
+`equinox.debug.assert_max_traces`; for the regions' host behaviour, the values given to
+the constructors (equality, hashing, JSON round trip).
+
+**Dependencies.**
+Oracle: the source itself, parsed with `ast`. Before this change `fojax/tuning/` imported
+18 names from private modules of other subpackages (``design._tunable``,
+``studies._runner``, ``studies._sharding``), 8 of them not public anywhere
+(``unflatten``, ``_atomic_write``, ``broadcast_bytes``, ``spans_processes``,
+``writes_files``, ``check_same_on_every_process``, ``distributed_errors``, ``replicate``),
+and a second entry point ``tune_takagi_sugeno`` wrapped ``tune``.
+"""
+
+import ast
+import importlib
+import json
+import pathlib
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -8,14 +49,20 @@ import pytest
 from helpers import uncertain_plant_3_3_7, WeightedPenalty
 
 import fojax
+import fojax.tuning
 from fojax import studies as S, tuning
-from fojax.design import design_functional_observer, Disk
+from fojax.design import design_functional_observer, Disk, HalfPlane, region_from_dict, Sector
+
+# private: the exact study kernel is tested itself
+from fojax.studies import _exact
 
 # private: TRACE_COUNTS, the no-retrace check
 from fojax.tuning import _tune
+from fojax.tuning._loop import backtracked_update  # private: the step rule is tested itself
 
 
-# bit-for-bit equality of different programs (a shared optimizer's step against optax's own object (another program)): compiled as users get it
+# bit-for-bit equality of different programs (a shared optimizer's step against optax's own object,
+# held-out evaluation on several devices against one): compiled as users get it
 pytestmark = pytest.mark.production_codegen
 
 
@@ -283,3 +330,209 @@ def test_extra_loss_is_checked_before_compiling(setup, bad, match):
     with pytest.raises(fojax.errors.InputError, match=match):
         tuning.tune(d, train, steps=1, optimizer=ADAM, extra_loss=bad)
     assert _tune.TRACE_COUNTS["tune_step"] == before
+
+
+# ==================================================================================================
+# Data are leaves: tuning with new numbers (region, δ range, key, gains) reuses the compiled step.
+# ==================================================================================================
+
+
+
+@pytest.fixture(scope="module")
+def setup_retrace():
+    ex = fojax.models.example_3_3_7()
+    plant = uncertain_plant_3_3_7(ex)
+    x0 = jnp.zeros(9).at[:6].set(0.5)
+
+    def study(seed, bounds):
+        k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
+        return S.Study(plant, x0, jnp.linspace(0.0, 1.0, 21), ex.L_aug, None,
+                       uncertainty=(S.constant_delta(k1, 2, 1, bounds=bounds),),
+                       scenarios=(S.constant_faults(k2, 2, x0, 3),))
+
+    return ex, study
+
+
+def test_regions_numbers_are_leaves_with_float_host_behaviour():
+    d = Disk(-2.5, 1.2)
+    assert d == Disk(-2.5, 1.2) and d != Disk(-2.0, 1.0) and hash(d) == hash(Disk(-2.5, 1.2))
+    assert d.describe() == "disk centred at -2.5 with radius 1.2"
+    for r in (d, HalfPlane(0.5), Sector(0.7), d & HalfPlane(1.0)):
+        assert region_from_dict(json.loads(json.dumps(r.to_dict()))) == r
+        assert all(eqx.is_array(x) for x in jax.tree.leaves(r))
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def shift(region, z):
+        return z - region.center + region.radius
+
+    assert float(shift(Disk(-2.0, 1.0), 0.0)) == 3.0
+    assert float(shift(Disk(-2.5, 1.2), 0.0)) == 3.7  # new numbers: no second trace
+
+
+def test_tune_with_new_region_delta_range_key_and_gains_does_not_retrace(setup_retrace):
+    ex, study = setup_retrace
+    d1 = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
+    d2 = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.5, 1.2))
+    assert not np.allclose(d1.params["Y1"], d2.params["Y1"])  # other gains
+    tuning.tune(d1, study(0, (-0.3, 0.3)), steps=1, stepper=fojax.Exact())  # compiles the step once
+    steps, losses = _tune.TRACE_COUNTS["tune_step"], _exact.TRACE_COUNTS["study_loss_exact"]
+    runs = [
+        dict(design=d1, train_study=study(0, (-0.3, 0.3)), region=Disk(-2.1, 1.5)),  # new region numbers
+        dict(design=d1, train_study=study(1, (-0.8, 0.5))),  # new δ range and samples
+        dict(design=d1, train_study=study(0, (-0.3, 0.3)), key=jax.random.PRNGKey(5)),  # new key
+        dict(design=d2, train_study=study(0, (-0.3, 0.3))),  # new gains, new region (the design's)
+    ]
+    for kw in runs:
+        res = tuning.tune(steps=1, stepper=fojax.Exact(), **kw)
+        assert np.isfinite(res.history["train_loss"][0])
+        assert res.design.report.passed
+    assert _tune.TRACE_COUNTS["tune_step"] == steps
+    assert _exact.TRACE_COUNTS["study_loss_exact"] == losses
+
+
+def test_heldout_evaluation_on_several_devices_compiles_once(setup_retrace):
+    """With `devices` (as `fojax study` passes on one JAX device per core) the held-out loss
+    of the starting design and of every iterate is one program: the iterates live on the
+    mesh (replicated), so the starting parameters are placed there too (they were not, and
+    the evaluation compiled twice: issue 13). Oracle: the trace counter of the evaluation,
+    and the one-device run's history (the same bits on any number of devices)."""
+    ex, study = setup_retrace
+    d = design_functional_observer(ex.augmented, ex.L_aug, kind="generalized", region=Disk(-2.0, 1.0))
+    kw = dict(train_study=study(0, (-0.3, 0.3)), heldout=study(3, (-0.3, 0.3)), steps=2, eval_every=1,
+              stepper=fojax.Exact())
+    before = _tune.TRACE_COUNTS["evaluate"]
+    two = tuning.tune(d, devices=jax.devices()[:2], **kw)
+    assert _tune.TRACE_COUNTS["evaluate"] - before == 1
+    one = tuning.tune(d, **kw)
+    assert two.initial_heldout == one.initial_heldout and two.final_heldout == one.final_heldout
+    assert two.history["heldout_loss"] == one.history["heldout_loss"]
+    assert two.history["train_loss"] == one.history["train_loss"]
+
+
+# ==================================================================================================
+# The tuning package's dependencies on the rest of fojax (issue 14, item 1).
+# ==================================================================================================
+
+
+#: The ground floor every package may use (ARCHITECTURE.md).
+GROUND = {"_errors", "_io", "_dtype", "_linalg", "_background"}  # + docs/CONTRIBUTING.md's worker-thread helper
+
+
+def _cross_package_imports():
+    for path in sorted(pathlib.Path(fojax.tuning.__file__).parent.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level >= 2:  # from ..x import y
+                yield path.name, node.module or "", [a.name for a in node.names]
+
+
+def test_tuning_imports_only_public_subpackage_names():
+    seen = 0
+    for fname, module, names in _cross_package_imports():
+        parts = module.split(".")
+        if parts[0] in GROUND:
+            continue
+        assert not any(p.startswith("_") for p in parts), f"{fname}: from ..{module} (a private module)"
+        sub = importlib.import_module(f"fojax.{module}")
+        for name in names:
+            assert not name.startswith("_"), f"{fname}: {name} from ..{module}"
+            assert hasattr(sub, name), f"{fname}: fojax.{module} does not export {name}"
+            seen += 1
+    assert seen >= 14  # design: 7 names, studies: 7 + 3 (the check is not vacuous)
+
+
+def test_one_tune():
+    assert not hasattr(fojax.tuning, "tune_takagi_sugeno")
+    assert fojax.tuning.tune.__module__ == "fojax.tuning._tune"
+
+
+# ==================================================================================================
+# The step rule of `fojax.tuning.tune` (`fojax.tuning._loop.backtracked_update`, on the host) at the
+# region's boundary.
+# ==================================================================================================
+
+
+MIN_MARGIN = 1e-6
+N_BACK = 8
+
+
+def margin(theta):
+    return 1.0 - jnp.sum(theta["a"] ** 2) - jnp.sum(theta["b"] ** 2)
+
+
+margin_host = jax.jit(margin)
+CALLS = {"margin": 0, "grad": 0}
+
+
+def counted_margin(theta):
+    CALLS["margin"] += 1
+    return float(margin_host(theta))
+
+
+def counted_grad(theta):
+    CALLS["grad"] += 1
+    return jax.grad(margin)(theta)
+
+
+def step(p, u):
+    CALLS.update(margin=0, grad=0)
+    return backtracked_update(p, u, counted_margin, MIN_MARGIN, N_BACK, counted_grad)
+
+
+def at_boundary(m0=1e-5):
+    """θ on the a-axis with margin m0 (a = √(1 − m0)); parameters as a pytree of two leaves."""
+    return {"a": jnp.array([np.sqrt(1.0 - m0), 0.0]), "b": jnp.array([0.0])}
+
+
+def test_regression_outward_update_at_the_boundary_slides_along_it():
+    p = at_boundary()
+    u = {"a": jnp.array([0.1, 0.1]), "b": jnp.array([0.05])}  # outward (first entry) and tangential
+    # every halving of u is outside: 1e-5 − 0.2·s·a − 0.0125·s² < 0 for s ≥ 2^-8 (closed form)
+    s = 0.5 ** np.arange(N_BACK + 1)
+    a0 = float(p["a"][0])
+    assert np.all(1e-5 - 2 * 0.1 * s * a0 - (0.01 + 0.01 + 0.0025) * s**2 <= MIN_MARGIN)
+    new, m, accepted, backtracks = step(p, u)
+    assert bool(accepted)  # failed before the fix (rejected, parameters unchanged)
+    # the tangential update removes u's component along g = −2θ = (−2a, 0; 0): u_t = (0, 0.1; 0.05);
+    # its halvings: margin 1e-5 − 0.0125 s² > 1e-6 first at s = 2^-6 (closed form)
+    expected_s = next(sc for sc in s if 1e-5 - 0.0125 * sc**2 > MIN_MARGIN)
+    assert expected_s == 0.5**6
+    np.testing.assert_allclose(np.asarray(new["a"]), [a0, 0.1 * expected_s], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(new["b"]), [0.05 * expected_s], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(float(m), 1e-5 - 0.0125 * expected_s**2, rtol=1e-9)
+    assert int(backtracks) == N_BACK + 1 + 6
+    assert float(margin(new)) > MIN_MARGIN
+    # every halving of u, then those of u_t up to the first admissible; one gradient
+    assert CALLS == {"margin": N_BACK + 1 + 7, "grad": 1}
+
+
+@pytest.mark.parametrize("outward", [False, True])
+def test_an_admissible_halving_of_the_update_is_taken_unchanged(outward):
+    """Away from the boundary the rule is the old one: the first admissible halving of u itself."""
+    p = {"a": jnp.array([0.5, 0.0]), "b": jnp.array([0.0])}
+    # an inward update (scale 1 admissible), and an outward one whose first admissible halving is
+    # 2^-4: margin(0.5 + 4s) = 0.75 − 4s − 16 s² is 0 at s = 1/8 and 0.4375 at s = 1/16 (closed form)
+    u = ({"a": jnp.array([4.0, 0.0]), "b": jnp.array([0.0])} if outward
+         else {"a": jnp.array([-0.2, 0.1]), "b": jnp.array([0.1])})
+    s = 0.5 ** np.arange(N_BACK + 1)
+    ms = [float(margin(jax.tree.map(lambda x, d: x + sc * d, p, u))) for sc in s]
+    first = next(i for i, v in enumerate(ms) if v > MIN_MARGIN)
+    assert first == (4 if outward else 0)
+    new, m, accepted, backtracks = step(p, u)
+    assert bool(accepted) and int(backtracks) == first
+    for k in ("a", "b"):
+        np.testing.assert_allclose(np.asarray(new[k]), np.asarray(p[k] + s[first] * u[k]), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(float(m), ms[first], rtol=1e-12)
+    # evaluated in turn up to the first admissible candidate; no gradient needed
+    assert CALLS == {"margin": first + 1, "grad": 0}
+
+
+def test_no_admissible_candidate_keeps_the_parameters():
+    """An update straight outward has no tangential part: the step is rejected, θ unchanged."""
+    p = at_boundary()
+    u = {"a": jnp.array([0.1, 0.0]), "b": jnp.array([0.0])}
+    new, m, accepted, _ = step(p, u)
+    assert not bool(accepted)
+    for k in ("a", "b"):
+        np.testing.assert_array_equal(np.asarray(new[k]), np.asarray(p[k]))
+    assert float(m) < 0  # the full step's margin
