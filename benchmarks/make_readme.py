@@ -465,7 +465,7 @@ INTRO = """# fojax benchmarks
 Studies that measure fojax against the tools an engineer would otherwise use
 They are scripts, not tests: timings never run in the test suite. The test
 suite only checks that each workload is built correctly and that all methods agree
-(`tests/test_benchmark_workload.py`).
+(`tests/test_benchmarks.py`).
 
 ```bash
 pip install ".[bench]"                      # fojax + the peer libraries (python-control)
@@ -1010,7 +1010,7 @@ best LMI design is no longer the centred one: the H∞ design on the initial-sta
 order is only 9.8 % below that H∞ design (the training samples' optimum 5.4 %).
 `tune` with `barrier=0` used to stop at the region's boundary (79 of 100 steps rejected, −15.2 %): when no halving of an update is admissible the step now
 tries it without its outward component and slides along the boundary (0 rejected, −21.6 %;
-`tests/test_tuning_step_rule.py`). At equal wall-clock (3.9 s, the gradient run's time in this run; 129 s in
+`tests/test_tuning.py`). At equal wall-clock (3.9 s, the gradient run's time in this run; 129 s in
 an earlier run under heavy load, with the same outcome), Powell and Nelder–Mead on the same
 parameters, every candidate verified as `tune` does, end 21.9 % and 20.7 % above the tuned
 design ([result](results/tuning_circuit_latest.json); the `"diagnosis"` there was

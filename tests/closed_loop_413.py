@@ -2,7 +2,7 @@
 u = L0 x, the uncertainty direction on entries (1,3), (2,2) of A, an inconsistent initial
 state, and a second-order LTI observer driven by y.
 
-Used by test_batch_simulation.py and test_exponential.py, which check the batched exact
+Used by test_study_exact.py and test_study_exponential.py, which check the batched exact
 and exponential steppers against independent SciPy references on this loop.
 """
 

@@ -271,7 +271,7 @@ def h2_by_integral(sys_, L, obs, Bw, Dv) -> float:
     r"""$\|T - D_j\|_2$ of `joint_error_system` (its strictly proper part) by the frequency-domain
     definition $\frac1\pi\int_0^\infty \|\mathcal C(j\omega\mathcal E - \mathcal A)^{-1}\mathcal B\|_F^2
     d\omega$ (`scipy.integrate.quad`, $\omega = \tan\theta$): the H2 oracle of test_h2 and
-    test_tune_robustness."""
+    test_tuning_robustness."""
     import scipy.integrate as si
 
     Ej, Aj, Bj, Cj, _ = joint_error_system(sys_, L, obs, Bw, Dv)
@@ -286,7 +286,7 @@ def h2_by_integral(sys_, L, obs, Bw, Dv) -> float:
 
 
 # ------------------------------------------------- plants of the H∞/H2 tests (test_hinf, test_h2,
-# test_tune_robustness)
+# test_tuning_robustness)
 
 def scalar_plant(a):
     r"""$\dot x = ax + u$, $y = x$: with $B_w = D_v = 1$, $z = x$ the scalar Kalman / H∞ closed forms."""
@@ -337,7 +337,7 @@ class WeightedPenalty(eqx.Module):
     and to its gradient: the objective exactly) and its extra-loss test with another weight,
     and its tuning step, the module's largest program, compiles once. The
     ``extra_loss=None`` branch is exercised by the other tuning modules (e.g.
-    tests/test_tune_retrace.py, tests/test_parameterization.py) and the CLI studies."""
+    tests/test_tuning.py, tests/test_parameterization.py) and the CLI studies."""
 
     weight: jax.Array
     of: object = eqx.field(static=True)

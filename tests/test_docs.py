@@ -10,6 +10,8 @@ Oracles:
   its outputs (the site renders them as stored: ``docs/execute_notebooks.py``).
 - lab notes in ``fojax/`` (timings under load, machine names, internal issue numbers,
   dated measurements) are counted by regular expressions on the source text.
+- every test module names its oracle at the top and is on the map of ``tests/README.md``
+  (the module docstrings parsed with `ast`).
 """
 
 from __future__ import annotations
@@ -169,6 +171,17 @@ if __name__ == "__main__":  # python tests/test_docs.py: the lab notes left, per
 
 
 # ------------------------------------------------------------------------------ the site
+def test_every_test_module_names_its_oracle_and_is_on_the_map():
+    """Each test module opens with a docstring naming its independent oracle, and
+    ``tests/README.md`` (the map of public concepts to test modules) lists it."""
+    tests = ROOT / "tests"
+    readme = (tests / "README.md").read_text()
+    for path in sorted(tests.glob("test_*.py")):
+        doc = ast.get_docstring(ast.parse(path.read_text())) or ""
+        assert re.search(r"[Oo]racle|[Ii]ndependent", doc), f"{path.name}: the module docstring names no oracle"
+        assert f"`{path.name}`" in readme, f"{path.name} is not on the map in tests/README.md"
+
+
 def test_the_site_builds_strictly(tmp_path):
     """``mkdocs build --strict`` (mkdocs-material, mkdocstrings, mkdocs-jupyter: the ``docs``
     extra, part of ``test``): every page, cross-reference and API directive resolves."""

@@ -1,4 +1,13 @@
-"""Monte Carlo studies: compile-once batches, agreement with single runs, sharding, gradients, I/O."""
+"""`fojax.Study`, `fojax.run_study` and `fojax.studies` families: compile-once batches,
+agreement with single runs, sharding, gradients, I/O.
+
+Oracles: ``np.quantile`` itself (bit for bit) for the band quantiles; closed forms of the error
+metrics (IAE, ISE, ITAE, peak, settling time of e(t) = exp(-t)); single `fojax.simulate` runs of
+the same samples followed by `fojax.studies.error_metrics`; the eager draws of the samplers (the
+compiled samplers must draw the same bits); one device and one chunk for the sharded and chunked
+runs (bit for bit); central finite differences for `study_loss`'s gradient; the trace counter
+(`_runner.TRACE_COUNTS`) for compile-once.
+"""
 
 import diffrax
 import equinox as eqx

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
-from closed_loop_413 import (  # the §4.1.3 loop shared with test_exponential.py
+from closed_loop_413 import (  # the §4.1.3 loop shared with test_study_exponential.py
     ACL,
     AO,
     B0,

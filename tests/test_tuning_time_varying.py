@@ -2,7 +2,7 @@
 
 Oracles: `fojax.run_study`'s exponential engine on the same samples (its values are checked
 against SciPy's DOP853 in ``tests/test_study_exponential.py`` and the differentiable path
-against it and against central differences in ``tests/test_study_loss_exponential.py``);
+against it and against central differences in ``tests/test_study_loss.py``);
 the trace counters of the jitted tuning step. Before this change `tune`'s step (where the
 study is traced) fell back to `vmap(simulate)` with diffrax, whose loss differs from the
 exponential engine's at diffrax's tolerance (~1e-8 relative) and whose step cost 29 s CPU

@@ -134,7 +134,7 @@ def phi_functions(A0, h):
     augmented matrices on the host (nothing to compile); under a trace
     (`fojax.studies.study_loss`, an outer `jax.jit`) `fojax.simulation._expm.expm_stack`
     is traced inline (matrix products only: reverse-differentiable). Both are accurate to
-    round-off (compared in ``tests/test_exponential.py``).
+    round-off (compared in ``tests/test_study_exponential.py``).
     """
     if is_concrete(A0, h):
         return _phi_functions_host(np.asarray(A0, dtype=np.float64), float(h))

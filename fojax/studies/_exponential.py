@@ -14,7 +14,7 @@ same reducer as the exact path (`StudyProblem`), i.e. with the definitions of
 `error_metrics`.
 
 **Accuracy and the step.** ETDRK4 has classical order 4 (observed in
-``tests/test_exponential.py``); $A_0$ is integrated exactly, so the step only resolves
+``tests/test_study_exponential.py``); $A_0$ is integrated exactly, so the step only resolves
 $g$: the signals and the perturbation $\delta(t)\,\Delta A$ acting on the slow state. The
 step is the study grid's ``h`` divided by the smallest number of substeps $s$ with
 $(h/s)\,\rho \le$ `STEP_RATE` (0.5), $\rho$ the larger of $|\lambda|_{\max}(A_0)$ and
@@ -42,7 +42,7 @@ range) are therefore not on this path.
 **Reverse mode.** `study_loss` runs the same engine through `exponential_metrics_traced`:
 the same host decisions, the computation traced with respect to the observer, the time
 loop in `jax.checkpoint`-ed segments (memory of the backward pass ~√S for S steps). Its
-gradient is checked against central finite differences (``tests/test_study_loss_exponential.py``).
+gradient is checked against central finite differences (``tests/test_study_loss.py``).
 A traced study (inside `fojax.tune`'s jitted step, where the study is an argument) cannot
 be checked there: `fojax.tune` decides on the host, before its first step, with the
 starting observer (`exponential_schedule` through `fojax.studies.resolve_engine`) and hands
