@@ -233,10 +233,27 @@ class _FieldSizes(fojax.plant.AbstractPlant):
         return x[:1]
 
 
-@pytest.mark.parametrize("cls", [_PropertySizes, _FieldSizes])
+class _RequiredFieldSizes(fojax.plant.AbstractPlant):
+    """The same plant with its sizes as static fields the caller must give."""
+
+    E: jax.Array
+    A: jax.Array
+    m: int = eqx.field(static=True)
+    p: int = eqx.field(static=True)
+    linear_in_state: ClassVar[bool] = True
+
+    def rhs(self, t, x, u):
+        return self.A @ x
+
+    def output(self, t, x, u):
+        return x[:1]
+
+
+@pytest.mark.parametrize("cls", [_PropertySizes, _FieldSizes, _RequiredFieldSizes])
 def test_a_user_plant_may_define_its_sizes_as_properties_or_fields(cls):
     # oracle: x(t) = exp(-t) x0 for A = -I, E = I (closed form)
-    plant = cls(jnp.eye(2), -jnp.eye(2))
+    sizes = {"m": 0, "p": 1} if cls is _RequiredFieldSizes else {}
+    plant = cls(jnp.eye(2), -jnp.eye(2), **sizes)
     assert (plant.n, plant.m, plant.p) == (2, 0, 1)
     assert [f.name for f in dataclasses.fields(plant)][:2] == ["E", "A"]
     ts = jnp.linspace(0.0, 1.0, 11)

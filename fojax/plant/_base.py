@@ -9,8 +9,6 @@ and nonlinear models all implement `rhs` and `output`; the simulator reduces any
 them to an ODE in the slow coordinates plus an algebraic solve.
 """
 
-from __future__ import annotations
-
 import abc
 
 import equinox as eqx
@@ -27,18 +25,12 @@ class AbstractPlant(eqx.Module):
         """Number of (descriptor) states."""
         return self.E.shape[0]
 
-    # m and p are abstract properties, not eqx.AbstractVar: a subclass may define them as
-    # properties or as (static) fields, and an AbstractVar would turn them into dataclass
-    # fields of a subclass that defines them as properties.
-    @property
-    @abc.abstractmethod
-    def m(self) -> int:
-        """Number of inputs."""
-
-    @property
-    @abc.abstractmethod
-    def p(self) -> int:
-        """Number of measured outputs."""
+    #: Number of inputs and of measured outputs: a field (static, with or without a default)
+    #: or a property of each plant. (No ``from __future__ import annotations`` in this module:
+    #: equinox recognises an ``AbstractVar`` only from an evaluated annotation; as a string it
+    #: would become a dataclass field of every subclass.)
+    m: eqx.AbstractVar[int]
+    p: eqx.AbstractVar[int]
 
     @abc.abstractmethod
     def rhs(self, t, x: Float[Array, " n"], u: Float[Array, " m"]) -> Float[Array, " n"]:
