@@ -948,6 +948,35 @@ def test_corrupted_solver_output_is_never_returned(sys413, monkeypatch):
     assert ei.value.report is not None and not ei.value.report.passed
 
 
+def test_a_default_solver_design_that_fails_verification_is_re_solved_by_a_named_solver(sys413, monkeypatch):
+    """With the default solver, a design whose solution misses a check in float64 (as SCS's
+    did by 7e-9 on the two-area power model's H2 design under one OpenBLAS kernel) is solved
+    again with Clarabel, then SCS, each verified the same way; the report says why. With a
+    named solver the error is raised as it was. The default route's failure is forced here
+    (oracle: the returned design's own float64 verification)."""
+    import fojax.design._functional as functional  # the private route under test
+
+    orig = functional._design_from_structure
+
+    def failing_default(s, region, **kw):
+        if kw["solver"] == "auto":
+            raise fojax.errors.DesignVerificationError("forced: region LMI re-checked in float64 has max "
+                                                       "eigenvalue 6.7e-09", None)
+        return orig(s, region, **kw)
+
+    monkeypatch.setattr(functional, "_design_from_structure", failing_default)
+    d = design_functional_observer(sys413, L413, kind="generalized", method="lmi")
+    assert d.report.passed and d.verify().passed
+    assert "re-solved with CLARABEL" in d.report.extra["solver"] and "forced" in d.report.extra["solver"]
+    monkeypatch.setattr(functional, "_design_from_structure",
+                        lambda s, region, **kw: failing_default(s, region, **{**kw, "solver": "auto"}))
+    with pytest.raises(fojax.errors.DesignVerificationError, match="forced") as ei:
+        design_functional_observer(sys413, L413, kind="generalized", method="lmi", balance=False, solver="CLARABEL")
+    assert "re-solved" not in str(ei.value)
+    with pytest.raises(fojax.errors.DesignVerificationError, match="re-solved with each solver, failed too"):
+        design_functional_observer(sys413, L413, kind="generalized", method="lmi", balance=False)
+
+
 # ====================================================================== 6. LMI solver policy
 
 

@@ -228,6 +228,9 @@ def design_functional_observer(
     - `margin`: strictness of the LMIs (``⪯ -margin·I`` with ``X ⪰ I``).
     - `solver`: the LMI solver, ``"auto"`` (Clarabel, then SCS), ``"CLARABEL"`` or ``"SCS"``
       (`fojax.design._lmi`); naming one selects the LMI route when `method` is not given.
+      With ``"auto"`` (``None``), a design that fails its float64 verification is solved
+      again with each named solver (`solver_fallback`; the report says so under ``"solver"``)
+      before `DesignVerificationError` is raised.
     - `method`: the design route, ``None`` (default), ``"auto"``, ``"riccati"`` or ``"lmi"``;
       the rule that picks it is `choose_route`'s docstring. ``"riccati"``: a discrete
       Riccati equation for the gain and a Stein equation for the certificate (disks,
@@ -317,16 +320,47 @@ def design_functional_observer(
         Bw, Dv = check_channels(s.n, s.p, Bw, Dv, objective=objective)
         perf = dict(objective=objective, Bw=Bw, Dv=Dv)
 
-        def raw():
+        def raw(kw):
             return _performance_design(s, region, Bw=Bw, Dv=Dv, objective=objective, **kw)
     else:
         perf = dict(centre=objective == "centre")
 
-        def raw():
+        def raw(kw):
             return _design_from_structure(s, region, **kw, **perf)
 
-    d = unit_free_fallback(raw, lambda: balanced_design(s, region, **kw, **perf), balance, "a.-d.")
+    d = solver_fallback(lambda kw: unit_free_fallback(lambda: raw(kw), lambda: balanced_design(s, region, **kw, **perf),
+                                                      balance, "a.-d."), kw)
     return with_feedthrough(_discrete.with_dt(d, sys.dt), sys.D)
+
+
+#: Solvers the default ``solver="auto"`` re-solves with, in order, when its design fails its
+#: float64 verification (a solution that meets the LMIs to the solver's tolerances but misses
+#: a strict one in float64 by a few 1e-9 depends on the solver's last steps, and so on the BLAS
+#: kernel: another solver's solution is verified the same way).
+VERIFY_RETRY_SOLVERS = ("CLARABEL", "SCS")
+
+
+def solver_fallback(design, kw: dict):
+    """``design(kw)``; with the default solver, when it raises `DesignVerificationError`, the
+    first design of ``design(kw | solver=S)`` for ``S`` in `VERIFY_RETRY_SOLVERS` that passes
+    (its report says why under ``"solver"``); else the first error, with the others' reasons."""
+    try:
+        return design(kw)
+    except DesignVerificationError as err:
+        if kw.get("solver") != _lmi.DEFAULT_SOLVER:
+            raise
+        reasons = []
+        for sv in VERIFY_RETRY_SOLVERS:
+            try:
+                d = design({**kw, "solver": sv})
+            except FojaxError as again:
+                reasons.append(f"{sv}: {type(again).__name__}: {again}")
+                continue
+            note = f"the default solver route's design failed its float64 verification ({err}); re-solved with {sv}"
+            return dataclasses.replace(d, report=dataclasses.replace(d.report, extra={**d.report.extra,
+                                                                                      "solver": note}))
+        raise DesignVerificationError(f"{err} (re-solved with each solver, failed too: {'; '.join(reasons)})",
+                                      err.report) from err
 
 
 def unit_free_fallback(raw, balanced, balance: bool | None, conditions: str):
