@@ -508,6 +508,17 @@ def machine_lines(info: dict) -> list[str]:
     ]
 
 
+def stop_reason(res: dict, n: int, hard_timeout: float, budget: float) -> str | None:
+    """Why a size sweep stops after the entry of size `n` (killed at `hard_timeout`, or its
+    ``total_s`` over `budget`), or ``None`` to go on."""
+    t = res.get("total_s")
+    if res.get("status") == "timeout":
+        return f"killed at n = {n} after {hard_timeout:.0f} s"
+    if t is not None and t > budget:
+        return f"n = {n} took {t:.0f} s > budget {budget:.0f} s"
+    return None
+
+
 def stop_and_failure_lines(d: dict, label) -> list[str]:
     """Markdown lines closing a result table: why the run stopped (``d["stopped"]``) and a
     ``## Failures`` list with the first line of the error of every row whose status is not

@@ -187,11 +187,9 @@ def main(argv=None) -> int:
                 print(f"  n = {n:4d} {shape:13s} {method:8s} {res.get('status')}: "
                       f"{_common.fmt(res.get('total_s'), '.3g')} s, peak {_common.fmt(res.get('peak_rss_mib'), '.0f')} MiB, "
                       f"route {res.get('route')}, q0 = {res.get('q0')}, verified {res.get('verified')}", flush=True)
-                t = res.get("total_s")
-                if res.get("status") == "timeout":
-                    stopped[key] = f"killed at n = {n} after {args.hard_timeout:.0f} s"
-                elif t is not None and t > args.budget:
-                    stopped[key] = f"n = {n} took {t:.0f} s > budget {args.budget:.0f} s"
+                reason = _common.stop_reason(res, n, args.hard_timeout, args.budget)
+                if reason:
+                    stopped[key] = reason
                 write(info, args, rows, stopped, "partial")
     write(info, args, rows, stopped, "complete", echo=True)
     return 0

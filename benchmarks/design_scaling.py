@@ -289,11 +289,9 @@ def main(argv=None) -> int:
                 f"{size.get('scalar_variables', '—')} variables, LMIs {size.get('lmi_sizes', '—')}",
                 flush=True,
             )
-            t = res.get("total_s")
-            if res.get("status") == "timeout":
-                stopped[key] = f"killed at n = {n} after {args.hard_timeout:.0f} s"
-            elif t is not None and t > args.budget:
-                stopped[key] = f"n = {n} took {t:.0f} s > budget {args.budget:.0f} s"
+            reason = _common.stop_reason(res, n, args.hard_timeout, args.budget)
+            if reason:
+                stopped[key] = reason
             write(info, args, rows, stopped, "partial")
     write(info, args, rows, stopped, "complete", echo=True)
     return 0
