@@ -195,12 +195,24 @@ def test_design_accepts_a_sparse_model_and_functional():
     assert d.report.passed
 
 
-class _PropertySizes(fojax.plant.AbstractPlant):
-    """A user plant whose sizes are properties (E ẋ = A x, y = x₁, no input)."""
+class _Decay(fojax.plant.AbstractPlant):
+    """A user plant E ẋ = A x, y = x₁ whose subclasses give its sizes in three ways."""
+
+    A: eqx.AbstractVar[jax.Array]
+    linear_in_state: ClassVar[bool] = True
+
+    def rhs(self, t, x, u):
+        return self.A @ x
+
+    def output(self, t, x, u):
+        return x[:1]
+
+
+class _PropertySizes(_Decay):
+    """Sizes as properties."""
 
     E: jax.Array
     A: jax.Array
-    linear_in_state: ClassVar[bool] = True
 
     @property
     def m(self):
@@ -210,43 +222,23 @@ class _PropertySizes(fojax.plant.AbstractPlant):
     def p(self):
         return 1
 
-    def rhs(self, t, x, u):
-        return self.A @ x
 
-    def output(self, t, x, u):
-        return x[:1]
-
-
-class _FieldSizes(fojax.plant.AbstractPlant):
-    """The same plant with its sizes as static fields."""
+class _FieldSizes(_Decay):
+    """Sizes as static fields with defaults."""
 
     E: jax.Array
     A: jax.Array
     m: int = eqx.field(static=True, default=0)
     p: int = eqx.field(static=True, default=1)
-    linear_in_state: ClassVar[bool] = True
-
-    def rhs(self, t, x, u):
-        return self.A @ x
-
-    def output(self, t, x, u):
-        return x[:1]
 
 
-class _RequiredFieldSizes(fojax.plant.AbstractPlant):
-    """The same plant with its sizes as static fields the caller must give."""
+class _RequiredFieldSizes(_Decay):
+    """Sizes as static fields the caller must give."""
 
     E: jax.Array
     A: jax.Array
     m: int = eqx.field(static=True)
     p: int = eqx.field(static=True)
-    linear_in_state: ClassVar[bool] = True
-
-    def rhs(self, t, x, u):
-        return self.A @ x
-
-    def output(self, t, x, u):
-        return x[:1]
 
 
 @pytest.mark.parametrize("cls", [_PropertySizes, _FieldSizes, _RequiredFieldSizes])
