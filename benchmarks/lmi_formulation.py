@@ -12,8 +12,9 @@ shape of ``design_routes.py`` (random stable index-1 plant, ``q = q0 = n // 2``)
 formulations solve the region LMI of the same structure (``R`` from fojax's default) for the
 region tightened as the design does, and both designs are verified in float64 (the same
 ``verify()`` as the public call). Recorded per formulation: the process CPU time of the gains
-(LMI build, cvxpy, solver, gain recovery), and per cvxpy solve the wall time, cvxpy's own
-canonicalisation time (``Problem.compilation_time``) and the solver's reported time (wall
+(LMI build, cvxpy or the direct conic build, solver, gain recovery), and per solve the wall
+time, cvxpy's own canonicalisation time (``Problem.compilation_time``; 0 for the reduced
+LMI's programs, which go to Clarabel without cvxpy) and the solver's reported time (wall
 times: the machine is shared, see the load averages), the cone sizes, the number of scalar
 variables, the solver statuses, whether the design verified and the largest gain entry. The
 speed-up is full CPU / reduced CPU. A (kind, region) stops measuring the full formulation
@@ -80,11 +81,14 @@ def measure(s, kind: str, region, form: str) -> dict:
     from fojax.design._functional import _finish, TIGHTEN
     from fojax.design._region_lmi import solve_gains
 
+    from fojax.design import _region_lmi
+
     f = eliminated_gains if form == "reduced" else solve_gains
     out: dict = {"formulation": form}
     cpu_calls: list = []
+    direct: list = []  # conic programs handed to Clarabel without cvxpy (fojax.design._lmi.solve_conic)
     with record_cvxpy_solves() as calls:
-        recording = cp.Problem.solve
+        recording, conic = cp.Problem.solve, _region_lmi.solve_conic
 
         def timed(self, *a, **kw):  # process CPU of each solve call (canonicalisation + solver)
             c0 = time.process_time()
@@ -93,7 +97,22 @@ def measure(s, kind: str, region, form: str) -> dict:
             finally:
                 cpu_calls.append(time.process_time() - c0)
 
-        cp.Problem.solve = timed
+        def timed_conic(prob, *a, **kw):
+            c0, t0 = time.process_time(), time.perf_counter()
+            row = {"solver": "CLARABEL (direct)", "canonicalisation_wall_s": 0.0, "solver_wall_s": None,
+                   "scalar_variables": int(prob.c.size) + (0 if prob.norm is None else 1)}
+            try:
+                x, info = conic(prob, *a, **kw)
+                row.update(status=info["status"], solver_wall_s=info.get("solve_time"))
+                return x, info
+            except FojaxError as e:
+                row["status"] = getattr(e, "status", type(e).__name__)
+                raise
+            finally:
+                row.update(cpu_s=time.process_time() - c0, wall_s=time.perf_counter() - t0)
+                direct.append(row)
+
+        cp.Problem.solve, _region_lmi.solve_conic = timed, timed_conic
         c0, t0 = time.process_time(), time.perf_counter()
         try:
             X, Z, Ys, info = f(s, region.tightened(TIGHTEN), kind=kind)
@@ -101,14 +120,14 @@ def measure(s, kind: str, region, form: str) -> dict:
         except FojaxError as e:
             X, out["status"], out["error"] = None, f"failed: {type(e).__name__}", str(e)[:600]
         finally:
-            cp.Problem.solve = recording
+            cp.Problem.solve, _region_lmi.solve_conic = recording, conic
         out["cpu_s"] = time.process_time() - c0
         out["wall_s"] = time.perf_counter() - t0
     out["solves"] = [{"status": c["status"], "solver": c["solver"], "wall_s": c["wall_s"],
                       "canonicalisation_wall_s": float(getattr(c["problem"], "compilation_time", 0.0) or 0.0),
                       "solver_wall_s": c["solver_time_s"], "cpu_s": cpu,
                       "scalar_variables": int(c["problem"].size_metrics.num_scalar_variables)}
-                     for c, cpu in zip(calls, cpu_calls)]
+                     for c, cpu in zip(calls, cpu_calls)] + direct
     out["canonicalisation_wall_s"] = sum(c["canonicalisation_wall_s"] for c in out["solves"])
     out["solver_wall_s"] = sum(c["solver_wall_s"] or 0.0 for c in out["solves"])
     out["solve_calls_cpu_s"] = sum(cpu_calls)

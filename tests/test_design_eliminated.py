@@ -29,7 +29,12 @@ import fojax
 from fojax.design import design_functional_observer, Disk, HalfPlane, Sector
 
 # private: the reduced LMI and the full one are compared directly
-from fojax.design._eliminated import eliminated_gains, epsilon_block_lmi, formulation
+from fojax.design._eliminated import (
+    eliminated_gains,
+    epsilon_block_lmi,
+    formulation,
+    inscribed_disk,
+)
 from fojax.design._functional import prepare_structure
 from fojax.design._parameterization import observer_structure
 from fojax.design._region_lmi import solve_gains
@@ -155,7 +160,7 @@ def test_reduced_and_full_lmi_agree_on_feasibility(name):
                 # (SolverStoppedShortError) — never a design; the eliminated forms show it
                 with pytest.raises((fojax.errors.LMIInfeasibleError, fojax.errors.SolverStoppedShortError)) as err:
                     epsilon_block_lmi(A, C, region)
-                if formulation(region) != "full":
+                if formulation(region) in ("disk", "finsler"):
                     assert isinstance(err.value, fojax.errors.LMIInfeasibleError)
                 continue
             K, X, info = epsilon_block_lmi(A, C, region)
@@ -163,7 +168,8 @@ def test_reduced_and_full_lmi_agree_on_feasibility(name):
             assert np.all(inside(region, sla.eigvals(Acl)) > 0)
             assert np.linalg.eigvalsh(X).min() > 0
             assert region_lmi_by_hand(region, X, Acl) < 0
-            assert info["formulation"] == formulation(region)
+            assert info["formulation"] == formulation(region) or (
+                formulation(region) == "inscribed disk" and info["formulation"] == "full")
 
 
 def test_formulation_per_region_kind():
@@ -171,7 +177,43 @@ def test_formulation_per_region_kind():
     assert formulation(fojax.design.DiscreteDisk(0, 0.5)) == "disk"
     assert formulation(HalfPlane(1)) == formulation(Sector(0.5)) == "finsler"
     assert formulation(HalfPlane(1) & Sector(0.5) & HalfPlane(2)) == "finsler"
-    assert formulation(Disk(-2, 1) & HalfPlane(1)) == "full"
+    assert formulation(Disk(-2, 1) & HalfPlane(1)) == "inscribed disk"
+
+
+def test_inscribed_disk_is_inside_the_region():
+    """Disk(-2.5, 1.6) ∩ Re s < -1: the real segment [-4.1, -1] is its diameter (closed form);
+    points of its boundary circle are inside every part (closed-form margins)."""
+    d = inscribed_disk(Disk(-2.5, 1.6) & HalfPlane(1.0))
+    assert d.center == pytest.approx(-2.55, abs=2e-3) and d.radius == pytest.approx(1.55, abs=2e-3)
+    for region in (REGIONS["disk & half-plane"], Disk(-3.0, 2.0) & Sector(0.7) & HalfPlane(1.5)):
+        d = inscribed_disk(region)
+        circle = d.center + d.radius * np.exp(1j * np.linspace(0, 2 * np.pi, 721))
+        assert np.min(inside(region, circle)) > -1e-9
+
+
+def test_fixed_modes_outside_the_inscribed_disk_go_to_the_full_form():
+    """Hidden modes -2.5 ± 1.8j (PBH) inside Disk(-3, 2.5) ∩ Re s < -2 but outside its
+    inscribed disk (centre -3.75, radius 1.75): the inscribed disk's LMI has no solution, the
+    intersection's own LMI (gain kept) designs; eigenvalues (SciPy) and the region LMI at X (by
+    hand) check it."""
+    region = Disk(-3.0, 2.5) & HalfPlane(2.0)
+    rng = np.random.default_rng(7)
+    Ao = rng.standard_normal((4, 4)) / 2 + 0.5 * np.eye(4)
+    Ah = np.array([[-2.5, 1.8], [-1.8, -2.5]])
+    A0 = np.block([[Ao, np.zeros((4, 2))], [rng.standard_normal((2, 4)) / 2, Ah]])
+    C0 = np.hstack([rng.standard_normal((2, 4)), np.zeros((2, 2))])
+    Q = ortho_group.rvs(6, random_state=rng)
+    A, C = Q @ A0 @ Q.T, C0 @ Q.T
+    fixed = hidden_modes(A, C)
+    tight = region.tightened(0.05)
+    inner = inscribed_disk(tight)
+    assert len(fixed) == 2 and np.min(inside(tight, fixed)) > 0.3
+    assert np.max(np.abs(np.asarray(fixed) - inner.center)) > inner.radius + 0.3
+    K, X, info = epsilon_block_lmi(A, C, tight)
+    assert info["formulation"] == "full" and any("inscribed disk" in n for n in info["notes"])
+    Acl = A - K @ C
+    assert np.all(inside(tight, sla.eigvals(Acl)) > 0)
+    assert np.linalg.eigvalsh(X).min() > 0 and region_lmi_by_hand(tight, X, Acl) < 0
 
 
 def assert_design(d, sysm, L, region):

@@ -63,8 +63,20 @@ condition $L\otimes X + M\otimes\Phi^\top + M^\top\otimes\Phi \prec 0$ is solved
   $\delta_j = \max(|\rho_j^*|, \lambda_j, \epsilon)$, $-\lambda_j$ the largest eigenvalue of
   $F_{nn}$. $K_r = X^{-1}\mathcal W$ by a symmetric solve; the certificate is the LMI's $X$.
   Intersections on which the solver stops short are shown infeasible when one part alone is.
-- *Other regions* (an intersection with a disk): the $\varepsilon$-block's Chilali–Gahinet LMI
-  in $(X, \mathcal W)$ (size $mq_0$), $K_r = X^{-1}\mathcal W$.
+- *An intersection with a disk*, first: the disk form for the largest disk $\mathcal Q(c, \rho)$
+  centred on the real axis inside the region (`inscribed_disk`: $\rho$ is the region's
+  margin at $c$, the distance to the nearest boundary). Its certificate $X$ gives
+  $\|X^{1/2}(A_{cl} - cI)X^{-1/2}\| < \rho$, so for a disk part $\mathcal Q(\alpha, \tau)
+  \supseteq \mathcal Q(c, \rho)$, $\|X^{1/2}(A_{cl} - \alpha I)X^{-1/2}\| < \rho + |c - \alpha|
+  \le \tau$ (its LMI, by a Schur complement), and the $X$-numerical range of $A_{cl}$ lies in
+  $\mathcal Q(c, \rho)$, which is what the LMI of a half-plane or a sector at $X$ says
+  (`fojax.design._riccati`): every solution of the inscribed disk's LMI solves the
+  intersection's LMI, not conversely (a mode no gain moves may lie in the region but outside
+  the inscribed disk). When it has no solution, the intersection's own LMI decides (next
+  item); only that one raises `fojax.errors.LMIInfeasibleError`.
+- *Other regions*, and an intersection with a disk whose inscribed disk has no solution: the
+  $\varepsilon$-block's Chilali–Gahinet LMI in $(X, \mathcal W)$, one cone of size $m_jq_0$ per
+  part $j$ (the region's LMI is block diagonal), $K_r = X^{-1}\mathcal W$.
 
 **Integral block and coupling.** $G = gI$ with $g$ the real part of the $\varepsilon$-block's
 eigenvalue deepest in the region (inside: the regions are convex and symmetric about the real
@@ -76,6 +88,11 @@ $2\kappa\|M\|\|XD\|$, to the region LMI at the fixed $X$; $\kappa$ is `COUPLING_
 $\lambda/(2\|M\|\|XD\|)$, with $-\lambda$ the largest eigenvalue of the decoupled LMI, so the
 same $X$ certifies the coupled observer.
 
+**Solving.** Each reduced LMI is built with NumPy as a `fojax.design._lmi.ConicLMI` in the
+coordinates $x = \operatorname{svec}X$ (and the entries of $\mathcal W$ where it is kept) and
+solved by Clarabel directly, without cvxpy's canonicalisation; the ladder's SCS rungs solve
+the same program through cvxpy (`fojax.design._region_lmi.solve_conic_with_fallbacks`).
+
 Costs: the full LMI has $d(d+1)/2 + d(k + q_1)$ scalar variables and a cone of size $md$; the
 disk's eliminated LMI $q_0(q_0+1)/2$ variables and one cone of size $q_0 + k_0$. Every design is
 verified in float64 by the caller (`fojax.design.verify`), whichever formulation produced it.
@@ -85,8 +102,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._errors import LMIInfeasibleError, SolverStoppedShortError
-from ._lmi import DEFAULT_SOLVER, region_lmi, value
+from .._errors import InputError, LMIInfeasibleError, SolverStoppedShortError
+from ._lmi import ConicLMI, DEFAULT_SOLVER, region_lmi_batch, smat, svec, sym_basis
 from ._parameterization import FunctionalObserverStructure, pieces
 from ._regions import AbstractRegion, Disk, HalfPlane, Intersection, Sector
 
@@ -100,14 +117,42 @@ HINT = ("No observer gain places the error dynamics in the region: enlarge the r
 
 def formulation(region: AbstractRegion) -> str:
     """Which LMI `eliminated_gains` solves for `region`: ``"disk"`` (elimination lemma),
-    ``"finsler"`` (every part a half-plane or a sector) or ``"full"`` (the ε-block's LMI with
-    its gain; e.g. a disk intersected with another region)."""
+    ``"finsler"`` (every part a half-plane or a sector), ``"inscribed disk"`` (an intersection
+    with a disk: the disk form for `inscribed_disk`, then ``"full"`` if that has no solution)
+    or ``"full"`` (the ε-block's LMI with its gain)."""
     if isinstance(region, Disk):
         return "disk"
     parts = region.parts if isinstance(region, Intersection) else (region,)
     if all(isinstance(p, HalfPlane | Sector) for p in parts):
         return "finsler"
+    if any(isinstance(p, Disk) for p in parts):
+        return "inscribed disk"
     return "full"
+
+
+#: Centres tried by `inscribed_disk` along the real diameter of the region's disks.
+INSCRIBED_GRID = 2001
+
+
+def inscribed_disk(region: AbstractRegion) -> Disk | None:
+    """The largest disk centred on the real axis inside `region` (an intersection with a disk
+    part), its radius the region's margin at the centre (on a grid of `INSCRIBED_GRID`
+    centres); ``None`` if there is none."""
+    parts = region.parts if isinstance(region, Intersection) else (region,)
+    disks = [p for p in parts if isinstance(p, Disk)]
+    lo = max(float(d.center) - float(d.radius) for d in disks)
+    hi = min(float(d.center) + float(d.radius) for d in disks)
+    if not hi > lo:
+        return None
+    c = np.linspace(lo, hi, INSCRIBED_GRID)
+    r = np.asarray(region.margin(c.astype(complex)), dtype=float)
+    i = int(np.argmax(r))
+    if not r[i] > 0:
+        return None
+    try:
+        return type(disks[0])(float(c[i]), float(r[i]))
+    except InputError:
+        return None
 
 
 def epsilon_output(Ceps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -127,46 +172,47 @@ def epsilon_output(Ceps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def _disk_lmi(A, R, N, disk, margin):
-    import cvxpy as cp
     q0, k0 = A.shape[0], N.shape[1]
     alpha, tau = float(disk.center), float(disk.radius)
     Ab = (A - alpha * np.eye(q0)) / tau
-    X = cp.Variable((q0, q0), symmetric=True)
+    B = sym_basis(q0)  # x = svec X
     if k0:  # one cone: its (1,1) block carries the normalization X ⪰ I
-        XAN = X @ (Ab @ N)
-        Mx = cp.bmat([[X, XAN], [XAN.T, N.T @ X @ N]])
-        cons = [0.5 * (Mx + Mx.T) >> np.diag(np.r_[np.ones(q0), np.full(k0, margin)])]
+        BAN = B @ (Ab @ N)
+        F = np.zeros((B.shape[0], q0 + k0, q0 + k0))
+        F[:, :q0, :q0] = B
+        F[:, :q0, q0:] = BAN
+        F[:, q0:, :q0] = np.swapaxes(BAN, 1, 2)
+        F[:, q0:, q0:] = N.T @ B @ N
+        block = (-np.diag(np.r_[np.ones(q0), np.full(k0, margin)]), F)
     else:
-        cons = [X >> np.eye(q0)]
+        block = (-np.eye(q0), B)
 
-    def gain(Xv):
+    def gain(x):
         # K = τ Ā P Rᵀ (R P Rᵀ)⁻¹ with P = X⁻¹ (module docstring), by Cholesky solves
+        Xv = smat(x, q0)
         Lx = np.linalg.cholesky(Xv)
         PRt = np.linalg.solve(Lx.T, np.linalg.solve(Lx, R.T))  # P Rᵀ
-        return tau * np.linalg.solve(R @ PRt, (Ab @ PRt).T).T if R.size else np.zeros((q0, 0))
+        return Xv, (tau * np.linalg.solve(R @ PRt, (Ab @ PRt).T).T if R.size else np.zeros((q0, 0)))
 
-    return X, cp.trace(X), cons, gain, q0 + k0
+    return ConicLMI(svec(np.eye(q0)), (block,)), gain
 
 
 def _finsler_lmi(A, R, N, region, margin):
-    import cvxpy as cp
     q0, k0 = A.shape[0], N.shape[1]
     parts = region.parts if isinstance(region, Intersection) else (region,)
-    X = cp.Variable((q0, q0), symmetric=True)
-    cons = [X >> np.eye(q0)]
-    sizes = [q0]
+    B = sym_basis(q0)  # x = svec X
+    blocks = [(-np.eye(q0), B)]  # X ⪰ I
     if k0:
         for p in parts:
             m = p.characteristic()[0].shape[0]
             In = np.kron(np.eye(m), N)
-            F = In.T @ region_lmi(p, X, X @ A) @ In
-            cons.append(0.5 * (F + F.T) << -margin * np.eye(m * k0))
-            sizes.append(m * k0)
+            blocks.append((-margin * np.eye(m * k0), -(In.T @ region_lmi_batch(p, B, B @ A) @ In)))
 
-    def gain(Xv):
+    def gain(x):
         # 𝒲 = 𝒲0 + w Rᵀ: 𝒲0 cancels the coupling of the null-space and row-space blocks
         # (exactly for half-planes, up to |sin 2ψ| for a sector) and the row-space block of
         # XA; w from the Schur complement (module docstring)
+        Xv = smat(x, q0)
         XA = Xv @ A
         Pnr, Prn = N.T @ XA @ R.T, R @ XA @ N
         cos2 = np.mean([1.0 if isinstance(p, HalfPlane) else 1.0 - 2.0 * float(p.damping) ** 2 for p in parts])
@@ -183,23 +229,29 @@ def _finsler_lmi(A, R, N, region, margin):
             rstar = float(np.linalg.eigvalsh(0.5 * (S + S.T))[-1]) if S.size else 0.0
             mu = float(np.linalg.eigvalsh(M + M.T)[0])
             w = max(w, (rstar + max(abs(rstar), lam, margin)) / mu)
-        return np.linalg.solve(Xv, W0 + w * R.T)
+        return Xv, np.linalg.solve(Xv, W0 + w * R.T)
 
-    return X, cp.trace(X), cons, gain, sizes
+    return ConicLMI(svec(np.eye(q0)), tuple(blocks)), gain
 
 
 def _full_lmi(A, R, region, margin):
-    import cvxpy as cp
+    # x = (svec X, W row by row); one cone per part (the region's LMI is block diagonal)
     q0, k = A.shape[0], R.shape[0]
-    X = cp.Variable((q0, q0), symmetric=True)
-    W = cp.Variable((q0, k))
-    Mx = region_lmi(region, X, X @ A - W @ R)
-    cons = [X >> np.eye(q0), Mx << -margin * np.eye(Mx.shape[0])]
+    parts = region.parts if isinstance(region, Intersection) else (region,)
+    BX = sym_basis(q0)
+    p, nW = BX.shape[0], q0 * k
+    E = np.eye(nW).reshape(nW, q0, k)  # W's unit matrices
+    blocks = [(-np.eye(q0), np.concatenate([BX, np.zeros((nW, q0, q0))]))]  # X ⪰ I
+    for part in parts:
+        F = np.concatenate([region_lmi_batch(part, BX, BX @ A), region_lmi_batch(part, np.zeros((nW, q0, q0)), -E @ R)])
+        blocks.append((-margin * np.eye(F.shape[1]), -F))
 
-    def gain(Xv):
-        return np.linalg.solve(Xv, value(W))
+    def gain(x):
+        Xv = smat(x[:p], q0)
+        return Xv, np.linalg.solve(Xv, x[p:].reshape(q0, k))
 
-    return X, cp.trace(X) + cp.norm(W, "fro"), cons, gain, Mx.shape[0]
+    c = np.r_[svec(np.eye(q0)), np.zeros(nW)]
+    return ConicLMI(c, tuple(blocks), norm=np.arange(p, p + nW)), gain
 
 
 def epsilon_block_lmi(A, Ceps, region: AbstractRegion, *, margin: float = 1e-3, solver: str = DEFAULT_SOLVER,
@@ -218,32 +270,49 @@ def epsilon_block_lmi(A, Ceps, region: AbstractRegion, *, margin: float = 1e-3, 
     infeasible; `fojax.errors.SolverStoppedShortError` when it stops short or the certificate is
     not finite.
     """
-    from ._region_lmi import solve_with_fallbacks
+    from ._region_lmi import solve_conic_with_fallbacks
     from ._stein import host_stein_certificate
 
     A, Ceps = np.asarray(A, dtype=float), np.asarray(Ceps, dtype=float)
-    R, N, back = epsilon_output(Ceps)
     form = formulation(region)
+    inner_refused = None
+    if form == "inscribed disk":
+        inner = inscribed_disk(region)
+        try:
+            if inner is None:
+                raise LMIInfeasibleError(name, "no disk inside the region", {}, HINT)
+            K, X, info = epsilon_block_lmi(A, Ceps, inner, margin=margin, solver=solver, name=name)
+        except (LMIInfeasibleError, SolverStoppedShortError) as err:  # not a proof: the full form decides
+            inner_refused = f"{type(err).__name__} ({err.status}) for the inscribed disk"
+        else:
+            info.update(formulation=form, inscribed=inner.describe())
+            info["notes"].append(f"eigenvalues placed in the inscribed {inner.describe()}")
+            return K, X, info
+        form = "full"
+    R, N, back = epsilon_output(Ceps)
     if form == "disk":
-        X, obj, cons, gain, size = _disk_lmi(A, R, N, region, margin)
+        prob, gain = _disk_lmi(A, R, N, region, margin)
     elif form == "finsler":
-        X, obj, cons, gain, size = _finsler_lmi(A, R, N, region, margin)
+        prob, gain = _finsler_lmi(A, R, N, region, margin)
     else:
-        X, obj, cons, gain, size = _full_lmi(A, R, region, margin)
+        prob, gain = _full_lmi(A, R, region, margin)
     try:
-        info = solve_with_fallbacks(obj, cons, f"{name} ({form} form)", HINT, solver)
+        x, info = solve_conic_with_fallbacks(prob, f"{name} ({form} form)", HINT, solver)
     except SolverStoppedShortError as err:
         _part_infeasible(A, Ceps, region, margin, solver, name, err)
         raise
-    Xv = value(X)
-    K = gain(0.5 * (Xv + Xv.T)) @ back
+    if not np.all(np.isfinite(x)):
+        raise SolverStoppedShortError(f"{name} ({form} form)", "solution_not_finite", info)
+    Xv, Kr = gain(x)
+    K = Kr @ back
     notes: list = []
     if form == "disk":
         Xv = host_stein_certificate(A - K @ Ceps, float(region.center), float(region.radius), notes=notes)
     if not np.all(np.isfinite(Xv)):
         raise SolverStoppedShortError(f"{name} ({form} form)", "certificate_not_finite", {"notes": notes})
-    sizes = size if isinstance(size, list) else [size]
-    info.update(formulation=form, lmi_size=sizes, notes=notes)
+    if inner_refused:
+        notes.append(inner_refused)
+    info.update(formulation=form, lmi_size=prob.sizes, notes=notes)
     return K, 0.5 * (Xv + Xv.T), info
 
 
@@ -300,9 +369,10 @@ def eliminated_gains(s: FunctionalObserverStructure, region: AbstractRegion, *, 
         info["notes"].append(f"G = {g:.6g}·I; coupling κ = {kappa:.3g} "
                              f"({'J, Y2' if kind == 'generalized' else 'J'})")
     form, sizes = info["formulation"], "+".join(map(str, info["lmi_size"]))
-    how = "gain eliminated" if form in ("disk", "finsler") else "gain kept"
+    how = "gain kept" if form == "full" else "gain eliminated"
+    label = f"disk form for the inscribed {info['inscribed']}" if form == "inscribed disk" else f"{form} form"
     info["route"] = (f"{info['route']}; reduced to the ε-block of order {q0}, {how} "
-                     f"({form} form, cones of size {sizes}; the full LMI's cone is {_full_cone(region, d)})")
+                     f"({label}, cones of size {sizes}; the full LMI's cone is {_full_cone(region, d)})")
     return X, Z, [Y], {"lmi": info}
 
 

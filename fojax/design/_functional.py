@@ -503,9 +503,9 @@ def _design_from_structure(s, region, *, kind, margin, solver, tighten=TIGHTEN, 
     extra = {} if refused is None else {"Riccati route refused": refused[:500]}
     order = s.q0 + (0 if kind == "proportional" else s.q1)
     if s.num_rules == 1 and order > SMALL_ORDER and (kind != "proportional" or formulation(region) != "full"):
-        # the reduced LMI (same feasible set, `fojax.design._eliminated`; for a proportional
-        # observer in a disk intersected with another region it would be the full LMI); the
-        # full LMI only when its solver stopped short or its design failed verification
+        # the reduced LMI (same feasible set, `fojax.design._eliminated`; a proportional
+        # observer's "full" form would be the full LMI); the full LMI only when its solver
+        # stopped short or its design failed verification
         try:
             X, Z, Ys, info = eliminated_gains(s, region.tightened(tighten), kind=kind, margin=margin, solver=solver)
             info["lmi"]["method"] = "lmi"

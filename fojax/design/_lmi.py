@@ -1,4 +1,4 @@
-"""cvxpy on the host: building and solving region LMIs, strictly.
+r"""cvxpy on the host: building and solving region LMIs, strictly.
 
 Only solver status ``optimal`` is accepted. Status ``infeasible`` (a certificate of
 infeasibility) raises `fojax.errors.LMIInfeasibleError`; every other status (``optimal_inaccurate``,
@@ -35,12 +35,24 @@ interruption would become a `SolverStoppedShortError` (or the next attempt), and
 (the ``fojax`` command, a notebook) would never see it. `solve` therefore runs SCS
 through `_scs_solver`, which re-raises the SIGINT in Python (`signal.raise_signal`)
 when SCS was interrupted: Ctrl-C ends the design as it does everywhere else.
+
+**Conic programs built directly.** `ConicLMI` holds an LMI program
+$\min c^\top x + \|x_{\mathcal N}\|_2$ subject to $F_{0j} + \sum_i x_iF_{ij} \succeq 0$ for
+every block $j$, with the affine map's coefficients $F_{ij}$ computed with NumPy (a
+symmetric matrix variable $X$ enters through the orthonormal basis of `sym_basis`, so that
+its coordinates are $\operatorname{svec}X$). `solve_conic` hands it to Clarabel without
+cvxpy: each block is one PSD-triangle cone, $s_j = \operatorname{svec}(F_{0j}) - A_jx$ with
+$A_j = -[\operatorname{svec}F_{1j}, \dots]$ (`svec`: the upper triangle by columns,
+off-diagonal entries scaled by $\sqrt2$ — Clarabel's convention, under which
+$\langle S, T\rangle = \operatorname{svec}S\cdot\operatorname{svec}T$), the norm term
+one second-order cone. The statuses, the retry with `CLARABEL_RETRY` and the errors are
+those of `solve`; `ConicLMI.to_cvxpy` gives the same program to cvxpy (for SCS).
 """
 
 from __future__ import annotations
 
 import warnings
-from typing import TYPE_CHECKING
+from typing import NamedTuple, TYPE_CHECKING
 
 import numpy as np
 
@@ -115,7 +127,6 @@ def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_
 
     Each solver gets a second run with looser settings after ``optimal_inaccurate``
     (`CLARABEL_RETRY`, `SCS_RETRY`; module docstring)."""
-    import cvxpy as cp
     solver = check_solver(solver)
     if solver == "AUTO":
         try:
@@ -134,14 +145,28 @@ def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_
             info["fallback_from"] = {"solver": "CLARABEL", "status": first.status}
             return info
     info: dict = {"solver": solver}
-    status = None
+
+    def run(settings):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            problem.solve(solver=_scs_solver() if solver == "SCS" else solver, **settings)
+        stats = problem.solver_stats
+        return problem.status, getattr(stats, "num_iters", None), getattr(stats, "solve_time", None)
+
     attempts = (SCS_SETTINGS, SCS_RETRY) if solver == "SCS" else (CLARABEL_SETTINGS, CLARABEL_RETRY)
+    return _attempts(run, attempts, name, hint, info, lambda: problem_size(problem))
+
+
+def _attempts(run, attempts, name: str, hint: str, info: dict, size) -> dict:
+    """Run ``run(settings) -> (status, iterations, solve_time)`` with each settings of
+    `attempts` until the status is ``optimal`` (returns `info`) or not ``optimal_inaccurate``
+    (raises, `fojax._errors.solver_failure`); a raised exception counts as ``solver_error``
+    and is retried. ``size()`` describes the problem after a solver error."""
+    status = None
     refused = []
     for settings in attempts:
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                problem.solve(solver=_scs_solver() if solver == "SCS" else solver, **settings)
+            status, iterations, solve_time = run(settings)
         except Exception as e:  # noqa: BLE001 - every solver failure becomes a typed error
             # a numerical breakdown (Clarabel's NumericalError/InsufficientProgress, a
             # cvxpy SolverError) is retried like optimal_inaccurate; so is any other
@@ -151,24 +176,17 @@ def solve(problem: cp.Problem, name: str, hint: str = "", solver: str = DEFAULT_
             info.update(status=status, message=f"{type(e).__name__}: {e}", settings=dict(settings))
             refused.append({"status": status, "settings": dict(settings)})
             continue
-        status = problem.status
         info.pop("message", None)
-        stats = problem.solver_stats
-        info.update(
-            status=status,
-            iterations=getattr(stats, "num_iters", None),
-            solve_time=getattr(stats, "solve_time", None),
-            settings=dict(settings),
-        )
-        if status == cp.OPTIMAL:
+        info.update(status=status, iterations=iterations, solve_time=solve_time, settings=dict(settings))
+        if status == "optimal":
             if refused:
                 info["retried_after"] = refused
             return info
-        if status != cp.OPTIMAL_INACCURATE:
+        if status != "optimal_inaccurate":
             break
         refused.append({"status": status, "settings": dict(settings)})
     if status == "solver_error":
-        info.update(problem_size(problem))
+        info.update(size())
     raise solver_failure(name, str(status), info, hint)
 
 
@@ -214,3 +232,140 @@ def value(x) -> np.ndarray:
     if v is None:
         raise SolverStoppedShortError("value", "no_solution", {})
     return np.asarray(v, dtype=float)
+
+
+# --------------------------------------------------------------------------- direct conic programs
+
+
+def svec(S: np.ndarray) -> np.ndarray:
+    """``(..., m, m)`` → ``(..., m(m+1)/2)``: the upper triangle by columns, off-diagonal
+    entries times √2 (Clarabel's PSD-triangle convention); `S` is symmetrized first."""
+    S = np.asarray(S, dtype=float)
+    r, c = np.tril_indices(S.shape[-1])  # (row i = c ≤ column j = r), by columns
+    w = np.where(r == c, 1.0, np.sqrt(2.0))
+    return 0.5 * (S[..., c, r] + S[..., r, c]) * w
+
+
+def sym_basis(q: int) -> np.ndarray:
+    """``(q(q+1)/2, q, q)``: the symmetric matrices ``B_i`` with ``svec(Σ x_i B_i) = x``."""
+    r, c = np.tril_indices(q)
+    B = np.zeros((r.size, q, q))
+    k = np.arange(r.size)
+    v = np.where(r == c, 1.0, np.sqrt(0.5))
+    B[k, c, r] = v
+    B[k, r, c] = v
+    return B
+
+
+def smat(x: np.ndarray, q: int) -> np.ndarray:
+    """The inverse of `svec` for one symmetric ``q × q`` matrix."""
+    return np.tensordot(np.asarray(x, dtype=float), sym_basis(q), axes=1)
+
+
+def kron_batch(L: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``kron(L, X_k)`` for every ``X_k`` of a batch ``(p, q, q)``."""
+    p, q = X.shape[0], X.shape[-1]
+    m = L.shape[0]
+    return np.einsum("ab,pij->paibj", L, X).reshape(p, m * q, m * q)
+
+
+def region_lmi_batch(region: AbstractRegion, X: np.ndarray, Phi: np.ndarray) -> np.ndarray:
+    """`region_lmi` for batches ``X, Φ`` of shape ``(p, q, q)`` in NumPy: the coefficients of
+    an LMI linear in its variables."""
+    L, M = region.characteristic()
+    out = kron_batch(L, X) + kron_batch(M, np.swapaxes(Phi, -1, -2)) + kron_batch(M.T, Phi)
+    return 0.5 * (out + np.swapaxes(out, -1, -2))
+
+
+class ConicLMI(NamedTuple):
+    r"""``min c·x + ‖x[norm]‖₂`` subject to ``F0 + Σ_i x_i F[i] ⪰ 0`` for every block
+    ``(F0, F)`` (``F0`` of shape ``(m, m)``, ``F`` of shape ``(len(x), m, m)``, symmetric).
+    ``norm=None``: no norm term."""
+
+    c: np.ndarray
+    blocks: tuple
+    norm: np.ndarray | None = None
+
+    def feasibility(self) -> ConicLMI:
+        """The same constraints with the objective 0."""
+        return ConicLMI(np.zeros_like(self.c), self.blocks)
+
+    @property
+    def sizes(self) -> list[int]:
+        return [F0.shape[0] for F0, _ in self.blocks]
+
+    def to_cvxpy(self):
+        """``(x, objective, constraints)`` of the same program in cvxpy."""
+        import cvxpy as cp
+        x = cp.Variable(self.c.size)
+        cons = []
+        for F0, F in self.blocks:
+            m = F0.shape[0]
+            M = cp.reshape(F.reshape(F.shape[0], m * m).T @ x, (m, m), order="C") + F0
+            cons.append(0.5 * (M + M.T) >> 0)
+        obj = self.c @ x + (cp.norm(x[self.norm], 2) if self.norm is not None else 0)
+        return x, obj, cons
+
+
+#: Added to the settings of a direct Clarabel solve: one thread (the LMIs are small; a second
+#: thread costs more CPU than it saves time).
+CLARABEL_DIRECT = dict(max_threads=1)
+#: cvxpy's reading of Clarabel's statuses (cvxpy.reductions.solvers.conic_solvers.clarabel_conif)
+CLARABEL_STATUS = {"Solved": "optimal", "AlmostSolved": "optimal_inaccurate", "PrimalInfeasible": "infeasible",
+                   "AlmostPrimalInfeasible": "infeasible_inaccurate", "DualInfeasible": "unbounded",
+                   "AlmostDualInfeasible": "unbounded_inaccurate", "MaxIterations": "user_limit",
+                   "MaxTime": "user_limit"}
+
+
+def clarabel_data(prob: ConicLMI):
+    """``(P, q, A, b, cones)`` of `prob` for ``clarabel.DefaultSolver`` (variables ``x``, then
+    the norm's bound ``t`` if any)."""
+    import clarabel
+    import scipy.sparse as sp
+    p = prob.c.size
+    nt = 0 if prob.norm is None else 1
+    rows, rhs, cones = [], [], []
+    if nt:  # (t, x[norm]) in the second-order cone
+        idx = np.asarray(prob.norm).ravel()
+        soc = np.zeros((1 + idx.size, p + 1))
+        soc[0, p] = -1.0
+        soc[np.arange(1, 1 + idx.size), idx] = -1.0
+        rows.append(sp.csc_array(soc))
+        rhs.append(np.zeros(1 + idx.size))
+        cones.append(clarabel.SecondOrderConeT(1 + idx.size))
+    for F0, F in prob.blocks:
+        cols = svec(F).T  # (m(m+1)/2, p)
+        rows.append(sp.csc_array(np.hstack([-cols, np.zeros((cols.shape[0], nt))])))
+        rhs.append(svec(F0))
+        cones.append(clarabel.PSDTriangleConeT(F0.shape[0]))
+    A = sp.vstack(rows, format="csc")
+    A.eliminate_zeros()
+    q = np.concatenate([prob.c, np.ones(nt)])
+    P = sp.csc_array((p + nt, p + nt))
+    return P, q, A, np.concatenate(rhs), cones
+
+
+def solve_conic(prob: ConicLMI, name: str, hint: str = "") -> tuple[np.ndarray, dict]:
+    """Solve `prob` with Clarabel, directly; ``(x, info)`` like `solve` (same statuses, retry
+    and errors)."""
+    import clarabel
+    data = clarabel_data(prob)
+    info: dict = {"solver": "CLARABEL", "interface": "direct"}
+    out: dict = {}
+
+    def run(settings):
+        opts = clarabel.DefaultSettings()
+        opts.verbose = False
+        for k, v in {**settings, **CLARABEL_DIRECT}.items():
+            setattr(opts, k, v)
+        sol = clarabel.DefaultSolver(*data, opts).solve()
+        if str(sol.status) not in CLARABEL_STATUS:  # NumericalError, InsufficientProgress: retried
+            raise RuntimeError(f"Clarabel stopped with status {sol.status}")
+        status = CLARABEL_STATUS[str(sol.status)]
+        out["x"] = np.asarray(sol.x, dtype=float)[:prob.c.size]
+        return status, sol.iterations, sol.solve_time
+
+    _attempts(run, (CLARABEL_SETTINGS, CLARABEL_RETRY), name, hint, info, lambda: {
+        "variables": int(prob.c.size), "constraints": int(data[2].shape[0]),
+        "data_magnitude": float(max(np.abs(data[2].data).max(initial=0.0), np.abs(data[3]).max(initial=0.0)))})
+    return out["x"], info

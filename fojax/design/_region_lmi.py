@@ -39,7 +39,16 @@ from .._errors import combined_failure, LMI_FAILURES
 from .._linalg import row_space
 from . import _ladder
 from ._conditions import unobservable_modes
-from ._lmi import check_solver, DEFAULT_SOLVER, describe_route, region_lmi, solve, value
+from ._lmi import (
+    check_solver,
+    ConicLMI,
+    DEFAULT_SOLVER,
+    describe_route,
+    region_lmi,
+    solve,
+    solve_conic,
+    value,
+)
 from ._parameterization import FunctionalObserverStructure, pieces
 from ._regions import AbstractRegion
 
@@ -230,10 +239,43 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
     produced it. ``info["route"]`` says which one did (also shown in the design's report).
     """
     import cvxpy as cp
-    solvers = ("CLARABEL", "SCS") if check_solver(solver) == "AUTO" else (solver,)
-    rungs = [((sv, o), (lambda sv=sv, o=o: solve(cp.Problem(cp.Minimize(obj if o == "min-gain" else 0), cons),
-                                                        name, hint=hint, solver=sv)))
-             for sv in solvers for o in OBJECTIVES]
+
+    def rung(sv, o):
+        return lambda: solve(cp.Problem(cp.Minimize(obj if o == "min-gain" else 0), cons), name, hint=hint, solver=sv)
+
+    return _climb(rung, name, hint, solver)
+
+
+def solve_conic_with_fallbacks(prob: ConicLMI, name: str, hint: str, solver: str) -> tuple[np.ndarray, dict]:
+    """`solve_with_fallbacks` for a `fojax.design._lmi.ConicLMI`: the same ladder, with the
+    Clarabel rungs solving the conic program directly (`fojax.design._lmi.solve_conic`: no
+    cvxpy canonicalisation) and the SCS rungs through cvxpy (`ConicLMI.to_cvxpy`, built once,
+    when first needed). Returns ``(x, info)``."""
+    built: dict = {}
+
+    def rung(sv, o):
+        p = prob if o == "min-gain" else prob.feasibility()
+        if sv == "CLARABEL":
+            return lambda: solve_conic(p, name, hint)
+
+        def via_cvxpy():
+            import cvxpy as cp
+            if "x" not in built:
+                built["x"], built["obj"], built["cons"] = prob.to_cvxpy()
+            obj = built["obj"] if o == "min-gain" else 0
+            info = solve(cp.Problem(cp.Minimize(obj), built["cons"]), name, hint=hint, solver=sv)
+            return value(built["x"]), info
+        return via_cvxpy
+
+    info = _climb(rung, name, hint, solver)
+    return info.pop("x"), info
+
+
+def _climb(rung, name: str, hint: str, solver: str) -> dict:
+    """The ladder of `solve_with_fallbacks`: ``rung(solver, objective)`` makes the thunk of
+    one rung (returning ``info``, or ``(x, info)``: then ``info["x"] = x``)."""
+    solvers = ("CLARABEL", "SCS") if check_solver(solver) == "AUTO" else (check_solver(solver),)
+    rungs = [((sv, o), rung(sv, o)) for sv in solvers for o in OBJECTIVES]
 
     def status(label, err):
         why = f": {err.info['message']}" if err.info.get("message") else ""
@@ -244,6 +286,9 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
     except _ladder.Refused as every:
         raise combined_failure(name, "; ".join(status(lb, e) for lb, e in every.refused),
                                [e for _, e in every.refused], {lb[0]: e.info for lb, e in every.refused}, hint) from None
+    if isinstance(info, tuple):
+        x, info = info
+        info["x"] = x
     statuses = [status(lb, e) for lb, e in refused]
     info["objective"] = o
     if statuses:
