@@ -614,8 +614,11 @@ def test_output_coordinates_path_matches_scipy(batch_result):
     Tx = np.vstack([np.eye(3), -A[3:, :3] / A[3, 3]])  # x = Tx x_d (hand index partition)
     out_map = scipy.linalg.block_diag(Tx, np.eye(2))  # (6, 5): joint state from [x_d; xi]
     MX = np.hstack([np.eye(4), np.zeros((4, 2))])  # x and the error ξ − [x1; x2] on [x; ξ]
-    ind, Nc = _output_basis(np.vstack([MX, np.hstack([-C0[:2], np.eye(2)])]) @ out_map)
-    assert len(ind) == 5 and Nc.shape == (0, 5)  # 5 independent outputs span the 5 states
+    basis = _output_basis(np.vstack([MX, np.hstack([-C0[:2], np.eye(2)])]) @ out_map)
+    assert len(basis.ind) == 5 and basis.Nc.shape == (0, 5)  # 5 independent outputs span the 5 states
+    # S = [G_ind; Nc]: its leading coordinates are the outputs themselves
+    np.testing.assert_allclose(basis.S0[:5], basis.G0[list(basis.ind)], rtol=1e-15, atol=0)
+    np.testing.assert_allclose(basis.S0 @ basis.S0inv, np.eye(5), atol=1e-12)
     for name, (L, observed) in BATCH_SIGNALS.items():
         (_, basis, _), _ = exact_problem(study(delta, x0, L), (OBSERVER,) if observed else (), 0.05, 0)
         if name != "xi":  # ξ alone: 2 rows on 5 states, an orthonormal complement of 3 rows

@@ -15,6 +15,7 @@ trapezoid rule), to 1e-10 relative.
 import sys
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -281,20 +282,46 @@ def test_iae_only_accumulates_one_sum_and_still_flags_a_blown_up_sample():
 
 
 def test_loop_413_blocks_sized_for_the_cache_do_not_change_the_metrics(monkeypatch):
-    # The batch-last kernel sizes its blocks so that one block's Φ (8 N² b bytes) stays in
-    # cache (`_batch.block_for`, N < MULTISTEP_MIN_N): 128 samples at the loop's N = 7
-    # instead of 256. Oracles: the workload's own NumPy metrics (`peers.expm_reference`), and
-    # the same study in one block of all 160 samples (the former sizing), bit for bit: each
-    # sample's arithmetic does not depend on the block it is stepped in.
-    assert _batch.block_for(7, _batch.DEFAULT_BLOCK) == 128 and 8 * 7 * 7 * 128 <= _batch.STEP_BLOCK_BYTES
-    assert _batch.block_for(5, _batch.DEFAULT_BLOCK) == _batch.DEFAULT_BLOCK  # tiny loops: unchanged
+    # The batch-last kernel sizes its blocks so that one block's Φ and state
+    # (8 b (N² + 2N) bytes) stay in the L1 cache (`_batch.block_for`, N < MULTISTEP_MIN_N):
+    # 64 samples at the loop's N = 7 instead of 256. Oracles: the workload's own NumPy
+    # metrics (`peers.expm_reference`), and the same study in one block of all 160 samples,
+    # bit for bit: each sample's arithmetic does not depend on the block it is stepped in.
+    assert _batch.block_for(7, _batch.DEFAULT_BLOCK) == 64 and 8 * 64 * (49 + 14) <= _batch.LOOP_BLOCK_BYTES
+    assert _batch.block_for(3, _batch.DEFAULT_BLOCK) == _batch.DEFAULT_BLOCK  # tiny loops: unchanged
     batch = wl.make_workload(160, seed=11)
     st = ws.of_workload(batch)
     save = fojax.Metrics(kinds="iae", bands=None)
 
-    small = S.run_study(st, devices=ONE, save=save, quiet=True)  # blocks of 128 and 32
-    monkeypatch.setattr(_batch, "STEP_BLOCK_BYTES", 2**30)
+    small = S.run_study(st, devices=ONE, save=save, quiet=True)  # blocks of 64, 64 and 32
+    monkeypatch.setattr(_batch, "LOOP_BLOCK_BYTES", 2**30)
     assert _batch.block_for(7, _batch.DEFAULT_BLOCK) == _batch.DEFAULT_BLOCK
     one = S.run_study(st, devices=ONE, save=save, quiet=True)  # one block of 160
     np.testing.assert_array_equal(small.metrics["iae"], one.metrics["iae"])
     np.testing.assert_allclose(ws.two_metrics(small), peers.expm_reference(batch), rtol=1e-10)
+
+
+def test_loop_413_shared_and_per_sample_output_coordinates_agree(monkeypatch):
+    # The §4.1.3 uncertainty leaves the algebraic equation and the output rows alone, so every
+    # sample has the first sample's metric map G0 bit for bit, and the kernel takes the host's
+    # output transform S0, S0⁻¹ for the whole block (`_batch.OutputBasis`). Forcing the
+    # per-sample branch (a G0 no sample has) must give the same metrics; both are checked
+    # against the workload's own NumPy oracle (`peers.expm_reference`).
+    batch = wl.make_workload(40, seed=5)
+    st = ws.of_workload(batch)
+    save = fojax.Metrics(kinds="iae", bands=None)
+    shared = S.run_study(st, devices=ONE, save=save, quiet=True)
+    real = _batch._output_basis
+
+    def never_shared(G0):
+        basis = real(G0)
+        return eqx.tree_at(lambda b: b.G0, basis, basis.G0 + 1.0)
+
+    from fojax.studies import _exact
+
+    monkeypatch.setattr(_exact, "_output_basis", never_shared)
+    per_sample = S.run_study(st, devices=ONE, save=save, quiet=True)
+    assert np.all(shared.metrics["success"]) and np.all(per_sample.metrics["success"])
+    np.testing.assert_allclose(per_sample.metrics["iae"], shared.metrics["iae"], rtol=1e-12)
+    for res in (shared, per_sample):
+        np.testing.assert_allclose(ws.two_metrics(res), peers.expm_reference(batch), rtol=1e-10)

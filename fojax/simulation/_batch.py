@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jaxtyping import Array
 
 from .._small_linalg import solve_small
 from ._expm import (
@@ -65,13 +66,28 @@ DEFAULT_BLOCK = 256
 OUTPUT_BASIS_MAX_COND = 1e8
 
 
-def _output_basis(G0: np.ndarray):
-    """Host: ``(ind, Nc)`` for the output-coordinate transform, or ``None``.
+class OutputBasis(eqx.Module):
+    """The output coordinates of the batch kernel (`_output_basis`, host): ``w' = S w``
+    with ``S = [G_ind; Nc]``, whose first ``ρ = len(ind)`` entries are the independent
+    metric outputs ``G_ind w`` themselves (`_block_kernel`)."""
 
-    ``ind`` (a tuple) selects ``ρ`` linearly independent rows of the metric map ``G0``
-    (pivoted QR of the row-normalised ``G0``); ``Nc`` ``(N − ρ, N)`` is an orthonormal
-    basis of the complement of their span, so ``S = [D G_ind; Nc]`` is invertible and
-    well conditioned. ``None`` when ``S`` would be ill-conditioned (``cond₁ > 1e4``)."""
+    #: rows of the metric map ``G`` that are linearly independent (``ρ`` of them)
+    ind: tuple[int, ...] = eqx.field(static=True)
+    #: ``(N − ρ, N)`` orthonormal basis of the complement of their span
+    Nc: Array
+    #: ``(K, N)`` the metric map of the first sample, and its ``S``, ``S⁻¹`` (float64, host)
+    G0: Array
+    S0: Array
+    S0inv: Array
+
+
+def _output_basis(G0: np.ndarray) -> OutputBasis | None:
+    """Host: the `OutputBasis` of the metric map ``G0`` (the first sample's), or ``None``.
+
+    ``ind`` selects ``ρ`` linearly independent rows of ``G0`` (pivoted QR of the
+    row-normalised ``G0``); ``Nc`` ``(N − ρ, N)`` is an orthonormal basis of the complement
+    of their span, so ``S = [D⁻¹ G_ind; Nc]`` (``D`` the rows' norms) is invertible and
+    well conditioned. ``None`` when it would be ill-conditioned (``cond₁ > 1e4``)."""
     import scipy.linalg
 
     K, N = G0.shape
@@ -88,7 +104,22 @@ def _output_basis(G0: np.ndarray):
     S0 = np.concatenate([Gs[list(ind)], Nc], axis=0)
     if np.linalg.cond(S0, 1) > 1e4:
         return None
-    return ind, Nc
+    scale = np.concatenate([nrm[list(ind), 0], np.ones(N - rho)])
+    S0inv = np.linalg.inv(S0) / scale[None, :]
+    return OutputBasis(ind, Nc, np.asarray(G0, dtype=float), S0 * scale[:, None], S0inv)
+
+
+def _output_transform(basis: OutputBasis, G):
+    """``(S, S⁻¹, ok)`` of one sample's metric map ``G`` ``(K, N)``: ``S = [G_ind; Nc]``,
+    inverted from its row-normalised form (well scaled), ``ok`` false when that form has
+    ``cond₁ > OUTPUT_BASIS_MAX_COND``."""
+    Gi = G[jnp.array(basis.ind)]
+    d = jnp.linalg.norm(Gi, axis=1)
+    S = jnp.concatenate([Gi / d[:, None], basis.Nc], axis=0)
+    Sinv = solve_small(S, jnp.eye(S.shape[0], dtype=S.dtype))
+    cond = jnp.max(jnp.sum(jnp.abs(S), axis=0)) * jnp.max(jnp.sum(jnp.abs(Sinv), axis=0))
+    scale = jnp.concatenate([d, jnp.ones((basis.Nc.shape[0],), d.dtype)])
+    return S * scale[:, None], Sinv / scale[None, :], cond <= OUTPUT_BASIS_MAX_COND
 
 
 def repeat_groups(a, reps: int, axis: int):
@@ -126,12 +157,18 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     r"""One block of samples (leading axis ``b`` of every leaf of ``p``): the problem's
     reduction, batch last.
 
-    With ``basis = (ind, Nc)`` (from `_output_basis` on the host), each sample's slow
-    state is expressed in the coordinates ``w' = S w``, ``S = [D G_ind; Nc]``, whose first
-    ``ρ`` entries are the (row-scaled) independent metric outputs; the other outputs are
+    With a `basis` (`OutputBasis`, from `_output_basis` on the host), each sample's slow
+    state is expressed in the coordinates ``w' = S w``, ``S = [G_ind; Nc]``, whose first
+    ``ρ`` entries are the independent metric outputs themselves; the other outputs are
     ``(G_dep S⁻¹) w'``. A step is then one ``N × N`` product plus ``(K − ρ) × N`` for the
-    dependent outputs, instead of ``N × N + K × N``. A sample whose ``S`` has
-    ``cond₁ > OUTPUT_BASIS_MAX_COND`` is flagged (``ok`` false).
+    dependent outputs, instead of ``N × N + K × N``. ``S⁻¹`` is computed from the
+    row-normalised ``[D⁻¹ G_ind; Nc]`` and scaled back; a sample whose normalised matrix
+    has ``cond₁ > OUTPUT_BASIS_MAX_COND`` is flagged (``ok`` false). When every sample of
+    the block has the first sample's metric map ``G0`` (bit for bit: e.g. an uncertainty
+    that leaves the algebraic equations and the outputs alone), the host's ``S`` and
+    ``S⁻¹`` of ``G0`` serve the whole block (no per-sample inversion). The outputs reach the
+    problem's reduction in the order ``[independent; dependent]`` (a reduction treats
+    each output row on its own) and its metrics are put back in the problem's order.
 
     Jumps of the exogenous state at ``t_j`` (between grid points ``t_{k-1} < t_j ≤ t_k``)
     enter exactly: ``w_k = Φ w_{k-1} + e^{\mathcal A (t_k - t_j)} Δw_j``.
@@ -172,24 +209,6 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     matvec = (lambda M, v: jnp.einsum("ijb,jb->ib", M, v)) if differentiable else matvec_last  # noqa: E731
     T = ts.shape[0]
 
-    def per_sample(pk):
-        Aj, w0, G, ok, jumps = problem.joint(pk)
-        K = G.shape[0]
-        if basis is None:
-            return Aj, w0, G, jnp.ones((K,), Aj.dtype), ok, jumps, None
-        ind, Nc = basis
-        dep = tuple(i for i in range(K) if i not in ind)
-        Gi = G[jnp.array(ind)]
-        d = jnp.linalg.norm(Gi, axis=1)
-        S = jnp.concatenate([Gi / d[:, None], Nc], axis=0)
-        Sinv = solve_small(S, jnp.eye(S.shape[0], dtype=S.dtype))
-        cond = jnp.max(jnp.sum(jnp.abs(S), axis=0)) * jnp.max(jnp.sum(jnp.abs(Sinv), axis=0))
-        ok = ok & (cond <= OUTPUT_BASIS_MAX_COND)
-        Gd = G[jnp.array(dep, dtype=int)] @ Sinv if dep else jnp.zeros((0, S.shape[0]), S.dtype)
-        if jumps is not None:
-            jumps = (jumps[0], jumps[1] @ S.T)
-        return Aj, S @ w0, Gd, d, ok, jumps, (S, Sinv)
-
     reps = 1
     if groups is not None:
         if basis is not None:
@@ -197,23 +216,41 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         p_rep, reps = groups
         # the representatives' matrices and validity; the samples' initial states and
         # jumps (their joint matrices are unused: removed as dead code)
-        Aj, _, G, scale, ok, _, sim = jax.vmap(per_sample)(p_rep)
-        _, w0, _, _, _, jumps, _ = jax.vmap(per_sample)(p)
+        Aj, _, G, ok, _ = jax.vmap(problem.joint)(p_rep)
+        _, w0, _, _, jumps = jax.vmap(problem.joint)(p)
         ok = jnp.repeat(ok, reps)  # not differentiated
     else:
-        Aj, w0, G, scale, ok, jumps, sim = jax.vmap(per_sample)(p)  # (b,N,N), (b,N), (b,·,N), (b,·), (b,)
+        Aj, w0, G, ok, jumps = jax.vmap(problem.joint)(p)  # (b,N,N), (b,N), (b,K,N), (b,)
+    sim = None
+    if basis is not None:
+        # the transform of the first sample when every sample of the block has its metric
+        # map (bit for bit), else each sample's own
+        b, N = G.shape[0], G.shape[2]
+
+        def shared(G):
+            return (jnp.broadcast_to(basis.S0, (b, N, N)), jnp.broadcast_to(basis.S0inv, (b, N, N)),
+                    jnp.ones((b,), bool))
+
+        S, Sinv, good = lax.cond(jnp.all(G == basis.G0[None]), shared,
+                                 jax.vmap(lambda g: _output_transform(basis, g)), G)
+        ok = ok & good
+        dep = [i for i in range(G.shape[1]) if i not in basis.ind]
+        G = jnp.einsum("bkn,bnm->bkm", G[:, np.array(dep, dtype=int)], Sinv)  # the dependent outputs' rows
+        w0 = jnp.einsum("bnm,bm->bn", S, w0)
+        if jumps is not None:
+            jumps = (jumps[0], jnp.einsum("bjm,bnm->bjn", jumps[1], S))
+        sim = (S, Sinv)
     Aj = jnp.moveaxis(Aj, 0, -1)  # (N, N, b), or (N, N, b / reps)
     if sim is not None:
         # the joint matrix in the output coordinates, S A S⁻¹, as two batch-last products
         # (`mm_last`: faster than batched dots under `jax.vmap` for these small matrices)
         Aj = mm_last(mm_last(jnp.moveaxis(sim[0], 0, -1), Aj), jnp.moveaxis(sim[1], 0, -1))
-    K = scale.shape[1] if basis is None else len(basis[0]) + G.shape[1]
+    K = G.shape[1] if basis is None else len(basis.ind) + G.shape[1]
     Phi = expm(h * Aj)  # (N, N, b), or (N, N, b / reps)
     grouped_loop = reps > 1 and time_loop is not None and not problem.keep
     if reps > 1 and not grouped_loop:  # the generic loop: every sample's own copy
         Phi, G = repeat_groups(Phi, reps, -1), repeat_groups(G, reps, 0)  # G: (b / reps, K, N) here
     G = jnp.moveaxis(G, 0, -1)  # (K or K-ρ, N, b)
-    scale = scale.T
     w0 = w0.T  # (N, b)
     if jumps is not None:
         jt, dW = jumps  # (b, J), (b, J, N)
@@ -228,20 +265,31 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         jv = jnp.moveaxis(jv.reshape(jv.shape[0], b_, J), 2, 0)  # (J, N, b)
         jv = jnp.where(valid.T[:, None, :], jv, 0.0)
         kon = jnp.where(valid, kon, -1).T  # (J, b)
+    # with a basis the outputs are computed in the order [independent rows; dependent rows]
+    # and reach the reduction so (its rows are independent of each other); the metrics and
+    # the kept outputs are put back in the problem's order at the end
+    order = None
     if basis is not None:
-        ind = basis[0]
+        ind = basis.ind
         dep = tuple(i for i in range(K) if i not in ind)
         order = np.argsort(np.array(ind + dep))  # o = concat([o_ind, o_dep])[order]
+        if np.array_equal(order, np.arange(K)):
+            order = None
 
     def outputs(w):
         if basis is None:
             return matvec(G, w)
-        o = w[: len(ind)] * scale
-        if dep:
-            o = jnp.concatenate([o, matvec(G, w)], axis=0)
-        if np.array_equal(order, np.arange(K)):
-            return o
-        return jnp.concatenate([o[i : i + 1] for i in order], axis=0)  # static permutation, no gather
+        o = w[: len(ind)]
+        return jnp.concatenate([o, matvec(G, w)], axis=0) if dep else o
+
+    def reorder(out):  # (metrics (·, K, b), ok) [, kept (T_c, K, b)] in the problem's order
+        if order is None:
+            return out
+        if problem.keep:
+            (mets, ok), traj = out
+            return (mets[:, order], ok), traj[:, order]
+        mets, ok = out
+        return mets[:, order], ok
 
     def step(carry, k):
         w, acc = carry
@@ -279,7 +327,7 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     out = problem.final(acc, o0, outputs(w_end), ts, h, ok)
     if stride:
         out = (out, jnp.concatenate([o0[None], traj], axis=0))  # (T_c, K, b), T_c = ceil(T / stride)
-    return out
+    return reorder(out)
 
 
 #: Grid steps per pass of `_multistep_block` (rounded up to a multiple of the bands' stride).
@@ -302,26 +350,30 @@ TRIANGULAR_MIN_N = 32
 BLOCK_BYTES = 2**21
 
 
-#: Bytes of one block's ``Φ`` (``8 N² b``) that `block_for` aims at below
-#: ``MULTISTEP_MIN_N`` (the batch-last time loop reads all of ``Φ`` at every step): about
-#: twice the L1 data cache of one core (32 KiB): larger blocks leave the cache, smaller
-#: ones pay the set-up's per-block cost more often. ``N ≤ 5`` keeps 256 (smaller blocks
-#: are not faster there).
+#: Bytes of one block's ``Φ`` (``8 N² b``) that `block_for` aims at from ``MULTISTEP_MIN_N``
+#: up to ``TRIANGULAR_MIN_N`` (`_multistep_last`, whose stacked output rows are a few times
+#: ``Φ``): about twice the L1 data cache of one core.
 STEP_BLOCK_BYTES = 2**16
+
+
+#: Bytes of one block's ``Φ`` and state (``8 b (N² + 2N)``) that `block_for` keeps within
+#: below ``MULTISTEP_MIN_N``, where the batch-last time loop reads all of ``Φ`` at every step:
+#: most of a 48 KiB L1 data cache (the block sweep: ``benchmarks/loop_block.py``).
+LOOP_BLOCK_BYTES = 40 * 2**10
 
 
 def block_for(N: int | None, block: int) -> int:
     """The block size for joint size ``N``: `block`, capped so that a block's ``Φ^m``
     takes at most ``BLOCK_BYTES`` (at least 4 samples) when ``N ≥ TRIANGULAR_MIN_N``
     (`_multistep_block`), so that ``Φ`` takes at most ``STEP_BLOCK_BYTES`` (at least 4
-    samples) from ``MULTISTEP_MIN_N`` up to it (`_multistep_last`, whose stacked output
-    rows are a few times ``Φ``), and below ``MULTISTEP_MIN_N`` so that ``Φ`` takes at most
-    ``STEP_BLOCK_BYTES`` (a power of two, at least 64 samples). ``N ≤ 5``: 256; 6 … 8:
-    128; 9: 64; 10: 81; 22: 16; 31: 8; 64: 64; 128: 16; 256: 4."""
+    samples) from ``MULTISTEP_MIN_N`` up to it (`_multistep_last`), and below
+    ``MULTISTEP_MIN_N`` so that ``Φ`` and the state take at most ``LOOP_BLOCK_BYTES`` (a
+    power of two, at least 64 samples). ``N ≤ 3``: 256; 4, 5: 128; 6 … 9: 64; 10: 81;
+    22: 16; 31: 8; 64: 64; 128: 16; 256: 4."""
     if N is None or N < 1:
         return block
     if N < MULTISTEP_MIN_N:
-        fit = STEP_BLOCK_BYTES // (8 * N * N)
+        fit = LOOP_BLOCK_BYTES // (8 * (N * N + 2 * N))
         return max(1, min(block, max(64, 1 << max(0, fit.bit_length() - 1))))
     if N < TRIANGULAR_MIN_N:
         return max(1, min(block, max(4, STEP_BLOCK_BYTES // (8 * N * N))))

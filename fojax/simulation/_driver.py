@@ -18,6 +18,8 @@ exact study problems of `fojax.studies._exact`, the exponential integrator's
 
 from __future__ import annotations
 
+import os
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -36,6 +38,22 @@ from ._steppers import grid_deviation, grid_deviation_traced, UNIFORM_GRID_RTOL
 
 #: Default number of samples per compiled call (discretised together).
 DEFAULT_CHUNK = 4096
+
+
+#: The XLA option of the chunk programs: vectors of 512 bits where the CPU has them
+#: (AVX-512). XLA:CPU prefers 256-bit vectors by default; the batch-last time loops are
+#: elementwise over the block and gain from the wider vectors on a CPU with full-width
+#: AVX-512 units (``benchmarks/loop_block.py`` measures both). Without AVX-512 the option
+#: changes nothing. Left out when ``XLA_FLAGS`` sets the width (the user's choice wins).
+VECTOR_WIDTH_OPTION = "xla_cpu_prefer_vector_width"
+
+
+def kernel_compiler_options(environ=None) -> dict:
+    """The XLA compiler options of the batch kernels' programs (`VECTOR_WIDTH_OPTION`)."""
+    environ = os.environ if environ is None else environ
+    if VECTOR_WIDTH_OPTION in environ.get("XLA_FLAGS", ""):
+        return {}
+    return {VECTOR_WIDTH_OPTION: 512}
 
 
 def _device_kernel(problem, p, nvalid, h, ts, basis, dev):
@@ -62,7 +80,7 @@ def _device_kernel(problem, p, nvalid, h, ts, basis, dev):
     return lax.fori_loop(0, nvalid[dev], body, out)
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=kernel_compiler_options())
 def _chunk_core(problem, p, nreal, h, ts, block, basis, mesh):
     """One chunk of ``bc`` samples (leading axis of every leaf of ``p``), of which the
     first ``nreal`` are real.
@@ -170,10 +188,10 @@ def run_batched(problem: AbstractBatchProblem, p, ts, *, chunk_size: int, block:
     bc = -(-int(chunk_size) // unit) * unit
     n_chunks = -(-Bn // bc)
     pad = n_chunks * bc - Bn
+    # host (NumPy) leaves are padded and sliced on the host, the chunks transferred by the call
+    xp = np if all(isinstance(a, np.ndarray) for a in jax.tree.leaves(p)) else jnp
     if pad:
-        p = jax.tree.map(
-            lambda a: jnp.concatenate([a, jnp.repeat(lax.slice_in_dim(a, Bn - 1, Bn), pad, axis=0)], axis=0), p
-        )
+        p = jax.tree.map(lambda a: xp.concatenate([a, xp.repeat(a[Bn - 1 : Bn], pad, axis=0)], axis=0), p)
     layout = dict(chunk_size=bc, num_chunks=n_chunks, num_devices=D, block=block)
     outs, result, pending = [], None, None
 
@@ -187,12 +205,12 @@ def run_batched(problem: AbstractBatchProblem, p, ts, *, chunk_size: int, block:
             dst[..., i * bc : i * bc + nv] = src[..., :nv]
 
     for i in tqdm(range(n_chunks), disable=not progress or compile_only, desc="study", unit="chunk"):
-        pc = jax.tree.map(lambda a, i=i: lax.slice_in_dim(a, i * bc, (i + 1) * bc), p)
+        pc = jax.tree.map(lambda a, i=i: a[i * bc : (i + 1) * bc], p)
         nv = min(Bn - i * bc, bc)
         if compile_only:  # one program for every chunk (the last one is padded)
-            _chunk_core.lower(problem, pc, jnp.asarray(nv), h, ts, block, basis, mesh).compile()
+            _chunk_core.lower(problem, pc, np.asarray(nv), h, ts, block, basis, mesh).compile()
             return None, layout
-        o = _chunk_core(problem, pc, jnp.asarray(nv), h, ts, block, basis, mesh)
+        o = _chunk_core(problem, pc, np.asarray(nv), h, ts, block, basis, mesh)
         if host:
             if pending is not None:
                 store(*pending)

@@ -113,7 +113,7 @@ class AbstractBatchProblem(eqx.Module):
         batch axis; from a cached shape evaluation of `joint`), which sets the block width
         of the exact kernel (`fojax.simulation._batch.block_for`); ``None`` for a problem
         with its own stepping."""
-        return eval_shape_cached(_joint_of, self, jax.tree.map(lambda a: a[0], p))[0].shape[0]
+        return eval_shape_cached(_joint_of, self, jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), p))[0].shape[0]
 
     def block_kernel(self, p, h, ts, basis):
         """One block of samples (leading axis ``b`` of every leaf of ``p``) on the grid ``ts``

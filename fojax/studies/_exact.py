@@ -357,18 +357,17 @@ def exact_problem(study, observers, settle_tol: float, keep: int, kinds: tuple[s
     # every sample must share E (one SVD split for all): checked on the host
     iu = np.arange(study.num_samples) // study.num_scenarios
     jf = np.arange(study.num_samples) % study.num_scenarios
-    E0, A0, same_E, split = _sample_data(study, jnp.asarray(iu), jnp.asarray(jf))
+    E0, A0, same_E, split = _sample_data(study, iu, jf)
     if not bool(same_E):
         return None, "E differs between samples"
     E0 = np.asarray(E0)
     check_index1_host(E0, np.asarray(A0), jacobian_name="A")
     r = int(np.sum(np.asarray(split.slow)))
-    problem = StudyProblem(study, tuple(observers), split, jnp.asarray(E0), jnp.asarray(float(settle_tol)), r,
-                           int(keep), tuple(kinds))
-    G0, _ = _first_joint(problem, (jnp.asarray(0), jnp.asarray(0)))
+    problem = StudyProblem(study, tuple(observers), split, E0, np.asarray(float(settle_tol)), r, int(keep),
+                           tuple(kinds))
+    G0, _ = _first_joint(problem, (np.asarray(0), np.asarray(0)))
     basis = _output_basis(np.asarray(G0))
-    basis = None if basis is None else (basis[0], jnp.asarray(basis[1]))
-    return (problem, basis, (jnp.asarray(iu), jnp.asarray(jf))), None
+    return (problem, basis, (iu, jf)), None
 
 
 class LossProblem(AbstractBatchProblem):
