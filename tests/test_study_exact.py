@@ -676,3 +676,14 @@ def test_forward_kernel_graph_does_not_grow_with_n():
 
     assert count(TRIANGULAR_MIN_N, 0) == count(40, 0)
     assert count(TRIANGULAR_MIN_N, 3) == count(40, 3)
+
+
+def test_kernel_compiler_options_leave_a_vector_width_in_xla_flags_alone():
+    # private: the driver's compile options are tested themselves. Oracle: the rule itself
+    # (512-bit vectors preferred unless XLA_FLAGS already sets the width).
+    from fojax.simulation._driver import kernel_compiler_options
+
+    assert kernel_compiler_options({}) == {"xla_cpu_prefer_vector_width": 512}
+    assert kernel_compiler_options({"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}) == {
+        "xla_cpu_prefer_vector_width": 512}
+    assert kernel_compiler_options({"XLA_FLAGS": "--xla_cpu_prefer_vector_width=256"}) == {}

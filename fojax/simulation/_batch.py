@@ -81,13 +81,28 @@ class OutputBasis(eqx.Module):
     S0inv: Array
 
 
+#: `_output_basis`'s results by the bytes of ``G0`` (cleared when it holds 64).
+_BASIS_CACHE: dict = {}
+
+
 def _output_basis(G0: np.ndarray) -> OutputBasis | None:
     """Host: the `OutputBasis` of the metric map ``G0`` (the first sample's), or ``None``.
 
     ``ind`` selects ``ρ`` linearly independent rows of ``G0`` (pivoted QR of the
     row-normalised ``G0``); ``Nc`` ``(N − ρ, N)`` is an orthonormal basis of the complement
     of their span, so ``S = [D⁻¹ G_ind; Nc]`` (``D`` the rows' norms) is invertible and
-    well conditioned. ``None`` when it would be ill-conditioned (``cond₁ > 1e4``)."""
+    well conditioned. ``None`` when it would be ill-conditioned (``cond₁ > 1e4``). A
+    function of the numbers of ``G0``: repeated studies of one loop reuse it."""
+    G0 = np.asarray(G0, dtype=float)
+    key = (G0.shape, G0.tobytes())
+    if key not in _BASIS_CACHE:
+        if len(_BASIS_CACHE) >= 64:
+            _BASIS_CACHE.clear()
+        _BASIS_CACHE[key] = _compute_output_basis(G0)
+    return _BASIS_CACHE[key]
+
+
+def _compute_output_basis(G0: np.ndarray) -> OutputBasis | None:
     import scipy.linalg
 
     K, N = G0.shape
@@ -102,11 +117,11 @@ def _output_basis(G0: np.ndarray) -> OutputBasis | None:
     _, _, Vt = np.linalg.svd(Gs[list(ind)])
     Nc = Vt[rho:]
     S0 = np.concatenate([Gs[list(ind)], Nc], axis=0)
-    if np.linalg.cond(S0, 1) > 1e4:
+    inv = np.linalg.inv(S0)
+    if np.linalg.norm(S0, 1) * np.linalg.norm(inv, 1) > 1e4:  # cond₁
         return None
     scale = np.concatenate([nrm[list(ind), 0], np.ones(N - rho)])
-    S0inv = np.linalg.inv(S0) / scale[None, :]
-    return OutputBasis(ind, Nc, np.asarray(G0, dtype=float), S0 * scale[:, None], S0inv)
+    return OutputBasis(ind, Nc, G0, S0 * scale[:, None], inv / scale[None, :])
 
 
 def _output_transform(basis: OutputBasis, G):

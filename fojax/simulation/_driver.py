@@ -240,7 +240,7 @@ def _step_size(ts, who: str = "run_study"):
                 f"(max |ts_k − (t0 + k h)| / h = {dev:.2e} > {UNIFORM_GRID_RTOL:.0e}, h = {h:g}). "
                 "Use ts = jnp.linspace(t0, t1, T)."
             )
-        return T, jnp.asarray(h, dtype=ts.dtype), ts
+        return T, np.asarray(h, dtype=ts.dtype), ts
     dev, h = grid_deviation_traced(ts)
     h = eqx.error_if(
         h,
