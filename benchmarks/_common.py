@@ -445,6 +445,15 @@ def emit_worker_result(result: dict) -> None:
     print(WORKER_MARK + json.dumps(result, default=_json_default), flush=True)
 
 
+def served_as_worker(args, worker) -> bool:
+    """With ``--worker JSON`` on the command line (a child of `run_worker`): run
+    ``worker(spec)`` and print its result (`emit_worker_result`); returns whether it did."""
+    if not getattr(args, "worker", None):
+        return False
+    emit_worker_result(worker(json.loads(args.worker)))
+    return True
+
+
 def run_worker(script: Path, spec: dict, timeout: float) -> dict:
     """Run ``python script --worker JSON`` in a fresh process; return the dict it emitted.
 

@@ -157,8 +157,7 @@ def main(argv=None) -> int:
                          "into results/<--name>_latest instead of measuring")
     ap.add_argument("--stopped", nargs="*", default=[], help="with --merge: 'key=reason' stops to record")
     args = ap.parse_args(argv)
-    if args.worker:
-        _common.emit_worker_result(worker(json.loads(args.worker)))
+    if _common.served_as_worker(args, worker):
         return 0
     if args.merge:
         runs = [json.loads(Path(f).read_text()) for f in args.merge]

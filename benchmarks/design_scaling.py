@@ -56,7 +56,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import json
 import sys
 import time
 import traceback
@@ -261,8 +260,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=DEFAULT_SEED)
     ap.add_argument("--out", type=Path, default=_common.RESULTS)
     args = ap.parse_args(argv)
-    if args.worker:
-        _common.emit_worker_result(worker(json.loads(args.worker)))
+    if _common.served_as_worker(args, worker):
         return 0
 
     info = _common.machine_info()

@@ -24,7 +24,6 @@ the width `block_for` picks. Results: ``results/loop_block_latest.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -119,8 +118,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--out", type=Path, default=_common.RESULTS)
     args = ap.parse_args(argv)
-    if args.worker:
-        _common.emit_worker_result(worker(json.loads(args.worker)))
+    if _common.served_as_worker(args, worker):
         return 0
     info = _common.machine_info()
     rows = []

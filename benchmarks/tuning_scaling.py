@@ -34,7 +34,6 @@ Examples::
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
 import sys
@@ -157,8 +156,7 @@ def main(argv=None) -> int:
     ap.add_argument("--hard-timeout", type=float, default=1800.0, help="kill one B's process after this many s")
     ap.add_argument("--out", type=Path, default=_common.RESULTS)
     args = ap.parse_args(argv)
-    if args.worker:
-        _common.emit_worker_result(worker(json.loads(args.worker)))
+    if _common.served_as_worker(args, worker):
         return 0
     if args.extra_steps < 1:
         ap.error("--extra-steps must be at least 1")

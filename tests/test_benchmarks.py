@@ -561,3 +561,22 @@ def test_fojax_tv_matches_tight_reference(tv3, tv_reference3):
     frozen = wl.make_tv_workload(3, seed=7)
     object.__setattr__(frozen, "amplitude", np.zeros(3))
     assert np.max(np.abs(np.asarray(time_varying.run_fojax(frozen, substeps=3)) - m) / m) > 1e-3
+
+
+def test_served_as_worker_runs_the_worker_and_prints_its_result(capsys):
+    # The child side of `_common.run_worker` (oracle: the marker line `run_worker` parses).
+    import argparse
+
+    import _common
+
+    calls = []
+
+    def worker(spec):
+        calls.append(spec)
+        return {"status": "complete", "n": spec["n"] + 1}
+
+    assert not _common.served_as_worker(argparse.Namespace(worker=None), worker) and not calls
+    assert _common.served_as_worker(argparse.Namespace(worker=json.dumps({"n": 41})), worker)
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.startswith(_common.WORKER_MARK)
+    assert json.loads(last[len(_common.WORKER_MARK):]) == {"status": "complete", "n": 42} and calls == [{"n": 41}]

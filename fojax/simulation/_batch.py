@@ -423,18 +423,6 @@ def _output_rows(Phi, G, m: int, row_mm=block_row_mm, mm=block_mm, axis: int = 1
     return R, Pm
 
 
-def _update_block(problem, acc, O, ks, ts):
-    """The problem's reduction over ``m`` consecutive outputs ``O`` ``(b, K, m)`` (batch
-    first, steps last: the layout of the batched product, 1.5-1.7x faster than reducing a
-    transposed ``(K, m, b)``) at grid indices ``ks`` ``(m,)``: its `update_block` when it
-    has one, else `update` per step."""
-    if hasattr(problem, "update_block"):
-        return problem.update_block(acc, O, ks, ts)
-    for j in range(O.shape[2]):
-        acc = problem.update(acc, O[:, :, j].T, ks[j], ts)
-    return acc
-
-
 def _multistep_block(problem, p, h, ts):
     r"""The forward time loop of `_block_kernel` for problems without jumps: ``m`` grid
     steps per pass from precomputed powers, batch first.
@@ -461,7 +449,7 @@ def _multistep_block(problem, p, h, ts):
     Aj, w0, G, ok, _ = jax.vmap(problem.joint)(p)  # (b,N,N), (b,N), (b,K,N), (b,)
     b, K = G.shape[0], G.shape[1]
     o0 = jnp.einsum("bkn,bn->kb", G, w0)
-    order = problem.plant_first(Aj.shape[1]) if hasattr(problem, "plant_first") and Aj.shape[1] >= TRIANGULAR_MIN_N else None
+    order = problem.plant_first(Aj.shape[1]) if Aj.shape[1] >= TRIANGULAR_MIN_N else None
     if order is None:
         hA, G, w = (h * Aj,), (G,), (w0,)
     else:  # [plant; observers]: block lower-triangular, the zero block never multiplied
@@ -483,7 +471,7 @@ def _multistep_block(problem, p, h, ts):
     def body(carry, q):
         w, acc, _ = carry
         O = outputs(w)
-        acc = _update_block(problem, acc, O, 1 + q * m + jnp.arange(m), ts)
+        acc = problem.update_block(acc, O, 1 + q * m + jnp.arange(m), ts)
         w = block_mv(Pm, w)
         # the kept outputs turned batch-last here, on the pass's few columns in cache:
         # the stacked (n_pass, len(kept), K, b) is then the bands' layout as it is
@@ -495,7 +483,7 @@ def _multistep_block(problem, p, h, ts):
         parts.append(traj.reshape((-1,) + o0.shape))  # (n_pass · len(kept), K, b)
     if rest:
         O = outputs(w)[:, :, :rest]
-        acc = _update_block(problem, acc, O, 1 + n_pass * m + jnp.arange(rest), ts)
+        acc = problem.update_block(acc, O, 1 + n_pass * m + jnp.arange(rest), ts)
         o_end = O[:, :, -1].T
         if stride and np.any(kept < rest):
             parts.append(jnp.transpose(O[:, :, kept[kept < rest]], (2, 1, 0)))
