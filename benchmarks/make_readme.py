@@ -728,7 +728,7 @@ float64 verification; `agreement` in the JSON lists this per (n, kind).
 ```bash
 python benchmarks/lmi_formulation.py             # n = 24, 36, 48; three kinds; five regions
 python benchmarks/lmi_formulation.py --dims 24 36   # the shipped run
-python benchmarks/lmi_formulation.py --dims 48 --kinds PI proportional --name lmi_formulation_n48
+python benchmarks/lmi_formulation.py --dims 48 --name lmi_formulation_n48
 ```
 
 On the `half` shape of `design_routes.py` (q0 = n // 2, R by fojax's default), the region LMI
@@ -736,8 +736,9 @@ of one structure solved in the two formulations of the LMI route: the full Chila
 LMI of the error dynamics (`fojax/design/_region_lmi.py`, certificate of order q0 + q1, the
 gains as variables) and the reduced one that `method="lmi"` uses above observer order 12
 (`fojax/design/_eliminated.py`: the ε-block's certificate, the gain eliminated for disks,
-half-planes, sectors and their intersections, a disk intersected with another region solved
-in its inscribed disk first; built with NumPy and solved by Clarabel without cvxpy). Both
+half-planes, sectors and their intersections and then reduced by one step of the
+observability staircase, a disk intersected with another region solved in its inscribed disk
+first; built with NumPy and solved by Clarabel without cvxpy). Both
 designs go through the same float64 verification. Reported per formulation: process CPU
 time, cvxpy's canonicalisation and the solver's time (wall), scalar variables, the largest
 gain entry, verification; the speed-up is the ratio of CPU times.

@@ -72,6 +72,19 @@ def _null_basis(M, tol: float | None, side: int) -> np.ndarray:
     return U[:, k:].T.copy() if side == 0 else Vt[k:].T.copy()
 
 
+def row_null_split(M, tol: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(R, N, U, s)`` from one full SVD and the rank rule: orthonormal rows `R` spanning the
+    row space of `M` (as `row_space`), orthonormal columns `N` spanning its null space (as
+    `null_space`), and ``M = U diag(s) R``."""
+    M = np.asarray(M, dtype=float)
+    r, c = M.shape
+    if M.size == 0:
+        return np.zeros((0, c)), np.eye(c), np.zeros((r, 0)), np.zeros(0)
+    U, s, Vt = np.linalg.svd(M, full_matrices=True)
+    k = int(np.sum(s > _threshold(s, tol)))
+    return Vt[:k].copy(), Vt[k:].T.copy(), U[:, :k].copy(), s[:k].copy()
+
+
 def row_space(M, tol: float | None = None) -> np.ndarray:
     """Orthonormal rows spanning the row space of `M` (``(k, c)``)."""
     M = np.asarray(M, dtype=float)

@@ -313,3 +313,19 @@ def test_stopped_short_falls_back_to_the_full_lmi(monkeypatch):
     d = design_functional_observer(sysm, L, kind="generalized", region=HalfPlane(1.0), method="lmi")
     assert "optimal_inaccurate" in d.report.extra["eliminated LMI refused"]
     assert_design(d, sysm, L, HalfPlane(1.0))
+
+
+@pytest.mark.parametrize("name", list(REGIONS))
+def test_output_seeing_every_direction_needs_no_lmi(name):
+    """C of rank n (no null space left, step 3): no LMI is solved, X = I for the eliminated
+    forms; eigenvalues (SciPy) inside the region and the region LMI at X by hand."""
+    rng = np.random.default_rng(11)
+    A = rng.standard_normal((5, 5)) + np.eye(5)
+    C = rng.standard_normal((6, 5))
+    region = REGIONS[name].tightened(0.05)
+    K, X, info = epsilon_block_lmi(A, C, region)
+    if info["formulation"] in ("finsler", "disk", "inscribed disk"):
+        assert info["lmi_size"] == [] and info["solver"] is None
+    Acl = A - K @ C
+    assert np.all(inside(region, sla.eigvals(Acl)) > 0)
+    assert np.linalg.eigvalsh(X).min() > 0 and region_lmi_by_hand(region, X, Acl) < 0

@@ -152,3 +152,19 @@ def test_fixed_mode_outside_the_region_is_infeasible(region):
     assert np.linalg.matrix_rank(np.vstack([0.5 * np.eye(5) - A, C])) < 5
     with pytest.raises(fojax.errors.LMIInfeasibleError):
         epsilon_block_lmi(A, C, region)
+
+
+def test_row_null_split_is_one_svd_of_both_spaces():
+    """`_linalg.row_null_split` against SciPy's `orth`/`null_space` (same subspaces, compared
+    by projectors) and the factorization M = U diag(s) R, on a rank-deficient matrix."""
+    import scipy.linalg as sla
+
+    from fojax._linalg import row_null_split  # private: the helper of the ε-block's reduction
+    rng = np.random.default_rng(5)
+    M = rng.standard_normal((5, 3)) @ rng.standard_normal((3, 7))  # rank 3
+    R, N, U, s = row_null_split(M)
+    assert R.shape == (3, 7) and N.shape == (7, 4)
+    assert np.allclose(np.vstack([R, N.T]) @ np.vstack([R, N.T]).T, np.eye(7))
+    assert np.allclose(R.T @ R, sla.orth(M.T) @ sla.orth(M.T).T)
+    assert np.allclose(N @ N.T, sla.null_space(M) @ sla.null_space(M).T)
+    assert np.allclose(U * s @ R, M)

@@ -4,7 +4,7 @@ certificate alone (generalized, PI and proportional observers; every region).
 `fojax.design._region_lmi.solve_gains` solves the Chilali–Gahinet LMI of the whole error
 dynamics $\mathbb A = \mathbb A_1(Z) - \mathbb Y\mathbb A_2$ (order $d = q_0 + q_1$) in
 $(X, W = X_1Z, \mathcal W = X\mathbb Y)$. `eliminated_gains` solves a smaller LMI with the
-same feasible set, in two exact reductions, and recovers the gains from its solution in closed
+same feasible set, in three exact reductions, and recovers the gains from its solution in closed
 form.
 
 **1. The integral block.** With $Z$, $Y_1$ given, $\mathbb A = \begin{bmatrix}A_\varepsilon & J\\
@@ -78,6 +78,30 @@ condition $L\otimes X + M\otimes\Phi^\top + M^\top\otimes\Phi \prec 0$ is solved
   $\varepsilon$-block's Chilali–Gahinet LMI in $(X, \mathcal W)$, one cone of size $m_jq_0$ per
   part $j$ (the region's LMI is block diagonal), $K_r = X^{-1}\mathcal W$.
 
+**3. One step of the observability staircase.** In the orthonormal basis $Q = [N\;R^\top]$
+write $Q^\top XQ = \begin{bmatrix}X_{nn} & X_{nr}\\ X_{nr}^\top & X_{rr}\end{bmatrix}$,
+$a = N^\top AN$, $b = RAN$ (so $AN = Na + R^\top b$). The LMIs of step 2 leave $X_{rr}$ to
+$X \succ 0$, which holds iff $X_{nn} \succ 0$ and $X_{rr} \succ X_{nr}^\top X_{nn}^{-1}X_{nr}$:
+
+- *Finsler:* $N^\top XN = X_{nn}$ and $N^\top XAN = X_{nn}a + X_{nr}b$, so each part's LMI is
+  $L_j\otimes X_{nn} + M_j\otimes\Phi^\top + M_j^\top\otimes\Phi \prec 0$ with
+  $\Phi = X_{nn}a + X_{nr}b$: the Chilali–Gahinet LMI of the output-injection problem
+  $(a, -b)$ of order $k_0$, with $X_{nr}$ as its gain variable. Every solution of step 2 gives
+  one, and $X_{rr} = X_{nr}^\top X_{nn}^{-1}X_{nr} + I$ completes every solution.
+- *Disk* ($a, b$ of $\bar A$): by a Schur complement the cone of step 2 is $X \succ 0$ and
+  $X_{nn} - [a; b]^\top Q^\top XQ[a; b] \succ 0$. With $X_{rr} \succeq
+  X_{nr}^\top X_{nn}^{-1}X_{nr}$, $[a; b]^\top Q^\top XQ[a; b] \succeq \Psi^\top X_{nn}^{-1}\Psi$,
+  $\Psi = X_{nn}a + X_{nr}b$, with equality in the limit: step 2's LMI has a solution iff
+  $\begin{bmatrix}X_{nn} & \Psi\\ \Psi^\top & X_{nn}\end{bmatrix} \succ 0$ has one (the unit
+  disk's LMI of $(a, -b)$), and $X_{rr} = X_{nr}^\top X_{nn}^{-1}X_{nr} + \delta I$, with
+  $\delta\|b\|^2$ half the smallest eigenvalue of $X_{nn} - \Psi^\top X_{nn}^{-1}\Psi$,
+  completes a solution.
+
+Both are solved with $X_{nn} \succeq I$ and the objective $\operatorname{tr}X_{nn} +
+\|X_{nr}\|_F$ (unbounded on unbounded parts of the feasible set, so the optimum is attained);
+the gain then comes from the completed $X$ as in step 2. When $R$ has rank $q_0$ ($k_0 = 0$)
+no constraint is left and $X = I$.
+
 **Integral block and coupling.** $G = gI$ with $g$ the real part of the $\varepsilon$-block's
 eigenvalue deepest in the region (inside: the regions are convex and symmetric about the real
 axis), certificate $\operatorname{diag}(X_\varepsilon, I)$. A generalized
@@ -94,8 +118,9 @@ solved by Clarabel directly, without cvxpy's canonicalisation; the ladder's SCS 
 the same program through cvxpy (`fojax.design._region_lmi.solve_conic_with_fallbacks`).
 
 Costs: the full LMI has $d(d+1)/2 + d(k + q_1)$ scalar variables and a cone of size $md$; the
-disk's eliminated LMI $q_0(q_0+1)/2$ variables and one cone of size $q_0 + k_0$. Every design is
-verified in float64 by the caller (`fojax.design.verify`), whichever formulation produced it.
+reduced ones $k_0(k_0+1)/2 + k_0k$ variables and cones of sizes $k_0$ and $m_jk_0$ (disk:
+$2k_0$). Every design is verified in float64 by the caller (`fojax.design.verify`), whichever
+formulation produced it.
 """
 
 from __future__ import annotations
@@ -103,7 +128,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._errors import InputError, LMIInfeasibleError, SolverStoppedShortError
-from ._lmi import ConicLMI, DEFAULT_SOLVER, region_lmi_batch, smat, svec, sym_basis
+from ._lmi import check_solver, ConicLMI, DEFAULT_SOLVER, region_lmi_batch, smat, svec, sym_basis
 from ._parameterization import FunctionalObserverStructure, pieces
 from ._regions import AbstractRegion, Disk, HalfPlane, Intersection, Sector
 
@@ -159,70 +184,111 @@ def epsilon_output(Ceps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     r"""``(R, N, back)`` of the thin SVD $C_\varepsilon = U_kS_kR$: orthonormal rows `R` of the
     row space, an orthonormal basis `N` of the null space, and ``back`` $= S_k^{-1}U_k^\top$
     ($K = K_r\,$``back``). The rank rule is `fojax._linalg`'s."""
-    from .._linalg import null_space, row_space
+    from .._linalg import row_null_split
 
-    q0 = Ceps.shape[1]
-    if Ceps.size == 0:
-        return np.zeros((0, q0)), np.eye(q0), np.zeros((0, Ceps.shape[0]))
-    R = row_space(Ceps)
-    N = null_space(Ceps)
-    G = Ceps @ R.T  # = U_k S_k up to round-off; full column rank k
-    back = np.linalg.pinv(G)
-    return R, N, back
+    R, N, U, sv = row_null_split(Ceps)
+    return R, N, (U / sv).T
 
 
-def _disk_lmi(A, R, N, disk, margin):
+def _staircase(A, R, N):
+    """``(a, b) = (NᵀAN, RAN)``: ``AN`` in the basis ``Q = [N, Rᵀ]`` (module docstring, step 3)."""
+    return N.T @ A @ N, R @ A @ N
+
+
+def _lift(Xnn, Xnr, Xrr, N, R):
+    """``X = Q [[Xnn, Xnr], [Xnrᵀ, Xrr]] Qᵀ`` with ``Q = [N, Rᵀ]``."""
+    X = N @ Xnn @ N.T + N @ Xnr @ R + R.T @ Xnr.T @ N.T + R.T @ Xrr @ R
+    return 0.5 * (X + X.T)
+
+
+def _next_level(N, R, region_parts, a, b, margin):
+    """The LMI of the next level (step 3): gain kept for ``(a, -b)`` in `region_parts`, the
+    variables ``(X_nn, X_nr)``; ``None`` when the null space of `R` is trivial."""
+    if N.shape[1] == 0:
+        return None
+    return _gain_kept(a, -b, region_parts, margin)
+
+
+def _disk_lmi(A, R, N, disk, margin, staircase=True):
     q0, k0 = A.shape[0], N.shape[1]
     alpha, tau = float(disk.center), float(disk.radius)
     Ab = (A - alpha * np.eye(q0)) / tau
-    B = sym_basis(q0)  # x = svec X
-    if k0:  # one cone: its (1,1) block carries the normalization X ⪰ I
+    if staircase:
+        a, b = _staircase(Ab, R, N)
+        unit = (-np.eye(2), np.array([[0.0, 1.0], [0.0, 0.0]]))  # the unit disk's (L, M)
+        level = _next_level(N, R, [unit], a, b, margin)
+        prob = None if level is None else level[0]
+    else:  # step 2: one cone, its (1,1) block carries the normalization X ⪰ I
+        B = sym_basis(q0)  # x = svec X
         BAN = B @ (Ab @ N)
         F = np.zeros((B.shape[0], q0 + k0, q0 + k0))
         F[:, :q0, :q0] = B
         F[:, :q0, q0:] = BAN
         F[:, q0:, :q0] = np.swapaxes(BAN, 1, 2)
         F[:, q0:, q0:] = N.T @ B @ N
-        block = (-np.diag(np.r_[np.ones(q0), np.full(k0, margin)]), F)
-    else:
-        block = (-np.eye(q0), B)
+        prob = ConicLMI(svec(np.eye(q0)), ((-np.diag(np.r_[np.ones(q0), np.full(k0, margin)]), F),))
 
     def gain(x):
+        if not staircase:
+            Xv = smat(x, q0)
+        elif level is None:
+            Xv = np.eye(q0)
+        else:
+            Xnn, Xnr = level[1](x)
+            # X_rr = X_rn X_nn⁻¹ X_nr + δI, δ half the room the Schur complement leaves
+            XinvXnr = np.linalg.solve(Xnn, Xnr)
+            Psi = Xnn @ a + Xnr @ b
+            S = Xnn - Psi.T @ np.linalg.solve(Xnn, Psi)
+            nb = float(np.linalg.norm(b, 2)) ** 2 if b.size else 0.0
+            room = float(np.linalg.eigvalsh(0.5 * (S + S.T))[0])
+            delta = 0.5 * room / nb if nb > 0 and room > 0 else 1.0
+            Xv = _lift(Xnn, Xnr, Xnr.T @ XinvXnr + delta * np.eye(R.shape[0]), N, R)
         # K = τ Ā P Rᵀ (R P Rᵀ)⁻¹ with P = X⁻¹ (module docstring), by Cholesky solves
-        Xv = smat(x, q0)
         Lx = np.linalg.cholesky(Xv)
         PRt = np.linalg.solve(Lx.T, np.linalg.solve(Lx, R.T))  # P Rᵀ
         return Xv, (tau * np.linalg.solve(R @ PRt, (Ab @ PRt).T).T if R.size else np.zeros((q0, 0)))
 
-    return ConicLMI(svec(np.eye(q0)), (block,)), gain
+    return prob, gain
 
 
-def _finsler_lmi(A, R, N, region, margin):
+def _finsler_lmi(A, R, N, region, margin, staircase=True):
     q0, k0 = A.shape[0], N.shape[1]
     parts = region.parts if isinstance(region, Intersection) else (region,)
-    B = sym_basis(q0)  # x = svec X
-    blocks = [(-np.eye(q0), B)]  # X ⪰ I
-    if k0:
-        for p in parts:
-            m = p.characteristic()[0].shape[0]
-            In = np.kron(np.eye(m), N)
-            blocks.append((-margin * np.eye(m * k0), -(In.T @ region_lmi_batch(p, B, B @ A) @ In)))
+    chars = [p.characteristic() for p in parts]
+    if staircase:
+        a, b = _staircase(A, R, N)
+        level = _next_level(N, R, chars, a, b, margin)
+        prob = None if level is None else level[0]
+    else:  # step 2: X ⪰ I and each part's LMI on the null space of R
+        B = sym_basis(q0)  # x = svec X
+        blocks = [(-np.eye(q0), B)]
+        for L, M in chars:
+            In = np.kron(np.eye(L.shape[0]), N)
+            blocks.append((-margin * np.eye(L.shape[0] * k0), -(In.T @ region_lmi_batch(L, M, B, B @ A) @ In)))
+        prob = ConicLMI(svec(np.eye(q0)), tuple(blocks))
 
     def gain(x):
+        if not staircase:
+            Xv = smat(x, q0)
+        elif level is None:
+            Xv = np.eye(q0)
+        else:
+            Xnn, Xnr = level[1](x)  # X_rr = X_rn X_nn⁻¹ X_nr + I: X ≻ 0, the parts' LMIs need no more
+            Xv = _lift(Xnn, Xnr, Xnr.T @ np.linalg.solve(Xnn, Xnr) + np.eye(R.shape[0]), N, R)
         # 𝒲 = 𝒲0 + w Rᵀ: 𝒲0 cancels the coupling of the null-space and row-space blocks
         # (exactly for half-planes, up to |sin 2ψ| for a sector) and the row-space block of
         # XA; w from the Schur complement (module docstring)
-        Xv = smat(x, q0)
         XA = Xv @ A
         Pnr, Prn = N.T @ XA @ R.T, R @ XA @ N
         cos2 = np.mean([1.0 if isinstance(p, HalfPlane) else 1.0 - 2.0 * float(p.damping) ** 2 for p in parts])
         W0 = N @ (Pnr + cos2 * Prn.T) + R.T @ (R @ XA @ R.T)
         w = 0.0
-        for p in parts:
-            L, M = p.characteristic()
+        for L, M in chars:
             m = L.shape[0]
-            F = p.lmi_matrix(Xv, XA - W0 @ R)
-            In, Ir = np.kron(np.eye(m), N), np.kron(np.eye(m), R.T)
+            Phi = XA - W0 @ R
+            F = np.kron(L, Xv) + np.kron(M, Phi.T) + np.kron(M.T, Phi)
+            F = 0.5 * (F + F.T)
+            In, Ir = (N, R.T) if m == 1 else (np.kron(np.eye(m), N), np.kron(np.eye(m), R.T))
             Fnn, Fnr, Frr = In.T @ F @ In, In.T @ F @ Ir, Ir.T @ F @ Ir
             lam = -float(np.linalg.eigvalsh(Fnn)[-1]) if k0 else margin
             S = Frr - Fnr.T @ np.linalg.solve(Fnn, Fnr) if k0 else Frr
@@ -231,27 +297,39 @@ def _finsler_lmi(A, R, N, region, margin):
             w = max(w, (rstar + max(abs(rstar), lam, margin)) / mu)
         return Xv, np.linalg.solve(Xv, W0 + w * R.T)
 
-    return ConicLMI(svec(np.eye(q0)), tuple(blocks)), gain
+    return prob, gain
+
+
+def _gain_kept(A, R, parts, margin):
+    """The Chilali–Gahinet LMI of ``A - KR`` in ``(X, 𝒲 = XK)`` for the characteristic
+    matrices ``parts = [(L, M), …]``, one cone per part, ``X ⪰ I``, objective
+    ``tr X + ‖𝒲‖_F``: ``(ConicLMI, unpack)`` with ``unpack(x) = (X, 𝒲)``.
+    Coordinates ``x = (svec X, 𝒲 row by row)``."""
+    q0, k = A.shape[0], R.shape[0]
+    BX = sym_basis(q0)
+    p, nW = BX.shape[0], q0 * k
+    E = np.eye(nW).reshape(nW, q0, k)  # 𝒲's unit matrices
+    blocks = [(-np.eye(q0), np.concatenate([BX, np.zeros((nW, q0, q0))]))]  # X ⪰ I
+    for L, M in parts:
+        F = np.concatenate([region_lmi_batch(L, M, BX, BX @ A), region_lmi_batch(L, M, np.zeros((nW, q0, q0)), -E @ R)])
+        blocks.append((-margin * np.eye(F.shape[1]), -F))
+
+    def unpack(x):
+        return smat(x[:p], q0), x[p:].reshape(q0, k)
+
+    c = np.r_[svec(np.eye(q0)), np.zeros(nW)]
+    return ConicLMI(c, tuple(blocks), norm=np.arange(p, p + nW) if nW else None), unpack
 
 
 def _full_lmi(A, R, region, margin):
-    # x = (svec X, W row by row); one cone per part (the region's LMI is block diagonal)
-    q0, k = A.shape[0], R.shape[0]
     parts = region.parts if isinstance(region, Intersection) else (region,)
-    BX = sym_basis(q0)
-    p, nW = BX.shape[0], q0 * k
-    E = np.eye(nW).reshape(nW, q0, k)  # W's unit matrices
-    blocks = [(-np.eye(q0), np.concatenate([BX, np.zeros((nW, q0, q0))]))]  # X ⪰ I
-    for part in parts:
-        F = np.concatenate([region_lmi_batch(part, BX, BX @ A), region_lmi_batch(part, np.zeros((nW, q0, q0)), -E @ R)])
-        blocks.append((-margin * np.eye(F.shape[1]), -F))
+    prob, unpack = _gain_kept(A, R, [p.characteristic() for p in parts], margin)
 
     def gain(x):
-        Xv = smat(x[:p], q0)
-        return Xv, np.linalg.solve(Xv, x[p:].reshape(q0, k))
+        Xv, W = unpack(x)
+        return Xv, np.linalg.solve(Xv, W)
 
-    c = np.r_[svec(np.eye(q0)), np.zeros(nW)]
-    return ConicLMI(c, tuple(blocks), norm=np.arange(p, p + nW)), gain
+    return prob, gain
 
 
 def epsilon_block_lmi(A, Ceps, region: AbstractRegion, *, margin: float = 1e-3, solver: str = DEFAULT_SOLVER,
@@ -290,30 +368,60 @@ def epsilon_block_lmi(A, Ceps, region: AbstractRegion, *, margin: float = 1e-3, 
             return K, X, info
         form = "full"
     R, N, back = epsilon_output(Ceps)
-    if form == "disk":
-        prob, gain = _disk_lmi(A, R, N, region, margin)
-    elif form == "finsler":
-        prob, gain = _finsler_lmi(A, R, N, region, margin)
-    else:
-        prob, gain = _full_lmi(A, R, region, margin)
-    try:
-        x, info = solve_conic_with_fallbacks(prob, f"{name} ({form} form)", HINT, solver)
-    except SolverStoppedShortError as err:
-        _part_infeasible(A, Ceps, region, margin, solver, name, err)
-        raise
-    if not np.all(np.isfinite(x)):
-        raise SolverStoppedShortError(f"{name} ({form} form)", "solution_not_finite", info)
-    Xv, Kr = gain(x)
-    K = Kr @ back
+    # step 3 first (min-gain, Clarabel alone under "auto"); step 2 when its solver stops short
+    # or its design fails the float64 check (same feasible set: an infeasibility certificate
+    # of step 3 is final)
+    tries = (True, False) if form in ("disk", "finsler") else (None,)
     notes: list = []
+    for staircase in tries:
+        if form == "disk":
+            prob, gain = _disk_lmi(A, R, N, region, margin, staircase)
+        elif form == "finsler":
+            prob, gain = _finsler_lmi(A, R, N, region, margin, staircase)
+        else:
+            prob, gain = _full_lmi(A, R, region, margin)
+        if prob is None:  # R has full rank: no constraint is left, X = I (module docstring, step 3)
+            x, info = np.zeros(0), {"solver": None, "status": "optimal", "route": "no LMI left (ker R = 0): X = I"}
+        else:
+            first = bool(staircase)
+            try:
+                x, info = solve_conic_with_fallbacks(
+                    prob, f"{name} ({form} form{', staircase' if first else ''})", HINT,
+                    "CLARABEL" if first and check_solver(solver) == "AUTO" else solver,
+                    objectives=("min-gain",) if first else None)
+            except SolverStoppedShortError as err:
+                if first:
+                    notes.append(f"staircase form: {err.status}; step 2 form solved")
+                    continue
+                _part_infeasible(A, Ceps, region, margin, solver, name, err)
+                raise
+        if not np.all(np.isfinite(x)):
+            raise SolverStoppedShortError(f"{name} ({form} form)", "solution_not_finite", info)
+        Xv, Kr = gain(x)
+        if staircase and prob is not None and not _holds(A - Kr @ R, Xv, region):
+            notes.append("staircase form: its design failed the float64 check; step 2 form solved")
+            continue
+        break
+    K = Kr @ back
     if form == "disk":
         Xv = host_stein_certificate(A - K @ Ceps, float(region.center), float(region.radius), notes=notes)
     if not np.all(np.isfinite(Xv)):
         raise SolverStoppedShortError(f"{name} ({form} form)", "certificate_not_finite", {"notes": notes})
     if inner_refused:
         notes.append(inner_refused)
-    info.update(formulation=form, lmi_size=prob.sizes, notes=notes)
+    info.update(formulation=form, lmi_size=[] if prob is None else prob.sizes, notes=notes)
     return K, 0.5 * (Xv + Xv.T), info
+
+
+def _holds(Acl, X, region) -> bool:
+    """The float64 check of a staircase design: ``X ≻ 0`` and the region's LMI at ``X`` (a
+    disk: the Möbius closed loop's spectral radius below 1, the Stein certificate follows)."""
+    if not (np.all(np.isfinite(Acl)) and np.all(np.isfinite(X))):
+        return False
+    if isinstance(region, Disk):
+        Ab = (Acl - float(region.center) * np.eye(Acl.shape[0])) / float(region.radius)
+        return bool(np.max(np.abs(np.linalg.eigvals(Ab)), initial=0.0) < 1.0 - 1e-9)
+    return bool(np.linalg.eigvalsh(X)[0] > 0 and np.linalg.eigvalsh(region.lmi_matrix(X, X @ Acl))[-1] < 0)
 
 
 def _part_infeasible(A, Ceps, region, margin, solver, name, err) -> None:

@@ -269,10 +269,9 @@ def kron_batch(L: np.ndarray, X: np.ndarray) -> np.ndarray:
     return np.einsum("ab,pij->paibj", L, X).reshape(p, m * q, m * q)
 
 
-def region_lmi_batch(region: AbstractRegion, X: np.ndarray, Phi: np.ndarray) -> np.ndarray:
-    """`region_lmi` for batches ``X, Φ`` of shape ``(p, q, q)`` in NumPy: the coefficients of
-    an LMI linear in its variables."""
-    L, M = region.characteristic()
+def region_lmi_batch(L: np.ndarray, M: np.ndarray, X: np.ndarray, Phi: np.ndarray) -> np.ndarray:
+    """`region_lmi` of the characteristic matrices ``(L, M)`` for batches ``X, Φ`` of shape
+    ``(p, q, q)`` in NumPy: the coefficients of an LMI linear in its variables."""
     out = kron_batch(L, X) + kron_batch(M, np.swapaxes(Phi, -1, -2)) + kron_batch(M.T, Phi)
     return 0.5 * (out + np.swapaxes(out, -1, -2))
 
@@ -324,25 +323,23 @@ def clarabel_data(prob: ConicLMI):
     import scipy.sparse as sp
     p = prob.c.size
     nt = 0 if prob.norm is None else 1
-    rows, rhs, cones = [], [], []
+    idx = np.zeros(0, dtype=int) if prob.norm is None else np.asarray(prob.norm).ravel()
+    cones = [clarabel.SecondOrderConeT(1 + idx.size)] if nt else []
+    rows = (1 + idx.size if nt else 0) + sum(F0.shape[0] * (F0.shape[0] + 1) // 2 for F0, _ in prob.blocks)
+    A = np.zeros((rows, p + nt))
+    b = np.zeros(rows)
     if nt:  # (t, x[norm]) in the second-order cone
-        idx = np.asarray(prob.norm).ravel()
-        soc = np.zeros((1 + idx.size, p + 1))
-        soc[0, p] = -1.0
-        soc[np.arange(1, 1 + idx.size), idx] = -1.0
-        rows.append(sp.csc_array(soc))
-        rhs.append(np.zeros(1 + idx.size))
-        cones.append(clarabel.SecondOrderConeT(1 + idx.size))
+        A[0, p] = -1.0
+        A[np.arange(1, 1 + idx.size), idx] = -1.0
+    r = 1 + idx.size if nt else 0
     for F0, F in prob.blocks:
-        cols = svec(F).T  # (m(m+1)/2, p)
-        rows.append(sp.csc_array(np.hstack([-cols, np.zeros((cols.shape[0], nt))])))
-        rhs.append(svec(F0))
+        m = F0.shape[0] * (F0.shape[0] + 1) // 2
+        A[r:r + m, :p] = -svec(F).T
+        b[r:r + m] = svec(F0)
         cones.append(clarabel.PSDTriangleConeT(F0.shape[0]))
-    A = sp.vstack(rows, format="csc")
-    A.eliminate_zeros()
+        r += m
     q = np.concatenate([prob.c, np.ones(nt)])
-    P = sp.csc_array((p + nt, p + nt))
-    return P, q, A, np.concatenate(rhs), cones
+    return sp.csc_array((p + nt, p + nt)), q, sp.csc_array(A), b, cones
 
 
 def solve_conic(prob: ConicLMI, name: str, hint: str = "") -> tuple[np.ndarray, dict]:

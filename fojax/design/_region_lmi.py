@@ -246,11 +246,12 @@ def solve_with_fallbacks(obj, cons, name: str, hint: str, solver: str) -> dict:
     return _climb(rung, name, hint, solver)
 
 
-def solve_conic_with_fallbacks(prob: ConicLMI, name: str, hint: str, solver: str) -> tuple[np.ndarray, dict]:
-    """`solve_with_fallbacks` for a `fojax.design._lmi.ConicLMI`: the same ladder, with the
-    Clarabel rungs solving the conic program directly (`fojax.design._lmi.solve_conic`: no
-    cvxpy canonicalisation) and the SCS rungs through cvxpy (`ConicLMI.to_cvxpy`, built once,
-    when first needed). Returns ``(x, info)``."""
+def solve_conic_with_fallbacks(prob: ConicLMI, name: str, hint: str, solver: str,
+                               objectives: tuple | None = None) -> tuple[np.ndarray, dict]:
+    """`solve_with_fallbacks` for a `fojax.design._lmi.ConicLMI`: the same ladder (over
+    `objectives`, default `OBJECTIVES`), with the Clarabel rungs solving the conic program directly
+    (`fojax.design._lmi.solve_conic`: no cvxpy canonicalisation) and the SCS rungs through
+    cvxpy (`ConicLMI.to_cvxpy`, built once, when first needed). Returns ``(x, info)``."""
     built: dict = {}
 
     def rung(sv, o):
@@ -267,15 +268,15 @@ def solve_conic_with_fallbacks(prob: ConicLMI, name: str, hint: str, solver: str
             return value(built["x"]), info
         return via_cvxpy
 
-    info = _climb(rung, name, hint, solver)
+    info = _climb(rung, name, hint, solver, objectives)
     return info.pop("x"), info
 
 
-def _climb(rung, name: str, hint: str, solver: str) -> dict:
+def _climb(rung, name: str, hint: str, solver: str, objectives: tuple | None = None) -> dict:
     """The ladder of `solve_with_fallbacks`: ``rung(solver, objective)`` makes the thunk of
     one rung (returning ``info``, or ``(x, info)``: then ``info["x"] = x``)."""
     solvers = ("CLARABEL", "SCS") if check_solver(solver) == "AUTO" else (check_solver(solver),)
-    rungs = [((sv, o), rung(sv, o)) for sv in solvers for o in OBJECTIVES]
+    rungs = [((sv, o), rung(sv, o)) for sv in solvers for o in (OBJECTIVES if objectives is None else objectives)]
 
     def status(label, err):
         why = f": {err.info['message']}" if err.info.get("message") else ""
