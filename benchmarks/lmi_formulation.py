@@ -77,11 +77,10 @@ def measure(s, kind: str, region, form: str) -> dict:
     from design_scaling import record_cvxpy_solves
 
     from fojax import FojaxError
+    from fojax.design import _region_lmi
     from fojax.design._eliminated import eliminated_gains
     from fojax.design._functional import _finish, TIGHTEN
     from fojax.design._region_lmi import solve_gains
-
-    from fojax.design import _region_lmi
 
     f = eliminated_gains if form == "reduced" else solve_gains
     out: dict = {"formulation": form}
