@@ -329,3 +329,21 @@ def test_output_seeing_every_direction_needs_no_lmi(name):
     Acl = A - K @ C
     assert np.all(inside(region, sla.eigvals(Acl)) > 0)
     assert np.linalg.eigvalsh(X).min() > 0 and region_lmi_by_hand(region, X, Acl) < 0
+
+
+@pytest.mark.parametrize("name", ["disk", "half-plane"])
+def test_staircase_design_refused_falls_back_to_step_2(monkeypatch, name):
+    """A staircase design that fails its float64 check (forced here) is not returned: the step-2
+    form (certificate of order n) designs, the notes say so; eigenvalues (SciPy) and the region
+    LMI at X (by hand) check the result."""
+    from fojax.design import _eliminated
+
+    monkeypatch.setattr(_eliminated, "_holds", lambda *a: False)
+    region = REGIONS[name].tightened(0.05)
+    A, C = output_injection_case(0, 6, 2, region, False)
+    K, X, info = epsilon_block_lmi(A, C, region)
+    assert any("step 2 form solved" in n for n in info["notes"])
+    assert info["lmi_size"] == ([6 + 4] if name == "disk" else [6, 4])
+    Acl = A - K @ C
+    assert np.all(inside(region, sla.eigvals(Acl)) > 0)
+    assert np.linalg.eigvalsh(X).min() > 0 and region_lmi_by_hand(region, X, Acl) < 0

@@ -334,8 +334,8 @@ def _full_lmi(A, R, region, margin):
 
 def epsilon_block_lmi(A, Ceps, region: AbstractRegion, *, margin: float = 1e-3, solver: str = DEFAULT_SOLVER,
                       name: str = "ε-block region LMI"):
-    r"""Output injection by the reduced region LMI (module docstring, step 2): a gain ``K`` with
-    the eigenvalues of ``A - K Ceps`` in `region`, and the certificate.
+    r"""Output injection by the reduced region LMI (module docstring, steps 2 and 3): a gain
+    ``K`` with the eigenvalues of ``A - K Ceps`` in `region`, and the certificate.
 
     **Returns:** ``(K, X, info)``: ``K`` ``(q, rows of Ceps)``, least norm; ``X`` the closed
     loop's certificate (the Stein certificate for a disk, the LMI's ``X`` otherwise); ``info``
@@ -395,12 +395,17 @@ def epsilon_block_lmi(A, Ceps, region: AbstractRegion, *, margin: float = 1e-3, 
                     continue
                 _part_infeasible(A, Ceps, region, margin, solver, name, err)
                 raise
-        if not np.all(np.isfinite(x)):
-            raise SolverStoppedShortError(f"{name} ({form} form)", "solution_not_finite", info)
-        Xv, Kr = gain(x)
-        if staircase and prob is not None and not _holds(A - Kr @ R, Xv, region):
+        ok = bool(np.all(np.isfinite(x)))
+        if ok:
+            try:
+                Xv, Kr = gain(x)
+            except np.linalg.LinAlgError:  # X not positive definite in float64
+                ok = False
+        if staircase and prob is not None and not (ok and _holds(A - Kr @ R, Xv, region)):
             notes.append("staircase form: its design failed the float64 check; step 2 form solved")
             continue
+        if not ok:
+            raise SolverStoppedShortError(f"{name} ({form} form)", "solution_not_positive_definite", info)
         break
     K = Kr @ back
     if form == "disk":
