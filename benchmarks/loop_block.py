@@ -13,9 +13,9 @@ metrics of every state), ``--batch`` samples, 1,001 grid points, IAE only, one d
 each block width in ``--blocks`` the driver's block is set to it (``block_for`` patched),
 and for each vector width in ``--widths`` the whole sweep runs in a fresh process with
 ``XLA_FLAGS=--xla_cpu_prefer_vector_width=<w>`` (which the driver then leaves alone).
-Reported: the median wall time of ``--repeats`` calls after the first, in ns per sample and
-grid step, with the metrics checked equal (to 1e-12) across block widths before timing, and
-the width `block_for` picks. Results: ``results/loop_block_latest.json``.
+Reported: the median wall time of ``--repeats`` calls after the first (the whole call, set-up
+included) divided by the samples and the 1,000 grid steps, with the metrics checked equal (to
+1e-12) across block widths before timing, and the width `block_for` picks. Results: ``results/loop_block_latest.json``.
 
     python benchmarks/loop_block.py
     python benchmarks/loop_block.py --dims 7 --blocks 32 64 128 --widths 512
@@ -131,7 +131,7 @@ def main(argv=None) -> int:
             return 1
         rows += res["rows"]
     payload = _common.result_payload("loop_block", "complete", info, args, rows=rows)
-    md = ["| N | block | vector width | ns / sample-step | block_for's |", "|---:|---:|---:|---:|---|"]
+    md = ["| N | block | vector width | call time / (B · steps), ns | block_for's |", "|---:|---:|---:|---:|---|"]
     md += [f"| {r['N']} | {r['block']} | {r['width']} | {r['ns_per_sample_step']:.2f} | {'yes' if r['picked'] else ''} |"
            for r in rows]
     _common.write_results(args.out, "loop_block", payload, "\n".join(md) + "\n", echo=True)

@@ -124,6 +124,26 @@ def _compute_output_basis(G0: np.ndarray) -> OutputBasis | None:
     return OutputBasis(ind, Nc, G0, S0 * scale[:, None], inv / scale[None, :])
 
 
+def _const_left(C, A):
+    """``C A_k`` for a constant ``C`` ``(n, m)`` and a batch ``A`` ``(b, m, k)``: ``m``
+    multiply-adds of whole arrays (elementwise over the batch, so a sample's bits do not
+    depend on the batch)."""
+    C = jnp.asarray(C, A.dtype)
+    acc = C[None, :, 0, None] * A[:, 0:1, :]
+    for j in range(1, C.shape[1]):
+        acc = acc + C[None, :, j, None] * A[:, j : j + 1, :]
+    return acc
+
+
+def _const_right(A, C):
+    """``A_k C`` for a batch ``A`` ``(b, n, m)`` and a constant ``C`` ``(m, k)`` (as `_const_left`)."""
+    C = jnp.asarray(C, A.dtype)
+    acc = A[:, :, 0:1] * C[None, None, 0, :]
+    for j in range(1, C.shape[0]):
+        acc = acc + A[:, :, j : j + 1] * C[None, None, j, :]
+    return acc
+
+
 def _output_transform(basis: OutputBasis, G):
     """``(S, S⁻¹, ok)`` of one sample's metric map ``G`` ``(K, N)``: ``S = [G_ind; Nc]``,
     inverted from its row-normalised form (well scaled), ``ok`` false when that form has
@@ -236,30 +256,34 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         ok = jnp.repeat(ok, reps)  # not differentiated
     else:
         Aj, w0, G, ok, jumps = jax.vmap(problem.joint)(p)  # (b,N,N), (b,N), (b,K,N), (b,)
-    sim = None
     if basis is not None:
-        # the transform of the first sample when every sample of the block has its metric
-        # map (bit for bit), else each sample's own
-        b, N = G.shape[0], G.shape[2]
+        # the joint system in the output coordinates: with the first sample's transform
+        # (the host's S0, S0⁻¹: products with constant matrices) when every sample of the
+        # block has its metric map bit for bit, else with each sample's own
+        dep = np.array([i for i in range(G.shape[1]) if i not in basis.ind], dtype=int)
+        jd = None if jumps is None else jumps[1]
 
-        def shared(G):
-            return (jnp.broadcast_to(basis.S0, (b, N, N)), jnp.broadcast_to(basis.S0inv, (b, N, N)),
-                    jnp.ones((b,), bool))
+        def shared(args):
+            # products with the constant S0, S0⁻¹ as multiply-adds over the batch axis: each
+            # sample's arithmetic does not depend on the block's width
+            Aj, w0, G, jd = args
+            Aj = _const_right(_const_left(basis.S0, Aj), basis.S0inv)
+            return (Aj, _const_right(w0[:, None, :], basis.S0.T)[:, 0], _const_right(G[:, dep], basis.S0inv),
+                    None if jd is None else _const_right(jd, basis.S0.T), jnp.ones((Aj.shape[0],), bool))
 
-        S, Sinv, good = lax.cond(jnp.all(G == basis.G0[None]), shared,
-                                 jax.vmap(lambda g: _output_transform(basis, g)), G)
-        ok = ok & good
-        dep = [i for i in range(G.shape[1]) if i not in basis.ind]
-        G = jnp.einsum("bkn,bnm->bkm", G[:, np.array(dep, dtype=int)], Sinv)  # the dependent outputs' rows
-        w0 = jnp.einsum("bnm,bm->bn", S, w0)
+        def own(args):
+            Aj, w0, G, jd = args
+            S, Sinv, good = jax.vmap(lambda g: _output_transform(basis, g))(G)
+            Aj = jnp.moveaxis(mm_last(mm_last(jnp.moveaxis(S, 0, -1), jnp.moveaxis(Aj, 0, -1)),
+                                      jnp.moveaxis(Sinv, 0, -1)), -1, 0)  # S A S⁻¹, batch-last products
+            return (Aj, jnp.einsum("bnm,bm->bn", S, w0), jnp.einsum("bkn,bnm->bkm", G[:, dep], Sinv),
+                    None if jd is None else jnp.einsum("bjm,bnm->bjn", jd, S), good)
+
+        Aj, w0, G, jd, good = lax.cond(jnp.all(G == basis.G0[None]), shared, own, (Aj, w0, G, jd))
+        ok = ok & good  # G: the dependent outputs' rows from here on
         if jumps is not None:
-            jumps = (jumps[0], jnp.einsum("bjm,bnm->bjn", jumps[1], S))
-        sim = (S, Sinv)
+            jumps = (jumps[0], jd)
     Aj = jnp.moveaxis(Aj, 0, -1)  # (N, N, b), or (N, N, b / reps)
-    if sim is not None:
-        # the joint matrix in the output coordinates, S A S⁻¹, as two batch-last products
-        # (`mm_last`: faster than batched dots under `jax.vmap` for these small matrices)
-        Aj = mm_last(mm_last(jnp.moveaxis(sim[0], 0, -1), Aj), jnp.moveaxis(sim[1], 0, -1))
     K = G.shape[1] if basis is None else len(basis.ind) + G.shape[1]
     Phi = expm(h * Aj)  # (N, N, b), or (N, N, b / reps)
     grouped_loop = reps > 1 and time_loop is not None and not problem.keep
