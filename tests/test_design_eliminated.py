@@ -26,7 +26,13 @@ from helpers import assert_design_conditions, index1_system
 from scipy.stats import ortho_group
 
 import fojax
-from fojax.design import design_functional_observer, Disk, HalfPlane, Sector
+from fojax.design import (
+    design_functional_observer,
+    Disk,
+    HalfPlane,
+    observer_structure,
+    Sector,
+)
 
 # private: the reduced LMI and the full one are compared directly
 from fojax.design._eliminated import (
@@ -36,7 +42,6 @@ from fojax.design._eliminated import (
     inscribed_disk,
 )
 from fojax.design._functional import prepare_structure
-from fojax.design._parameterization import observer_structure
 from fojax.design._region_lmi import solve_gains
 
 
