@@ -201,6 +201,18 @@ def _lift(Xnn, Xnr, Xrr, N, R):
     return 0.5 * (X + X.T)
 
 
+def _certificate(x, q0, staircase, level, N, R, x_rr):
+    """The certificate ``X`` from the solver's ``x``: ``smat(x)`` (step 2), ``I`` when the
+    null space of ``R`` is trivial (no LMI was solved), else the staircase's ``(X_nn,
+    X_nr)`` lifted with the completion ``x_rr(X_nn, X_nr)`` of its region kind."""
+    if not staircase:
+        return smat(x, q0)
+    if level is None:
+        return np.eye(q0)
+    Xnn, Xnr = level[1](x)
+    return _lift(Xnn, Xnr, x_rr(Xnn, Xnr), N, R)
+
+
 def _next_level(N, R, region_parts, a, b, margin):
     """The LMI of the next level (step 3): gain kept for ``(a, -b)`` in `region_parts`, the
     variables ``(X_nn, X_nr)``; ``None`` when the null space of `R` is trivial."""
@@ -219,6 +231,7 @@ def _disk_lmi(A, R, N, disk, margin, staircase=True):
         level = _next_level(N, R, [unit], a, b, margin)
         prob = None if level is None else level[0]
     else:  # step 2: one cone, its (1,1) block carries the normalization X ⪰ I
+        level = None
         B = sym_basis(q0)  # x = svec X
         BAN = B @ (Ab @ N)
         F = np.zeros((B.shape[0], q0 + k0, q0 + k0))
@@ -228,21 +241,17 @@ def _disk_lmi(A, R, N, disk, margin, staircase=True):
         F[:, q0:, q0:] = N.T @ B @ N
         prob = ConicLMI(svec(np.eye(q0)), ((-np.diag(np.r_[np.ones(q0), np.full(k0, margin)]), F),))
 
+    def x_rr(Xnn, Xnr):
+        # X_rr = X_rn X_nn⁻¹ X_nr + δI, δ half the room the Schur complement leaves
+        Psi = Xnn @ a + Xnr @ b
+        S = Xnn - Psi.T @ np.linalg.solve(Xnn, Psi)
+        nb = float(np.linalg.norm(b, 2)) ** 2 if b.size else 0.0
+        room = float(np.linalg.eigvalsh(0.5 * (S + S.T))[0])
+        delta = 0.5 * room / nb if nb > 0 and room > 0 else 1.0
+        return Xnr.T @ np.linalg.solve(Xnn, Xnr) + delta * np.eye(R.shape[0])
+
     def gain(x):
-        if not staircase:
-            Xv = smat(x, q0)
-        elif level is None:
-            Xv = np.eye(q0)
-        else:
-            Xnn, Xnr = level[1](x)
-            # X_rr = X_rn X_nn⁻¹ X_nr + δI, δ half the room the Schur complement leaves
-            XinvXnr = np.linalg.solve(Xnn, Xnr)
-            Psi = Xnn @ a + Xnr @ b
-            S = Xnn - Psi.T @ np.linalg.solve(Xnn, Psi)
-            nb = float(np.linalg.norm(b, 2)) ** 2 if b.size else 0.0
-            room = float(np.linalg.eigvalsh(0.5 * (S + S.T))[0])
-            delta = 0.5 * room / nb if nb > 0 and room > 0 else 1.0
-            Xv = _lift(Xnn, Xnr, Xnr.T @ XinvXnr + delta * np.eye(R.shape[0]), N, R)
+        Xv = _certificate(x, q0, staircase, level, N, R, x_rr)
         # K = τ Ā P Rᵀ (R P Rᵀ)⁻¹ with P = X⁻¹ (module docstring), by Cholesky solves
         Lx = np.linalg.cholesky(Xv)
         PRt = np.linalg.solve(Lx.T, np.linalg.solve(Lx, R.T))  # P Rᵀ
@@ -260,6 +269,7 @@ def _finsler_lmi(A, R, N, region, margin, staircase=True):
         level = _next_level(N, R, chars, a, b, margin)
         prob = None if level is None else level[0]
     else:  # step 2: X ⪰ I and each part's LMI on the null space of R
+        level = None
         B = sym_basis(q0)  # x = svec X
         blocks = [(-np.eye(q0), B)]
         for L, M in chars:
@@ -267,14 +277,11 @@ def _finsler_lmi(A, R, N, region, margin, staircase=True):
             blocks.append((-margin * np.eye(L.shape[0] * k0), -(In.T @ region_lmi_batch(L, M, B, B @ A) @ In)))
         prob = ConicLMI(svec(np.eye(q0)), tuple(blocks))
 
+    def x_rr(Xnn, Xnr):  # X_rr = X_rn X_nn⁻¹ X_nr + I: X ≻ 0, the parts' LMIs need no more
+        return Xnr.T @ np.linalg.solve(Xnn, Xnr) + np.eye(R.shape[0])
+
     def gain(x):
-        if not staircase:
-            Xv = smat(x, q0)
-        elif level is None:
-            Xv = np.eye(q0)
-        else:
-            Xnn, Xnr = level[1](x)  # X_rr = X_rn X_nn⁻¹ X_nr + I: X ≻ 0, the parts' LMIs need no more
-            Xv = _lift(Xnn, Xnr, Xnr.T @ np.linalg.solve(Xnn, Xnr) + np.eye(R.shape[0]), N, R)
+        Xv = _certificate(x, q0, staircase, level, N, R, x_rr)
         # 𝒲 = 𝒲0 + w Rᵀ: 𝒲0 cancels the coupling of the null-space and row-space blocks
         # (exactly for half-planes, up to |sin 2ψ| for a sector) and the row-space block of
         # XA; w from the Schur complement (module docstring)

@@ -144,6 +144,11 @@ def _const_right(A, C):
     return acc
 
 
+def _dependent_rows(ind: tuple[int, ...], K: int) -> tuple[int, ...]:
+    """The rows of a ``K``-row metric map outside the independent ones ``ind``."""
+    return tuple(i for i in range(K) if i not in ind)
+
+
 def _output_transform(basis: OutputBasis, G):
     """``(S, S⁻¹, ok)`` of one sample's metric map ``G`` ``(K, N)``: ``S = [G_ind; Nc]``,
     inverted from its row-normalised form (well scaled), ``ok`` false when that form has
@@ -260,7 +265,7 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
         # the joint system in the output coordinates: with the first sample's transform
         # (the host's S0, S0⁻¹: products with constant matrices) when every sample of the
         # block has its metric map bit for bit, else with each sample's own
-        dep = np.array([i for i in range(G.shape[1]) if i not in basis.ind], dtype=int)
+        dep = np.array(_dependent_rows(basis.ind, G.shape[1]), dtype=int)
         jd = None if jumps is None else jumps[1]
 
         def shared(args):
@@ -310,7 +315,7 @@ def _block_kernel(problem, p, h, ts, basis, differentiable: bool = False, time_l
     order = None
     if basis is not None:
         ind = basis.ind
-        dep = tuple(i for i in range(K) if i not in ind)
+        dep = _dependent_rows(ind, K)
         order = np.argsort(np.array(ind + dep))  # o = concat([o_ind, o_dep])[order]
         if np.array_equal(order, np.arange(K)):
             order = None
